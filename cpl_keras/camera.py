@@ -1,0 +1,266 @@
+"""The pinhole stereo camera model of the paper, written once.
+
+Coordinates follow the paper: x forward, y left, z up. A pixel (u, v) has u to
+the right and v down, the principal point is (u0, v0). Angles are radians.
+
+Every equation below is written against a small "op set" (add, sub, mul, div,
+neg, sin, cos), so the same code runs on
+
+* numpy arrays (``NUMPY``): the data generator and the metrics,
+* backend tensors through ``keras.ops`` (``TENSOR``): losses,
+* symbolic Keras tensors, one named ``Lambda`` layer per op
+  (``cpl_keras.layers.LambdaOps``): the camera graph inside the model.
+
+Each op takes a ``name``; only the Lambda op set uses it, to name the layer
+after the quantity it computes, so ``model.summary()`` reads like the
+equations.
+
+Forward model (image -> camera -> world), paper Eqs. 4a-5c::
+
+    xCam = fx * b / d                                   (4a)
+    yCam = -(xCam / fx) * (u - u0)                      (4b)
+    zCam =  (xCam / fy) * (v0 - v)                      (4c)
+    X =  xCam * cos(pitch) + zCam * sin(pitch) + tx     (5a)
+    Y =  yCam + ty                                      (5b)
+    Z = -xCam * sin(pitch) + zCam * cos(pitch) + tz     (5c)
+
+With Eq. 5 the optical axis (1, 0, 0) of a camera with pitch > 0 points to
+(cos p, 0, -sin p): a positive pitch tilts the camera down.
+
+Division is "safe": every divisor is floored away from zero, keeping its sign
+(``safe_divisor``), so a predicted disparity or focal length at or near 0
+gives large but finite values, never inf or NaN.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+#: Smallest magnitude a divisor may have (pixels for d, fx, fy; metres for xCam).
+EPSILON = 1e-3
+
+#: The 10 camera parameters, in the release's order.
+PARAMETERS = (
+    "fx", "fy", "u0", "v0", "baseline", "disparity", "tx", "ty", "tz", "pitch",
+)
+#: The 13 regression targets (the model's outputs), in the release's order.
+TARGETS = PARAMETERS + ("X", "Y", "Z")
+
+#: Units of every label the project stores.
+UNITS = {
+    "fx": "px", "fy": "px", "u0": "px", "v0": "px", "u": "px", "v": "px",
+    "disparity": "px", "disparity_released": "px",
+    "baseline": "m", "tx": "m", "ty": "m", "tz": "m",
+    "X": "m", "Y": "m", "Z": "m",
+    "pitch": "rad", "yaw": "rad", "roll": "rad",
+}
+
+
+# ---------------------------------------------------------------------------
+# Op sets
+# ---------------------------------------------------------------------------
+class NumpyOps:
+    """The op set on numpy arrays (and Python floats)."""
+
+    def __init__(self, epsilon=EPSILON):
+        self.epsilon = float(epsilon)
+
+    def add(self, a, b, name=None):
+        return np.add(a, b)
+
+    def sub(self, a, b, name=None):
+        return np.subtract(a, b)
+
+    def mul(self, a, b, name=None):
+        return np.multiply(a, b)
+
+    def div(self, a, b, name=None):
+        return np.divide(a, safe_divisor(b, self.epsilon, np))
+
+    def neg(self, a, name=None):
+        return np.negative(a)
+
+    def sin(self, a, name=None):
+        return np.sin(a)
+
+    def cos(self, a, name=None):
+        return np.cos(a)
+
+
+class TensorOps(NumpyOps):
+    """The op set on backend tensors, through ``keras.ops`` (imported lazily,
+    so the numpy side never loads a deep-learning backend)."""
+
+    def __init__(self, epsilon=EPSILON):
+        super().__init__(epsilon)
+        from keras import ops
+
+        self._ops = ops
+
+    def add(self, a, b, name=None):
+        return self._ops.add(a, b)
+
+    def sub(self, a, b, name=None):
+        return self._ops.subtract(a, b)
+
+    def mul(self, a, b, name=None):
+        return self._ops.multiply(a, b)
+
+    def div(self, a, b, name=None):
+        return self._ops.divide(a, safe_divisor(b, self.epsilon, self._ops))
+
+    def neg(self, a, name=None):
+        return self._ops.negative(a)
+
+    def sin(self, a, name=None):
+        return self._ops.sin(a)
+
+    def cos(self, a, name=None):
+        return self._ops.cos(a)
+
+
+def safe_divisor(b, epsilon=EPSILON, xp=np):
+    """``b`` floored to magnitude ``epsilon``, keeping its sign (0 -> +epsilon).
+
+    ``xp`` is ``numpy`` or ``keras.ops``. The floor is applied before the
+    division, so neither the value nor its gradient can be inf or NaN.
+    """
+    small = xp.less(xp.abs(b), epsilon)
+    floor = xp.where(xp.less(b, 0), -epsilon, epsilon)
+    return xp.where(small, floor, b)
+
+
+NUMPY = NumpyOps()
+
+
+def tensor_ops(epsilon=EPSILON):
+    """A ``TensorOps`` instance (keras.ops on the active backend)."""
+    return TensorOps(epsilon)
+
+
+# ---------------------------------------------------------------------------
+# Intrinsics
+# ---------------------------------------------------------------------------
+def focal_from_fov(fov, size):
+    """Focal length in pixels from a field of view (radians) across ``size`` px:
+    ``f = size / (2 tan(fov / 2))`` (CARLA's and the release's formula)."""
+    return np.asarray(size, dtype=np.float64) / (2.0 * np.tan(np.asarray(fov) / 2.0))
+
+
+def fov_from_focal(focal, size):
+    """Field of view (radians) across ``size`` pixels for a focal length in px."""
+    return 2.0 * np.arctan(np.asarray(size, dtype=np.float64) / (2.0 * np.asarray(focal)))
+
+
+# ---------------------------------------------------------------------------
+# Forward model: image -> camera -> world (Eqs. 4a-5c)
+# ---------------------------------------------------------------------------
+def depth_from_disparity(fx, baseline, disparity, ops=NUMPY):
+    """Eq. 4a: ``xCam = fx * b / d``, the depth of the point along x."""
+    fx_b = ops.mul(fx, baseline, name="fx_times_baseline")
+    return ops.div(fx_b, disparity, name="xCam")
+
+
+def camera_point(xCam, fx, fy, u0, v0, u, v, ops=NUMPY):
+    """Eqs. 4b-4c: the camera-frame y and z of pixel (u, v) at depth xCam.
+
+    ``yCam = -(xCam / fx) * (u - u0)`` and ``zCam = (xCam / fy) * (v0 - v)``.
+    With ``xCam = 1`` this is the viewing ray of the pixel (paper Eq. 6).
+    """
+    xCam_over_fx = ops.div(xCam, fx, name="xCam_over_fx")
+    u_minus_u0 = ops.sub(u, u0, name="u_minus_u0")
+    yCam = ops.mul(
+        ops.neg(xCam_over_fx, name="neg_xCam_over_fx"), u_minus_u0, name="yCam"
+    )
+    xCam_over_fy = ops.div(xCam, fy, name="xCam_over_fy")
+    v0_minus_v = ops.sub(v0, v, name="v0_minus_v")
+    zCam = ops.mul(xCam_over_fy, v0_minus_v, name="zCam")
+    return yCam, zCam
+
+
+def image_to_camera(fx, fy, u0, v0, baseline, disparity, u, v, ops=NUMPY):
+    """Eqs. 4a-4c: pixel (u, v) with disparity d -> (xCam, yCam, zCam)."""
+    xCam = depth_from_disparity(fx, baseline, disparity, ops)
+    yCam, zCam = camera_point(xCam, fx, fy, u0, v0, u, v, ops)
+    return xCam, yCam, zCam
+
+
+def camera_to_world(xCam, yCam, zCam, pitch, tx, ty, tz, ops=NUMPY):
+    """Eqs. 5a-5c: rotate by ``pitch`` about y, then translate by (tx, ty, tz)."""
+    cos_p = ops.cos(pitch, name="cos_pitch")
+    sin_p = ops.sin(pitch, name="sin_pitch")
+    X = ops.add(
+        ops.add(
+            ops.mul(xCam, cos_p, name="xCam_cos_pitch"),
+            ops.mul(zCam, sin_p, name="zCam_sin_pitch"),
+            name="X_rotated",
+        ),
+        tx,
+        name="X",
+    )
+    Y = ops.add(yCam, ty, name="Y")
+    Z = ops.add(
+        ops.add(
+            ops.neg(ops.mul(xCam, sin_p, name="xCam_sin_pitch"), name="neg_xCam_sin_pitch"),
+            ops.mul(zCam, cos_p, name="zCam_cos_pitch"),
+            name="Z_rotated",
+        ),
+        tz,
+        name="Z",
+    )
+    return X, Y, Z
+
+
+def image_to_world(fx, fy, u0, v0, baseline, disparity, pitch, tx, ty, tz, u, v, ops=NUMPY):
+    """Eqs. 4a-5c composed: pixel (u, v) and the 10 parameters -> (X, Y, Z)."""
+    xCam, yCam, zCam = image_to_camera(fx, fy, u0, v0, baseline, disparity, u, v, ops)
+    return camera_to_world(xCam, yCam, zCam, pitch, tx, ty, tz, ops)
+
+
+# ---------------------------------------------------------------------------
+# Inverse model: world -> camera -> image
+# ---------------------------------------------------------------------------
+def world_to_camera(X, Y, Z, pitch, tx, ty, tz, ops=NUMPY):
+    """Inverse of Eqs. 5a-5c (the rotation's transpose)."""
+    dX = ops.sub(X, tx)
+    dY = ops.sub(Y, ty)
+    dZ = ops.sub(Z, tz)
+    cos_p, sin_p = ops.cos(pitch), ops.sin(pitch)
+    xCam = ops.sub(ops.mul(dX, cos_p), ops.mul(dZ, sin_p))
+    zCam = ops.add(ops.mul(dX, sin_p), ops.mul(dZ, cos_p))
+    return xCam, dY, zCam
+
+
+def camera_to_image(xCam, yCam, zCam, fx, fy, u0, v0, baseline, ops=NUMPY):
+    """Inverse of Eqs. 4a-4c: camera point -> pixel (u, v) and disparity d."""
+    u = ops.sub(u0, ops.mul(fx, ops.div(yCam, xCam)))
+    v = ops.sub(v0, ops.mul(fy, ops.div(zCam, xCam)))
+    disparity = ops.div(ops.mul(fx, baseline), xCam)
+    return u, v, disparity
+
+
+def world_to_image(X, Y, Z, fx, fy, u0, v0, baseline, pitch, tx, ty, tz, ops=NUMPY):
+    """Inverse of Eqs. 4a-5c: world point -> pixel (u, v) and disparity d."""
+    xCam, yCam, zCam = world_to_camera(X, Y, Z, pitch, tx, ty, tz, ops)
+    return camera_to_image(xCam, yCam, zCam, fx, fy, u0, v0, baseline, ops)
+
+
+# ---------------------------------------------------------------------------
+# Full 3D rotation (numpy), for renderers of rigs with yaw and roll
+# ---------------------------------------------------------------------------
+def rotation_matrix(pitch=0.0, yaw=0.0, roll=0.0):
+    """Camera-to-world rotation ``R = Rz(yaw) @ Ry(pitch) @ Rx(roll)``.
+
+    ``Ry(pitch)`` is the rotation of Eq. 5 (positive pitch tilts the optical
+    axis down); yaw turns left about z (up), roll turns about x (forward). With
+    yaw = roll = 0, ``R @ (xCam, yCam, zCam) + t`` equals ``camera_to_world``.
+    """
+    cp, sp = math.cos(pitch), math.sin(pitch)
+    cy, sy = math.cos(yaw), math.sin(yaw)
+    cr, sr = math.cos(roll), math.sin(roll)
+    Ry = np.array([[cp, 0.0, sp], [0.0, 1.0, 0.0], [-sp, 0.0, cp]])
+    Rz = np.array([[cy, -sy, 0.0], [sy, cy, 0.0], [0.0, 0.0, 1.0]])
+    Rx = np.array([[1.0, 0.0, 0.0], [0.0, cr, -sr], [0.0, sr, cr]])
+    return Rz @ Ry @ Rx

@@ -1,0 +1,1 @@
+"""Synthetic CVGL-style stereo data: rendering, rig protocols and HDF5 storage."""

@@ -1,0 +1,237 @@
+"""The project's stereo dataset file: one HDF5 file per dataset.
+
+Layout (``SCHEMA_VERSION`` 1)::
+
+    /left, /right        uint8 (N, H, W, 3), RGB, one chunk per sample, gzip
+    /labels/<name>       float32 (N,) for every name in REQUIRED_LABELS (and
+                         any extra ones), attrs: unit, description
+    /labels/config_id    int32 (N,)  rig configuration
+    /labels/town_id      int32 (N,)  scene / town
+    /labels/frame_index  int32 (N,)  frame along the drive
+    root attrs           schema_version, num_pairs, image_height, image_width,
+                         and the generator's metadata (``metadata_json``)
+
+Writes go to ``<path>.partial`` and are renamed to ``path`` only when the
+writer closes without error, so an interrupted write never leaves a file
+that looks complete. ``StereoFile`` opens and validates a file, reporting a
+problem as a one-line ``DatasetError`` that names it.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+
+import numpy as np
+
+from cpl_keras.camera import TARGETS, UNITS
+
+SCHEMA_VERSION = 1
+
+#: Labels every dataset must carry: the 13 targets, the projection pixel and
+#: the release's disparity.
+REQUIRED_LABELS = TARGETS + ("u", "v", "disparity_released")
+#: Integer bookkeeping labels.
+INDEX_LABELS = ("config_id", "town_id", "frame_index")
+
+
+class DatasetError(ValueError):
+    """A dataset file is missing, unreadable or malformed (one-line message)."""
+
+
+def _h5py():
+    import h5py
+
+    return h5py
+
+
+class StereoWriter:
+    """Writes a dataset of ``num_pairs`` stereo pairs, atomically.
+
+    Use as a context manager; ``write(start, left, right, labels)`` stores a
+    block of pairs at ``start``. On a clean exit the file is renamed into
+    place; on an exception the partial file is deleted.
+    """
+
+    def __init__(self, path, num_pairs, image_size, metadata=None, label_descriptions=None,
+                 compression="gzip", compression_opts=1):
+        num_pairs = int(num_pairs)
+        if num_pairs <= 0:
+            raise DatasetError(f"number of pairs must be positive, got {num_pairs}")
+        h, w = (image_size, image_size) if np.isscalar(image_size) else image_size
+        self.path = os.fspath(path)
+        self.tmp_path = self.path + ".partial"
+        self.num_pairs = num_pairs
+        self.shape = (int(h), int(w), 3)
+        self.metadata = dict(metadata or {})
+        self.descriptions = dict(label_descriptions or {})
+        self._compression = compression
+        self._compression_opts = compression_opts
+        self._file = None
+        self._written = np.zeros(num_pairs, dtype=bool)
+
+    def __enter__(self):
+        h5py = _h5py()
+        directory = os.path.dirname(os.path.abspath(self.path))
+        if not os.path.isdir(directory):
+            raise DatasetError(f"output directory does not exist: {directory}")
+        try:
+            self._file = h5py.File(self.tmp_path, "w")
+        except OSError as error:
+            raise DatasetError(f"cannot write {self.tmp_path}: {error}") from None
+        f = self._file
+        n, (h, w, c) = self.num_pairs, self.shape
+        for side in ("left", "right"):
+            f.create_dataset(
+                side, shape=(n, h, w, c), dtype="uint8", chunks=(1, h, w, c),
+                compression=self._compression, compression_opts=self._compression_opts,
+            )
+        f.create_group("labels")
+        f.attrs["schema_version"] = SCHEMA_VERSION
+        f.attrs["num_pairs"] = n
+        f.attrs["image_height"] = h
+        f.attrs["image_width"] = w
+        f.attrs["metadata_json"] = json.dumps(self.metadata, sort_keys=True)
+        return self
+
+    def write(self, start, left, right, labels):
+        """Store pairs ``start .. start + len(left)`` with their labels."""
+        f = self._file
+        left = np.asarray(left)
+        right = np.asarray(right)
+        stop = start + len(left)
+        if left.shape[1:] != self.shape or right.shape != left.shape:
+            raise DatasetError(
+                f"images must have shape (n, {self.shape[0]}, {self.shape[1]}, 3), "
+                f"got {left.shape} and {right.shape}"
+            )
+        f["left"][start:stop] = left.astype(np.uint8, copy=False)
+        f["right"][start:stop] = right.astype(np.uint8, copy=False)
+        group = f["labels"]
+        for name, values in labels.items():
+            values = np.asarray(values)
+            if name not in group:
+                dtype = "int32" if name in INDEX_LABELS else "float32"
+                ds = group.create_dataset(name, shape=(self.num_pairs,), dtype=dtype)
+                if name in UNITS:
+                    ds.attrs["unit"] = UNITS[name]
+                if name in self.descriptions:
+                    ds.attrs["description"] = self.descriptions[name]
+            group[name][start:stop] = values
+        self._written[start:stop] = True
+
+    def __exit__(self, exc_type, exc, tb):
+        f, self._file = self._file, None
+        try:
+            if f is not None:
+                f.close()
+        finally:
+            if exc_type is None and not self._written.all():
+                missing = int((~self._written).sum())
+                os.remove(self.tmp_path)
+                raise DatasetError(f"{missing} of {self.num_pairs} pairs were never written")
+            if exc_type is None:
+                os.replace(self.tmp_path, self.path)
+            elif os.path.exists(self.tmp_path):
+                os.remove(self.tmp_path)
+        return False
+
+
+class StereoFile:
+    """A validated, read-only view of a dataset file.
+
+    Labels are loaded into memory (a few floats per pair); images are read on
+    demand with ``read_pairs``, so memory does not grow with the dataset.
+    """
+
+    def __init__(self, path, required_labels=REQUIRED_LABELS):
+        h5py = _h5py()
+        self.path = os.fspath(path)
+        if not os.path.exists(self.path):
+            raise DatasetError(f"dataset not found: {self.path}")
+        if not os.path.isfile(self.path):
+            raise DatasetError(f"dataset is not a file: {self.path}")
+        try:
+            self._file = h5py.File(self.path, "r")
+        except OSError:
+            raise DatasetError(f"not an HDF5 file: {self.path}") from None
+        try:
+            self._validate(required_labels)
+        except Exception:
+            self._file.close()
+            raise
+
+    def _validate(self, required_labels):
+        f = self._file
+        for side in ("left", "right"):
+            if side not in f:
+                raise DatasetError(f"{self.path}: missing image array '/{side}'")
+        left, right = f["left"], f["right"]
+        if left.ndim != 4 or left.shape[-1] != 3 or left.dtype != np.uint8:
+            raise DatasetError(
+                f"{self.path}: '/left' must be uint8 (N, H, W, 3), got {left.dtype} {left.shape}"
+            )
+        if right.shape != left.shape or right.dtype != left.dtype:
+            raise DatasetError(
+                f"{self.path}: '/right' {right.shape} does not match '/left' {left.shape}"
+            )
+        self.num_pairs = int(left.shape[0])
+        self.image_shape = tuple(int(s) for s in left.shape[1:])
+        if self.num_pairs == 0:
+            raise DatasetError(f"{self.path}: dataset holds no pairs")
+        if "labels" not in f:
+            raise DatasetError(f"{self.path}: missing label group '/labels'")
+        group = f["labels"]
+        self.labels = {}
+        for name in group:
+            values = group[name][()]
+            if values.shape != (self.num_pairs,):
+                raise DatasetError(
+                    f"{self.path}: label '{name}' has shape {values.shape}, "
+                    f"expected ({self.num_pairs},)"
+                )
+            if not np.all(np.isfinite(values)):
+                bad = int((~np.isfinite(values)).sum())
+                raise DatasetError(f"{self.path}: label '{name}' has {bad} non-finite values")
+            self.labels[name] = values
+        missing = [name for name in required_labels if name not in self.labels]
+        if missing:
+            raise DatasetError(f"{self.path}: missing label(s) {', '.join(missing)}")
+        try:
+            self.metadata = json.loads(f.attrs.get("metadata_json", "{}"))
+        except json.JSONDecodeError:
+            raise DatasetError(f"{self.path}: metadata is not valid JSON") from None
+
+    def read_pairs(self, indices):
+        """Left and right images (uint8, (n, H, W, 3)) of ``indices``, in that order."""
+        indices = np.asarray(indices, dtype=np.int64)
+        if indices.size == 0:
+            empty = np.zeros((0,) + self.image_shape, np.uint8)
+            return empty, empty.copy()
+        if indices.min() < 0 or indices.max() >= self.num_pairs:
+            raise DatasetError(f"{self.path}: pair index out of range")
+        order = np.argsort(indices, kind="stable")
+        sorted_idx = indices[order]
+        unique, inverse = np.unique(sorted_idx, return_inverse=True)
+        out = []
+        for side in ("left", "right"):
+            block = self._file[side][unique]          # h5py needs increasing indices
+            images = np.empty((len(indices),) + self.image_shape, np.uint8)
+            images[order] = block[inverse]
+            out.append(images)
+        return out[0], out[1]
+
+    def close(self):
+        if self._file is not None:
+            self._file.close()
+            self._file = None
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        self.close()
+        return False
+
+    def __len__(self):
+        return self.num_pairs
