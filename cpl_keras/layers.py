@@ -1,0 +1,147 @@
+"""Keras building blocks of the camera graph, all registered for safe loading.
+
+The camera equations of ``cpl_keras.camera`` run inside the model as one
+``keras.layers.Lambda`` layer per operation (add, sub, mul, div, neg, sin,
+cos), each named after the quantity it computes. The functions the Lambda
+layers call are module-level and registered with
+``keras.saving.register_keras_serializable``, so a saved ``.keras`` model
+stores their names, not their bytecode, and loads with ``safe_mode=True``.
+"""
+
+from __future__ import annotations
+
+import keras
+from keras import ops
+
+from cpl_keras import camera
+
+PACKAGE = "cpl_keras"
+
+
+# ---------------------------------------------------------------------------
+# Registered op functions (what the Lambda layers call)
+# ---------------------------------------------------------------------------
+@keras.saving.register_keras_serializable(package=PACKAGE)
+def add(inputs):
+    a, b = inputs
+    return ops.add(a, b)
+
+
+@keras.saving.register_keras_serializable(package=PACKAGE)
+def subtract(inputs):
+    a, b = inputs
+    return ops.subtract(a, b)
+
+
+@keras.saving.register_keras_serializable(package=PACKAGE)
+def multiply(inputs):
+    a, b = inputs
+    return ops.multiply(a, b)
+
+
+@keras.saving.register_keras_serializable(package=PACKAGE)
+def safe_divide(inputs, epsilon=camera.EPSILON):
+    """``a / b`` with ``b`` floored to magnitude ``epsilon``, sign kept."""
+    a, b = inputs
+    return ops.divide(a, camera.safe_divisor(b, epsilon, ops))
+
+
+@keras.saving.register_keras_serializable(package=PACKAGE)
+def negative(x):
+    return ops.negative(x)
+
+
+@keras.saving.register_keras_serializable(package=PACKAGE)
+def sin(x):
+    return ops.sin(x)
+
+
+@keras.saving.register_keras_serializable(package=PACKAGE)
+def cos(x):
+    return ops.cos(x)
+
+
+@keras.saving.register_keras_serializable(package=PACKAGE)
+def take(x, index=0):
+    """Column ``index`` of a (batch, n) tensor, kept as (batch, 1)."""
+    return x[:, index : index + 1]
+
+
+@keras.saving.register_keras_serializable(package=PACKAGE)
+def stack_channels(inputs, channel=-1):
+    """Deep-Homo's input: one channel of each image, stacked to (H, W, 2).
+
+    ``channel=-1`` takes the luma (ITU-R BT.601 grey) of each RGB image;
+    ``channel=k`` takes channel k as it is (the release took one channel of
+    OpenCV's BGR images).
+    """
+    left, right = inputs
+    if channel < 0:
+        weights = ops.convert_to_tensor([0.299, 0.587, 0.114], dtype=left.dtype)
+        left = ops.sum(left * weights, axis=-1, keepdims=True)
+        right = ops.sum(right * weights, axis=-1, keepdims=True)
+    else:
+        left = left[..., channel : channel + 1]
+        right = right[..., channel : channel + 1]
+    return ops.concatenate([left, right], axis=-1)
+
+
+# The op name of each registered function, as ``inspect`` shows it.
+OP_NAMES = {
+    add: "add", subtract: "sub", multiply: "mul", safe_divide: "div",
+    negative: "neg", sin: "sin", cos: "cos",
+}
+
+
+class LambdaOps:
+    """The camera op set on symbolic Keras tensors: every op is a named Lambda.
+
+    ``rename`` maps a quantity's name to the layer name to use instead (the
+    released CPL-A gates X, Y, Z after the camera graph, so there the graph's
+    last layers are called ``X_projected`` and so on).
+    """
+
+    def __init__(self, epsilon=camera.EPSILON, rename=None):
+        self.epsilon = float(epsilon)
+        self.rename = dict(rename or {})
+
+    def _layer(self, function, inputs, name, arguments=None):
+        if name is None:
+            raise ValueError("every camera-graph op needs the name of the quantity it computes")
+        layer = keras.layers.Lambda(
+            function, arguments=arguments, name=self.rename.get(name, name)
+        )
+        return layer(inputs)
+
+    def add(self, a, b, name=None):
+        return self._layer(add, [a, b], name)
+
+    def sub(self, a, b, name=None):
+        return self._layer(subtract, [a, b], name)
+
+    def mul(self, a, b, name=None):
+        return self._layer(multiply, [a, b], name)
+
+    def div(self, a, b, name=None):
+        return self._layer(safe_divide, [a, b], name, {"epsilon": self.epsilon})
+
+    def neg(self, a, name=None):
+        return self._layer(negative, a, name)
+
+    def sin(self, a, name=None):
+        return self._layer(sin, a, name)
+
+    def cos(self, a, name=None):
+        return self._layer(cos, a, name)
+
+
+def is_camera_layer(layer):
+    """True for the Lambda layers of the camera graph."""
+    return isinstance(layer, keras.layers.Lambda) and layer.function in OP_NAMES
+
+
+def regression_head(features, name, activation=None):
+    """The release's per-quantity head: Dense(120, relu) -> Dense(84, relu) -> Dense(1)."""
+    x = keras.layers.Dense(120, activation="relu", name=f"{name}_dense_120")(features)
+    x = keras.layers.Dense(84, activation="relu", name=f"{name}_dense_84")(x)
+    return keras.layers.Dense(1, activation=activation, name=name)(x)

@@ -1,0 +1,91 @@
+"""Training losses: the camera projection loss (CPL) and Deep-Homo's loss.
+
+Camera projection loss, as the paper writes it
+----------------------------------------------
+For ground truth omega = (fx, fy, u0, v0, b, d, pitch, tx, ty, tz, X, Y, Z) and
+a prediction omega', Eq. 6 is the mean of the 13 absolute errors::
+
+    L(omega', omega) = 1/13 * sum_k |omega'_k - omega_k|
+
+where the predicted X, Y, Z come out of the camera equations (Eqs. 4a-5c).
+To keep an error in one parameter from being blamed on another, the loss is
+disentangled (Eq. 7): ``L_p`` evaluates L with only parameter p predicted
+and every other one at its ground truth, so the projected point moves only
+because of p::
+
+    L_p = 1/13 * (|p' - p| + |X(p') - X| + |Y(p') - Y| + |Z(p') - Z|)
+
+for the 10 camera parameters, and ``L_X = 1/13 |X' - X|`` (likewise Y, Z)
+for the graph's own outputs. The projection pixel (u, v) of the ground truth
+is recovered from the ground-truth point by the inverse camera model, so the
+dataset needs to supply nothing beyond the 13 targets.
+
+* MTL-CPL-U: ``L* = (L_fx + ... + L_Z) / 13`` (Eq. 7, uniform weights).
+* MTL-CPL-A: ``L* = sum_i alpha_i L_i`` with learned alpha_i (Eq. 9). Plain
+  learned multipliers can shrink to 0 and switch the loss off (the release's
+  gates did). We learn ``alpha_i = exp(-s_i)`` and add ``s_i`` to the loss
+  (the log-variance weighting of Kendall et al., 2018): a small alpha_i costs
+  a large s_i, so the weights settle at alpha_i ~ 1 / L_i instead of
+  collapsing, which is exactly the balancing of heterogeneous ranges the
+  paper asks of them.
+"""
+
+from __future__ import annotations
+
+from keras import ops
+
+from cpl_keras import camera
+
+
+def projection_terms(y_true, y_pred, epsilon=camera.EPSILON):
+    """The 13 disentangled projection losses ``L_p`` of Eq. 7, in TARGETS order.
+
+    ``y_true`` and ``y_pred`` map each name of ``camera.TARGETS`` to a
+    (batch, 1) tensor. Returns a list of 13 scalars (batch means).
+    """
+    tensor = camera.tensor_ops(epsilon)
+    gt = {name: ops.cast(y_true[name], "float32") for name in camera.TARGETS}
+    params = {name: gt[name] for name in camera.PARAMETERS}
+    # The ground-truth projection pixel, by the inverse of Eqs. 4a-5c.
+    u, v, _ = camera.world_to_image(
+        gt["X"], gt["Y"], gt["Z"], gt["fx"], gt["fy"], gt["u0"], gt["v0"],
+        gt["baseline"], gt["pitch"], gt["tx"], gt["ty"], gt["tz"], ops=tensor,
+    )
+    n = float(len(camera.TARGETS))
+    terms = []
+    for name in camera.PARAMETERS:
+        one_predicted = dict(params, **{name: y_pred[name]})
+        X, Y, Z = camera.image_to_world(**one_predicted, u=u, v=v, ops=tensor)
+        error = (
+            ops.abs(y_pred[name] - gt[name])
+            + ops.abs(X - gt["X"]) + ops.abs(Y - gt["Y"]) + ops.abs(Z - gt["Z"])
+        )
+        terms.append(ops.mean(error) / n)
+    for name in ("X", "Y", "Z"):
+        terms.append(ops.mean(ops.abs(y_pred[name] - gt[name])) / n)
+    return terms
+
+
+def uniform_projection_loss(terms):
+    """Eq. 7: the mean of the disentangled terms."""
+    return ops.sum(ops.stack(terms)) / float(len(terms))
+
+
+def adaptive_projection_loss(terms, log_variances):
+    """Eq. 9 with ``alpha_i = exp(-s_i)`` and the regulariser ``sum_i s_i``."""
+    terms = ops.stack(terms)
+    return ops.sum(ops.exp(-log_variances) * terms + log_variances)
+
+
+def euclidean_loss(y_true, y_pred, epsilon=1e-7):
+    """Deep-Homo's loss: the Euclidean distance between the 13-vectors.
+
+    ``sqrt(sum_k (y'_k - y_k)^2)`` per sample, floored at ``epsilon`` inside
+    the root so its gradient stays finite at a perfect prediction.
+    """
+    squared = [
+        ops.square(ops.cast(y_pred[name], "float32") - ops.cast(y_true[name], "float32"))
+        for name in camera.TARGETS
+    ]
+    total = ops.sum(ops.concatenate(squared, axis=-1), axis=-1)
+    return ops.mean(ops.sqrt(ops.maximum(total, epsilon)))
