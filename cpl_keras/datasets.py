@@ -1,0 +1,308 @@
+"""Training inputs: regression targets, train/val/test splits and a streaming
+``keras.utils.PyDataset`` over the project's HDF5 stereo files.
+
+* ``targets_from_labels`` turns stored labels into the 13 regression targets
+  (``camera.TARGETS``), either as the paper defines them or with the released
+  code's label quirks (``as_released=True``).
+* ``make_split`` draws the train / validation / test index arrays.
+* ``StereoSequence`` reads one batch at a time from the file, so memory does
+  not grow with the dataset (the release held all images in RAM).
+
+Only ``StereoSequence`` needs Keras; it is imported when that class is first
+used, so the numpy-side helpers stay light.
+"""
+
+from __future__ import annotations
+
+import os
+import threading
+
+import numpy as np
+
+from cpl_keras import camera
+from cpl_keras.camera import TARGETS
+from cpl_keras.data.storage import DatasetError, StereoFile
+
+SPLITS = ("paper", "held-out-config")
+
+
+# ---------------------------------------------------------------------------
+# Targets
+# ---------------------------------------------------------------------------
+def targets_from_labels(labels, as_released=False):
+    """The 13 regression targets (float32 arrays, ``TARGETS`` order) from labels.
+
+    Paper mode returns the stored targets. ``as_released=True`` reproduces the
+    released code's labels:
+
+    * disparity is the release's StereoBM mean (``labels["disparity_released"]``),
+    * pitch is in degrees (the release stored degrees and fed them to sin/cos),
+    * X, Y, Z are the camera equations (Eqs. 4a-5c, ``camera.image_to_world``)
+      evaluated with those two values at the stored pixel (u, v).
+    """
+    required = TARGETS + (("u", "v", "disparity_released") if as_released else ())
+    missing = [name for name in required if name not in labels]
+    if missing:
+        raise DatasetError(f"missing label(s) {', '.join(missing)}")
+    out = {name: np.asarray(labels[name], dtype=np.float64) for name in TARGETS}
+    if as_released:
+        out["disparity"] = np.asarray(labels["disparity_released"], dtype=np.float64)
+        out["pitch"] = np.degrees(out["pitch"])
+        params = {name: out[name] for name in camera.PARAMETERS}
+        u = np.asarray(labels["u"], dtype=np.float64)
+        v = np.asarray(labels["v"], dtype=np.float64)
+        out["X"], out["Y"], out["Z"] = camera.image_to_world(**params, u=u, v=v)
+    result = {name: out[name].astype(np.float32) for name in TARGETS}
+    for name, values in result.items():
+        if not np.all(np.isfinite(values)):
+            raise DatasetError(f"target '{name}' has non-finite values")
+    return result
+
+
+# ---------------------------------------------------------------------------
+# Splits
+# ---------------------------------------------------------------------------
+def _labels_of(source):
+    if isinstance(source, StereoFile):
+        return source.labels
+    if isinstance(source, (str, os.PathLike)):
+        with StereoFile(source) as f:
+            return f.labels
+    return source
+
+
+def _fraction_count(fraction, n, name):
+    if not 0.0 < fraction < 1.0:
+        raise ValueError(f"{name} must be in (0, 1), got {fraction}")
+    return int(round(fraction * n))
+
+
+def make_split(stereo_file_or_labels, kind="paper", seed=0, test_fraction=0.3,
+               val_fraction=0.1, as_released=False):
+    """Train / validation / test index arrays (sorted int64) of a dataset.
+
+    ``kind="paper"``: the release's split, frames shuffled (here with ``seed``),
+    the first ``1 - test_fraction`` for training and the rest for testing.
+    ``kind="held-out-config"``: whole rig configurations (``config_id``) are
+    kept out of training, so the test measures unseen rigs; about
+    ``test_fraction`` of the frames go to test.
+
+    The validation set (for early stopping) is carved out of the training part
+    -- ``val_fraction`` of its frames for ``"paper"``, whole configurations
+    for ``"held-out-config"`` -- and never overlaps the test set. With
+    ``as_released=True`` the validation set *is* the test set, as in the
+    released code (which early-stopped on its test data).
+
+    ``stereo_file_or_labels`` is a ``StereoFile``, a path or a label dict.
+    """
+    if kind not in SPLITS:
+        raise ValueError(f"unknown split {kind!r}; choose one of {', '.join(SPLITS)}")
+    labels = _labels_of(stereo_file_or_labels)
+    n = len(next(iter(labels.values())))
+    rng = np.random.default_rng(seed)
+    if kind == "paper":
+        n_test = _fraction_count(test_fraction, n, "test_fraction")
+        order = rng.permutation(n)
+        train, test = order[: n - n_test], order[n - n_test:]
+        n_val = _fraction_count(val_fraction, len(train), "val_fraction")
+        if as_released:
+            val = test
+        else:
+            val, train = train[len(train) - n_val:], train[: len(train) - n_val]
+    else:
+        if "config_id" not in labels:
+            raise DatasetError("held-out-config split needs the label 'config_id'")
+        config_id = np.asarray(labels["config_id"])
+        configs = rng.permutation(np.unique(config_id))
+        needed = 2 if as_released else 3
+        if len(configs) < needed:
+            raise DatasetError(
+                f"held-out-config split needs at least {needed} configurations, "
+                f"the dataset has {len(configs)}"
+            )
+        counts = np.array([(config_id == c).sum() for c in configs])
+        test_configs = _take_configs(counts, _fraction_count(test_fraction, n, "test_fraction"))
+        rest = np.arange(len(configs))[len(test_configs):]
+        if as_released:
+            val_configs = test_configs
+        else:
+            n_val = _fraction_count(val_fraction, counts[rest].sum(), "val_fraction")
+            val_configs = rest[: len(_take_configs(counts[rest], n_val, keep=1))]
+        train_configs = np.setdiff1d(rest, val_configs)
+        pick = lambda idx: np.flatnonzero(np.isin(config_id, configs[idx]))  # noqa: E731
+        train, val, test = pick(train_configs), pick(val_configs), pick(test_configs)
+    split = {"train": np.sort(train), "val": np.sort(val), "test": np.sort(test)}
+    for name, indices in split.items():
+        if len(indices) == 0:
+            raise DatasetError(
+                f"{kind} split of {n} pairs leaves the {name} set empty; use more pairs"
+            )
+        split[name] = indices.astype(np.int64)
+    return split
+
+
+def _take_configs(counts, target, keep=2):
+    """Positions 0..k-1 of ``counts`` whose frames first reach ``target``
+    (at least one configuration, leaving at least ``keep``)."""
+    k = int(np.searchsorted(np.cumsum(counts), max(target, 1))) + 1
+    return np.arange(min(max(k, 1), len(counts) - keep))
+
+
+def save_split(path, split):
+    """Write a split as ``split.npz`` (train, val, test int64 arrays)."""
+    np.savez(path, **{name: np.asarray(split[name], np.int64) for name in ("train", "val", "test")})
+
+
+def load_split(path):
+    """Read a split written by ``save_split`` (no pickle)."""
+    with np.load(path, allow_pickle=False) as data:
+        return {name: data[name].astype(np.int64) for name in ("train", "val", "test")}
+
+
+# ---------------------------------------------------------------------------
+# Streaming input
+# ---------------------------------------------------------------------------
+def _py_dataset_base():
+    import keras
+
+    return keras.utils.PyDataset
+
+
+def _make_stereo_sequence_class():
+    PyDataset = _py_dataset_base()
+
+    class StereoSequence(PyDataset):
+        """Batches of stereo pairs and their 13 targets, read from an HDF5 file.
+
+        Each item is ``({"left_image", "right_image"}, {target: (b, 1)})``,
+        images float32 RGB 0..255 (the model scales its own inputs). Only the
+        batch being read is in memory.
+
+        Args:
+            path: the dataset file (``cpl_keras.data.storage`` schema).
+            indices: the pairs this sequence serves (e.g. ``split["train"]``).
+            targets: dict name -> (N,) float32 over the whole file, as from
+                ``targets_from_labels``; ``None`` reads the stored targets.
+            batch_size: pairs per batch.
+            shuffle: reshuffle ``indices`` every epoch. The order of epoch
+                ``e`` depends only on ``(seed, e)``, so a resumed run sees the
+                same batches as an uninterrupted one (``set_epoch``).
+            seed: seed of the shuffles.
+            multiple_of: every batch size is made a multiple of this (the
+                device count under data parallelism): the last batch is
+                padded with pairs from the start of the epoch's order.
+            workers, use_multiprocessing, max_queue_size: as for
+                ``keras.utils.PyDataset``.
+        """
+
+        def __init__(self, path, indices, targets=None, batch_size=16, shuffle=False,
+                     seed=0, multiple_of=1, workers=1, use_multiprocessing=False,
+                     max_queue_size=10):
+            super().__init__(workers=workers, use_multiprocessing=use_multiprocessing,
+                             max_queue_size=max_queue_size)
+            self.path = os.path.abspath(os.fspath(path))
+            self.indices = np.asarray(indices, dtype=np.int64)
+            if self.indices.ndim != 1 or len(self.indices) == 0:
+                raise ValueError("indices must be a non-empty 1-D array")
+            multiple_of = int(multiple_of)
+            batch_size = int(batch_size)
+            if batch_size <= 0 or multiple_of <= 0:
+                raise ValueError("batch_size and multiple_of must be positive")
+            self.multiple_of = multiple_of
+            self.batch_size = -(-batch_size // multiple_of) * multiple_of
+            self.shuffle = bool(shuffle)
+            self.seed = int(seed)
+            self.epoch = 0
+            self._file = None
+            self._pid = None
+            self._lock = threading.Lock()
+            if targets is None:
+                with StereoFile(self.path) as f:
+                    targets = targets_from_labels(f.labels)
+            self.targets = {name: np.asarray(targets[name], np.float32) for name in TARGETS}
+            size = len(self.targets[TARGETS[0]])
+            if self.indices.min() < 0 or self.indices.max() >= size:
+                raise ValueError("indices out of range of the targets")
+
+        # -- keras.utils.PyDataset -------------------------------------------
+        @property
+        def num_batches(self):
+            return -(-len(self.indices) // self.batch_size)
+
+        def __len__(self):
+            return self.num_batches
+
+        def __getitem__(self, index):
+            if not 0 <= index < self.num_batches:
+                raise IndexError(f"batch {index} out of range")
+            batch = self.batch_indices(index)
+            left, right = self._stereo_file().read_pairs(batch)
+            x = {"left_image": left.astype(np.float32), "right_image": right.astype(np.float32)}
+            y = {name: values[batch][:, None] for name, values in self.targets.items()}
+            return x, y
+
+        def on_epoch_end(self):
+            # Called after the epoch's worker threads have stopped; shuffling in
+            # on_epoch_begin would race with the prefetching of the next epoch.
+            self.epoch += 1
+
+        # -- helpers -----------------------------------------------------------
+        def set_epoch(self, epoch):
+            """Serve the order of epoch ``epoch`` next (used when resuming)."""
+            self.epoch = int(epoch)
+
+        def order(self, epoch=None):
+            """The pair order of an epoch (the indices, shuffled if enabled)."""
+            epoch = self.epoch if epoch is None else int(epoch)
+            if not self.shuffle:
+                return self.indices
+            rng = np.random.default_rng([self.seed, epoch])
+            return self.indices[rng.permutation(len(self.indices))]
+
+        def batch_indices(self, index):
+            """Pair indices of batch ``index`` of the current epoch."""
+            order = self.order()
+            batch = order[index * self.batch_size:(index + 1) * self.batch_size]
+            short = (-len(batch)) % self.multiple_of
+            if short:
+                batch = np.concatenate([batch, np.resize(order, short)])
+            return batch
+
+        def _stereo_file(self):
+            # One handle per process; h5py serialises access between threads.
+            with self._lock:
+                if self._file is None or self._pid != os.getpid():
+                    self._file = StereoFile(self.path)
+                    self._pid = os.getpid()
+                return self._file
+
+        def close(self):
+            with self._lock:
+                if self._file is not None:
+                    self._file.close()
+                    self._file = None
+
+        def __getstate__(self):
+            state = self.__dict__.copy()
+            state["_file"] = None
+            state["_lock"] = None
+            return state
+
+        def __setstate__(self, state):
+            self.__dict__.update(state)
+            self._lock = threading.Lock()
+
+    return StereoSequence
+
+
+_CLASSES = {}
+
+
+def __getattr__(name):
+    # ``StereoSequence`` subclasses keras.utils.PyDataset; build it on first
+    # access so importing this module does not import Keras.
+    if name == "StereoSequence":
+        if name not in _CLASSES:
+            _CLASSES[name] = _make_stereo_sequence_class()
+        return _CLASSES[name]
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

@@ -1,0 +1,260 @@
+"""Targets, splits and the streaming PyDataset (cpl_keras.datasets)."""
+
+import os
+import sys
+import tracemalloc
+
+import numpy as np
+import pytest
+
+from cpl_keras import camera
+from cpl_keras.baselines import average_predictions, training_statistics
+from cpl_keras.baselines.average import load_statistics, save_statistics
+from cpl_keras.camera import TARGETS
+from cpl_keras.data.storage import DatasetError, StereoWriter
+from cpl_keras.datasets import load_split, make_split, save_split, targets_from_labels
+
+
+def fixture_labels(n, image_size, configs=4, seed=0):
+    """Labels of ``n`` pairs that obey the camera equations (Eqs. 4a-5c)."""
+    rng = np.random.default_rng(seed)
+    config_id = np.arange(n) % configs
+    fov = np.radians(rng.uniform(50, 150, configs))[config_id]
+    focal = camera.focal_from_fov(fov, image_size)
+    tx = rng.uniform(0.5, 5.0, configs)[config_id]
+    labels = {
+        "fx": focal, "fy": focal,
+        "u0": np.full(n, image_size / 2), "v0": np.full(n, image_size / 2),
+        "baseline": tx, "tx": tx,
+        "ty": rng.uniform(-5, 5, configs)[config_id],
+        "tz": rng.uniform(-0.4, 1.6, configs)[config_id],
+        "pitch": np.radians(rng.uniform(-30, 30, configs))[config_id],
+        "disparity": rng.uniform(1.0, 20.0, n),
+        "disparity_released": rng.uniform(-15.0, 5.0, n),
+        "u": rng.uniform(0, image_size, n), "v": rng.uniform(0, image_size, n),
+    }
+    params = {name: labels[name] for name in camera.PARAMETERS}
+    labels["X"], labels["Y"], labels["Z"] = camera.image_to_world(**params, u=labels["u"], v=labels["v"])
+    labels = {name: values.astype(np.float32) for name, values in labels.items()}
+    labels["config_id"] = config_id.astype(np.int32)
+    labels["town_id"] = (config_id % 2).astype(np.int32)
+    labels["frame_index"] = np.arange(n, dtype=np.int32)
+    return labels
+
+
+def write_stereo_fixture(path, n=40, image_size=32, configs=4, seed=0, labels=None, drop=()):
+    """A small dataset file: random images, labels from ``fixture_labels``."""
+    rng = np.random.default_rng(seed + 1)
+    h, w = (image_size, image_size) if np.isscalar(image_size) else image_size
+    labels = dict(labels or fixture_labels(n, w, configs, seed))
+    for name in drop:
+        labels.pop(name)
+    left = rng.integers(0, 256, (n, h, w, 3), dtype=np.uint8)
+    right = rng.integers(0, 256, (n, h, w, 3), dtype=np.uint8)
+    with StereoWriter(path, n, (h, w), metadata={"protocol": "test"}) as writer:
+        writer.write(0, left, right, labels)
+    return str(path)
+
+
+# ---------------------------------------------------------------------------
+# Targets
+# ---------------------------------------------------------------------------
+def test_paper_targets_are_the_stored_labels():
+    labels = fixture_labels(20, 32)
+    targets = targets_from_labels(labels)
+    assert tuple(targets) == TARGETS
+    for name in TARGETS:
+        assert targets[name].dtype == np.float32
+        np.testing.assert_array_equal(targets[name], labels[name])
+
+
+def test_released_targets_use_degrees_and_stereobm_disparity():
+    labels = fixture_labels(20, 32)
+    targets = targets_from_labels(labels, as_released=True)
+    np.testing.assert_allclose(targets["pitch"], np.degrees(labels["pitch"]), rtol=1e-6)
+    np.testing.assert_array_equal(targets["disparity"], labels["disparity_released"])
+    # X, Y, Z are the camera equations at the released values, not the stored ones.
+    params = {name: targets[name].astype(np.float64) for name in camera.PARAMETERS}
+    X, Y, Z = camera.image_to_world(**params, u=labels["u"], v=labels["v"])
+    np.testing.assert_allclose(targets["X"], X, rtol=1e-5, atol=1e-5)
+    np.testing.assert_allclose(targets["Z"], Z, rtol=1e-5, atol=1e-5)
+    assert not np.allclose(targets["X"], labels["X"])
+    for name in ("fx", "u0", "tx", "ty", "tz", "baseline"):
+        np.testing.assert_array_equal(targets[name], labels[name])
+
+
+def test_targets_name_missing_label():
+    labels = fixture_labels(10, 32)
+    del labels["disparity_released"]
+    targets_from_labels(labels)  # the paper's targets do not need it
+    with pytest.raises(DatasetError, match="disparity_released"):
+        targets_from_labels(labels, as_released=True)
+
+
+# ---------------------------------------------------------------------------
+# Splits
+# ---------------------------------------------------------------------------
+def test_paper_split_is_seeded_70_30_with_separate_validation():
+    labels = fixture_labels(200, 32)
+    split = make_split(labels, "paper", seed=3)
+    train, val, test = split["train"], split["val"], split["test"]
+    assert len(test) == 60 and len(train) + len(val) == 140 and len(val) == 14
+    assert len(np.intersect1d(train, test)) == 0
+    assert len(np.intersect1d(val, test)) == 0
+    assert len(np.intersect1d(train, val)) == 0
+    assert len(np.union1d(np.union1d(train, val), test)) == 200
+    again = make_split(labels, "paper", seed=3)
+    other = make_split(labels, "paper", seed=4)
+    assert all(np.array_equal(split[k], again[k]) for k in split)
+    assert not np.array_equal(split["test"], other["test"])
+    # Every configuration is in both train and test (the release's protocol).
+    assert set(labels["config_id"][train]) == set(labels["config_id"][test])
+
+
+def test_as_released_split_validates_on_the_test_set():
+    labels = fixture_labels(100, 32)
+    split = make_split(labels, "paper", seed=0, as_released=True)
+    np.testing.assert_array_equal(split["val"], split["test"])
+    assert len(split["train"]) == 70
+
+
+def test_held_out_config_split_keeps_whole_configurations_out():
+    labels = fixture_labels(300, 32, configs=10)
+    split = make_split(labels, "held-out-config", seed=1)
+    config = labels["config_id"]
+    train_c, val_c, test_c = (set(config[split[k]]) for k in ("train", "val", "test"))
+    assert not train_c & test_c and not val_c & test_c and not train_c & val_c
+    assert train_c | val_c | test_c == set(range(10))
+    assert 0.2 <= len(split["test"]) / 300 <= 0.45
+
+
+def test_held_out_config_needs_configurations():
+    labels = fixture_labels(30, 32, configs=2)
+    with pytest.raises(DatasetError, match="at least 3 configurations"):
+        make_split(labels, "held-out-config")
+    with pytest.raises(ValueError, match="unknown split"):
+        make_split(labels, "random")
+
+
+def test_split_roundtrip(tmp_path):
+    split = make_split(fixture_labels(50, 32), "paper")
+    save_split(tmp_path / "split.npz", split)
+    loaded = load_split(tmp_path / "split.npz")
+    for key in ("train", "val", "test"):
+        assert loaded[key].dtype == np.int64
+        np.testing.assert_array_equal(loaded[key], split[key])
+
+
+# ---------------------------------------------------------------------------
+# Average baseline statistics
+# ---------------------------------------------------------------------------
+def test_training_statistics_and_the_release_bug(tmp_path):
+    labels = fixture_labels(60, 32)
+    targets = targets_from_labels(labels)
+    train = np.arange(10, 50)
+    stats = training_statistics(targets, train)
+    assert stats["targets"] == list(TARGETS) and stats["num_train"] == 40
+    np.testing.assert_allclose(stats["mean"]["fx"], targets["fx"][train].mean(), rtol=1e-6)
+    np.testing.assert_allclose(stats["std"]["X"], targets["X"][train].std(), rtol=1e-5)
+    # Release bug: parameter i <- mean of the 13 labels of training sample i.
+    sample_3 = np.mean([targets[name][train[3]] for name in TARGETS])
+    np.testing.assert_allclose(stats["release_average"][TARGETS[3]], sample_3, rtol=1e-5)
+    save_statistics(tmp_path / "s.json", stats)
+    assert load_statistics(tmp_path / "s.json") == stats
+    mean = average_predictions(stats, 7)
+    assert mean["tz"].shape == (7,) and np.all(mean["tz"] == np.float32(stats["mean"]["tz"]))
+    release = average_predictions(stats, 2, kind="release")
+    assert release["pitch"][0] == np.float32(stats["release_average"]["pitch"])
+    with pytest.raises(ValueError, match="unknown Average kind"):
+        average_predictions(stats, 2, kind="median")
+
+
+# ---------------------------------------------------------------------------
+# StereoSequence
+# ---------------------------------------------------------------------------
+def test_sequence_batches_shuffles_and_pads(tmp_path):
+    from cpl_keras.datasets import StereoSequence
+
+    path = write_stereo_fixture(tmp_path / "d.h5", n=30, image_size=(16, 24))
+    targets = targets_from_labels(fixture_labels(30, 24))
+    indices = np.arange(3, 26)  # 23 pairs
+    seq = StereoSequence(path, indices, targets, batch_size=5, shuffle=True, seed=7)
+    assert len(seq) == 5
+    x, y = seq[0]
+    assert x["left_image"].shape == (5, 16, 24, 3) and x["left_image"].dtype == np.float32
+    assert set(y) == set(TARGETS) and y["X"].shape == (5, 1)
+    # Targets line up with the images read for the same pairs.
+    from cpl_keras.data.storage import StereoFile
+
+    with StereoFile(path) as f:
+        left, _ = f.read_pairs(seq.batch_indices(0))
+    np.testing.assert_array_equal(x["left_image"], left.astype(np.float32))
+    np.testing.assert_array_equal(y["fx"][:, 0], targets["fx"][seq.batch_indices(0)])
+    epoch0 = np.concatenate([seq.batch_indices(i) for i in range(len(seq))])
+    assert sorted(epoch0) == list(indices)
+    seq.on_epoch_end()
+    epoch1 = np.concatenate([seq.batch_indices(i) for i in range(len(seq))])
+    assert sorted(epoch1) == list(indices) and not np.array_equal(epoch0, epoch1)
+    # The order of an epoch depends only on (seed, epoch): resuming replays it.
+    seq.set_epoch(0)
+    np.testing.assert_array_equal(seq.order(), epoch0)
+    # Under 2 devices every batch divides: batch 5 -> 6, the last batch padded.
+    padded = StereoSequence(path, indices, targets, batch_size=5, multiple_of=2)
+    assert padded.batch_size == 6 and len(padded) == 4
+    assert len(padded.batch_indices(3)) == 6  # 5 real pairs + 1 repeated
+    with pytest.raises(IndexError):
+        padded[4]
+    seq.close()
+    padded.close()
+
+
+def test_sequence_with_threads_matches_single_reader(tmp_path):
+    import keras
+
+    from cpl_keras.datasets import StereoSequence
+
+    path = write_stereo_fixture(tmp_path / "d.h5", n=24, image_size=16)
+    targets = targets_from_labels(fixture_labels(24, 16))
+    one = StereoSequence(path, np.arange(24), targets, batch_size=4)
+    many = StereoSequence(path, np.arange(24), targets, batch_size=4, workers=3)
+    from keras.src.trainers.data_adapters.py_dataset_adapter import PyDatasetAdapter
+
+    adapter = PyDatasetAdapter(many)
+    adapter.on_epoch_begin()
+    batches = list(adapter.get_numpy_iterator())
+    adapter.on_epoch_end()
+    assert len(batches) == 6
+    for i, (x, y) in enumerate(batches):
+        np.testing.assert_array_equal(x["right_image"], one[i][0]["right_image"])
+        np.testing.assert_array_equal(y["Y"], one[i][1]["Y"])
+    assert isinstance(many, keras.utils.PyDataset)
+
+
+def test_sequence_memory_does_not_grow_with_the_dataset(tmp_path):
+    from cpl_keras.datasets import StereoSequence
+
+    peaks = []
+    for n in (40, 400):
+        path = write_stereo_fixture(tmp_path / f"d{n}.h5", n=n, image_size=32)
+        targets = targets_from_labels(fixture_labels(n, 32))
+        seq = StereoSequence(path, np.arange(n), targets, batch_size=8, shuffle=True)
+        seq[0]
+        tracemalloc.start()
+        for i in range(len(seq)):
+            seq[i]
+        peaks.append(tracemalloc.get_traced_memory()[1])
+        tracemalloc.stop()
+        seq.close()
+    image_bytes = 400 * 32 * 32 * 3 * 2
+    assert peaks[1] < 2 * peaks[0] + 100_000, peaks
+    assert peaks[1] < image_bytes / 4, peaks
+
+
+def test_numpy_modules_do_not_import_keras():
+    import subprocess
+
+    code = ("import sys, cpl_keras.datasets, cpl_keras.baselines; "
+            "sys.exit(1 if 'keras' in sys.modules else 0)")
+    result = subprocess.run([sys.executable, "-c", code], cwd=os.path.dirname(os.path.dirname(
+        os.path.abspath(__file__))))
+    assert result.returncode == 0
