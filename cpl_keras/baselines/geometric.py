@@ -81,6 +81,8 @@ FAILURE_FLAGS = (
 )
 #: Prior field of view (degrees) used when the focal length cannot be estimated.
 DEFAULT_FOV_DEG = 60.0
+#: Smallest grey-level standard deviation of a 5x5 block SGBM may match.
+MIN_TEXTURE_STD = 2.0
 #: Accepted field-of-view range (degrees) of a Bougnoux focal length.
 FOV_RANGE_DEG = (10.0, 170.0)
 
@@ -195,6 +197,11 @@ def right_disparity_map(left, right, max_disparity=None):
                           np.ascontiguousarray(gray_l[:, ::-1]))
     raw = raw[:, ::-1].astype(np.float32)
     invalid = raw <= (-max_disparity - 1) * 16
+    # textureless blocks match anywhere: mark them invalid
+    gray = gray_r.astype(np.float32)
+    mean = cv2.blur(gray, (block, block))
+    local_std = np.sqrt(np.maximum(cv2.blur(gray * gray, (block, block)) - mean * mean, 0.0))
+    invalid |= local_std < MIN_TEXTURE_STD
     disparity = raw / 16.0
     disparity[invalid] = np.nan
     return disparity

@@ -1,0 +1,90 @@
+"""The Geometric baseline: Bougnoux's formula, axis conventions, failures."""
+
+import math
+
+import numpy as np
+import pytest
+
+from cpl_keras.baselines import geometric
+from cpl_keras.camera import TARGETS, rotation_matrix
+
+W = H = 112
+
+
+def _skew(v):
+    return np.array([[0, -v[2], v[1]], [v[2], 0, -v[0]], [-v[1], v[0], 0]], dtype=float)
+
+
+def _project(points_cam, focal):
+    """Project camera-frame points (x fwd, y left, z up) with Eqs. 4b-4c."""
+    u = W / 2 - focal * points_cam[:, 1] / points_cam[:, 0]
+    v = H / 2 - focal * points_cam[:, 2] / points_cam[:, 0]
+    return np.stack([u, v], axis=1)
+
+
+def _synthetic_matches(focal, pitch, yaw, roll, t, n=600, seed=0):
+    """Exact correspondences of random 3D points seen by a rig whose right
+    camera has pose (R, t) in the left frame: P_left = R P_right + t."""
+    rng = np.random.default_rng(seed)
+    R = rotation_matrix(pitch, yaw, roll)
+    P = np.stack([rng.uniform(4, 30, n), rng.uniform(-15, 15, n), rng.uniform(-5, 5, n)], 1)
+    P_right = (P - np.asarray(t)) @ R                   # R^T (P - t), row-wise
+    keep = P_right[:, 0] > 1.0
+    left, right = _project(P[keep], focal), _project(P_right[keep], focal)
+    inside = (left.min(1) >= 0) & (left.max(1) < W) & (right.min(1) >= 0) & (right.max(1) < W)
+    return left[inside], right[inside]
+
+
+def test_bougnoux_recovers_each_cameras_focal_from_exact_F():
+    f1, f2, c = 300.0, 500.0, (56.0, 56.0)
+    K1 = np.array([[f1, 0, c[0]], [0, f1, c[1]], [0, 0, 1]])
+    K2 = np.array([[f2, 0, c[0]], [0, f2, c[1]], [0, 0, 1]])
+    R = rotation_matrix(0.1, 0.2, 0.05)
+    F = np.linalg.inv(K2).T @ _skew([1.0, 0.2, 0.3]) @ R @ np.linalg.inv(K1)
+    assert math.sqrt(geometric.bougnoux_focal_squared(F, c, c)) == pytest.approx(f1, rel=1e-9)
+    assert math.sqrt(geometric.bougnoux_focal_squared(F.T, c, c)) == pytest.approx(f2, rel=1e-9)
+
+
+@pytest.mark.parametrize(
+    "pitch, yaw, roll, t",
+    [(0.2, 0.3, 0.05, (1.0, -2.0, 0.5)),      # strong rotation, right camera to the right
+     (-0.3, 0.1, 0.0, (5.0, 1.0, -0.5)),      # negative pitch, mostly forward translation
+     (0.05, 0.02, 0.01, (0.05, -0.5, 0.03))],  # near-lateral rig, small rotation
+)
+def test_conventions_on_exact_matches(pitch, yaw, roll, t):
+    focal = 70.0
+    left, right = _synthetic_matches(focal, pitch, yaw, roll, t)
+    result, status = geometric.calibrate_from_matches(left, right, W, H)
+    assert not any(status[flag] for flag in ("few_matches", "imaginary_focal", "pose_failed"))
+    assert result["fx"] == pytest.approx(focal, rel=0.01)
+    assert result["pitch"] == pytest.approx(pitch, abs=0.005)   # sign of paper Eq. 5
+    direction = np.asarray(t) / np.linalg.norm(t)
+    assert float(result["direction"] @ direction) > 0.999      # project axes, left frame
+
+
+def test_too_few_matches_falls_back_and_is_counted():
+    blank = np.full((H, W, 3), 128, np.uint8)
+    params, status = geometric.estimate_pair(blank, blank)
+    assert status["few_matches"] and status["pose_failed"] and status["no_disparity"]
+    priors = geometric.default_priors(W, H)
+    assert params["fx"] == pytest.approx(priors["fx"])
+    assert params["pitch"] == 0.0 and params["ty"] == pytest.approx(-1.0)
+    assert set(params) == set(TARGETS)
+    assert all(np.isfinite(params[name]) for name in TARGETS)
+    report = geometric.failure_report([status, {**status, "few_matches": False}])
+    assert report["few_matches"] == {"count": 1, "rate": 0.5}
+    assert report["all_stages_ok"]["count"] == 0
+
+
+def test_right_image_disparity_map_sign():
+    rng = np.random.default_rng(0)
+    texture = (rng.random((H, W + 16)) * 255).astype(np.uint8)
+    texture = np.repeat(np.repeat(texture[::2, ::2], 2, 0), 2, 1)[:H, : W + 16]
+    shift = 6                                  # left(u + d) = right(u), d = 6
+    left = np.stack([texture[:, :W]] * 3, -1)
+    right = np.stack([texture[:, shift:shift + W]] * 3, -1)
+    disparity = geometric.right_disparity_map(left, right)
+    centre = disparity[40:70, 40:70]
+    assert np.nanmedian(centre) == pytest.approx(shift, abs=0.5)
+    with pytest.raises(ValueError, match="one shape"):
+        geometric.estimate_pair(left, right[:, :50])
