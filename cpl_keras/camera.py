@@ -264,3 +264,29 @@ def rotation_matrix(pitch=0.0, yaw=0.0, roll=0.0):
     Rz = np.array([[cy, -sy, 0.0], [sy, cy, 0.0], [0.0, 0.0, 1.0]])
     Rx = np.array([[1.0, 0.0, 0.0], [0.0, cr, -sr], [0.0, sr, cr]])
     return Rz @ Ry @ Rx
+
+
+#: The paper's equation behind each named quantity of the camera graph.
+EQUATIONS = {
+    "fx_times_baseline": ("4a", "fx * b"),
+    "xCam": ("4a", "xCam = fx * b / d"),
+    "xCam_over_fx": ("4b", "xCam / fx"),
+    "neg_xCam_over_fx": ("4b", "-(xCam / fx)"),
+    "u_minus_u0": ("4b", "u - u0"),
+    "yCam": ("4b", "yCam = -(xCam / fx) * (u - u0)"),
+    "xCam_over_fy": ("4c", "xCam / fy"),
+    "v0_minus_v": ("4c", "v0 - v"),
+    "zCam": ("4c", "zCam = (xCam / fy) * (v0 - v)"),
+    "cos_pitch": ("5a, 5c", "cos(pitch)"),
+    "sin_pitch": ("5a, 5c", "sin(pitch)"),
+    "xCam_cos_pitch": ("5a", "xCam * cos(pitch)"),
+    "zCam_sin_pitch": ("5a", "zCam * sin(pitch)"),
+    "X_rotated": ("5a", "xCam * cos(pitch) + zCam * sin(pitch)"),
+    "X": ("5a", "X = xCam * cos(pitch) + zCam * sin(pitch) + tx"),
+    "Y": ("5b", "Y = yCam + ty"),
+    "xCam_sin_pitch": ("5c", "xCam * sin(pitch)"),
+    "neg_xCam_sin_pitch": ("5c", "-xCam * sin(pitch)"),
+    "zCam_cos_pitch": ("5c", "zCam * cos(pitch)"),
+    "Z_rotated": ("5c", "-xCam * sin(pitch) + zCam * cos(pitch)"),
+    "Z": ("5c", "Z = -xCam * sin(pitch) + zCam * cos(pitch) + tz"),
+}
