@@ -1,0 +1,66 @@
+"""Real stereo data for the paper's Table 2, in the project's HDF5 schema.
+
+* ``cpl_keras.real.middlebury``: crops and rescales of the Middlebury 2014
+  "Motorcycle" pair that scikit-image ships (true right image, ground-truth
+  disparity, exact intrinsics per crop).
+* ``cpl_keras.real.tsinghua``: the Tsinghua-Daimler Cyclist Benchmark and
+  Cityscapes layouts (camera JSON, left image, 16-bit disparity PNG).
+* ``cpl_keras.real.build``: the command line that writes either as HDF5.
+
+The helpers below are shared by both builders: the exact intrinsics of a
+crop + resize, and the release's StereoBM disparity label.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+#: Label conventions a real-data builder can write (see docs/evaluation.md).
+LABEL_MODES = ("rig", "vehicle")
+
+
+def crop_resize_coordinate(x, start, scale):
+    """A pixel coordinate after cropping at ``start`` and resizing by ``scale``.
+
+    Pixel centres sit at integer coordinates, as in OpenCV and scikit-image,
+    so a resize by ``scale`` maps ``x -> (x + 0.5) * scale - 0.5`` (the mapping
+    ``cv2.resize`` uses). Applies to u, u0 (with the crop's x start and the
+    horizontal scale) and to v, v0 (y start, vertical scale).
+    """
+    return (np.asarray(x, dtype=np.float64) - start + 0.5) * scale - 0.5
+
+
+def crop_resize_intrinsics(fx, fy, u0, v0, x0, y0, crop_width, crop_height, out_width, out_height):
+    """Intrinsics after cropping the window ``(x0, y0, crop_width, crop_height)``
+    and resizing it to ``out_width`` x ``out_height``: a crop shifts the
+    principal point, a resize scales focal length and principal point per axis.
+
+    Returns ``(fx, fy, u0, v0, sx, sy)`` with the scales ``sx``, ``sy``.
+    A disparity (a difference of u coordinates) scales by ``sx``.
+    """
+    sx = out_width / float(crop_width)
+    sy = out_height / float(crop_height)
+    return (fx * sx, fy * sy, float(crop_resize_coordinate(u0, x0, sx)),
+            float(crop_resize_coordinate(v0, y0, sy)), sx, sy)
+
+
+def released_disparity(left, right):
+    """The release's disparity label of one pair: the mean of the raw
+    ``cv2.StereoBM_create(numDisparities=16, blockSize=15)`` output on the
+    grayscale images (16x fixed point, invalid pixels -16 included)."""
+    import cv2
+
+    gray_l = cv2.cvtColor(np.ascontiguousarray(left, dtype=np.uint8), cv2.COLOR_RGB2GRAY)
+    gray_r = cv2.cvtColor(np.ascontiguousarray(right, dtype=np.uint8), cv2.COLOR_RGB2GRAY)
+    matcher = cv2.StereoBM_create(numDisparities=16, blockSize=15)
+    return float(np.mean(matcher.compute(gray_l, gray_r)))
+
+
+def resize_image(image, width, height):
+    """Resize with area averaging when shrinking, bilinear when enlarging."""
+    import cv2
+
+    shrink = width <= image.shape[1] and height <= image.shape[0]
+    interpolation = cv2.INTER_AREA if shrink else cv2.INTER_LINEAR
+    return cv2.resize(np.ascontiguousarray(image), (int(width), int(height)),
+                      interpolation=interpolation)

@@ -1,0 +1,175 @@
+"""A real test set from the Middlebury 2014 "Motorcycle" pair.
+
+``skimage.data.stereo_motorcycle()`` ships offline: a rectified left and
+right image (500 x 741, a 4x down-sampled Middlebury 2014 pair), the left
+image's ground-truth disparity (nan = unknown) and, in its docstring, the
+calibration ``CALIBRATION``. Middlebury disparities are measured between two
+cameras whose principal points differ by ``doffs`` in x (``cx1 - cx0 =
+doffs``), so depth is ``Z = baseline * f / (d + doffs)``: the disparity of
+paper Eq. 4a (``d = fx * b / xCam``, one shared principal point) is
+``d + doffs``.
+
+``build_middlebury`` draws many crops (random size, aspect and position; some
+cover the whole image) of both images at the same window, resizes each to
+``image_size`` x ``image_size`` and transforms the intrinsics exactly
+(``cpl_keras.real.crop_resize_intrinsics``). Labels follow the project's
+conventions ("rig" mode): extrinsics are the right camera's pose in the left
+camera frame (x forward, y left, z up), so ``pitch = tx = tz = 0`` and
+``ty = -baseline`` (the right camera is to the right); the projection pixel
+``(u, v)`` is in the RIGHT image, at a point whose ground-truth disparity is
+known and whose left match lies inside the crop; ``u0`` is the right
+camera's principal point; ``disparity = sx * (d + doffs)`` (Eq. 4a in the
+resized pixels), and ``X, Y, Z = camera.image_to_world(...)`` is the point in
+the left camera frame. Extra labels keep the crop window, the left camera's
+principal point (``u0_left``) and the pixel in the left image (``u_left``).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from cpl_keras.camera import image_to_world
+from cpl_keras.data.storage import StereoWriter
+from cpl_keras.real import (
+    crop_resize_coordinate, crop_resize_intrinsics, released_disparity, resize_image,
+)
+
+#: Calibration of the pair as scikit-image documents it (pixels, metres).
+CALIBRATION = {
+    "focal": 994.978, "cx0": 311.193, "cy": 254.877, "doffs": 31.086, "baseline": 0.193001,
+}
+#: Smallest crop side, as a fraction of the image side.
+MIN_CROP_FRACTION = 0.25
+#: Share of samples that use the whole image (a pure rescale).
+FULL_IMAGE_SHARE = 0.1
+
+LABEL_DESCRIPTIONS = {
+    "fx": "right (and left) camera focal length along u after crop + resize",
+    "fy": "focal length along v after crop + resize",
+    "u0": "RIGHT camera principal point u after crop + resize (left: u0_left)",
+    "v0": "principal point v after crop + resize",
+    "baseline": "193.001 mm (Middlebury calibration)",
+    "disparity": "sx * (d + doffs): Eq. 4a disparity fx * b / xCam in resized pixels",
+    "disparity_released": "mean raw StereoBM(16, 15) output, as the release computed it",
+    "tx": "right camera position in the left camera frame (0)",
+    "ty": "right camera position in the left camera frame (-baseline: to the right)",
+    "tz": "right camera position in the left camera frame (0)",
+    "pitch": "relative pitch of the rectified pair (0)",
+    "u": "projection pixel u in the RIGHT image (resized pixels)",
+    "v": "projection pixel v (resized pixels)",
+    "X": "image_to_world of the labels: the point in the left camera frame",
+}
+
+
+def load_motorcycle():
+    """``(left, right, disparity, calibration)``: uint8 RGB images, the left
+    image's ground-truth disparity (float64, nan where unknown)."""
+    from skimage import data
+
+    left, right, disparity = data.stereo_motorcycle()
+    disparity = np.asarray(disparity, dtype=np.float64)
+    disparity[~np.isfinite(disparity)] = np.nan
+    return left, right, disparity, dict(CALIBRATION)
+
+
+def _draw_window(rng, width, height):
+    if rng.random() < FULL_IMAGE_SHARE:
+        return 0, 0, width, height
+    crop_w = int(rng.uniform(MIN_CROP_FRACTION, 1.0) * width)
+    aspect = rng.uniform(0.6, 1.6)                       # crop height / crop width
+    crop_h = int(np.clip(crop_w * aspect, MIN_CROP_FRACTION * height, height))
+    x0 = int(rng.integers(0, width - crop_w + 1))
+    y0 = int(rng.integers(0, height - crop_h + 1))
+    return x0, y0, crop_w, crop_h
+
+
+def _draw_pixel(rng, disparity, window):
+    """An integer left pixel inside ``window`` with known disparity whose right
+    match ``u_left - d`` is inside the window too (None if there is none)."""
+    x0, y0, w, h = window
+    block = disparity[y0:y0 + h, x0:x0 + w]
+    rows, cols = np.nonzero(np.isfinite(block))
+    u_left = cols + x0
+    u_right = u_left - block[rows, cols]
+    ok = (u_right >= x0) & (u_right <= x0 + w - 1)
+    if not ok.any():
+        return None
+    k = int(rng.choice(np.flatnonzero(ok)))
+    return int(u_left[k]), int(rows[k] + y0)
+
+
+def middlebury_samples(crops, image_size=112, seed=0):
+    """Yield ``(left, right, labels)`` for ``crops`` random crops (one sample
+    each; labels are Python floats/ints, see the module doc)."""
+    left, right, disparity, cal = load_motorcycle()
+    height, width = disparity.shape
+    f, cx0, cy, doffs, b = (cal[k] for k in ("focal", "cx0", "cy", "doffs", "baseline"))
+    cx1 = cx0 + doffs
+    rng = np.random.default_rng(seed)
+    index = 0
+    while index < crops:
+        window = _draw_window(rng, width, height)
+        pixel = _draw_pixel(rng, disparity, window)
+        if pixel is None:
+            continue
+        x0, y0, cw, ch = window
+        u_left, v_full = pixel
+        d_full = float(disparity[v_full, u_left])
+        fx, fy, u0, v0, sx, sy = crop_resize_intrinsics(
+            f, f, cx1, cy, x0, y0, cw, ch, image_size, image_size)
+        u = float(crop_resize_coordinate(u_left - d_full, x0, sx))
+        v = float(crop_resize_coordinate(v_full, y0, sy))
+        d = sx * (d_full + doffs)
+        X, Y, Z = image_to_world(fx, fy, u0, v0, b, d, 0.0, 0.0, -b, 0.0, u, v)
+        crop_l = resize_image(left[y0:y0 + ch, x0:x0 + cw], image_size, image_size)
+        crop_r = resize_image(right[y0:y0 + ch, x0:x0 + cw], image_size, image_size)
+        labels = {
+            "fx": fx, "fy": fy, "u0": u0, "v0": v0, "baseline": b, "disparity": d,
+            "tx": 0.0, "ty": -b, "tz": 0.0, "pitch": 0.0, "yaw": 0.0, "roll": 0.0,
+            "X": float(X), "Y": float(Y), "Z": float(Z), "u": u, "v": v,
+            "disparity_released": released_disparity(crop_l, crop_r),
+            "u0_left": float(crop_resize_coordinate(cx0, x0, sx)),
+            "u_left": float(crop_resize_coordinate(u_left, x0, sx)),
+            "crop_x0": x0, "crop_y0": y0, "crop_width": cw, "crop_height": ch,
+            "config_id": index, "town_id": -1, "frame_index": index,
+        }
+        yield crop_l, crop_r, labels
+        index += 1
+
+
+def build_middlebury(out, *, crops=500, image_size=112, seed=0, block=64, command=None):
+    """Write the Middlebury test set to ``out`` (HDF5, atomic); returns the path."""
+    crops = int(crops)
+    image_size = int(image_size)
+    if crops <= 0:
+        raise ValueError(f"number of crops must be positive, got {crops}")
+    if image_size < 32:
+        raise ValueError(f"image size must be at least 32 (StereoBM block 15 + 16 disparities), got {image_size}")
+    metadata = {
+        "source": "Middlebury 2014 Motorcycle (skimage.data.stereo_motorcycle, 4x down-sampled)",
+        "calibration": CALIBRATION, "crops": crops, "image_size": image_size, "seed": int(seed),
+        "labels": "rig: right camera pose in the left camera frame; (u, v) in the right image",
+        "min_crop_fraction": MIN_CROP_FRACTION, "full_image_share": FULL_IMAGE_SHARE,
+        "command": command,
+    }
+    with StereoWriter(out, crops, image_size, metadata=metadata,
+                      label_descriptions=LABEL_DESCRIPTIONS) as writer:
+        buffer = []
+        start = 0
+        for sample in middlebury_samples(crops, image_size, seed):
+            buffer.append(sample)
+            if len(buffer) == block:
+                _flush(writer, start, buffer)
+                start += len(buffer)
+                buffer = []
+        if buffer:
+            _flush(writer, start, buffer)
+    return str(out)
+
+
+def _flush(writer, start, samples):
+    left = np.stack([s[0] for s in samples])
+    right = np.stack([s[1] for s in samples])
+    names = samples[0][2].keys()
+    labels = {name: np.array([s[2][name] for s in samples]) for name in names}
+    writer.write(start, left, right, labels)

@@ -1,0 +1,190 @@
+"""Real data: Middlebury crops, Tsinghua-Daimler / Cityscapes layout, the CLI."""
+
+import json
+import os
+
+import cv2
+import numpy as np
+import pytest
+
+from cpl_keras.camera import image_to_camera, image_to_world
+from cpl_keras.data.storage import StereoFile
+from cpl_keras.real import build, crop_resize_coordinate, crop_resize_intrinsics
+from cpl_keras.real import middlebury, tsinghua
+
+SIZE = 32
+
+
+@pytest.fixture(scope="module")
+def middlebury_file(tmp_path_factory):
+    path = tmp_path_factory.mktemp("mb") / "middlebury.h5"
+    return middlebury.build_middlebury(path, crops=12, image_size=SIZE, seed=3)
+
+
+def test_crop_resize_intrinsics_by_hand():
+    # crop at (10, 20), 200 x 100 px, resized to 50 x 50: sx = 0.25, sy = 0.5
+    fx, fy, u0, v0, sx, sy = crop_resize_intrinsics(400.0, 400.0, 110.0, 70.0, 10, 20,
+                                                    200, 100, 50, 50)
+    assert (sx, sy) == (0.25, 0.5)
+    assert (fx, fy) == (100.0, 200.0)
+    assert u0 == pytest.approx((110.0 - 10 + 0.5) * 0.25 - 0.5)
+    assert v0 == pytest.approx((70.0 - 20 + 0.5) * 0.5 - 0.5)
+
+
+def test_middlebury_point_reprojects_to_same_3d_point(middlebury_file):
+    left, right, disparity, cal = middlebury.load_motorcycle()
+    f, cx0, cy, doffs, b = (cal[k] for k in ("focal", "cx0", "cy", "doffs", "baseline"))
+    with StereoFile(middlebury_file) as data:
+        labels = data.labels
+        assert data.image_shape == (SIZE, SIZE, 3)
+        n = data.num_pairs
+    for i in range(n):
+        x0, y0 = labels["crop_x0"][i], labels["crop_y0"][i]
+        sx = SIZE / labels["crop_width"][i]
+        sy = SIZE / labels["crop_height"][i]
+        # the ground-truth pixel of the original left image, from the stored labels
+        u_left_full = (labels["u_left"][i] + 0.5) / sx - 0.5 + x0
+        v_full = (labels["v"][i] + 0.5) / sy - 0.5 + y0
+        iu, iv = int(round(u_left_full)), int(round(v_full))
+        assert abs(u_left_full - iu) < 1e-2 and abs(v_full - iv) < 1e-2
+        d = disparity[iv, iu]
+        assert np.isfinite(d)
+        # before the transform: left camera, Middlebury depth Z = b f / (d + doffs)
+        before = np.array(image_to_camera(f, f, cx0, cy, b, d + doffs, iu, iv))
+        assert before[0] == pytest.approx(b * f / (d + doffs))
+        # after the transform: the stored labels through Eqs. 4a-5c
+        after = np.array(image_to_world(*(labels[k][i] for k in (
+            "fx", "fy", "u0", "v0", "baseline", "disparity", "pitch", "tx", "ty", "tz",
+            "u", "v"))))
+        np.testing.assert_allclose(after, before, rtol=2e-4, atol=2e-4)
+        np.testing.assert_allclose(after, [labels[k][i] for k in "XYZ"], rtol=1e-5, atol=1e-5)
+        # the right-image pixel is the left one shifted by the Middlebury disparity
+        assert labels["u"][i] == pytest.approx(labels["u_left"][i] - d * sx, abs=1e-3)
+    assert np.all(labels["ty"] == np.float32(-b)) and np.all(labels["pitch"] == 0)
+
+
+def test_middlebury_uses_true_right_image(middlebury_file):
+    left, right, _, _ = middlebury.load_motorcycle()
+    with StereoFile(middlebury_file) as data:
+        labels = data.labels
+        full = np.flatnonzero((labels["crop_width"] == left.shape[1])
+                              & (labels["crop_height"] == left.shape[0]))
+        i = int(full[0]) if full.size else 0
+        l_img, r_img = data.read_pairs([i])
+    x0, y0 = int(labels["crop_x0"][i]), int(labels["crop_y0"][i])
+    w, h = int(labels["crop_width"][i]), int(labels["crop_height"][i])
+    expected = cv2.resize(right[y0:y0 + h, x0:x0 + w], (SIZE, SIZE), interpolation=cv2.INTER_AREA)
+    np.testing.assert_array_equal(r_img[0], expected)
+    assert not np.array_equal(l_img[0], r_img[0])
+
+
+def _write_fixture(root, names=("a_000001", "a_000002"), shape=(48, 96), d=8.0,
+                   camera=None, split="test", city="tsinghuaDaimlerDataset"):
+    rng = np.random.default_rng(0)
+    camera = camera or {
+        "extrinsic": {"baseline": 0.3, "pitch": 0.04, "roll": 0.01, "x": 1.7, "y": 0.1,
+                      "yaw": -0.02, "z": 1.2},
+        "intrinsic": {"fx": 120.0, "fy": 125.0, "u0": 47.0, "v0": 23.0},
+    }
+    for name in names:
+        for folder in ("leftImg8bit", "disparity", "camera"):
+            os.makedirs(root / folder / split / city, exist_ok=True)
+        image = (rng.random(shape + (3,)) * 255).astype(np.uint8)
+        cv2.imwrite(str(root / "leftImg8bit" / split / city / f"{name}_leftImg8bit.png"), image)
+        raw = np.full(shape, int(d * 256 + 1), np.uint16)
+        raw[:, :4] = 0                                    # invalid strip
+        cv2.imwrite(str(root / "disparity" / split / city / f"{name}_disparity.png"), raw)
+        with open(root / "camera" / split / city / f"{name}_camera.json", "w") as f:
+            json.dump(camera, f)
+    return camera
+
+
+def test_tsinghua_layout_rig_labels(tmp_path):
+    camera = _write_fixture(tmp_path)
+    out = tsinghua.build_stereo_dataset(tmp_path, tmp_path / "t.h5", image_size=SIZE, seed=1)
+    with StereoFile(out) as data:
+        labels = data.labels
+        assert data.num_pairs == 2
+    b = camera["extrinsic"]["baseline"]
+    sx, sy = SIZE / 96, SIZE / 48
+    np.testing.assert_allclose(labels["fx"], 120.0 * sx, rtol=1e-6)
+    np.testing.assert_allclose(labels["fy"], 125.0 * sy, rtol=1e-6)
+    np.testing.assert_allclose(labels["u0"], crop_resize_coordinate(47.0, 0, sx), rtol=1e-6)
+    np.testing.assert_allclose(labels["disparity"], 8.0 * sx, rtol=1e-6)   # (p - 1) / 256 = 8
+    np.testing.assert_allclose(labels["ty"], -b, rtol=1e-6)
+    assert np.all(labels["pitch"] == 0) and np.all(labels["tx"] == 0)
+    np.testing.assert_allclose(labels["u"], labels["u_left"] - 8.0 * sx, atol=1e-4)
+    # the point is the left camera's: depth fx * b / d at full resolution
+    np.testing.assert_allclose(labels["X"], 120.0 * b / 8.0, rtol=1e-5)
+
+
+def test_tsinghua_vehicle_labels_match_dataset_camera_model(tmp_path):
+    camera = _write_fixture(tmp_path)
+    out = tsinghua.build_stereo_dataset(tmp_path, tmp_path / "v.h5", image_size=SIZE,
+                                        labels="vehicle", right="released")
+    with StereoFile(out) as data:
+        labels = data.labels
+        left, right = data.read_pairs([0])
+    e, k = camera["extrinsic"], camera["intrinsic"]
+    assert labels["pitch"][0] == pytest.approx(e["pitch"])
+    assert labels["tz"][0] == pytest.approx(e["z"])
+    # the 3D point at full resolution, from the JSON, equals the stored one
+    sx, sy = SIZE / 96, SIZE / 48
+    u_full = (labels["u"][0] + 0.5) / sx - 0.5
+    v_full = (labels["v"][0] + 0.5) / sy - 0.5
+    full = image_to_world(k["fx"], k["fy"], k["u0"], k["v0"], e["baseline"], 8.0,
+                          e["pitch"], e["x"], e["y"], e["z"], u_full, v_full)
+    np.testing.assert_allclose([labels[n][0] for n in "XYZ"], full, rtol=1e-4)
+    # the release's right image: left minus the disparity image's high byte, wrapping
+    high = np.uint8((8 * 256 + 1) >> 8)
+    expected = (left[0, :, -1].astype(np.int64) - int(high)) % 256
+    np.testing.assert_array_equal(right[0, :, -1], expected)
+    assert tsinghua.released_right(np.zeros((4, 4, 3), np.uint8),
+                                   np.full((4, 4), 2 * 256 + 1, np.uint16), 4).max() == 254
+
+
+def test_warp_moves_pixels_by_disparity():
+    rng = np.random.default_rng(0)
+    left = (rng.random((10, 40, 3)) * 255).astype(np.uint8)
+    disparity = np.full((10, 40), 5.0)
+    disparity[:, 20:] = 9.0                                   # a nearer region
+    right, visible = tsinghua.warp_to_right(left, disparity)
+    np.testing.assert_array_equal(right[:, 0:11], left[:, 5:16])   # right(u - 5) = left(u)
+    np.testing.assert_array_equal(right[:, 11:31], left[:, 20:40]) # nearer region wins
+    assert visible[:, 5:16].all() and visible[:, 20:].all()
+    assert not visible[:, 16:20].any()                        # occluded by the near region
+    np.testing.assert_array_equal(right[:, 31:], right[:, 30:31].repeat(9, 1))  # hole fill
+
+
+def test_bad_inputs_one_line_errors(tmp_path, capsys):
+    _write_fixture(tmp_path, names=("x_1",))
+    os.remove(tmp_path / "camera" / "test" / "tsinghuaDaimlerDataset" / "x_1_camera.json")
+    out = tmp_path / "bad.h5"
+    assert build.main(["tsinghua", "--root", str(tmp_path), "--out", str(out)]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.startswith("error: missing") and "\n" not in err
+    assert not out.exists() and not os.path.exists(str(out) + ".partial")
+
+    broken = tmp_path / "broken"
+    _write_fixture(broken, camera={"intrinsic": {"fx": 1.0}, "extrinsic": {}})
+    assert build.main(["cityscapes", "--root", str(broken), "--out", str(out)]) == 2
+    assert "intrinsic" in capsys.readouterr().err and not out.exists()
+
+    assert build.main(["tsinghua", "--out", str(out)]) == 2
+    assert "--root is required" in capsys.readouterr().err
+    assert build.main(["middlebury", "--out", str(tmp_path / "no" / "x.h5")]) == 2
+    assert "output directory" in capsys.readouterr().err
+    assert build.main(["middlebury", "--crops", "0", "--out", str(out)]) == 2
+    assert "crops" in capsys.readouterr().err and not out.exists()
+    with pytest.raises(SystemExit) as exit_info:
+        build.main(["kitti", "--out", str(out)])
+    assert exit_info.value.code == 2
+
+
+def test_cli_builds_middlebury(tmp_path, capsys):
+    out = tmp_path / "m.h5"
+    assert build.main(["middlebury", "--crops", "3", "--image-size", "32", "--out", str(out)]) == 0
+    assert capsys.readouterr().out.strip() == str(out)
+    with StereoFile(out) as data:
+        assert data.num_pairs == 3
+        assert "cpl_keras.real.build middlebury" in data.metadata["command"]
