@@ -1,0 +1,384 @@
+"""Generate a synthetic CVGL-style stereo dataset (library function and CLI).
+
+Usage::
+
+    python -m cpl_keras.data.generate --protocol cvgl --pairs 10000 --out data/cvgl.h5
+    python -m cpl_keras.data.generate --protocol random --pairs 64 --preview sheet.png
+
+Each pair is rendered by ``cpl_keras.data.render`` in a town of
+``cpl_keras.data.scenes`` with a rig from ``cpl_keras.data.protocols``, and
+labelled with the paper's 13 targets:
+
+* the intrinsics fx, fy, u0, v0 and the extrinsics pitch, tx, ty, tz of the
+  right camera relative to the left one (see ``protocols``),
+* the true disparity at the projection pixel (u, v) of the right image,
+  ``d = fx * baseline / xCam`` (Eq. 4a inverted), xCam being the rendered
+  depth of that pixel,
+* X, Y, Z = ``camera.image_to_world`` of those labels (Eqs. 4a-5c), so the
+  labels obey the camera equations exactly.
+
+The release's disparity (mean of the raw ``cv2.StereoBM`` map) is stored as
+``disparity_released``. Pairs are rendered in blocks by worker processes and
+written in order through ``storage.StereoWriter`` (atomic: a killed run leaves
+no file at the final path); pair i depends only on (seed, i), so the bytes
+do not depend on the number of workers.
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import os
+import sys
+import time
+
+import numpy as np
+
+from cpl_keras import camera
+from cpl_keras.data import protocols
+from cpl_keras.data.protocols import PROTOCOLS
+
+GENERATOR_VERSION = "1.0"
+MIN_IMAGE_SIZE = 16
+MAX_IMAGE_SIZE = 1024
+BLOCK = 32
+
+LABEL_DESCRIPTIONS = {
+    "fx": "focal length along u, pixels (shared by both cameras)",
+    "fy": "focal length along v, pixels (shared by both cameras)",
+    "u0": "principal point u, pixels",
+    "v0": "principal point v, pixels",
+    "baseline": "cvgl: tx as released; random: distance between the camera centres",
+    "disparity": "true disparity at (u, v) of the right image: fx * baseline / xCam (Eq. 4a)",
+    "disparity_released": "mean of the raw cv2.StereoBM_create(16, 15) map of the grey pair "
+                          "(16x fixed point, invalid -16 included), as in the release",
+    "tx": "right camera centre in the left camera frame, x (forward)",
+    "ty": "right camera centre in the left camera frame, y (left)",
+    "tz": "right camera centre in the left camera frame, z (up)",
+    "pitch": "relative pitch right-to-left (Eq. 5), radians, positive tilts down; the release "
+             "stored degrees and fed them to sin/cos as radians",
+    "yaw": "relative yaw right-to-left, radians (nuisance, not in Eq. 5)",
+    "roll": "relative roll right-to-left, radians (nuisance, not in Eq. 5)",
+    "X": "Eq. 5a at (u, v): image_to_world of the stored labels",
+    "Y": "Eq. 5b at (u, v): image_to_world of the stored labels",
+    "Z": "Eq. 5c at (u, v): image_to_world of the stored labels",
+    "u": "projection pixel u (column) in the right image",
+    "v": "projection pixel v (row) in the right image",
+    "config_id": "rig configuration",
+    "town_id": "town (0 = Town01, 1 = Town02)",
+    "frame_index": "frame along the configuration's drive",
+}
+FLOAT_LABELS = camera.TARGETS + ("u", "v", "disparity_released", "yaw", "roll")
+INT_LABELS = ("config_id", "town_id", "frame_index")
+
+
+# ---------------------------------------------------------------------------
+# Rendering pairs
+# ---------------------------------------------------------------------------
+def _stereo_bm():
+    import cv2
+
+    cv2.setNumThreads(1)
+    return cv2.StereoBM_create(numDisparities=16, blockSize=15)
+
+
+def released_disparity(left, right):
+    """Mean of the raw StereoBM map of an RGB pair, as the release computed it."""
+    import cv2
+
+    grey_l = cv2.cvtColor(left, cv2.COLOR_RGB2GRAY)
+    grey_r = cv2.cvtColor(right, cv2.COLOR_RGB2GRAY)
+    return float(_stereo_bm().compute(grey_l, grey_r).mean())
+
+
+def render_pair(protocol, seed, pairs, image_size, index):
+    """Left image, right image (uint8 (H, W, 3)) and the labels of pair ``index``."""
+    from cpl_keras.data import render
+
+    s = protocols.pair_setup(protocol, seed, pairs, image_size, index)
+    town, cfg, right = s["town"], s["config"], s["right"]
+    left_img, _ = render.render(town, s["left"])
+    right_img, _ = render.render(town, right)
+    u, v = s["u"], s["v"]
+    xCam = float(render.depth_at(town, right, u, v)[0])
+    disparity = cfg["fx"] * cfg["baseline"] / xCam
+    X, Y, Z = camera.image_to_world(
+        cfg["fx"], cfg["fy"], cfg["u0"], cfg["v0"], cfg["baseline"], disparity,
+        cfg["pitch"], cfg["tx"], cfg["ty"], cfg["tz"], u, v,
+    )
+    labels = {k: cfg[k] for k in ("fx", "fy", "u0", "v0", "baseline", "tx", "ty", "tz",
+                                  "pitch", "yaw", "roll")}
+    labels.update(disparity=disparity, X=float(X), Y=float(Y), Z=float(Z), u=u, v=v,
+                  disparity_released=released_disparity(left_img, right_img),
+                  config_id=cfg["config_id"], town_id=cfg["town_id"],
+                  frame_index=s["frame_index"])
+    return left_img, right_img, labels
+
+
+def render_block(protocol, seed, pairs, image_size, start, stop):
+    """Pairs ``start .. stop``: (left, right, labels) with labels as arrays."""
+    lefts, rights, rows = [], [], []
+    for i in range(start, stop):
+        left, right, labels = render_pair(protocol, seed, pairs, image_size, i)
+        lefts.append(left)
+        rights.append(right)
+        rows.append(labels)
+    labels = {k: np.array([r[k] for r in rows], np.float32) for k in FLOAT_LABELS}
+    labels.update({k: np.array([r[k] for r in rows], np.int32) for k in INT_LABELS})
+    return np.stack(lefts), np.stack(rights), labels
+
+
+def _render_block_task(args):
+    return args[4], render_block(*args)
+
+
+# ---------------------------------------------------------------------------
+# The dataset
+# ---------------------------------------------------------------------------
+def _check_int(name, value, minimum, maximum=None):
+    if isinstance(value, bool) or not isinstance(value, (int, np.integer)):
+        raise ValueError(f"{name} must be an integer, got {value!r}")
+    if value < minimum or (maximum is not None and value > maximum):
+        bound = f">= {minimum}" if maximum is None else f"in {minimum}..{maximum}"
+        raise ValueError(f"{name} must be {bound}, got {value}")
+    return int(value)
+
+
+def check_output_path(out):
+    """The output path as a string, or ValueError if it cannot be written."""
+    if not isinstance(out, (str, os.PathLike)) or not os.fspath(out):
+        raise ValueError(f"output path must be a non-empty path, got {out!r}")
+    out = os.fspath(out)
+    if os.path.isdir(out):
+        raise ValueError(f"output path is a directory: {out}")
+    directory = os.path.dirname(os.path.abspath(out))
+    if not os.path.isdir(directory):
+        raise ValueError(f"output directory does not exist: {directory}")
+    if not os.access(directory, os.W_OK):
+        raise ValueError(f"output directory is not writable: {directory}")
+    return out
+
+
+def _check_arguments(protocol, pairs, seed, image_size, workers):
+    protocols.check_protocol(protocol)
+    pairs = _check_int("pairs", pairs, 1)
+    seed = _check_int("seed", seed, 0, 2**63 - 1)
+    image_size = _check_int("image_size", image_size, MIN_IMAGE_SIZE, MAX_IMAGE_SIZE)
+    if workers is not None:
+        workers = _check_int("workers", workers, 1)
+    return pairs, seed, image_size, workers
+
+
+def metadata(protocol, pairs, seed, image_size, command_line=None):
+    """The dataset's metadata dict (JSON-able)."""
+    from cpl_keras.data import scenes
+
+    return {
+        "protocol": protocol, "seed": seed, "pairs": pairs, "image_size": image_size,
+        "generator": "cpl_keras.data.generate", "generator_version": GENERATOR_VERSION,
+        "towns": [scenes.make_town(i).describe() for i in range(len(scenes.TOWNS))],
+        "ranges": protocols.ranges(protocol),
+        "configurations": protocols.configurations(protocol, seed, pairs, image_size),
+        "geometry": "x forward, y left, z up; label extrinsics = right camera pose in the left "
+                    "camera frame, P_left = R(pitch) P_right + t; pixel centres at integer (u, v)",
+        "sky_distance_m": scenes.SKY_DISTANCE,
+        "command_line": command_line,
+    }
+
+
+class _Progress:
+    def __init__(self, total, label, enabled):
+        self.total, self.label, self.enabled = total, label, enabled
+        self.start = time.perf_counter()
+        self.done = 0
+
+    def update(self, n):
+        self.done += n
+        if not self.enabled:
+            return
+        elapsed = time.perf_counter() - self.start
+        rate = self.done / max(elapsed, 1e-9)
+        width = 30
+        filled = int(width * self.done / self.total)
+        eta = (self.total - self.done) / max(rate, 1e-9)
+        sys.stderr.write(f"\r{self.label} [{'#' * filled}{'.' * (width - filled)}] "
+                         f"{self.done}/{self.total} pairs {rate:6.1f} pairs/s ETA {eta:5.0f}s ")
+        if self.done >= self.total:
+            sys.stderr.write("\n")
+        sys.stderr.flush()
+
+
+def _blocks(pairs):
+    return [(s, min(s + BLOCK, pairs)) for s in range(0, pairs, BLOCK)]
+
+
+def _iter_blocks(protocol, seed, pairs, image_size, workers):
+    """(start, (left, right, labels)) for every block, in order, memory bounded."""
+    blocks = _blocks(pairs)
+    if workers == 1 or len(blocks) == 1:
+        for start, stop in blocks:
+            yield start, render_block(protocol, seed, pairs, image_size, start, stop)
+        return
+    import multiprocessing as mp
+
+    # spawn: safe even when the caller has started threads (e.g. JAX).
+    ctx = mp.get_context("spawn")
+    window = 2 * workers
+    with ctx.Pool(min(workers, len(blocks))) as pool:
+        pending = []
+        tasks = iter(blocks)
+        for start, stop in tasks:
+            pending.append(pool.apply_async(
+                _render_block_task, ((protocol, seed, pairs, image_size, start, stop),)))
+            if len(pending) >= window:
+                break
+        while pending:
+            result = pending.pop(0).get()
+            nxt = next(tasks, None)
+            if nxt is not None:
+                pending.append(pool.apply_async(
+                    _render_block_task, ((protocol, seed, pairs, image_size) + nxt,)))
+            yield result
+
+
+def _generate(out, protocol, pairs, seed, image_size, workers, progress, command_line=None):
+    from cpl_keras.data.storage import StereoWriter
+
+    pairs, seed, image_size, workers = _check_arguments(protocol, pairs, seed, image_size, workers)
+    out = check_output_path(out)
+    if workers is None:
+        workers = os.cpu_count() or 1
+    meta = metadata(protocol, pairs, seed, image_size, command_line)
+    bar = _Progress(pairs, f"{protocol}", progress)
+    with StereoWriter(out, pairs, image_size, metadata=meta,
+                      label_descriptions=LABEL_DESCRIPTIONS) as writer:
+        for start, (left, right, labels) in _iter_blocks(protocol, seed, pairs, image_size,
+                                                         workers):
+            writer.write(start, left, right, labels)
+            bar.update(len(left))
+    return out
+
+
+def generate_dataset(out, *, protocol="cvgl", pairs, seed=0, image_size=112, workers=None,
+                     progress=True):
+    """Render ``pairs`` stereo pairs and write them to the HDF5 file ``out``.
+
+    ``protocol`` is one of ``PROTOCOLS``; ``workers=None`` uses every core.
+    The file is written atomically (``storage.StereoWriter``); the same
+    ``seed`` gives the same images and labels whatever ``workers`` is.
+    Returns the path written. Raises ``ValueError`` (one line) on bad arguments.
+    """
+    return _generate(out, protocol, pairs, seed, image_size, workers, progress)
+
+
+# ---------------------------------------------------------------------------
+# Preview contact sheet
+# ---------------------------------------------------------------------------
+def preview_indices(protocol, pairs, count=8):
+    """``count`` pair indices spread over the dataset (and so over configurations)."""
+    count = min(count, pairs)
+    return sorted({int(round(i * (pairs - 1) / max(count - 1, 1))) for i in range(count)})
+
+
+def write_preview(path, protocol, pairs, seed=0, image_size=112, count=8, columns=2):
+    """A PNG contact sheet of ``count`` pairs (left | right) with their labels.
+
+    The projection pixel (u, v) is marked in the right image and the point
+    (u + d, v) in the left image (where it would be for a rectified rig).
+    """
+    from PIL import Image, ImageDraw
+
+    pairs, seed, image_size, _ = _check_arguments(protocol, pairs, seed, image_size, None)
+    path = check_output_path(path)
+    indices = preview_indices(protocol, pairs, count)
+    W = image_size
+    text_h = 36
+    cell_w, cell_h = 2 * W + 6, W + text_h
+    rows = math.ceil(len(indices) / columns)
+    sheet = Image.new("RGB", (columns * cell_w + (columns - 1) * 8, rows * cell_h), (255, 255, 255))
+    draw = ImageDraw.Draw(sheet)
+    for n, i in enumerate(indices):
+        left, right, lab = render_pair(protocol, seed, pairs, image_size, i)
+        x0 = (n % columns) * (cell_w + 8)
+        y0 = (n // columns) * cell_h
+        sheet.paste(Image.fromarray(left), (x0, y0))
+        sheet.paste(Image.fromarray(right), (x0 + W + 6, y0))
+        u, v = lab["u"], lab["v"]
+        draw.rectangle([x0 + W + 6 + u - 2, y0 + v - 2, x0 + W + 6 + u + 2, y0 + v + 2],
+                       outline=(255, 0, 255))
+        fov = math.degrees(camera.fov_from_focal(lab["fx"], W))
+        lines = [
+            f"#{i} cfg {lab['config_id']} town {lab['town_id'] + 1} frame {lab['frame_index']}",
+            f"fov {fov:.0f} b {lab['baseline']:.2f} pitch {math.degrees(lab['pitch']):.1f}d",
+            f"d {lab['disparity']:.2f}px X {lab['X']:.1f} Y {lab['Y']:.1f} Z {lab['Z']:.1f}",
+        ]
+        for k, line in enumerate(lines):
+            draw.text((x0 + 1, y0 + W + 1 + 11 * k), line, fill=(0, 0, 0))
+    tmp = path + ".partial.png"
+    try:
+        sheet.save(tmp, optimize=True)
+        os.replace(tmp, path)
+    finally:
+        if os.path.exists(tmp):
+            os.remove(tmp)
+    return path
+
+
+# ---------------------------------------------------------------------------
+# CLI
+# ---------------------------------------------------------------------------
+class _Parser(argparse.ArgumentParser):
+    def error(self, message):
+        sys.stderr.write(f"{self.prog}: error: {message}\n")
+        sys.exit(2)
+
+
+def _parser():
+    p = _Parser(
+        prog="python -m cpl_keras.data.generate",
+        description="Render a synthetic CVGL-style stereo dataset to one HDF5 file.",
+    )
+    p.add_argument("--protocol", default="cvgl", choices=PROTOCOLS,
+                   help="cvgl: the paper's 50 rigs; random: realistic rigs (default cvgl)")
+    p.add_argument("--pairs", type=int, required=True, help="number of stereo pairs")
+    p.add_argument("--out", help="output HDF5 file (may be left out with --preview)")
+    p.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
+    p.add_argument("--image-size", type=int, default=112, help="square image side (default 112)")
+    p.add_argument("--workers", type=int, default=None, help="worker processes (default: all cores)")
+    p.add_argument("--preview", help="also write a PNG contact sheet of a few pairs")
+    p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    return p
+
+
+def main(argv=None):
+    parser = _parser()
+    args = parser.parse_args(argv)
+    if args.out is None and args.preview is None:
+        parser.error("give --out (the dataset) and/or --preview (a contact sheet)")
+    command_line = " ".join(["python -m cpl_keras.data.generate"] + list(
+        sys.argv[1:] if argv is None else argv))
+    try:
+        _check_arguments(args.protocol, args.pairs, args.seed, args.image_size, args.workers)
+        if args.out is not None:
+            check_output_path(args.out)
+        if args.preview is not None:
+            check_output_path(args.preview)
+        if args.out is not None:
+            path = _generate(args.out, args.protocol, args.pairs, args.seed, args.image_size,
+                             args.workers, not args.no_progress, command_line)
+            print(path)
+        if args.preview is not None:
+            print(write_preview(args.preview, args.protocol, args.pairs, args.seed,
+                                args.image_size))
+    except KeyboardInterrupt:
+        sys.stderr.write(f"{parser.prog}: interrupted\n")
+        return 130
+    except (ValueError, OSError) as error:
+        message = " ".join(str(error).split())
+        sys.stderr.write(f"{parser.prog}: error: {message}\n")
+        return 2
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

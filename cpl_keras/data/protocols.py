@@ -1,0 +1,227 @@
+"""Stereo-rig protocols: how camera configurations and frames are drawn.
+
+Frames and labels
+-----------------
+The label extrinsics (pitch, tx, ty, tz, and the nuisance yaw, roll) are the
+RIGHT camera's pose relative to the LEFT camera, in the left camera's frame
+(x forward, y left, z up): ``P_left = R(pitch, yaw, roll) P_right + t`` with
+``t = (tx, ty, tz)`` the right camera centre seen from the left camera. With
+yaw = roll = 0 this is paper Eq. 5 (positive pitch tilts the axis down).
+Both cameras share the intrinsics fx, fy, u0, v0.
+
+``cvgl`` (the paper's protocol, CARLA conventions converted)
+    Left camera on the vehicle at (x=2, y=0, z=1.4) m, looking down 15 deg
+    (CARLA pitch -15 = our pitch +15). 50 right-camera configurations, 25 per
+    town, drawn once from the seed: fov 50-150 deg (shared by both cameras),
+    x 2-170 m, y -5..5 m, z 1-3 m, pitch -30..30 deg in CARLA's convention
+    (y right, pitch up), converted with y = -y_carla, pitch = -pitch_carla.
+    fx = fy = W / (2 tan(fov/2)), u0 = v0 = W/2, baseline = tx (as released),
+    projection pixel (u, v) = (W/2, H/2). Configurations with |tx| < 0.5 m are
+    redrawn so that the disparity never underflows the camera model's
+    division floor (a deviation from the release, which had no such rule).
+
+``random`` (realistic stereo rigs, continuous ranges)
+    Every configuration is drawn independently: lateral baseline 0.05-1.0 m
+    with the right camera to the right (ty = -baseline), small tx and tz,
+    relative pitch/yaw/roll of a few degrees, horizontal fov 40-120 deg,
+    fy = fx * (1 +- 5 %), principal point off centre by up to 10 % of the
+    image (as a crop would do), left camera mounted 1.2-2.0 m high looking
+    -5..15 deg down. baseline = |t| (the distance between the centres). One
+    configuration per ``RANDOM_FRAMES_PER_CONFIG`` frames, so whole
+    configurations can be held out. The projection pixel (u, v) is drawn per
+    pair inside the image.
+
+Frames: configuration c owns a contiguous run of pair indices (a drive); frame
+k of it puts the vehicle at x = start + k * step along the main street, with a
+slow lateral sway. Everything about pair i is a function of (seed, i) only.
+"""
+
+from __future__ import annotations
+
+import functools
+import math
+
+import numpy as np
+
+from cpl_keras import camera
+from cpl_keras.data import scenes
+
+PROTOCOLS = ("cvgl", "random")
+
+CVGL_CONFIGS = 50
+CVGL_LEFT = {"x": 2.0, "y": 0.0, "z": 1.4, "pitch_deg": 15.0}
+CVGL_RANGES = {
+    "fov_deg": (50.0, 150.0), "x_m": (2.0, 170.0), "y_carla_m": (-5.0, 5.0),
+    "z_m": (1.0, 3.0), "pitch_carla_deg": (-30.0, 30.0),
+}
+CVGL_MIN_BASELINE = 0.5
+
+RANDOM_FRAMES_PER_CONFIG = 8
+RANDOM_RANGES = {
+    "fov_deg": (40.0, 120.0), "aspect_jitter": (-0.05, 0.05),
+    "principal_offset_fraction": (-0.1, 0.1), "baseline_m": (0.05, 1.0),
+    "tx_m": (-0.05, 0.05), "tz_m": (-0.03, 0.03), "pitch_deg": (-3.0, 3.0),
+    "yaw_deg": (-3.0, 3.0), "roll_deg": (-2.0, 2.0),
+    "left_x_m": (0.5, 2.5), "left_y_m": (-0.8, 0.8), "left_z_m": (1.2, 2.0),
+    "left_pitch_deg": (-5.0, 15.0), "left_yaw_deg": (-3.0, 3.0), "left_roll_deg": (-2.0, 2.0),
+    "projection_margin_fraction": 0.125,
+}
+DRIVE = {"step_m": (1.5, 4.0), "sway_m": 0.35}
+
+
+def ranges(protocol):
+    """The parameter ranges of ``protocol`` (for metadata)."""
+    check_protocol(protocol)
+    base = CVGL_RANGES if protocol == "cvgl" else RANDOM_RANGES
+    out = {k: list(v) if isinstance(v, tuple) else v for k, v in base.items()}
+    out.update({f"drive_{k}": list(v) if isinstance(v, tuple) else v for k, v in DRIVE.items()})
+    if protocol == "cvgl":
+        out["left_camera"] = dict(CVGL_LEFT)
+        out["min_abs_tx_m"] = CVGL_MIN_BASELINE
+    else:
+        out["frames_per_config"] = RANDOM_FRAMES_PER_CONFIG
+    return out
+
+
+def check_protocol(protocol):
+    if protocol not in PROTOCOLS:
+        raise ValueError(f"unknown protocol {protocol!r}; choose one of {', '.join(PROTOCOLS)}")
+
+
+def num_configs(protocol, pairs):
+    check_protocol(protocol)
+    if protocol == "cvgl":
+        return CVGL_CONFIGS
+    return max(1, math.ceil(pairs / RANDOM_FRAMES_PER_CONFIG))
+
+
+def _relative(rot_left, pos_left, rot_right, pos_right):
+    """Right pose in the left camera's frame: R_rel = R_L^T R_R, t = R_L^T (c_R - c_L)."""
+    rel = rot_left.T @ rot_right
+    t = rot_left.T @ (np.asarray(pos_right) - np.asarray(pos_left))
+    # Euler angles of R = Rz(yaw) Ry(pitch) Rx(roll) (camera.rotation_matrix)
+    pitch = math.asin(max(-1.0, min(1.0, -rel[2, 0])))
+    yaw = math.atan2(rel[1, 0], rel[0, 0])
+    roll = math.atan2(rel[2, 1], rel[2, 2])
+    return pitch, yaw, roll, t
+
+
+def _u(rng, lo_hi):
+    return float(rng.uniform(*lo_hi))
+
+
+@functools.lru_cache(maxsize=8)
+def _configurations(protocol, seed, pairs, image_size):
+    rng = np.random.default_rng([seed, PROTOCOLS.index(protocol)])
+    W = H = image_size
+    configs = []
+    for c in range(num_configs(protocol, pairs)):
+        if protocol == "cvgl":
+            town_id = 0 if c < CVGL_CONFIGS // 2 else 1
+            pitch_left = math.radians(CVGL_LEFT["pitch_deg"])
+            left = (CVGL_LEFT["x"], CVGL_LEFT["y"], CVGL_LEFT["z"])
+            rot_left = camera.rotation_matrix(pitch_left)
+            while True:
+                fov = _u(rng, CVGL_RANGES["fov_deg"])
+                x = _u(rng, CVGL_RANGES["x_m"])
+                y_carla = _u(rng, CVGL_RANGES["y_carla_m"])
+                z = _u(rng, CVGL_RANGES["z_m"])
+                pitch_carla = _u(rng, CVGL_RANGES["pitch_carla_deg"])
+                right = (x, -y_carla, z)
+                rot_right = camera.rotation_matrix(math.radians(-pitch_carla))
+                pitch, yaw, roll, t = _relative(rot_left, left, rot_right, right)
+                if abs(t[0]) >= CVGL_MIN_BASELINE:
+                    break
+            fx = fy = float(camera.focal_from_fov(math.radians(fov), W))
+            u0, v0 = W / 2, H / 2
+            baseline = float(t[0])
+            cfg = {
+                "carla": {"fov_deg": fov, "x": x, "y": y_carla, "z": z, "pitch_deg": pitch_carla},
+                "left_pose": {"position": list(left), "pitch": pitch_left, "yaw": 0.0, "roll": 0.0},
+                "right_pose": {"position": list(right), "pitch": -math.radians(pitch_carla),
+                               "yaw": 0.0, "roll": 0.0},
+            }
+        else:
+            R = RANDOM_RANGES
+            town_id = c % len(scenes.TOWNS)
+            fov = _u(rng, R["fov_deg"])
+            fx = float(camera.focal_from_fov(math.radians(fov), W))
+            fy = fx * (1.0 + _u(rng, R["aspect_jitter"]))
+            u0 = W / 2 + _u(rng, R["principal_offset_fraction"]) * W
+            v0 = H / 2 + _u(rng, R["principal_offset_fraction"]) * H
+            left = (_u(rng, R["left_x_m"]), _u(rng, R["left_y_m"]), _u(rng, R["left_z_m"]))
+            lp, ly, lr = (math.radians(_u(rng, R[k])) for k in
+                          ("left_pitch_deg", "left_yaw_deg", "left_roll_deg"))
+            rot_left = camera.rotation_matrix(lp, ly, lr)
+            lateral = _u(rng, R["baseline_m"])
+            t = np.array([_u(rng, R["tx_m"]), -lateral, _u(rng, R["tz_m"])])
+            rp, ry, rr = (math.radians(_u(rng, R[k])) for k in ("pitch_deg", "yaw_deg", "roll_deg"))
+            rot_right = rot_left @ camera.rotation_matrix(rp, ry, rr)
+            right = tuple(np.asarray(left) + rot_left @ t)
+            pitch, yaw, roll, t = _relative(rot_left, left, rot_right, right)
+            baseline = float(np.linalg.norm(t))
+            cfg = {
+                "left_pose": {"position": list(left), "pitch": lp, "yaw": ly, "roll": lr},
+                "right_rotation": rot_right.tolist(),
+                "right_pose": {"position": [float(p) for p in right]},
+            }
+        cfg.update({
+            "config_id": c, "town_id": town_id, "town": scenes.TOWNS[town_id],
+            "fov_deg": fov, "fx": fx, "fy": fy, "u0": u0, "v0": v0, "baseline": baseline,
+            "tx": float(t[0]), "ty": float(t[1]), "tz": float(t[2]),
+            "pitch": pitch, "yaw": yaw, "roll": roll,
+            "start_x": _u(rng, (0.0, scenes.make_town(town_id).period)),
+            "step": _u(rng, DRIVE["step_m"]), "sway_phase": _u(rng, (0.0, 2 * math.pi)),
+        })
+        configs.append(cfg)
+    return tuple(configs)
+
+
+def configurations(protocol, seed, pairs, image_size):
+    """The configuration table (list of JSON-able dicts) of a dataset."""
+    return [dict(c) for c in _configurations(protocol, int(seed), int(pairs), int(image_size))]
+
+
+def config_of_pair(protocol, pairs, index):
+    """(config_id, frame_index) of pair ``index``: contiguous runs per configuration."""
+    n = num_configs(protocol, pairs)
+    c = index * n // pairs
+    first = -(-c * pairs // n)
+    return c, index - first
+
+
+def _rotation(pose):
+    return camera.rotation_matrix(pose["pitch"], pose["yaw"], pose["roll"])
+
+
+def pair_setup(protocol, seed, pairs, image_size, index):
+    """Everything needed to render pair ``index``: config, poses, (u, v)."""
+    from cpl_keras.data.render import View
+
+    configs = _configurations(protocol, int(seed), int(pairs), int(image_size))
+    c, frame = config_of_pair(protocol, pairs, index)
+    cfg = configs[c]
+    town = scenes.make_town(cfg["town_id"])
+    vehicle = np.array([
+        math.fmod(cfg["start_x"] + frame * cfg["step"], town.period),
+        DRIVE["sway_m"] * math.sin(0.07 * frame + cfg["sway_phase"]),
+        0.0,
+    ])
+    W = H = int(image_size)
+    left_rot = _rotation(cfg["left_pose"])
+    if "right_rotation" in cfg:
+        right_rot = np.asarray(cfg["right_rotation"])
+    else:
+        right_rot = _rotation(cfg["right_pose"])
+    intr = (cfg["fx"], cfg["fy"], cfg["u0"], cfg["v0"], W, H)
+    left = View(*intr, vehicle + np.asarray(cfg["left_pose"]["position"]), left_rot)
+    right = View(*intr, vehicle + np.asarray(cfg["right_pose"]["position"]), right_rot)
+    if protocol == "cvgl":
+        u, v = W / 2, H / 2
+    else:
+        rng = np.random.default_rng([seed, 7, index])
+        margin = int(RANDOM_RANGES["projection_margin_fraction"] * W)
+        u = float(rng.integers(margin, W - margin))
+        v = float(rng.integers(margin, H - margin))
+    return {"config": cfg, "frame_index": frame, "town": town, "left": left, "right": right,
+            "u": u, "v": v}
