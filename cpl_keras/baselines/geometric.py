@@ -244,6 +244,7 @@ def calibrate_from_matches(pts_left, pts_right, width, height, priors=None, min_
     # 1. a robust fundamental matrix, x_right^T F x_left = 0
     F, inliers = None, None
     if len(pts_l) >= max(8, min_matches):
+        cv2.setRNGSeed(0)                      # RANSAC samples: same pair, same answer
         F, mask = cv2.findFundamentalMat(pts_l, pts_r, cv2.FM_RANSAC, ransac_threshold, 0.999)
         if F is not None and F.shape == (3, 3) and mask is not None and int(mask.sum()) >= 8:
             inliers = mask.ravel().astype(bool)
