@@ -1,0 +1,206 @@
+"""The model factory, the Lambda camera graph, losses and saving."""
+
+import os
+
+import keras
+import numpy as np
+import pytest
+from keras import ops
+
+from cpl_keras import TARGETS, build_model, camera, compile_model, losses
+from cpl_keras.models import VARIANTS
+
+SIZE = 32
+
+
+def batch(n=4, seed=0):
+    """Images and targets that obey the camera equations."""
+    rng = np.random.default_rng(seed)
+    x = {
+        "left_image": rng.uniform(0, 255, (n, SIZE, SIZE, 3)).astype("float32"),
+        "right_image": rng.uniform(0, 255, (n, SIZE, SIZE, 3)).astype("float32"),
+    }
+    p = {
+        "fx": rng.uniform(20, 60, n), "fy": rng.uniform(20, 60, n),
+        "u0": np.full(n, 16.0), "v0": np.full(n, 16.0), "baseline": rng.uniform(0.2, 2, n),
+        "disparity": rng.uniform(1, 8, n), "tx": rng.normal(0, 1, n), "ty": rng.normal(0, 1, n),
+        "tz": rng.normal(0, 0.3, n), "pitch": rng.uniform(-0.3, 0.3, n),
+    }
+    X, Y, Z = camera.image_to_world(**p, u=rng.uniform(0, SIZE, n), v=rng.uniform(0, SIZE, n))
+    p.update(X=X, Y=Y, Z=Z)
+    y = {name: np.asarray(p[name], "float32").reshape(n, 1) for name in TARGETS}
+    return x, y
+
+
+@pytest.mark.parametrize("as_released", [False, True])
+@pytest.mark.parametrize("variant", VARIANTS)
+def test_outputs_are_the_13_targets_in_release_order(variant, as_released):
+    model = build_model(variant, backbone="small", image_size=SIZE, as_released=as_released)
+    assert model.output_names == list(TARGETS)
+    assert sorted(i.name for i in model.inputs) == ["left_image", "right_image"]
+    x, _ = batch(2)
+    out = model.predict(x, verbose=0)
+    assert len(out) == 13 and all(o.shape == (2, 1) for o in out)
+
+
+def test_baseline_has_the_release_parameter_count_and_runs_inceptionv3():
+    model = build_model("baseline", image_size=112)
+    assert model.count_params() == 69_299_405
+    assert model.get_layer("left_inception_v3").count_params() == 21_802_784
+    rng = np.random.default_rng(0)
+    x = {k: rng.uniform(0, 255, (1, 112, 112, 3)).astype("float32") for k in ("left_image", "right_image")}
+    out = model(x, training=False)
+    assert all(np.isfinite(ops.convert_to_numpy(o)).all() for o in out)
+
+
+def test_cpl_variants_have_the_lambda_camera_graph():
+    model = build_model("cpl-u", backbone="small", image_size=SIZE)
+    names = {layer.name for layer in model.layers}
+    assert {"xCam", "yCam", "zCam", "X", "Y", "Z", "u", "v"} <= names
+    assert isinstance(model.get_layer("xCam"), keras.layers.Lambda)
+    assert model.get_layer("xCam").function.__name__ == "safe_divide"
+    baseline = build_model("baseline", backbone="small", image_size=SIZE)
+    assert "xCam" not in {layer.name for layer in baseline.layers}
+
+
+def test_camera_graph_computes_the_equations():
+    """Feed the graph known parameters through a sub-model and compare with numpy."""
+    model = build_model("cpl-u", backbone="small", image_size=SIZE)
+    heads = list(camera.PARAMETERS) + ["u", "v"]
+    graph = keras.Model([model.get_layer(h).output for h in heads],
+                        [model.get_layer(q).output for q in ("X", "Y", "Z")])
+    rng = np.random.default_rng(3)
+    values = {h: rng.uniform(0.5, 3.0, (5, 1)).astype("float32") for h in heads}
+    got = graph.predict([values[h] for h in heads], verbose=0)
+    expected = camera.image_to_world(**values)
+    for g, e in zip(got, expected):
+        np.testing.assert_allclose(g, e, rtol=1e-5)
+
+
+def _head_kernels(model, names):
+    return {n: ops.convert_to_numpy(model.get_layer(n).kernel).copy() for n in names}
+
+
+@pytest.mark.parametrize("variant,as_released", [
+    ("cpl-u", False), ("cpl-a", False), ("cpl-u", True), ("cpl-a", True),
+])
+def test_gradients_reach_every_head_through_the_camera_graph(variant, as_released):
+    model = compile_model(build_model(variant, backbone="small", image_size=SIZE,
+                                      as_released=as_released, seed=0))
+    heads = list(camera.PARAMETERS) + ["u", "v"]
+    before = _head_kernels(model, heads)
+    x, y = batch(8)
+    # MAE on X, Y, Z alone still reaches every parameter head: only through the graph.
+    model.train_on_batch(x, y)
+    after = _head_kernels(model, heads)
+    for name in heads:
+        assert np.abs(after[name] - before[name]).max() > 0, f"no gradient reached head {name}"
+
+
+def test_no_nan_or_inf_with_disparity_or_focal_at_zero():
+    model = compile_model(build_model("cpl-u", backbone="small", image_size=SIZE, seed=0))
+    x, y = batch(4)
+    for value in (0.0, 1e-9, -1e-9):
+        for head in ("disparity", "fx"):
+            layer = model.get_layer(head)
+            layer.kernel.assign(np.zeros(layer.kernel.shape, "float32"))
+            layer.bias.assign(np.full(layer.bias.shape, value, "float32"))
+        out = model.predict(x, verbose=0)
+        assert all(np.isfinite(o).all() for o in out), value
+        loss = model.train_on_batch(x, y)
+        assert np.all(np.isfinite(np.asarray(loss, dtype="float64"))), value
+        assert all(np.isfinite(ops.convert_to_numpy(w)).all() for w in model.trainable_weights)
+
+
+def test_projection_terms_vanish_at_the_truth_and_isolate_each_parameter():
+    _, y = batch(6)
+    yt = {k: ops.convert_to_tensor(v) for k, v in y.items()}
+    terms = [float(t) for t in losses.projection_terms(yt, yt)]
+    assert max(terms) < 1e-4
+    # an error in tx alone moves X by exactly that error: L_tx = (|dtx| + |dX|) / 13
+    wrong = dict(yt, tx=yt["tx"] + 0.65)
+    terms = [float(t) for t in losses.projection_terms(yt, wrong)]
+    index = TARGETS.index("tx")
+    assert terms[index] == pytest.approx(2 * 0.65 / 13, rel=1e-4)
+    assert max(t for i, t in enumerate(terms) if i != index) < 1e-4
+
+
+def test_uniform_adaptive_and_euclidean_losses_by_hand():
+    terms = [ops.convert_to_tensor(float(t)) for t in range(1, 14)]
+    assert float(losses.uniform_projection_loss(terms)) == pytest.approx(7.0)
+    s = ops.convert_to_tensor(np.log(np.arange(1, 14, dtype="float32")))
+    # alpha_i = exp(-s_i) = 1 / i -> sum(alpha_i * i) = 13, plus sum(s_i) = log(13!)
+    assert float(losses.adaptive_projection_loss(terms, s)) == pytest.approx(13 + np.log(6227020800.0), rel=1e-5)
+    y_true = {n: np.zeros((2, 1), "float32") for n in TARGETS}
+    y_pred = {n: np.full((2, 1), 2.0, "float32") for n in TARGETS}
+    assert float(losses.euclidean_loss(y_true, y_pred)) == pytest.approx(2 * np.sqrt(13), rel=1e-6)
+
+
+def test_cpl_a_learns_its_weights_and_they_cannot_collapse():
+    model = compile_model(build_model("cpl-a", backbone="small", image_size=SIZE, seed=0))
+    x, y = batch(8)
+    start = model.adaptive_weights()
+    assert start == pytest.approx({n: 1.0 for n in TARGETS})
+    for _ in range(3):
+        model.train_on_batch(x, y)
+    learned = model.adaptive_weights()
+    assert learned != pytest.approx(start)
+    # Driving alpha_i = exp(-s_i) towards 0 costs s_i: with every term at 1 the
+    # loss is smallest at alpha = 1 (s = 0) and grows as alpha collapses.
+    terms = [ops.convert_to_tensor(1.0)] * 13
+    at = lambda s: float(losses.adaptive_projection_loss(terms, ops.convert_to_tensor(np.full(13, s, "float32"))))
+    assert at(0.0) == pytest.approx(13.0)
+    assert at(0.0) < at(2.0) < at(20.0)
+    assert at(0.0) < at(-2.0)
+
+
+def test_compile_model_uses_the_paper_optimiser():
+    model = compile_model(build_model("cpl-u", backbone="small", image_size=SIZE))
+    assert isinstance(model.optimizer, keras.optimizers.Adam)
+    assert float(model.optimizer.learning_rate) == pytest.approx(1e-3)
+    homo = compile_model(build_model("deep-homo", image_size=SIZE))
+    assert float(homo.optimizer.learning_rate) == pytest.approx(1.5e-3)
+    assert homo.loss_mode == "euclidean"
+    assert build_model("cpl-a", backbone="small", image_size=SIZE, as_released=True).loss_mode == "mae"
+    with pytest.raises(ValueError, match="learning rate"):
+        compile_model(model, learning_rate=-1.0)
+
+
+@pytest.mark.parametrize("variant", ["cpl-a", "deep-homo"])
+def test_keras_file_and_weights_round_trip(variant, tmp_path):
+    model = compile_model(build_model(variant, backbone="small", image_size=SIZE, seed=0))
+    x, y = batch(4)
+    model.train_on_batch(x, y)
+    expected = model.predict(x, verbose=0)
+
+    path = os.fspath(tmp_path / "model.keras")
+    model.save(path)
+    loaded = keras.saving.load_model(path, safe_mode=True)
+    assert loaded.calibration == model.calibration
+    for a, b in zip(expected, loaded.predict(x, verbose=0)):
+        np.testing.assert_array_equal(a, b)
+    if variant == "cpl-a":
+        assert loaded.adaptive_weights() == model.adaptive_weights()
+
+    weights = os.fspath(tmp_path / "best.weights.h5")
+    model.save_weights(weights)
+    fresh = build_model(variant, backbone="small", image_size=SIZE, seed=123)
+    fresh.load_weights(weights)
+    for a, b in zip(expected, fresh.predict(x, verbose=0)):
+        np.testing.assert_array_equal(a, b)
+
+
+@pytest.mark.parametrize("kwargs,message", [
+    (dict(variant="mtl-x"), "unknown variant"),
+    (dict(variant="baseline", image_size=74), "below the minimum of 75"),
+    (dict(variant="baseline", image_size=(112, 112, 4)), "3 channels"),
+    (dict(variant="baseline", image_size=(112, 112, 1)), "3 channels"),
+    (dict(variant="baseline", backbone="resnet"), "unknown backbone"),
+    (dict(variant="cpl-u", backbone="small", image_size=8), "below the minimum of 16"),
+    (dict(variant="cpl-u", backbone="small", image_size="big"), "image_size must be"),
+    (dict(variant="cpl-u", backbone="small", epsilon=0.0), "epsilon"),
+])
+def test_bad_arguments_raise_a_clear_value_error(kwargs, message):
+    variant = kwargs.pop("variant")
+    with pytest.raises(ValueError, match=message):
+        build_model(variant, **kwargs)
