@@ -19,6 +19,7 @@ screen rectangle. The sky is a dome ``SKY_DISTANCE`` metres away.
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass
 
 import numpy as np
@@ -55,7 +56,9 @@ class View:
         The camera-frame ray is (1, yCam, zCam) at xCam = 1 (Eq. 6).
         """
         if u is None:
-            v, u = np.mgrid[0:self.height, 0:self.width].astype(np.float64)
+            cam = _camera_rays(float(self.fx), float(self.fy), float(self.u0), float(self.v0),
+                               int(self.width), int(self.height))
+            return np.tensordot(self.rotation, cam, axes=1)
         u = np.asarray(u, np.float64)
         v = np.asarray(v, np.float64)
         yCam, zCam = camera.camera_point(1.0, self.fx, self.fy, self.u0, self.v0, u, v)
@@ -72,40 +75,50 @@ class View:
         return u, v, x
 
 
+@functools.lru_cache(maxsize=64)
+def _camera_rays(fx, fy, u0, v0, width, height):
+    """Camera-frame rays (1, yCam, zCam) of every pixel centre (Eq. 6), cached."""
+    v, u = np.mgrid[0:height, 0:width].astype(np.float64)
+    yCam, zCam = camera.camera_point(1.0, fx, fy, u0, v0, u, v)
+    rays = np.stack([np.ones_like(yCam), yCam, zCam])
+    rays.flags.writeable = False
+    return rays
+
+
 # ---------------------------------------------------------------------------
 # Ray casting
 # ---------------------------------------------------------------------------
 class Hits:
-    """Per-ray nearest hit: depth t (= xCam), surface kind, id and face."""
+    """Per-ray nearest hit: depth t (= xCam), surface kind, id, face, period shift.
 
-    def __init__(self, shape, norm):
+    Arrays are flat (one entry per ray); ``cast`` reshapes them to the rays'
+    shape before returning.
+    """
+
+    def __init__(self, n, norm):
         self.t = scenes.SKY_DISTANCE / norm
-        self.surface = np.full(shape, SKY, np.int8)
-        self.ident = np.zeros(shape, np.int32)
-        self.face = np.zeros(shape, np.int8)
+        self.surface = np.full(n, SKY, np.int8)
+        self.ident = np.zeros(n, np.int32)
+        self.face = np.zeros(n, np.int8)
+        self.xshift = np.zeros(n)               # period shift of the object hit
 
-    def update(self, t, valid, surface, ident=0, face=0, where=None):
-        """Keep ``t`` where valid and nearer; ``where`` is a slice for views."""
-        sl = where if where is not None else slice(None)
-        tb = self.t[sl]
-        closer = valid & (t < tb)
-        tb[closer] = t[closer]
-        self.surface[sl][closer] = surface
-        if np.ndim(ident):
-            self.ident[sl][closer] = ident[closer]
-        else:
-            self.ident[sl][closer] = ident
-        if np.ndim(face):
-            self.face[sl][closer] = face[closer]
-        else:
-            self.face[sl][closer] = face
+    def update(self, t, surface, ident=0, face=0):
+        """Keep ``t`` (inf = no hit) where it is nearer than the current hit."""
+        closer = t < self.t
+        np.copyto(self.t, t, where=closer)
+        np.copyto(self.surface, surface, where=closer, casting="unsafe")
+        np.copyto(self.ident, ident, where=closer, casting="unsafe")
+        np.copyto(self.face, face, where=closer, casting="unsafe")
+
+    def reshape(self, shape):
+        for name in ("t", "surface", "ident", "face", "xshift"):
+            setattr(self, name, getattr(self, name).reshape(shape))
+        return self
 
 
-def _plane_t(origin, d, value):
-    """Ray parameter where ``origin + t d`` reaches coordinate ``value`` (inf if parallel)."""
-    with np.errstate(divide="ignore", invalid="ignore"):
-        t = (value - origin) / d
-    return np.where(np.isfinite(t) & (t > 1e-9), t, np.inf)
+def _cell(town, x):
+    """Per-cell table index of world x (the towns are periodic, ncell a power of 2)."""
+    return ((x + 8 * town.period) * (1.0 / town.cell)).astype(np.intp) & (town.ncell - 1)
 
 
 def cast(town, origin, rays, view=None):
@@ -114,49 +127,62 @@ def cast(town, origin, rays, view=None):
     ``view`` (optional) enables screen-rectangle culling of objects for a
     full pixel grid; without it every nearby object is tested on every ray.
     """
+    rays = np.asarray(rays, np.float64)
+    shape = rays.shape[1:]
+    d = rays.reshape(3, -1)
     ox, oy, oz = (float(c) for c in origin)
-    dx, dy, dz = rays
-    norm = np.sqrt(dx * dx + dy * dy + dz * dz)
-    hits = Hits(dx.shape, norm)
+    dx, dy, dz = d
+    hits = Hits(dx.size, np.sqrt(dx * dx + dy * dy + dz * dz))
     b = town.buildings
+    heights = np.append(b["height"], -np.inf)     # id -1 (no building) never hits
+    ncell = town.ncell
 
-    # Ground plane z = 0.
-    hits.update(_plane_t(oz, dz, 0.0), dz < 0, GROUND)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        # Ground plane z = 0.
+        hits.update(np.where(dz < 0, -oz / dz, np.inf), GROUND)
 
-    # Front facades: plane y = +facade (left side, side 0) or -facade (right).
-    side = (dy < 0).astype(np.intp)
-    for row, distance, table, surface in ((0, town.facade, town.front_id, FACADE),
-                                          (1, town.back, town.back_id, BACK)):
-        t = _plane_t(oy, dy, np.where(side == 0, distance, -distance))
-        finite = np.isfinite(t)
-        t_ok = np.where(finite, t, 0.0)
-        x = ox + t_ok * dx
-        z = oz + t_ok * dz
-        cell = town.cell_index(x)
-        bid = table[side, cell]
-        height = b["height"][bid]
-        hit = finite & (bid >= 0) & (z >= 0) & (z < height)
-        hits.update(t, hit, surface, bid)
-        if row == 0:
-            # Side walls of the next (or previous) building seen through a gap.
-            forward = dx > 0
-            base = np.floor(x / town.cell) * town.cell
-            xs = base + np.where(forward, town.next_start[side, cell], town.prev_end[side, cell])
-            k = np.where(forward, town.next_id[side, cell], town.prev_id[side, cell])
-            ts = _plane_t(ox, dx, xs)
-            ts_ok = np.where(np.isfinite(ts), ts, 0.0)
-            ys = np.abs(oy + ts_ok * dy)
-            zs = oz + ts_ok * dz
-            wall = (finite & (bid < 0) & np.isfinite(ts) & (ys >= town.facade)
-                    & (ys <= town.back) & (zs >= 0) & (zs < b["height"][k]))
-            hits.update(ts, wall, SIDEWALL, k, np.where(forward, 0, 1))
+        # Facade planes: y = +distance (left side, table row 0) or -distance.
+        side = dy < 0
+        side_offset = side * ncell
+        for row, distance, table, surface in ((0, town.facade, town.front_id, FACADE),
+                                              (1, town.back, town.back_id, BACK)):
+            t = (np.where(side, -distance, distance) - oy) / dy
+            t = np.where(t > 1e-9, t, np.inf)
+            tc = np.minimum(t, 1e6)
+            x = ox + tc * dx
+            z = oz + tc * dz
+            fidx = side_offset + _cell(town, x)
+            bid = table.reshape(-1)[fidx]
+            hit = (z >= 0) & (z < heights[bid])
+            hits.update(np.where(hit, t, np.inf), surface, bid)
+            if row == 0:
+                # Side walls of the next (previous) building seen through a gap.
+                g = np.flatnonzero((bid < 0) & (z >= 0) & (t < hits.t))
+                if g.size:
+                    forward = dx[g] > 0
+                    fg = fidx[g]
+                    base = np.floor(x[g] / town.cell) * town.cell
+                    xs = base + np.where(forward, town.next_start.reshape(-1)[fg],
+                                         town.prev_end.reshape(-1)[fg])
+                    k = np.where(forward, town.next_id.reshape(-1)[fg],
+                                 town.prev_id.reshape(-1)[fg])
+                    ts = (xs - ox) / dx[g]
+                    ys = np.abs(oy + ts * dy[g])
+                    zs = oz + ts * dz[g]
+                    wall = ((ts > 1e-9) & (ys >= town.facade) & (ys <= town.back)
+                            & (zs >= 0) & (zs < heights[k]) & (ts < hits.t[g]))
+                    w = g[wall]
+                    hits.t[w] = ts[wall]
+                    hits.surface[w] = SIDEWALL
+                    hits.ident[w] = k[wall]
+                    hits.face[w] = np.where(forward[wall], 0, 1)
 
-    _cast_objects(town, np.array([ox, oy, oz]), rays, hits, view)
-    return hits
+    _cast_objects(town, np.array([ox, oy, oz]), d, hits, view)
+    return hits.reshape(shape)
 
 
-def _candidate_objects(town, origin):
-    """Indices and x shifts of objects within reach of the camera (periodic town)."""
+def _candidate_objects(town, origin, reach=960.0):
+    """Indices and x shifts of objects within ``reach`` metres ahead (periodic town)."""
     o = town.objects
     xc = 0.5 * (o["lo"][:, 0] + o["hi"][:, 0])
     base = np.floor(origin[0] / town.period) * town.period
@@ -164,99 +190,165 @@ def _candidate_objects(town, origin):
     for k in (-1, 0, 1):
         s = base + k * town.period
         lo = np.searchsorted(xc, origin[0] - s - 40.0)
-        hi = np.searchsorted(xc, origin[0] - s + 960.0)
+        hi = np.searchsorted(xc, origin[0] - s + reach)
         idx.append(np.arange(lo, hi))
         shift.append(np.full(hi - lo, s))
     return np.concatenate(idx), np.concatenate(shift)
 
 
 def _cast_objects(town, origin, rays, hits, view):
+    """Objects (boxes, cylinders, spheres), all tested in one vectorised batch.
+
+    With a ``view`` each object is tested only on the pixels of its projected
+    screen rectangle; without one, on every ray.
+    """
     o = town.objects
-    idx, shift = _candidate_objects(town, origin)
+    focal = max(view.fx, view.fy) if view is not None else 0.0
+    # level of detail: objects (at most _MAX_OBJECT_SIZE m) further than this are
+    # smaller than _LOD_PIXELS; they are skipped in full views
+    reach = min(960.0, _MAX_OBJECT_SIZE * focal / _LOD_PIXELS) if view is not None else 960.0
+    idx, shift = _candidate_objects(town, origin, reach)
     if len(idx) == 0:
         return
     lo = o["lo"][idx].copy()
     hi = o["hi"][idx].copy()
     lo[:, 0] += shift
     hi[:, 0] += shift
-    centre = o["centre"][idx].copy()
-    centre[:, 0] += shift
+    flat_t = hits.t
+    n_rays = flat_t.size
     if view is not None:
-        corners = np.stack([np.where(np.array([i, j, k], bool), hi, lo)
-                            for i in (0, 1) for j in (0, 1) for k in (0, 1)], axis=1)
-        u, v, depth = view.project(corners)
-        near = depth.max(axis=1)
-        keep = near > 1e-3
+        W, H = view.width, view.height
+        c0, c1, r0, r1, nearest = _screen_rects(view, lo, hi)
         size = np.max(hi - lo, axis=1)
-        # level of detail: skip objects smaller than a third of a pixel
-        keep &= size * max(view.fx, view.fy) / np.maximum(depth.min(axis=1), 1e-3) > 0.33
-        behind = depth.min(axis=1) <= 1e-3
-        c0 = np.where(behind, 0, np.floor(u.min(axis=1)) - 1).clip(0, view.width)
-        c1 = np.where(behind, view.width, np.ceil(u.max(axis=1)) + 2).clip(0, view.width)
-        r0 = np.where(behind, 0, np.floor(v.min(axis=1)) - 1).clip(0, view.height)
-        r1 = np.where(behind, view.height, np.ceil(v.max(axis=1)) + 2).clip(0, view.height)
-        keep &= (c1 > c0) & (r1 > r0)
-        rects = np.stack([r0, r1, c0, c1], axis=1).astype(int)
+        keep = (c1 > c0) & (r1 > r0) & (size * focal / np.maximum(nearest, 1e-3) > _LOD_PIXELS)
+        # skip large objects hidden behind what is already there (walls, ground)
+        grid = hits.t.reshape(H, W)
+        big = keep & ((c1 - c0) * (r1 - r0) > 64)
+        for n in np.flatnonzero(big):
+            if grid[r0[n]:r1[n], c0[n]:c1[n]].max() < nearest[n]:
+                keep[n] = False
+        obj = np.flatnonzero(keep)
+        widths = c1[obj] - c0[obj]
+        areas = widths * (r1[obj] - r0[obj])
+        pair_obj = np.repeat(obj, areas)
+        offsets = np.repeat(np.cumsum(areas) - areas, areas)
+        local = np.arange(pair_obj.size) - offsets
+        w = np.repeat(widths, areas)
+        pix = (r0[pair_obj] + local // w) * W + c0[pair_obj] + local % w
     else:
-        keep = np.ones(len(idx), bool)
-        rects = None
-    for n in np.flatnonzero(keep):
-        if rects is not None:
-            r0, r1, c0, c1 = rects[n]
-            sl = (slice(r0, r1), slice(c0, c1))
-            dx, dy, dz = rays[0][sl], rays[1][sl], rays[2][sl]
-        else:
-            sl = None
-            dx, dy, dz = rays
-        kind = o["kind"][idx[n]]
-        if kind == BOX:
-            t, valid, face = _box(origin, dx, dy, dz, lo[n], hi[n])
-        elif kind == CYLINDER:
-            t, valid = _cylinder(origin, dx, dy, dz, centre[n], o["radius"][idx[n]],
-                                 lo[n, 2], hi[n, 2])
-            face = 0
-        else:
-            t, valid = _sphere(origin, dx, dy, dz, centre[n], o["radius"][idx[n]])
-            face = 0
-        hits.update(t, valid, OBJECT, int(idx[n]), face, where=sl)
-    hits.shift = dict(zip(idx.tolist(), shift.tolist()))
+        pair_obj = np.repeat(np.arange(len(idx)), n_rays)
+        pix = np.tile(np.arange(n_rays), len(idx))
+    if pix.size == 0:
+        return
+    d = rays[:, pix]
+    kind = o["kind"][idx[pair_obj]]
+    t = np.full(pix.size, np.inf)
+    face = np.zeros(pix.size, np.int8)
+    m = kind == BOX
+    if np.any(m):
+        t[m], face[m] = _box(origin, d[:, m], lo[pair_obj[m]], hi[pair_obj[m]])
+    m = kind == CYLINDER
+    if np.any(m):
+        centre = o["centre"][idx[pair_obj[m]]]
+        t[m] = _cylinder(origin, d[:, m], centre[:, 0] + shift[pair_obj[m]], centre[:, 1],
+                         o["radius"][idx[pair_obj[m]]], lo[pair_obj[m], 2], hi[pair_obj[m], 2])
+    m = kind == SPHERE
+    if np.any(m):
+        centre = o["centre"][idx[pair_obj[m]]].copy()
+        centre[:, 0] += shift[pair_obj[m]]
+        t[m] = _sphere(origin, d[:, m], centre, o["radius"][idx[pair_obj[m]]])
+    valid = t < flat_t[pix]
+    if not np.any(valid):
+        return
+    t, pix, face, pair_obj = t[valid], pix[valid], face[valid], pair_obj[valid]
+    order = np.lexsort((t, pix))
+    first = np.ones(order.size, bool)
+    first[1:] = pix[order][1:] != pix[order][:-1]
+    sel = order[first]
+    p = pix[sel]
+    flat_t[p] = t[sel]
+    hits.surface[p] = OBJECT
+    hits.ident[p] = idx[pair_obj[sel]]
+    hits.face[p] = face[sel]
+    hits.xshift[p] = shift[pair_obj[sel]]
 
 
-def _box(o, dx, dy, dz, lo, hi):
-    tn = np.full(dx.shape, -np.inf)
-    tf = np.full(dx.shape, np.inf)
-    face = np.zeros(dx.shape, np.int8)
-    for axis, d in enumerate((dx, dy, dz)):
-        d = np.where(np.abs(d) < _TINY, _TINY, d)
-        a = (lo[axis] - o[axis]) / d
-        c = (hi[axis] - o[axis]) / d
+_CORNERS = np.array([[i, j, k] for i in (0, 1) for j in (0, 1) for k in (0, 1)], bool)
+_EDGES = np.array([(a, b) for a in range(8) for b in range(a + 1, 8)
+                   if (_CORNERS[a] != _CORNERS[b]).sum() == 1])
+_NEAR = 1e-3
+_MAX_OBJECT_SIZE = 8.0
+_LOD_PIXELS = 0.75
+
+
+def _screen_rects(view, lo, hi):
+    """Pixel rectangles [r0, r1) x [c0, c1) covering boxes (lo, hi) (n, 3), and the
+    nearest depth of each box. Boxes crossing the camera plane are clipped
+    to the near plane xCam = _NEAR first, so the rectangle stays tight."""
+    corners = np.where(_CORNERS[None], hi[:, None], lo[:, None])          # (n, 8, 3)
+    cam = (corners - view.position) @ view.rotation                       # (n, 8, 3)
+    ca, cb = cam[:, _EDGES[:, 0]], cam[:, _EDGES[:, 1]]                   # (n, 12, 3)
+    da, db = ca[..., 0], cb[..., 0]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        s = (_NEAR - da) / (db - da)
+    crossing = (da - _NEAR) * (db - _NEAR) < 0
+    clipped = ca + np.where(crossing, s, 0.0)[..., None] * (cb - ca)
+    points = np.concatenate([cam, clipped], axis=1)                       # (n, 20, 3)
+    ok = np.concatenate([cam[..., 0] >= _NEAR, crossing], axis=1)
+    x = np.where(ok, points[..., 0], 1.0)
+    u = view.u0 - view.fx * points[..., 1] / x
+    v = view.v0 - view.fy * points[..., 2] / x
+    big = 1e9
+    umin = np.where(ok, u, big).min(axis=1)
+    umax = np.where(ok, u, -big).max(axis=1)
+    vmin = np.where(ok, v, big).min(axis=1)
+    vmax = np.where(ok, v, -big).max(axis=1)
+    W, H = view.width, view.height
+    c0 = np.floor(np.clip(umin, -1, W + 1)).astype(np.intp).clip(0, W)
+    c1 = (np.ceil(np.clip(umax, -1, W + 1)) + 1).astype(np.intp).clip(0, W)
+    r0 = np.floor(np.clip(vmin, -1, H + 1)).astype(np.intp).clip(0, H)
+    r1 = (np.ceil(np.clip(vmax, -1, H + 1)) + 1).astype(np.intp).clip(0, H)
+    nearest = np.where(ok, points[..., 0], np.inf).min(axis=1)
+    return c0, c1, r0, r1, nearest
+
+
+def _box(o, d, lo, hi):
+    """Slab test; returns (t, face axis) with t = inf on a miss."""
+    tn = np.full(d.shape[1], -np.inf)
+    tf = np.full(d.shape[1], np.inf)
+    face = np.zeros(d.shape[1], np.int8)
+    for axis in range(3):
+        da = d[axis]
+        da = np.where(np.abs(da) < _TINY, _TINY, da)
+        a = (lo[:, axis] - o[axis]) / da
+        c = (hi[:, axis] - o[axis]) / da
         near = np.minimum(a, c)
         face = np.where(near > tn, axis, face)
         tn = np.maximum(tn, near)
         tf = np.minimum(tf, np.maximum(a, c))
-    valid = (tn <= tf) & (tn > 1e-9)
-    return tn, valid, face
+    return np.where((tn <= tf) & (tn > 1e-9), tn, np.inf), face
 
 
-def _cylinder(o, dx, dy, dz, c, r, z0, z1):
-    px, py = o[0] - c[0], o[1] - c[1]
-    a = np.maximum(dx * dx + dy * dy, _TINY)
-    bb = dx * px + dy * py
+def _cylinder(o, d, xc, yc, r, z0, z1):
+    """Vertical cylinder (side surface only); t = inf on a miss."""
+    px, py = o[0] - xc, o[1] - yc
+    a = np.maximum(d[0] * d[0] + d[1] * d[1], _TINY)
+    bb = d[0] * px + d[1] * py
     cc = px * px + py * py - r * r
     disc = bb * bb - a * cc
     t = (-bb - np.sqrt(np.maximum(disc, 0.0))) / a
-    z = o[2] + t * dz
-    return t, (disc > 0) & (t > 1e-9) & (z >= z0) & (z <= z1)
+    z = o[2] + t * d[2]
+    return np.where((disc > 0) & (t > 1e-9) & (z >= z0) & (z <= z1), t, np.inf)
 
 
-def _sphere(o, dx, dy, dz, c, r):
+def _sphere(o, d, c, r):
     p = o - c
-    a = dx * dx + dy * dy + dz * dz
-    bb = dx * p[0] + dy * p[1] + dz * p[2]
-    cc = p @ p - r * r
+    a = d[0] * d[0] + d[1] * d[1] + d[2] * d[2]
+    bb = d[0] * p[:, 0] + d[1] * p[:, 1] + d[2] * p[:, 2]
+    cc = (p * p).sum(axis=1) - r * r
     disc = bb * bb - a * cc
     t = (-bb - np.sqrt(np.maximum(disc, 0.0))) / a
-    return t, (disc > 0) & (t > 1e-9)
+    return np.where((disc > 0) & (t > 1e-9), t, np.inf)
 
 
 # ---------------------------------------------------------------------------
@@ -272,36 +364,36 @@ def _hash(*ints):
     return h
 
 
-def _facade_albedo(town, bank, bid, along, z, footprint):
-    """Wall texture with windows; ``along`` runs along the wall (metres)."""
+def _facade_albedo(town, bank, bid, along, local, z, footprint):
+    """Wall texture with windows. ``along`` (texture) and ``local`` (window grid)
+    run along the wall in metres, ``z`` up it."""
     b = town.buildings
     rgb = bank.lookup(b["material"][bid], along * _TEXELS_PER_M, z * _TEXELS_PER_M,
                       footprint * _TEXELS_PER_M) * b["tint"][bid]
-    local = along - np.where(b["row"][bid] == 0, 0.0, 0.0)
-    pitch, floor = b["pitch"][bid], b["floor"][bid]
+    pitch, floor, win_w = b["pitch"][bid], b["floor"][bid], b["win_w"][bid]
     col = np.floor(local / pitch)
-    fc = local / pitch - col
+    fc = np.abs(local / pitch - col - 0.5)
     level = np.floor(z / floor)
     fz = z / floor - level
-    window = (np.abs(fc - 0.5) < b["win_w"][bid] / 2) & (fz > 0.3) & (fz < 0.3 + b["win_h"][bid])
+    window = (fc < win_w / 2) & (fz > 0.3) & (fz < 0.3 + b["win_h"][bid])
     window &= (level >= 1) & (z < b["height"][bid] - 0.8)
-    shop = b["shop"][bid] & (level == 0) & (z > 0.5) & (z < 2.6) & (np.abs(fc - 0.5) < 0.42)
+    shop = b["shop"][bid] & (level == 0) & (z > 0.5) & (z < 2.6) & (fc < 0.42)
     glass = window | shop
     if np.any(glass):
-        lit = (_hash(col.astype(np.int64), level.astype(np.int64), bid) % 9) == 0
-        sky = 0.12 + 0.25 * np.clip(fz, 0, 1)[..., None] * np.array([0.8, 0.9, 1.0], np.float32)
-        glass_rgb = np.where(lit[..., None], np.array([0.85, 0.75, 0.45], np.float32), sky)
-        rgb = np.where(glass[..., None], glass_rgb, rgb)
-        frame = (window & ((np.abs(fc - 0.5) > b["win_w"][bid] / 2 - 0.04)))
-        rgb = np.where(frame[..., None], np.float32(0.85), rgb)
+        g = np.flatnonzero(glass)
+        lit = (_hash(col[g].astype(np.int64), level[g].astype(np.int64), bid[g]) % 9) == 0
+        sky = 0.12 + 0.25 * np.clip(fz[g], 0, 1)[:, None] * np.array([0.8, 0.9, 1.0], np.float32)
+        rgb[g] = np.where(lit[:, None], np.array([0.85, 0.75, 0.45], np.float32), sky)
+        frame = window[g] & (fc[g] > win_w[g] / 2 - 0.05)
+        rgb[g[frame]] = 0.8
     cornice = z > b["height"][bid] - 0.35
-    rgb = np.where(cornice[..., None], rgb * 0.7, rgb)
+    rgb[cornice] *= 0.7
     return rgb
 
 
 def _ground_albedo(town, bank, x, y, footprint):
     ay = np.abs(y)
-    inter = town.intersection[town.cell_index(x)]
+    inter = town.intersection[_cell(town, x)]
     rh = town.road_half
     road = (ay < rh) | inter
     curb = ~road & (ay < rh + 0.25)
@@ -313,8 +405,7 @@ def _ground_albedo(town, bank, x, y, footprint):
          town.sidewalk_material],
         MATERIAL_ID["asphalt_light"],
     )
-    fp = footprint * _TEXELS_PER_M
-    rgb = bank.lookup(material, x * _TEXELS_PER_M, y * _TEXELS_PER_M, fp)
+    rgb = bank.lookup(material, x * _TEXELS_PER_M, y * _TEXELS_PER_M, footprint * _TEXELS_PER_M)
     lane = ~inter & (ay < rh)
     if town.centre == "white_dashed":
         centre = (ay < 0.08) & (np.mod(x, 9.0) < 3.0)
@@ -325,40 +416,42 @@ def _ground_albedo(town, bank, x, y, footprint):
     lanes = (np.abs(ay - rh / 2) < 0.07) & (np.mod(x, 12.0) < 4.0)
     edge = np.abs(ay - (rh - 0.35)) < 0.08
     # zebra crossings at the start of every block
-    ahead = town.intersection[town.cell_index(x - 4.5)] & ~inter
+    ahead = town.intersection[_cell(town, x - 4.5)] & ~inter
     zebra = ahead & (ay < rh - 0.6) & (np.mod(y, 1.2) < 0.6)
     mark = lane & (centre | lanes | edge | zebra)
-    # antialias markings: fade them out when a pixel covers much more than a stripe
-    strength = np.clip(0.25 / np.maximum(footprint, 1e-6), 0.0, 1.0)[..., None]
-    colour = np.where((lane & centre)[..., None], paint, np.float32(0.88))
-    rgb = np.where(mark[..., None], rgb + (colour * (0.8 + 0.2 * rgb) - rgb) * strength, rgb)
+    if np.any(mark):
+        g = np.flatnonzero(mark)
+        # fade markings out when one pixel covers much more than a stripe
+        strength = np.clip(0.3 / np.maximum(footprint[g], 1e-6), 0.0, 1.0)[:, None]
+        colour = np.where(centre[g][:, None], paint, np.float32(0.88))
+        rgb[g] += (colour * (0.8 + 0.2 * rgb[g]) - rgb[g]) * strength
     return rgb
+
+
+_LOOK_MATERIAL = np.array([MATERIAL_ID[m] for m in (
+    "paint", "paint", "metal", "metal", "paint", "bark", "foliage")])
+_LOOK_GAIN = np.array([1 / 0.8, 1 / 0.8, 1 / 0.45, 1 / 0.45, 1 / 0.8, 1 / 0.3, 1 / 0.25],
+                      np.float32)
+_LOOK_SCALE = np.array([1.0, 1.0, 1.0, 1.0, 1.0, 2.0, 1.5])
 
 
 def _object_albedo(town, bank, ident, face, P, footprint):
     o = town.objects
     look = o["look"][ident]
     colour = o["colour"][ident].astype(np.float32)
-    lo, hi = o["lo"][ident], o["hi"][ident]
     x, y, z = P
-    fp = footprint * _TEXELS_PER_M
-    rgb = colour * bank.lookup(MATERIAL_ID["paint"], (x + y) * _TEXELS_PER_M,
-                               z * _TEXELS_PER_M, fp) / 0.8
-    body = look == scenes.CAR_BODY
-    rgb = np.where((body & (z < 0.42))[..., None], np.float32(0.07), rgb)
-    cabin = look == scenes.CAR_CABIN
-    glass = cabin & (face != 2) & (z > lo[:, 2] + 0.06) & (z < hi[:, 2] - 0.08)
-    rgb = np.where(glass[..., None], np.array([0.1, 0.12, 0.16], np.float32), rgb)
-    metal = (look == scenes.POLE) | (look == scenes.LAMP)
-    rgb = np.where(metal[..., None], colour * bank.lookup(
-        MATERIAL_ID["metal"], x * _TEXELS_PER_M, z * _TEXELS_PER_M, fp) / 0.45, rgb)
+    scale = _LOOK_SCALE[look] * _TEXELS_PER_M
+    tex = bank.lookup(_LOOK_MATERIAL[look], (x + y) * scale, z * scale,
+                      footprint * _TEXELS_PER_M)
+    rgb = colour * tex * _LOOK_GAIN[look][:, None]
     trunk = look == scenes.TRUNK
-    rgb = np.where(trunk[..., None], bank.lookup(
-        MATERIAL_ID["bark"], (x + y) * _TEXELS_PER_M * 2, z * _TEXELS_PER_M, fp), rgb)
-    crown = look == scenes.CROWN
-    rgb = np.where(crown[..., None], colour / 0.25 * bank.lookup(
-        MATERIAL_ID["foliage"], (x + y) * _TEXELS_PER_M * 1.5, z * _TEXELS_PER_M * 1.5, fp),
-        rgb)
+    rgb[trunk] = tex[trunk]
+    rgb[(look == scenes.CAR_BODY) & (z < 0.42)] = 0.07
+    cabin = look == scenes.CAR_CABIN
+    if np.any(cabin):
+        lo, hi = o["lo"][ident, 2], o["hi"][ident, 2]
+        glass = cabin & (face != 2) & (z > lo + 0.06) & (z < hi - 0.08)
+        rgb[glass] = np.array([0.1, 0.12, 0.16], np.float32)
     return rgb
 
 
@@ -369,8 +462,7 @@ def _object_normal(town, ident, face, P, D):
     rows = np.arange(len(ident))
     # box: the face axis, facing the ray
     n[rows, face] = -np.sign(D[face, rows])
-    centre = o["centre"][ident]
-    radial = P.T - centre
+    radial = P.T - o["centre"][ident]
     cyl = kind == CYLINDER
     radial_c = radial.copy()
     radial_c[:, 2] = 0.0
@@ -384,78 +476,87 @@ def shade(town, view, origin, rays, hits):
     """RGB float32 image (H, W, 3) in [0, 1] for the hits of a full view."""
     bank = texture_bank()
     shape = hits.t.shape
-    out = np.empty(shape + (3,), np.float32)
-    dx, dy, dz = rays
-    norm = np.sqrt(dx * dx + dy * dy + dz * dz)
-    dist = hits.t * norm
+    d = np.asarray(rays).reshape(3, -1)
+    t = hits.t.reshape(-1)
+    surface = hits.surface.reshape(-1)
+    out = np.empty((t.size, 3), np.float32)
+    norm = np.sqrt((d * d).sum(axis=0))
+    dist = t * norm
     # size of one pixel on a fronto-parallel surface at this distance (metres)
     pixel = dist / max(view.fx, view.fy)
-    surface = hits.surface
-    P = np.stack([origin[k] + hits.t * rays[k] for k in range(3)])
     sun = town.sun
+    ambient, diffuse = np.float32(0.5), np.float32(0.6)
+    order = np.argsort(surface, kind="stable")
+    bounds = np.searchsorted(surface[order], np.arange(OBJECT + 2))
 
-    # Sky: gradient and clouds projected on a plane above the town.
-    m = surface == SKY
-    if np.any(m):
-        d = rays[:, m] / norm[m]
-        elev = np.clip(d[2], 0.0, 1.0)
-        w = np.clip(elev * 2.5, 0.0, 1.0)[:, None] ** 0.7
+    def select(kind):
+        return order[bounds[kind]:bounds[kind + 1]]
+
+    P_all = origin[:, None] + t * d
+
+    def point(g):
+        return P_all[:, g]
+
+    def footprint(g, axis):
+        cos_inc = np.abs(d[axis, g]) / norm[g]
+        return pixel[g] / np.sqrt(np.maximum(cos_inc, 1e-3))
+
+    g = select(SKY)
+    if g.size:
+        dn = d[:, g] / norm[g]
+        w = (np.clip(dn[2] * 2.5, 0.0, 1.0) ** 0.7)[:, None]
         rgb = (1 - w) * np.array([0.78, 0.84, 0.9], np.float32) + w * np.array(
             [0.32, 0.52, 0.85], np.float32)
-        up = np.maximum(d[2], 0.02)
-        cloud = texture_bank().lookup(MATERIAL_ID["clouds"], d[0] / up * 40.0, d[1] / up * 40.0,
-                                      np.full(up.shape, 2.0) / up)[:, :1]
-        cloud *= np.clip(d[2] * 6.0, 0.0, 1.0)[:, None]
-        out[m] = rgb * (1 - cloud) + np.float32(0.95) * cloud
+        up = np.maximum(dn[2], 0.02)
+        cloud = bank.lookup(MATERIAL_ID["clouds"], dn[0] / up * 40.0 + 4096.0,
+                            dn[1] / up * 40.0 + 4096.0, 2.0 / up)[:, :1]
+        cloud *= np.clip(dn[2] * 6.0, 0.0, 1.0)[:, None]
+        out[g] = rgb * (1 - cloud) + np.float32(0.95) * cloud
 
-    ambient, diffuse = 0.5, 0.6
-    m = surface == GROUND
-    if np.any(m):
-        cos_inc = np.abs(dz[m]) / norm[m]
-        fp = pixel[m] / np.sqrt(np.maximum(cos_inc, 1e-3))
-        rgb = _ground_albedo(town, bank, P[0, m], P[1, m], fp)
-        out[m] = rgb * (ambient + diffuse * sun[2])
-    for surface_kind in (FACADE, BACK):
-        m = surface == surface_kind
-        if np.any(m):
-            bid = hits.ident[m]
-            cos_inc = np.abs(dy[m]) / norm[m]
-            fp = pixel[m] / np.sqrt(np.maximum(cos_inc, 1e-3))
-            rgb = _facade_albedo(town, bank, bid, P[0, m], P[2, m], fp)
-            normal_y = np.where(P[1, m] > 0, -1.0, 1.0)
-            out[m] = rgb * (ambient + diffuse * np.maximum(0.0, normal_y * sun[1]))[:, None]
-    m = surface == SIDEWALL
-    if np.any(m):
-        bid = hits.ident[m]
-        cos_inc = np.abs(dx[m]) / norm[m]
-        fp = pixel[m] / np.sqrt(np.maximum(cos_inc, 1e-3))
-        rgb = _facade_albedo(town, bank, bid, np.abs(P[1, m]), P[2, m], fp)
-        normal_x = np.where(hits.face[m] == 0, -1.0, 1.0)
-        out[m] = rgb * (ambient + diffuse * np.maximum(0.0, normal_x * sun[0]))[:, None]
-    m = surface == OBJECT
-    if np.any(m):
-        ident = hits.ident[m]
-        face = hits.face[m].astype(np.intp)
-        Pm = P[:, m].copy()
-        shift = getattr(hits, "shift", {})
-        if shift:
-            Pm[0] -= np.array([shift.get(i, 0.0) for i in ident.tolist()])
-        rgb = _object_albedo(town, bank, ident, face, Pm, pixel[m])
-        n = _object_normal(town, ident, face, Pm, rays[:, m])
-        out[m] = rgb * (ambient + diffuse * np.maximum(0.0, n @ sun))[:, None]
+    g = select(GROUND)
+    if g.size:
+        x, y, _ = point(g)
+        out[g] = _ground_albedo(town, bank, x, y, footprint(g, 2)) * (ambient + diffuse * sun[2])
+    b = town.buildings
+    for kind in (FACADE, BACK):
+        g = select(kind)
+        if g.size:
+            x, y, z = point(g)
+            bid = hits.ident.reshape(-1)[g]
+            rgb = _facade_albedo(town, bank, bid, x, x - b["x0"][bid], z, footprint(g, 1))
+            light = ambient + diffuse * np.maximum(0.0, np.where(y > 0, -sun[1], sun[1]))
+            out[g] = rgb * light[:, None]
+    g = select(SIDEWALL)
+    if g.size:
+        x, y, z = point(g)
+        bid = hits.ident.reshape(-1)[g]
+        ay = np.abs(y)
+        rgb = _facade_albedo(town, bank, bid, ay, ay - town.facade, z, footprint(g, 0))
+        front = hits.face.reshape(-1)[g] == 0
+        light = ambient + diffuse * np.maximum(0.0, np.where(front, -sun[0], sun[0]))
+        out[g] = rgb * light[:, None]
+    g = select(OBJECT)
+    if g.size:
+        P = point(g)
+        P[0] -= hits.xshift.reshape(-1)[g]
+        ident = hits.ident.reshape(-1)[g]
+        face = hits.face.reshape(-1)[g].astype(np.intp)
+        rgb = _object_albedo(town, bank, ident, face, P, pixel[g])
+        n = _object_normal(town, ident, face, P, d[:, g])
+        out[g] = rgb * (ambient + diffuse * np.maximum(0.0, n @ sun))[:, None].astype(np.float32)
 
     # Aerial perspective: fade to the haze colour with distance (not the sky).
-    fog = np.exp(-dist / town.haze)[..., None].astype(np.float32)
-    solid = (surface != SKY)[..., None]
-    out = np.where(solid, out * fog + town.haze_colour * (1 - fog), out)
-    return out
+    solid = np.flatnonzero(surface != SKY)
+    fog = np.exp(-dist[solid] / town.haze).astype(np.float32)[:, None]
+    out[solid] = out[solid] * fog + town.haze_colour * (1 - fog)
+    return out.reshape(shape + (3,))
 
 
 def render(town, view):
     """Render ``view`` in ``town``: (uint8 RGB (H, W, 3), depth xCam float64 (H, W))."""
     rays = view.rays()
     hits = cast(town, view.position, rays, view)
-    rgb = shade(town, view, view.position, rays, hits)
+    rgb = shade(town, view, np.asarray(view.position, np.float64), rays, hits)
     image = np.clip(rgb * 255.0 + 0.5, 0, 255).astype(np.uint8)
     return image, hits.t
 

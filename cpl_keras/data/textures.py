@@ -104,18 +104,24 @@ class TextureBank:
             pyramid = np.stack([_pyramid(rgb[..., c]) for c in range(3)], axis=-1)
             stacks.append(np.clip(pyramid * 255.0 + 0.5, 0, 255).astype(np.uint8))
         self.pixels = np.stack(stacks)            # (M, L, S, S, 3)
+        rgba = np.concatenate([self.pixels, np.zeros(self.pixels.shape[:-1] + (1,), np.uint8)],
+                              axis=-1)
+        # one uint32 per texel: a lookup is a single 1-D gather
+        self.packed = np.ascontiguousarray(rgba).view(np.uint32).reshape(-1)
         self.mask = SIZE - 1
 
     def lookup(self, material, s, t, footprint):
         """RGB in [0, 1] (float32, (n, 3)) of ``material`` at texel coords (s, t).
 
         ``material`` is an int or an int array; ``footprint`` is the size of
-        one image pixel in texels, which selects the mip level.
+        one image pixel in texels, which selects the mip level (log2 of it).
         """
         level = np.clip(np.log2(np.maximum(footprint, 1.0)), 0, LEVELS - 1).astype(np.intp)
-        col = np.floor(s).astype(np.intp) & self.mask
-        row = np.floor(t).astype(np.intp) & self.mask
-        return self.pixels[material, level, row, col].astype(np.float32) * (1.0 / 255.0)
+        col = s.astype(np.intp) & self.mask          # truncation: at most one texel off below 0
+        row = t.astype(np.intp) & self.mask
+        index = ((np.asarray(material, np.intp) * LEVELS + level) * SIZE + row) * SIZE + col
+        texels = self.packed[index].view(np.uint8).reshape(-1, 4)[:, :3]
+        return texels.astype(np.float32) * np.float32(1.0 / 255.0)
 
 
 @functools.lru_cache(maxsize=1)
