@@ -1,0 +1,233 @@
+"""Training end to end (cpl_keras.training and train.py), on tiny data.
+
+Small backbone, 32x32 images, a few dozen pairs, two or three epochs.
+"""
+
+import csv
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+
+import h5py
+import numpy as np
+import pytest
+
+from test_datasets import write_stereo_fixture
+
+REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+RUN_FILES = ("config.json", "model.keras", "best.weights.h5", "log.csv", "curves.png",
+             "train_stats.json", "split.npz")
+# 40 pairs -> 25 train, 3 val, 12 test: batches of 5 keep one shape (one compile).
+TINY = dict(backbone="small", epochs=2, batch_size=5, verbose=0)
+
+
+@pytest.fixture(scope="module")
+def dataset(tmp_path_factory):
+    return write_stereo_fixture(tmp_path_factory.mktemp("data") / "tiny.h5", n=40, image_size=32)
+
+
+def read_log(run_dir):
+    with open(os.path.join(run_dir, "log.csv")) as f:
+        return list(csv.DictReader(f))
+
+
+def cli(*args, env=None):
+    """Run train.py in a subprocess."""
+    environment = dict(os.environ, KERAS_BACKEND="jax", **(env or {}))
+    return subprocess.Popen(
+        [sys.executable, os.path.join(REPO, "train.py"), *args],
+        cwd=REPO, env=environment, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+    )
+
+
+# ---------------------------------------------------------------------------
+# Every variant: the whole run directory, a model that reloads and agrees
+# ---------------------------------------------------------------------------
+@pytest.mark.parametrize("variant", ["baseline", "cpl-u", "cpl-a", "deep-homo"])
+def test_every_variant_writes_the_run_directory(variant, dataset, tmp_path):
+    import keras
+
+    import cpl_keras.models  # noqa: F401  (registers the custom objects)
+    from cpl_keras.camera import TARGETS
+    from cpl_keras.data.storage import StereoFile
+    from cpl_keras.datasets import load_split
+    from cpl_keras.training import train
+
+    run_dir = str(tmp_path / "run")
+    summary = train(dataset, variant=variant, run_dir=run_dir, seed=1, **TINY)
+    for name in RUN_FILES:
+        assert os.path.isfile(os.path.join(run_dir, name)), name
+    assert summary["status"] == "finished" and summary["epochs_run"] == 2
+    assert summary["best_epoch"] in (1, 2) and np.isfinite(summary["best_val_loss"])
+
+    with open(os.path.join(run_dir, "config.json")) as f:
+        config = json.load(f)
+    assert config["variant"] == variant and config["data"] == os.path.abspath(dataset)
+    assert config["build"]["image_size"] == [32, 32] and config["build"]["backbone"] == "small"
+    assert config["epochs_run"] == 2 and config["best_epoch"] == summary["best_epoch"]
+    assert config["learning_rate_used"] == (1.5e-3 if variant == "deep-homo" else 1e-3)
+    for key in ("seed", "batch_size", "split", "as_released", "data_parallel", "wall_time_s"):
+        assert key in config
+
+    rows = read_log(run_dir)
+    assert [int(r["epoch"]) for r in rows] == [0, 1]
+    best_row = rows[summary["best_epoch"] - 1]
+    assert float(best_row["val_loss"]) == pytest.approx(summary["best_val_loss"], rel=1e-6)
+
+    split = load_split(os.path.join(run_dir, "split.npz"))
+    assert sum(len(v) for v in split.values()) == 40
+    assert not set(split["val"]) & set(split["test"])
+    with open(os.path.join(run_dir, "train_stats.json")) as f:
+        stats = json.load(f)
+    assert stats["num_train"] == len(split["train"]) and stats["targets"] == list(TARGETS)
+
+    # The saved model reloads safely and predicts exactly what the trained one does.
+    model = keras.saving.load_model(os.path.join(run_dir, "model.keras"), safe_mode=True)
+    with StereoFile(dataset) as f:
+        left, right = f.read_pairs(split["test"][:5])
+    x = {"left_image": left.astype("float32"), "right_image": right.astype("float32")}
+    for a, b in zip(model.predict(x, verbose=0), summary["model"].predict(x, verbose=0)):
+        assert np.all(np.isfinite(a))
+        np.testing.assert_array_equal(a, b)
+    assert not [n for n in os.listdir(os.path.join(run_dir, "backup")) if n.endswith(".h5")]
+    if variant == "baseline":
+        # Running the same command on a finished run trains nothing more.
+        again = train(dataset, variant=variant, run_dir=run_dir, seed=1, **TINY)
+        assert again["epochs_run"] == 2 and again["best_epoch"] == summary["best_epoch"]
+        assert len(read_log(run_dir)) == 2
+
+
+# ---------------------------------------------------------------------------
+# Faults
+# ---------------------------------------------------------------------------
+def test_killed_run_resumes_with_the_same_epoch_count(dataset, tmp_path):
+    run_dir = str(tmp_path / "run")
+    args = ["--variant", "baseline", "--data", dataset, "--backbone", "small", "--epochs", "4",
+            "--batch-size", "5", "--patience", "10", "--run-dir", run_dir, "--quiet"]
+    state = os.path.join(run_dir, "backup", "state.json")
+    process = cli(*args)
+    deadline = time.time() + 90
+    while time.time() < deadline:
+        try:
+            with open(state) as f:
+                if json.load(f)["epoch"] >= 1:
+                    break
+        except (OSError, ValueError):
+            pass
+        time.sleep(0.05)
+    process.send_signal(signal.SIGKILL)
+    process.wait()
+    with open(state) as f:
+        done = json.load(f)["epoch"]
+    assert 1 <= done < 4, "the run must be killed mid-training"
+
+    process = cli(*args)
+    out, err = process.communicate(timeout=120)
+    assert process.returncode == 0, err
+    assert f"Resuming {run_dir} after epoch {done}" in err
+    assert "best epoch" in out and run_dir in out
+    rows = read_log(run_dir)
+    assert [int(r["epoch"]) for r in rows] == [0, 1, 2, 3]
+    with open(os.path.join(run_dir, "config.json")) as f:
+        config = json.load(f)
+    assert config["epochs_run"] == 4 and config["status"] == "finished"
+
+
+def test_nan_loss_stops_and_keeps_the_best_weights(dataset, tmp_path):
+    from cpl_keras.training import summary_line, train
+
+    run_dir = str(tmp_path / "run")
+    # An absurd learning rate makes the MAE loss overflow within a few steps.
+    summary = train(dataset, variant="baseline", run_dir=run_dir, epochs=6, batch_size=5,
+                    learning_rate=1e35, backbone="small", verbose=0, patience=10)
+    assert summary["status"] == "failed"
+    assert summary["stopped"].startswith("non-finite training loss")
+    assert "non-finite" in summary_line(summary)
+    assert summary["epochs_run"] < 6
+    with open(os.path.join(run_dir, "config.json")) as f:
+        assert json.load(f)["status"] == "failed"
+    if summary["best_epoch"] is not None:
+        assert os.path.isfile(os.path.join(run_dir, "model.keras"))
+
+
+def test_data_parallel_on_two_devices_with_uneven_batches(dataset, tmp_path):
+    run_dir = str(tmp_path / "run")
+    process = cli("--variant", "cpl-u", "--data", dataset, "--backbone", "small",
+                  "--epochs", "2", "--batch-size", "5", "--data-parallel", "--run-dir", run_dir,
+                  "--quiet", env={"XLA_FLAGS": "--xla_force_host_platform_device_count=2"})
+    out, err = process.communicate(timeout=120)
+    assert process.returncode == 0, err
+    with open(os.path.join(run_dir, "config.json")) as f:
+        config = json.load(f)
+    # 25 training pairs, batch 5 -> 6 (2 devices): 5 batches, the last one padded.
+    assert config["num_devices"] == 2 and config["device_batch_size"] == 6
+    assert config["num_train"] % 6 != 0
+    assert config["epochs_run"] == 2 and len(read_log(run_dir)) == 2
+
+
+# ---------------------------------------------------------------------------
+# Bad input: one line, exit 2, nothing written
+# ---------------------------------------------------------------------------
+def _bad_files(tmp_path):
+    not_h5 = tmp_path / "notes.h5"
+    not_h5.write_text("not a dataset")
+    no_label = write_stereo_fixture(tmp_path / "no_label.h5", n=30, drop=("tz",))
+    small = write_stereo_fixture(tmp_path / "small.h5", n=30, image_size=8)
+    nan = write_stereo_fixture(tmp_path / "nan.h5", n=30)
+    with h5py.File(nan, "a") as f:
+        f["labels/fx"][3] = np.nan
+    return {
+        "missing": ([str(tmp_path / "nope.h5")], "dataset not found"),
+        "not hdf5": ([str(not_h5)], "not an HDF5 file"),
+        "no label": ([no_label], "missing label(s) tz"),
+        "wrong size": ([nan.replace("nan", "small")], "below the minimum"),
+        "mismatch": ([no_label.replace("no_label", "small"), "--image-size", "32"],
+                     "images are 8x8"),
+        "nan": ([nan], "label 'fx' has 1 non-finite"),
+    }
+
+
+def test_bad_input_is_one_line_exit_2_and_writes_nothing(tmp_path, capsys):
+    import train as train_cli
+
+    cases = _bad_files(tmp_path)
+    good = write_stereo_fixture(tmp_path / "good.h5", n=30)
+    cases["epochs"] = ([good, "--epochs", "0"], "epochs must be a positive integer")
+    cases["lr"] = ([good, "--lr", "-1"], "learning rate must be a positive number")
+    cases["few pairs"] = ([write_stereo_fixture(tmp_path / "few.h5", n=12)], "training pairs")
+    for name, (data_args, message) in cases.items():
+        run_dir = tmp_path / f"run-{name}"
+        code = train_cli.main(["--variant", "cpl-a", "--backbone", "small", "--data", *data_args,
+                               "--run-dir", str(run_dir)])
+        err = capsys.readouterr().err.strip()
+        assert code == 2, name
+        assert message in err and "\n" not in err, (name, err)
+        assert err.startswith("train.py: error:")
+        assert not run_dir.exists(), name
+
+    # A run directory holding another run is refused before anything changes.
+    occupied = tmp_path / "occupied"
+    occupied.mkdir()
+    (occupied / "config.json").write_text(json.dumps({"variant": "baseline"}))
+    code = train_cli.main(["--variant", "cpl-a", "--backbone", "small", "--data", good,
+                           "--run-dir", str(occupied)])
+    assert code == 2 and "holds a different run" in capsys.readouterr().err
+    assert os.listdir(occupied) == ["config.json"]
+
+
+def test_bad_arguments_from_the_shell(tmp_path):
+    run_dir = tmp_path / "run"
+    for args, message in (
+        (["--variant", "cpl-x"], "invalid choice"),
+        (["--variant", "cpl-a", "--data", str(tmp_path / "missing.h5"), "--run-dir", str(run_dir)],
+         "dataset not found"),
+    ):
+        process = cli(*args)
+        out, err = process.communicate(timeout=60)
+        assert process.returncode == 2
+        assert message in err and len(err.strip().splitlines()) == 1, err
+        assert "Traceback" not in err
+        assert not run_dir.exists()

@@ -1,0 +1,133 @@
+"""Train one of the paper's networks.
+
+    python train.py --variant cpl-a                      # demonstration run
+    python train.py --variant cpl-a --data data/cvgl.h5  # full-scale training
+
+Without ``--data`` a small dataset is generated on first use into the cache
+directory (``$CPL_KERAS_CACHE``, default ``~/.cache/cpl_keras``) and a short
+demonstration run is made. Killed runs resume when the same command is run
+again. See docs/training.md.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import shlex
+import sys
+
+os.environ.setdefault("KERAS_BACKEND", "jax")
+
+VARIANTS = ("baseline", "cpl-u", "cpl-a", "deep-homo")
+BACKBONES = ("inception_v3", "small")
+SPLITS = ("paper", "held-out-config")
+
+#: The demonstration run (no --data): dataset and training settings chosen to
+#: finish in about five minutes on a 2-core CPU.
+DEMO = {"pairs": 240, "image_size": 112, "epochs": 3, "backbone": "small", "seed": 0}
+
+
+class _Parser(argparse.ArgumentParser):
+    def error(self, message):
+        # One line, no usage block: "train.py: error: <problem>".
+        self.exit(2, f"{self.prog}: error: {message}\n")
+
+
+def build_parser():
+    parser = _Parser(
+        prog="train.py",
+        description="Train a camera calibration network (Butt & Taj) on a stereo dataset.",
+    )
+    parser.add_argument("--variant", required=True, choices=VARIANTS)
+    parser.add_argument("--data", help="dataset file (.h5) from the data generator; "
+                        "default: a small demonstration dataset")
+    parser.add_argument("--epochs", type=int, help="maximum epochs (default 200)")
+    parser.add_argument("--batch-size", type=int, default=16)
+    parser.add_argument("--lr", type=float, help="learning rate (default 1e-3, Deep-Homo 1.5e-3)")
+    parser.add_argument("--image-size", type=int,
+                        help="expected image side; must match the dataset (default: the dataset's)")
+    parser.add_argument("--backbone", choices=BACKBONES,
+                        help="tower backbone (default inception_v3, the paper's)")
+    parser.add_argument("--split", choices=SPLITS, default="paper")
+    parser.add_argument("--as-released", action="store_true",
+                        help="reproduce the released code (labels, loss, val = test)")
+    parser.add_argument("--run-dir", help="run directory (default runs/<variant>-<split>-s<seed>)")
+    parser.add_argument("--seed", type=int, help="seed of split, shuffling and weights (default 0)")
+    parser.add_argument("--data-parallel", action="store_true",
+                        help="data parallelism over all local devices")
+    parser.add_argument("--patience", type=int, default=5, help="early stopping patience")
+    parser.add_argument("--workers", type=int, default=1, help="data reading threads")
+    parser.add_argument("--steps-per-execution", type=int, default=1)
+    parser.add_argument("--quiet", action="store_true", help="no progress bars")
+    return parser
+
+
+def cache_dir():
+    return os.environ.get("CPL_KERAS_CACHE") or os.path.join(
+        os.path.expanduser("~"), ".cache", "cpl_keras"
+    )
+
+
+def demo_dataset():
+    """The demonstration dataset, generated on first use."""
+    from cpl_keras.data.storage import DatasetError
+
+    path = os.path.join(
+        cache_dir(), f"demo-cvgl-{DEMO['pairs']}-{DEMO['image_size']}px-s{DEMO['seed']}.h5"
+    )
+    if os.path.exists(path):
+        return path
+    try:
+        from cpl_keras.data.generate import generate_dataset
+    except ImportError:
+        raise DatasetError("the data generator (cpl_keras.data.generate) is not available; "
+                           "pass --data") from None
+    os.makedirs(cache_dir(), exist_ok=True)
+    print(f"Generating the demonstration dataset ({DEMO['pairs']} pairs) into {path}",
+          file=sys.stderr)
+    return generate_dataset(path, protocol="cvgl", pairs=DEMO["pairs"], seed=DEMO["seed"],
+                            image_size=DEMO["image_size"])
+
+
+def main(argv=None):
+    args = build_parser().parse_args(argv)
+    demo = args.data is None
+    seed = DEMO["seed"] if args.seed is None and demo else (args.seed or 0)
+    epochs = args.epochs if args.epochs is not None else (DEMO["epochs"] if demo else 200)
+    backbone = args.backbone or (DEMO["backbone"] if demo else "inception_v3")
+    run_dir = args.run_dir or os.path.join(
+        "runs", ("demo-" if demo else "") + f"{args.variant}-{args.split}-s{seed}"
+        + ("-released" if args.as_released else "")
+    )
+    command = " ".join(shlex.quote(a) for a in [os.path.basename(sys.argv[0]) or "train.py"]
+                       + list(sys.argv[1:] if argv is None else argv))
+
+    from cpl_keras.data.storage import DatasetError
+    from cpl_keras.training import TrainingError, summary_line, train
+
+    try:
+        data = demo_dataset() if demo else args.data
+        summary = train(
+            data, variant=args.variant, run_dir=run_dir, epochs=epochs,
+            batch_size=args.batch_size, learning_rate=args.lr, image_size=args.image_size,
+            backbone=backbone, split=args.split, as_released=args.as_released, seed=seed,
+            data_parallel=args.data_parallel, patience=args.patience, workers=args.workers,
+            steps_per_execution=args.steps_per_execution, verbose=0 if args.quiet else 1,
+            command=command,
+        )
+    except (DatasetError, TrainingError) as error:
+        print(f"train.py: error: {error}", file=sys.stderr)
+        return 2
+    print(summary_line(summary))
+    if demo:
+        print(
+            "This was a demonstration (small dataset, 'small' backbone, few epochs). "
+            "Full-scale training: generate a dataset with the data generator, then "
+            f"python train.py --variant {args.variant} --data PATH.h5 "
+            "(InceptionV3 towers, up to 200 epochs, early stopping)."
+        )
+    return 1 if summary["status"] == "failed" else 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
