@@ -37,6 +37,7 @@ import numpy as np
 from cpl_keras import camera
 from cpl_keras.data import protocols
 from cpl_keras.data.protocols import PROTOCOLS
+from cpl_keras.data.scenes import SKY_DISTANCE
 
 GENERATOR_VERSION = "1.0"
 MIN_IMAGE_SIZE = 16
@@ -79,13 +80,23 @@ def _stereo_bm():
     import cv2
 
     cv2.setNumThreads(1)
-    return cv2.StereoBM_create(numDisparities=16, blockSize=15)
+    return cv2.StereoBM_create(numDisparities=BM_DISPARITIES, blockSize=BM_BLOCK)
+
+
+BM_DISPARITIES, BM_BLOCK = 16, 15
 
 
 def released_disparity(left, right):
-    """Mean of the raw StereoBM map of an RGB pair, as the release computed it."""
+    """Mean of the raw StereoBM map of an RGB pair, as the release computed it.
+
+    Images narrower than ``numDisparities + blockSize - 1`` = 30 pixels have no
+    valid match window (OpenCV then leaves its output uninitialised): the map
+    is all invalid and the mean is -16.
+    """
     import cv2
 
+    if left.shape[1] < BM_DISPARITIES + BM_BLOCK - 1 or left.shape[0] < BM_BLOCK:
+        return -16.0
     grey_l = cv2.cvtColor(left, cv2.COLOR_RGB2GRAY)
     grey_r = cv2.cvtColor(right, cv2.COLOR_RGB2GRAY)
     return float(_stereo_bm().compute(grey_l, grey_r).mean())
@@ -98,8 +109,17 @@ def render_pair(protocol, seed, pairs, image_size, index):
     s = protocols.pair_setup(protocol, seed, pairs, image_size, index)
     town, cfg, right = s["town"], s["config"], s["right"]
     left_img, _ = render.render(town, s["left"])
-    right_img, _ = render.render(town, right)
-    u, v = s["u"], s["v"]
+    right_img, right_depth = render.render(town, right)
+    u, v = s["uv_candidates"][0]
+    for cu, cv in s["uv_candidates"]:
+        # distance along the ray = xCam * |(1, yCam, zCam)| (Eq. 6 ray)
+        ray_y, ray_z = camera.camera_point(1.0, cfg["fx"], cfg["fy"], cfg["u0"], cfg["v0"], cu, cv)
+        distance = right_depth[int(cv), int(cu)] * math.sqrt(1.0 + ray_y**2 + ray_z**2)
+        if distance < 0.99 * SKY_DISTANCE:
+            u, v = cu, cv
+            break
+    u, v = float(u), float(v)
+    # the depth of exactly (u, v), cast on its own (also for non-integer pixels)
     xCam = float(render.depth_at(town, right, u, v)[0])
     disparity = cfg["fx"] * cfg["baseline"] / xCam
     X, Y, Z = camera.image_to_world(
@@ -208,13 +228,15 @@ class _Progress:
         sys.stderr.flush()
 
 
-def _blocks(pairs):
-    return [(s, min(s + BLOCK, pairs)) for s in range(0, pairs, BLOCK)]
+def _blocks(pairs, workers):
+    """Blocks of at most BLOCK pairs, small enough to keep every worker busy."""
+    size = max(1, min(BLOCK, math.ceil(pairs / (2 * workers))))
+    return [(s, min(s + size, pairs)) for s in range(0, pairs, size)]
 
 
 def _iter_blocks(protocol, seed, pairs, image_size, workers):
     """(start, (left, right, labels)) for every block, in order, memory bounded."""
-    blocks = _blocks(pairs)
+    blocks = _blocks(pairs, workers)
     if workers == 1 or len(blocks) == 1:
         for start, stop in blocks:
             yield start, render_block(protocol, seed, pairs, image_size, start, stop)

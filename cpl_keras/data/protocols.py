@@ -29,7 +29,9 @@ Both cameras share the intrinsics fx, fy, u0, v0.
     -5..15 deg down. baseline = |t| (the distance between the centres). One
     configuration per ``RANDOM_FRAMES_PER_CONFIG`` frames, so whole
     configurations can be held out. The projection pixel (u, v) is drawn per
-    pair inside the image.
+    pair: an integer pixel at least 1/8 of the image from the border, redrawn
+    (up to ``PROJECTION_TRIES`` times) while it sees the sky, whose 1000 m
+    depth would give X, Y, Z labels of hundreds of metres.
 
 Frames: configuration c owns a contiguous run of pair indices (a drive); frame
 k of it puts the vehicle at x = start + k * step along the main street, with a
@@ -66,6 +68,7 @@ RANDOM_RANGES = {
     "left_pitch_deg": (-5.0, 15.0), "left_yaw_deg": (-3.0, 3.0), "left_roll_deg": (-2.0, 2.0),
     "projection_margin_fraction": 0.125,
 }
+PROJECTION_TRIES = 8
 DRIVE = {"step_m": (1.5, 4.0), "sway_m": 0.35}
 
 
@@ -217,11 +220,12 @@ def pair_setup(protocol, seed, pairs, image_size, index):
     left = View(*intr, vehicle + np.asarray(cfg["left_pose"]["position"]), left_rot)
     right = View(*intr, vehicle + np.asarray(cfg["right_pose"]["position"]), right_rot)
     if protocol == "cvgl":
-        u, v = W / 2, H / 2
+        candidates = np.array([[W / 2, H / 2]])
     else:
+        # integer pixels inside the image; the generator takes the first one
+        # that does not see the sky
         rng = np.random.default_rng([seed, 7, index])
         margin = int(RANDOM_RANGES["projection_margin_fraction"] * W)
-        u = float(rng.integers(margin, W - margin))
-        v = float(rng.integers(margin, H - margin))
+        candidates = rng.integers(margin, W - margin, size=(PROJECTION_TRIES, 2)).astype(float)
     return {"config": cfg, "frame_index": frame, "town": town, "left": left, "right": right,
-            "u": u, "v": v}
+            "uv_candidates": candidates}

@@ -1,0 +1,79 @@
+"""The dataset CLI: bad arguments fail cleanly, good ones write a dataset and a preview."""
+
+import os
+import subprocess
+import sys
+
+import pytest
+from PIL import Image
+
+from cpl_keras.data.generate import generate_dataset
+from cpl_keras.data.storage import StereoFile
+
+REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+
+
+def _cli(*args):
+    return subprocess.run([sys.executable, "-m", "cpl_keras.data.generate", *args], cwd=REPO,
+                          capture_output=True, text=True, timeout=120)
+
+
+@pytest.mark.parametrize("args, needle", [
+    (["--pairs", "0"], "pairs"),
+    (["--pairs", "-3"], "pairs"),
+    (["--pairs", "4", "--protocol", "carla"], "protocol"),
+    (["--pairs", "4", "--image-size", "8"], "image_size"),
+    (["--pairs", "four"], "pairs"),
+    (["--pairs", "4", "--workers", "0"], "workers"),
+])
+def test_bad_arguments_one_line_exit_2_no_file(tmp_path, args, needle):
+    out = tmp_path / "d.h5"
+    result = _cli(*args, "--out", str(out))
+    assert result.returncode == 2
+    assert "Traceback" not in result.stderr
+    lines = result.stderr.strip().splitlines()
+    assert len(lines) == 1 and needle in lines[0]
+    assert os.listdir(tmp_path) == []
+
+
+@pytest.mark.parametrize("make_out", [
+    lambda tmp: tmp / "missing" / "d.h5",                # directory does not exist
+    lambda tmp: tmp / "file.txt" / "d.h5",               # parent is a file
+    lambda tmp: tmp,                                     # a directory, not a file
+])
+def test_unwritable_output_path(tmp_path, make_out):
+    (tmp_path / "file.txt").write_text("x")
+    before = sorted(os.listdir(tmp_path))
+    result = _cli("--pairs", "4", "--out", str(make_out(tmp_path)))
+    assert result.returncode == 2
+    assert "Traceback" not in result.stderr
+    assert len(result.stderr.strip().splitlines()) == 1
+    assert sorted(os.listdir(tmp_path)) == before
+
+
+def test_missing_out_and_preview(tmp_path):
+    result = _cli("--pairs", "4")
+    assert result.returncode == 2 and len(result.stderr.strip().splitlines()) == 1
+
+
+def test_library_rejects_bad_arguments_with_one_line(tmp_path):
+    for kwargs in ({"pairs": 0}, {"pairs": 2, "protocol": "x"}, {"pairs": 2, "image_size": 4},
+                   {"pairs": True}, {"pairs": 2, "seed": -1}):
+        with pytest.raises(ValueError) as err:
+            generate_dataset(tmp_path / "d.h5", progress=False, **kwargs)
+        assert "\n" not in str(err.value)
+    assert os.listdir(tmp_path) == []
+
+
+def test_dataset_and_preview(tmp_path):
+    out, sheet = tmp_path / "d.h5", tmp_path / "p.png"
+    result = _cli("--protocol", "random", "--pairs", "4", "--image-size", "32", "--workers", "1",
+                  "--out", str(out), "--preview", str(sheet), "--seed", "9")
+    assert result.returncode == 0, result.stderr
+    assert "4/4 pairs" in result.stderr                 # the progress bar
+    with StereoFile(out) as data:
+        assert len(data) == 4
+        assert data.metadata["command_line"].endswith("--seed 9")
+    with Image.open(sheet) as image:
+        assert image.width > 2 * 32 and image.height > 32
+    assert sorted(os.listdir(tmp_path)) == ["d.h5", "p.png"]

@@ -1,0 +1,138 @@
+"""generate_dataset: determinism, HDF5 round trip, atomic writes."""
+
+import os
+import signal
+import subprocess
+import sys
+import time
+
+import h5py
+import numpy as np
+import pytest
+
+from cpl_keras import camera
+from cpl_keras.data import generate
+from cpl_keras.data.generate import generate_dataset
+from cpl_keras.data.protocols import PROTOCOLS
+from cpl_keras.data.storage import REQUIRED_LABELS, StereoFile
+
+REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+
+
+def _read(path):
+    with h5py.File(path, "r") as f:
+        return (f["left"][()], f["right"][()],
+                {k: f["labels"][k][()] for k in f["labels"]})
+
+
+def test_public_names():
+    assert PROTOCOLS == ("cvgl", "random")
+
+
+def test_same_seed_same_bytes_with_any_worker_count(tmp_path):
+    a = generate_dataset(tmp_path / "a.h5", protocol="random", pairs=6, seed=3, image_size=32,
+                         workers=1, progress=False)
+    b = generate_dataset(tmp_path / "b.h5", protocol="random", pairs=6, seed=3, image_size=32,
+                         workers=2, progress=False)
+    assert a == str(tmp_path / "a.h5")
+    left_a, right_a, labels_a = _read(a)
+    left_b, right_b, labels_b = _read(b)
+    assert left_a.tobytes() == left_b.tobytes()
+    assert right_a.tobytes() == right_b.tobytes()
+    assert labels_a.keys() == labels_b.keys()
+    for name in labels_a:
+        assert labels_a[name].tobytes() == labels_b[name].tobytes(), name
+    assert not np.array_equal(left_a, right_a)
+
+
+def test_different_seeds_give_different_images(tmp_path):
+    a = generate_dataset(tmp_path / "a.h5", pairs=3, seed=0, image_size=24, workers=1,
+                         progress=False)
+    b = generate_dataset(tmp_path / "b.h5", pairs=3, seed=1, image_size=24, workers=1,
+                         progress=False)
+    left_a, _, labels_a = _read(a)
+    left_b, _, labels_b = _read(b)
+    assert not np.array_equal(left_a, left_b)
+    assert not np.array_equal(labels_a["fx"], labels_b["fx"])
+
+
+@pytest.mark.parametrize("protocol", PROTOCOLS)
+def test_round_trip_with_metadata(tmp_path, protocol):
+    path = generate_dataset(tmp_path / "d.h5", protocol=protocol, pairs=5, seed=2,
+                            image_size=32, workers=1, progress=False)
+    with StereoFile(path) as data:
+        assert len(data) == 5 and data.image_shape == (32, 32, 3)
+        for name in REQUIRED_LABELS + ("yaw", "roll", "config_id", "town_id", "frame_index"):
+            assert name in data.labels, name
+        meta = data.metadata
+        assert meta["protocol"] == protocol and meta["seed"] == 2 and meta["image_size"] == 32
+        assert [t["name"] for t in meta["towns"]] == ["Town01", "Town02"]
+        assert meta["generator_version"] == generate.GENERATOR_VERSION
+        assert len(meta["configurations"]) == (50 if protocol == "cvgl" else 1)
+        assert "fov_deg" in meta["ranges"]
+        left, right = data.read_pairs([4, 0])
+        assert left.shape == (2, 32, 32, 3) and left.dtype == np.uint8
+        lab = data.labels
+        X, Y, Z = camera.image_to_world(*(lab[k].astype(np.float64) for k in (
+            "fx", "fy", "u0", "v0", "baseline", "disparity", "pitch", "tx", "ty", "tz", "u", "v")))
+        np.testing.assert_allclose(X, lab["X"], rtol=1e-4, atol=1e-3)
+        np.testing.assert_allclose(Y, lab["Y"], rtol=1e-4, atol=1e-3)
+        np.testing.assert_allclose(Z, lab["Z"], rtol=1e-4, atol=1e-3)
+        assert lab["config_id"].dtype == np.int32
+    with h5py.File(path, "r") as f:
+        assert f["labels/pitch"].attrs["unit"] == "rad"
+        assert "degrees" in f["labels/pitch"].attrs["description"]
+        assert f["left"].chunks == (1, 32, 32, 3) and f["left"].compression == "gzip"
+    if protocol == "cvgl":
+        np.testing.assert_array_equal(lab["u"], 16.0)
+        np.testing.assert_array_equal(lab["baseline"], lab["tx"])
+
+
+def test_released_disparity_is_the_raw_stereobm_mean():
+    import cv2
+
+    rng = np.random.default_rng(0)
+    left = rng.integers(0, 255, (48, 48, 3), dtype=np.uint8)
+    right = np.roll(left, -4, axis=1)
+    raw = cv2.StereoBM_create(numDisparities=16, blockSize=15).compute(
+        cv2.cvtColor(left, cv2.COLOR_RGB2GRAY), cv2.cvtColor(right, cv2.COLOR_RGB2GRAY))
+    value = generate.released_disparity(left, right)
+    assert value == pytest.approx(raw.mean())
+    assert (raw == -16).any()                  # invalid pixels are part of the mean
+    # too narrow for a match window: all invalid (OpenCV's output is undefined there)
+    assert generate.released_disparity(left[:20, :20], right[:20, :20]) == -16.0
+
+
+def test_exception_mid_write_leaves_no_file(tmp_path, monkeypatch):
+    calls = []
+    original = generate.render_block
+
+    def failing(*args):
+        if calls:
+            raise RuntimeError("renderer crashed")
+        calls.append(1)
+        return original(*args)
+
+    monkeypatch.setattr(generate, "render_block", failing)
+    monkeypatch.setattr(generate, "BLOCK", 2)
+    out = tmp_path / "d.h5"
+    with pytest.raises(RuntimeError):
+        generate_dataset(out, pairs=6, image_size=16, workers=1, progress=False)
+    assert os.listdir(tmp_path) == []
+
+
+def test_killed_write_leaves_no_file_at_final_path(tmp_path):
+    out = tmp_path / "big.h5"
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "cpl_keras.data.generate", "--pairs", "5000", "--image-size", "32",
+         "--workers", "1", "--out", str(out), "--no-progress"],
+        cwd=REPO, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    partial = tmp_path / "big.h5.partial"
+    deadline = time.time() + 60
+    while not partial.exists() and time.time() < deadline:
+        time.sleep(0.05)
+    assert partial.exists(), "the writer never started"
+    time.sleep(0.3)
+    proc.send_signal(signal.SIGKILL)
+    proc.wait()
+    assert not out.exists()
