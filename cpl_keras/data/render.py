@@ -282,9 +282,42 @@ _LOD_PIXELS = 0.75
 
 
 def _screen_rects(view, lo, hi):
-    """Pixel rectangles [r0, r1) x [c0, c1) covering boxes (lo, hi) (n, 3), and the
-    nearest depth of each box. Boxes crossing the camera plane are clipped
-    to the near plane xCam = _NEAR first, so the rectangle stays tight."""
+    """Pixel rectangles [r0, r1) x [c0, c1) covering boxes (lo, hi) (n, 3), and a
+    lower bound of the depth of each box.
+
+    Boxes well in front of the camera use their bounding sphere (cheap);
+    boxes near or across the camera plane are clipped to the near plane
+    xCam = _NEAR exactly (``_clipped_rects``).
+    """
+    centre = 0.5 * (lo + hi)
+    radius = 0.5 * np.sqrt(((hi - lo) ** 2).sum(axis=1))
+    cam = (centre - view.position) @ view.rotation
+    x = cam[:, 0]
+    nearest = x - radius
+    W, H = view.width, view.height
+    ahead = nearest > 0.05 * np.maximum(radius, 1.0)
+    # a sphere seen from distance x: its image lies within fx * r / (x - r) of the centre
+    safe = np.where(ahead, nearest, 1.0)
+    u = view.u0 - view.fx * cam[:, 1] / np.where(ahead, x, 1.0)
+    v = view.v0 - view.fy * cam[:, 2] / np.where(ahead, x, 1.0)
+    # |u(p) - u(centre)| <= fx r / (x - r) * (1 + |yCam| / x) for every point p
+    # of the sphere (and likewise for v)
+    ru = view.fx * radius / safe * (1.0 + np.abs(cam[:, 1]) / np.where(ahead, x, 1.0))
+    rv = view.fy * radius / safe * (1.0 + np.abs(cam[:, 2]) / np.where(ahead, x, 1.0))
+    c0 = np.floor(np.clip(u - ru, -1, W + 1)).astype(np.intp).clip(0, W)
+    c1 = (np.ceil(np.clip(u + ru, -1, W + 1)) + 1).astype(np.intp).clip(0, W)
+    r0 = np.floor(np.clip(v - rv, -1, H + 1)).astype(np.intp).clip(0, H)
+    r1 = (np.ceil(np.clip(v + rv, -1, H + 1)) + 1).astype(np.intp).clip(0, H)
+    near = np.flatnonzero(~ahead & (x + radius > _NEAR))
+    c0[~ahead] = c1[~ahead] = 0
+    if near.size:
+        c0[near], c1[near], r0[near], r1[near], nearest[near] = _clipped_rects(
+            view, lo[near], hi[near])
+    return c0, c1, r0, r1, nearest
+
+
+def _clipped_rects(view, lo, hi):
+    """Exact screen rectangles of boxes clipped to the near plane xCam = _NEAR."""
     corners = np.where(_CORNERS[None], hi[:, None], lo[:, None])          # (n, 8, 3)
     cam = (corners - view.position) @ view.rotation                       # (n, 8, 3)
     ca, cb = cam[:, _EDGES[:, 0]], cam[:, _EDGES[:, 1]]                   # (n, 12, 3)
@@ -405,7 +438,8 @@ def _ground_albedo(town, bank, x, y, footprint):
          town.sidewalk_material],
         MATERIAL_ID["asphalt_light"],
     )
-    rgb = bank.lookup(material, x * _TEXELS_PER_M, y * _TEXELS_PER_M, footprint * _TEXELS_PER_M)
+    scale = np.where(road, 2.0 * _TEXELS_PER_M, _TEXELS_PER_M)   # fine-grained asphalt
+    rgb = bank.lookup(material, x * scale, y * scale, footprint * scale)
     lane = ~inter & (ay < rh)
     if town.centre == "white_dashed":
         centre = (ay < 0.08) & (np.mod(x, 9.0) < 3.0)
@@ -426,6 +460,23 @@ def _ground_albedo(town, bank, x, y, footprint):
         colour = np.where(centre[g][:, None], paint, np.float32(0.88))
         rgb[g] += (colour * (0.8 + 0.2 * rgb[g]) - rgb[g]) * strength
     return rgb
+
+
+def _sun_shadow(town, x, y, z):
+    """True where the sun (direction ``town.sun``) is hidden by a building row.
+
+    Points between the facade lines are tested against the front and back
+    rows on the sun's side: one plane intersection each.
+    """
+    sun = town.sun
+    side = 0 if sun[1] > 0 else 1
+    shadow = np.zeros(x.shape, bool)
+    heights = np.append(town.buildings["height"], -np.inf)
+    for distance, table in ((town.facade, town.front_id), (town.back, town.back_id)):
+        t = (np.sign(sun[1]) * distance - y) / sun[1]
+        bid = table[side][_cell(town, x + t * sun[0])]
+        shadow |= (t > 0) & (z + t * sun[2] < heights[bid])
+    return shadow
 
 
 _LOOK_MATERIAL = np.array([MATERIAL_ID[m] for m in (
@@ -515,8 +566,9 @@ def shade(town, view, origin, rays, hits):
 
     g = select(GROUND)
     if g.size:
-        x, y, _ = point(g)
-        out[g] = _ground_albedo(town, bank, x, y, footprint(g, 2)) * (ambient + diffuse * sun[2])
+        x, y, z = point(g)
+        lit = np.where(_sun_shadow(town, x, y, z), 0.0, diffuse * sun[2])
+        out[g] = _ground_albedo(town, bank, x, y, footprint(g, 2)) * (ambient + lit)[:, None]
     b = town.buildings
     for kind in (FACADE, BACK):
         g = select(kind)
@@ -524,8 +576,10 @@ def shade(town, view, origin, rays, hits):
             x, y, z = point(g)
             bid = hits.ident.reshape(-1)[g]
             rgb = _facade_albedo(town, bank, bid, x, x - b["x0"][bid], z, footprint(g, 1))
-            light = ambient + diffuse * np.maximum(0.0, np.where(y > 0, -sun[1], sun[1]))
-            out[g] = rgb * light[:, None]
+            lit = np.maximum(0.0, np.where(y > 0, -sun[1], sun[1]))
+            if kind == FACADE:
+                lit[lit > 0] *= ~_sun_shadow(town, x[lit > 0], y[lit > 0], z[lit > 0])
+            out[g] = rgb * (ambient + diffuse * lit)[:, None]
     g = select(SIDEWALL)
     if g.size:
         x, y, z = point(g)
