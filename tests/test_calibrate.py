@@ -1,0 +1,102 @@
+"""python -m cpl_keras.calibrate on image files."""
+
+import json
+import os
+import shutil
+import subprocess
+import sys
+
+import cv2
+import numpy as np
+import pytest
+
+from cpl_keras import calibrate, evaluation
+from cpl_keras.camera import PARAMETERS, fov_from_focal
+
+SIZE = 32
+
+
+@pytest.fixture(scope="module")
+def setup(tmp_path_factory):
+    from cpl_keras.data.generate import generate_dataset
+    from cpl_keras.training import train
+
+    root = tmp_path_factory.mktemp("calib")
+    data = generate_dataset(root / "d.h5", protocol="random", pairs=30, seed=0,
+                            image_size=SIZE, workers=1, progress=False)
+    run = root / "run"
+    train(data, variant="cpl-u", run_dir=run, epochs=1, batch_size=8, backbone="small",
+          verbose=0)
+    rng = np.random.default_rng(0)
+    left = (rng.random((40, 64, 3)) * 255).astype(np.uint8)        # W = 64, H = 40
+    right = np.roll(left, -3, axis=1)
+    cv2.imwrite(str(root / "left.png"), left)
+    cv2.imwrite(str(root / "right.png"), right)
+    cv2.imwrite(str(root / "small.png"), left[:20, :30])
+    (root / "notes.png").write_text("not an image")
+    return {"root": root, "run": str(run)}
+
+
+def test_calibrate_scales_back_to_input_pixels(setup, tmp_path, capsys):
+    root = setup["root"]
+    out = tmp_path / "calib.json"
+    assert calibrate.main([str(root / "left.png"), str(root / "right.png"), "--run",
+                           setup["run"], "--json-out", str(out)]) == 0
+    printed = json.loads(capsys.readouterr().out)
+    assert printed == json.load(open(out))
+    assert set(printed["parameters"]) == set(PARAMETERS)
+    assert (printed["image_width"], printed["image_height"]) == (64, 40)
+    # the same forward pass by hand, on the resized pair
+    run = evaluation.load_run(setup["run"])
+    model = evaluation.load_model(run)
+    left = cv2.cvtColor(cv2.imread(str(root / "left.png")), cv2.COLOR_BGR2RGB)
+    right = cv2.cvtColor(cv2.imread(str(root / "right.png")), cv2.COLOR_BGR2RGB)
+    resize = lambda im: cv2.resize(im, (SIZE, SIZE), interpolation=cv2.INTER_AREA)[None]
+    raw = evaluation.predict_images(model, resize(left), resize(right))
+    p = printed["parameters"]
+    assert p["fx"] == pytest.approx(raw["fx"][0] * 64 / SIZE, rel=1e-4)
+    assert p["fy"] == pytest.approx(raw["fy"][0] * 40 / SIZE, rel=1e-4)
+    assert p["u0"] == pytest.approx((raw["u0"][0] + 0.5) * 64 / SIZE - 0.5, rel=1e-4, abs=1e-4)
+    assert p["v0"] == pytest.approx((raw["v0"][0] + 0.5) * 40 / SIZE - 0.5, rel=1e-4, abs=1e-4)
+    assert p["baseline"] == pytest.approx(raw["baseline"][0], rel=1e-4, abs=1e-6)
+    assert printed["fov_horizontal_deg"] == pytest.approx(
+        np.degrees(fov_from_focal(p["fx"], 64)), rel=1e-6)
+    assert printed["fov_vertical_deg"] == pytest.approx(
+        np.degrees(fov_from_focal(p["fy"], 40)), rel=1e-6)
+
+
+def _fails(args, capsys, match, out=None):
+    assert calibrate.main(args) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.startswith("error:") and "\n" not in err and match in err, err
+    if out is not None:
+        assert not os.path.exists(out) and not os.path.exists(str(out) + ".partial")
+
+
+def test_bad_inputs(setup, tmp_path, capsys):
+    root, run = setup["root"], setup["run"]
+    out = tmp_path / "c.json"
+    left, right = str(root / "left.png"), str(root / "right.png")
+    _fails([str(root / "notes.png"), right, "--run", run, "--json-out", str(out)], capsys,
+           "as an image", out)
+    _fails([left, str(root / "missing.png"), "--run", run, "--json-out", str(out)], capsys,
+           "not found", out)
+    _fails([left, str(root / "small.png"), "--run", run, "--json-out", str(out)], capsys,
+           "differ in size", out)
+    no_weights = tmp_path / "no_weights"
+    shutil.copytree(run, no_weights)
+    os.remove(no_weights / "model.keras")
+    _fails([left, right, "--run", str(no_weights), "--json-out", str(out)], capsys,
+           "weights", out)
+    _fails([left, right, "--run", str(tmp_path / "nothing")], capsys, "not found")
+
+
+def test_cli_exit_status_without_traceback(setup):
+    root = setup["root"]
+    result = subprocess.run(
+        [sys.executable, "-m", "cpl_keras.calibrate", str(root / "notes.png"),
+         str(root / "right.png"), "--run", setup["run"]],
+        capture_output=True, text=True, timeout=120,
+        cwd=os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+    assert result.returncode == 2
+    assert result.stderr.strip().count("\n") == 0 and "Traceback" not in result.stderr

@@ -1,0 +1,126 @@
+"""evaluate.py end to end: Table 1 and Table 2 on a tiny trained run."""
+
+import json
+import os
+import shutil
+
+import numpy as np
+import pytest
+
+import evaluate
+from cpl_keras import evaluation, metrics
+from cpl_keras.data.storage import StereoFile, StereoWriter
+
+SIZE = 32
+
+
+@pytest.fixture(scope="module")
+def tiny(tmp_path_factory):
+    from cpl_keras.data.generate import generate_dataset
+    from cpl_keras.real.middlebury import build_middlebury
+    from cpl_keras.training import train
+
+    root = tmp_path_factory.mktemp("eval")
+    data = generate_dataset(root / "cvgl.h5", protocol="cvgl", pairs=40, seed=0,
+                            image_size=SIZE, workers=1, progress=False)
+    real = build_middlebury(root / "middlebury.h5", crops=5, image_size=SIZE, seed=0)
+    run = root / "run_baseline"
+    train(data, variant="baseline", run_dir=run, epochs=1, batch_size=8, backbone="small",
+          verbose=0)
+    return {"root": root, "data": data, "real": real, "run": str(run)}
+
+
+def _outputs(directory, stem):
+    return [os.path.join(directory, f"{stem}{ext}") for ext in (".md", ".csv", ".json", "_fov.png")]
+
+
+def test_table1_end_to_end(tiny, tmp_path, capsys):
+    assert evaluate.main(["--table", "1", "--runs", tiny["run"], "--out", str(tmp_path),
+                          "--geometric-max", "3"]) == 0
+    printed = capsys.readouterr().out
+    assert "| MTL-Baseline |" in printed and "| Geometric |" in printed
+    for path in _outputs(tmp_path, "table1"):
+        assert os.path.getsize(path) > 0
+    assert not [p for p in os.listdir(tmp_path) if p.endswith(".partial")]
+    table = json.load(open(tmp_path / "table1.json"))
+    assert list(table["rows"]) == ["Average", "Average (release bug)", "MTL-Baseline", "Geometric"]
+    assert "evaluate.py --table 1" in table["command"]
+    assert table["rows"]["Geometric"]["num_pairs"] == 3
+    assert "few_matches" in table["rows"]["Geometric"]["failures"]
+    # the Average row, recomputed by hand from the run's statistics and test split
+    split = np.load(os.path.join(tiny["run"], "split.npz"))
+    stats = json.load(open(os.path.join(tiny["run"], "train_stats.json")))
+    with StereoFile(tiny["data"]) as f:
+        fx = f.labels["fx"][split["test"]].astype(np.float64)
+    expected = np.mean(np.abs(stats["mean"]["fx"] - fx)) / np.mean(fx)
+    assert table["rows"]["Average"]["targets"]["fx"]["nmae_signed"] == pytest.approx(expected, rel=1e-5)
+    assert table["num_pairs"] == len(split["test"])
+    # the paper's numbers sit beside ours, the best value per column is bold
+    md = open(tmp_path / "table1.md").read()
+    assert "(94.233)" in md and "**" in md
+    csv = open(tmp_path / "table1.csv").read().splitlines()
+    assert csv[0] == "method,metric,fx,fy,u0,v0,b,d,tx,ty,tz,theta_p"
+    assert len(csv) == 1 + 4 * 3
+
+
+def test_table2_real_data_forward_pass(tiny, tmp_path):
+    assert evaluate.main(["--table", "2", "--runs", tiny["run"], "--data", tiny["real"],
+                          "--out", str(tmp_path), "--no-geometric"]) == 0
+    table = json.load(open(tmp_path / "table2.json"))
+    assert table["num_pairs"] == 5 and "all 5 pairs" in table["data_description"]
+    assert "Geometric" not in table["rows"]
+    # pitch, tx, tz are 0 on a rectified real rig: NMAE undefined, never inf
+    row = table["rows"]["MTL-Baseline"]["targets"]
+    assert row["pitch"]["nmae"] is None and row["tz"]["nmae_signed"] is None
+    assert row["fx"]["nmae"] is not None and row["pitch"]["mae"] is not None
+    md = open(tmp_path / "table2.md").read()
+    assert "n/a" in md and "(2321.338)" in md
+
+
+def test_single_run_evaluation(tiny, tmp_path):
+    assert evaluate.main(["--run", tiny["run"], "--data", tiny["data"], "--out", str(tmp_path)]) == 0
+    result = json.load(open(tmp_path / "eval_run_baseline.json"))
+    split = np.load(os.path.join(tiny["run"], "split.npz"))
+    assert result["num_pairs"] == len(split["test"])
+    curve = result["rows"]["MTL-Baseline"]["fov_within_deg"]
+    assert [float(k) for k in curve] == list(metrics.FOV_THRESHOLDS_DEG)
+
+
+def _fails(argv, capsys, match):
+    assert evaluate.main(argv) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.startswith("error:") and "\n" not in err and match in err, err
+
+
+def test_bad_inputs(tiny, tmp_path, capsys):
+    out = tmp_path / "out"
+    out.mkdir()
+    no_weights = tmp_path / "no_weights"
+    shutil.copytree(tiny["run"], no_weights)
+    os.remove(no_weights / "model.keras")
+    _fails(["--run", str(no_weights), "--data", tiny["data"], "--out", str(out)], capsys,
+           "weights")
+    # a dataset without labels
+    unlabeled = tmp_path / "unlabeled.h5"
+    with StereoWriter(unlabeled, 2, SIZE) as writer:
+        images = np.zeros((2, SIZE, SIZE, 3), np.uint8)
+        writer.write(0, images, images, {"fx": np.ones(2)})
+    _fails(["--run", tiny["run"], "--data", str(unlabeled), "--out", str(out)], capsys,
+           "missing label")
+    _fails(["--table", "2", "--runs", tiny["run"], "--out", str(out)], capsys, "--data")
+    _fails(["--run", tiny["run"], "--data", str(tmp_path / "none.h5"), "--out", str(out)],
+           capsys, "not found")
+    _fails(["--run", tiny["run"], "--data", tiny["data"], "--out", str(tmp_path / "nope")],
+           capsys, "output directory")
+    with pytest.raises(SystemExit) as exit_info:
+        evaluate.main(["--table", "3", "--runs", tiny["run"]])
+    assert exit_info.value.code == 2
+    assert os.listdir(out) == []                 # nothing partial was left behind
+
+
+def test_best_marks_smallest_magnitude_and_ties():
+    def row(value):
+        return {"targets": {p: {"nmae_signed": value} for p in evaluation.PARAMETERS}}
+    table = {"rows": {"A": row(-1.9), "B": row(0.09), "C": row(-0.09), "D": row(None)}}
+    best = evaluation.best_rows(table, "nmae_signed")
+    assert best["fx"] == {"B", "C"}
