@@ -301,9 +301,9 @@ def make_table(number, run_dirs, data_path=None, geometric=True, geometric_max=N
             if progress:
                 progress(f"geometric baseline on {len(subset)} pairs")
             stats_mean = reference["stats"]["mean"]
-            priors = {"baseline": stats_mean["baseline"]}
-            if not as_released(reference):
-                priors.update(fx=stats_mean["fx"], fy=stats_mean["fx"])
+            # fallbacks: the training means of the unobservable / failed quantities
+            priors = {"baseline": stats_mean["baseline"], "fx": stats_mean["fx"],
+                      "fy": stats_mean["fx"]}
             pred, statuses = geo.predict_file(data, subset, priors=priors)
             truth = truth_targets(labels, subset, False)
             rows["Geometric"] = {"source": "cpl_keras.baselines.geometric", "as_released": False,
