@@ -1,1 +1,14 @@
-"""Synthetic CVGL-style stereo data: rendering, rig protocols and HDF5 storage."""
+"""Synthetic CVGL-style stereo data: rendering, rig protocols and HDF5 storage.
+
+Modules (numpy only, no deep-learning backend is imported):
+
+* ``storage``   the HDF5 dataset schema (``StereoWriter``, ``StereoFile``)
+* ``textures``  photographic materials from scikit-image, with mip levels
+* ``scenes``    the procedural towns ``Town01`` and ``Town02``
+* ``render``    a vectorised numpy ray caster (depth = xCam, Eq. 4a)
+* ``protocols`` the ``cvgl`` and ``random`` stereo-rig protocols
+* ``generate``  ``generate_dataset`` and the CLI
+  (``python -m cpl_keras.data.generate --pairs N --out data/cvgl.h5``)
+
+See docs/data.md for the conventions and how the data differs from CVGL.
+"""
