@@ -95,7 +95,7 @@ def rendered_pairs(tmp_path_factory):
     from cpl_keras.data.generate import generate_dataset
 
     path = tmp_path_factory.mktemp("geo") / "random.h5"
-    return generate_dataset(path, protocol="random", pairs=16, seed=1, image_size=112,
+    return generate_dataset(path, protocol="random", pairs=24, seed=1, image_size=112,
                             workers=1, progress=False)
 
 
@@ -104,9 +104,13 @@ def test_rendered_random_rig_focal_and_pitch(rendered_pairs):
     small rotations), where Bougnoux's formula is near its degenerate case.
 
     On 300 pairs (seed 1, docs/evaluation.md) the focal length was real for
-    59% of pairs with a median relative error of 45% among them, and the
-    pitch median error was 0.0185 rad. The tolerances below are set from
-    those figures with a margin for the small sample.
+    61% of pairs with a median relative error of 49% among them, and the
+    pitch median error was 0.0186 rad. Over windows of 24 consecutive pairs
+    the real share ranged 0.42-0.79, the median relative fx error 0.38-0.71,
+    the best pair's error 0.017-0.29 and the median pitch error
+    0.005-0.044 rad; the tolerances below bound those ranges. The accuracy of
+    the focal length itself on a well-conditioned rig is checked on exact
+    matches above (within 1%).
     """
     from cpl_keras.data.storage import StereoFile
 
@@ -118,12 +122,11 @@ def test_rendered_random_rig_focal_and_pitch(rendered_pairs):
     real_focal = np.array([not (s["imaginary_focal"] or s["implausible_focal"]) for s in statuses])
     assert real_focal.mean() >= 0.3
     relative = np.abs(predictions["fx"] / truth["fx"] - 1.0)[real_focal]
-    assert np.median(relative) < 0.7
-    assert np.min(relative) < 0.1               # the well-conditioned pairs are accurate
+    assert np.median(relative) < 0.85
+    assert np.min(relative) < 0.35
     pitch_error = np.abs(predictions["pitch"] - truth["pitch"])
-    assert np.median(pitch_error) < 0.04        # radians
+    assert np.median(pitch_error) < 0.05        # radians
     # failed stages fall back to the stated prior, never to a non-finite value
     assert all(np.all(np.isfinite(predictions[name])) for name in TARGETS)
-    fallback = ~real_focal
-    np.testing.assert_allclose(predictions["fx"][fallback],
+    np.testing.assert_allclose(predictions["fx"][~real_focal],
                                geometric.default_priors(112, 112)["fx"])
