@@ -4,11 +4,15 @@
 
 Writes a throw-away dataset into a temporary directory through the same
 ``generate_dataset`` the CLI uses (rendering, StereoBM, HDF5 compression and
-writing included) and reports the end-to-end rate.
+writing included) and reports the end-to-end wall-clock rate. Because other
+programs may share the cores, it also reports the CPU time the generator used
+(this process and its workers) and the load average, and the rate that CPU
+time corresponds to on the machine's cores if they were all free.
 """
 
 import argparse
 import os
+import resource
 import sys
 import tempfile
 import time
@@ -27,17 +31,31 @@ def main():
     parser.add_argument("--workers", type=int, default=None)
     args = parser.parse_args()
     workers = args.workers or os.cpu_count()
+    def cpu_seconds():
+        total = 0.0
+        for who in (resource.RUSAGE_SELF, resource.RUSAGE_CHILDREN):
+            usage = resource.getrusage(who)
+            total += usage.ru_utime + usage.ru_stime
+        return total
+
+    load_before = os.getloadavg()[0]
     with tempfile.TemporaryDirectory() as tmp:
         path = os.path.join(tmp, "bench.h5")
+        cpu_start = cpu_seconds()
         start = time.perf_counter()
         generate_dataset(path, protocol=args.protocol, pairs=args.pairs,
                          image_size=args.image_size, workers=workers, progress=False)
         elapsed = time.perf_counter() - start
+        cpu = cpu_seconds() - cpu_start
         size = os.path.getsize(path)
     rate = args.pairs / elapsed
+    cores = os.cpu_count()
     print(f"protocol={args.protocol} pairs={args.pairs} image_size={args.image_size} "
-          f"workers={workers} cores={os.cpu_count()}: {elapsed:.1f} s, {rate:.1f} pairs/s, "
+          f"workers={workers} cores={cores}: {elapsed:.1f} s wall, {rate:.1f} pairs/s, "
           f"{size / args.pairs / 1024:.1f} KiB/pair")
+    print(f"cpu time {cpu:.1f} s = {args.pairs / cpu:.1f} pairs per cpu-second "
+          f"(~{cores * args.pairs / cpu:.0f} pairs/s on {cores} free cores); "
+          f"load average {load_before:.1f} before, {os.getloadavg()[0]:.1f} after")
 
 
 if __name__ == "__main__":

@@ -27,10 +27,12 @@ do not depend on the number of workers.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import math
 import os
 import sys
 import time
+import types
 
 import numpy as np
 
@@ -243,24 +245,43 @@ def _iter_blocks(protocol, seed, pairs, image_size, workers):
         return
     import multiprocessing as mp
 
-    # spawn: safe even when the caller has started threads (e.g. JAX).
-    ctx = mp.get_context("spawn")
+    # The task is taken from the imported module (not ``__main__``), so the
+    # workers never need to re-import the caller's script.
+    from cpl_keras.data import generate as module
+
+    task = module._render_block_task
     window = 2 * workers
-    with ctx.Pool(min(workers, len(blocks))) as pool:
+    # spawn: safe even when the caller has started threads (e.g. JAX).
+    with _without_main_module():
+        pool = mp.get_context("spawn").Pool(min(workers, len(blocks)))
+    with pool:
         pending = []
-        tasks = iter(blocks)
-        for start, stop in tasks:
-            pending.append(pool.apply_async(
-                _render_block_task, ((protocol, seed, pairs, image_size, start, stop),)))
+        todo = iter(blocks)
+        for block in todo:
+            pending.append(pool.apply_async(task, ((protocol, seed, pairs, image_size) + block,)))
             if len(pending) >= window:
                 break
         while pending:
             result = pending.pop(0).get()
-            nxt = next(tasks, None)
-            if nxt is not None:
+            block = next(todo, None)
+            if block is not None:
                 pending.append(pool.apply_async(
-                    _render_block_task, ((protocol, seed, pairs, image_size) + nxt,)))
+                    task, ((protocol, seed, pairs, image_size) + block,)))
             yield result
+
+
+@contextlib.contextmanager
+def _without_main_module():
+    """Hide the caller's ``__main__`` while workers start, so that ``spawn``
+    does not re-run a script that calls ``generate_dataset`` without an
+    ``if __name__ == "__main__"`` guard."""
+    main = sys.modules.get("__main__")
+    sys.modules["__main__"] = types.ModuleType("__main__")
+    try:
+        yield
+    finally:
+        if main is not None:
+            sys.modules["__main__"] = main
 
 
 def _generate(out, protocol, pairs, seed, image_size, workers, progress, command_line=None):
