@@ -34,9 +34,16 @@ def read_log(run_dir):
         return list(csv.DictReader(f))
 
 
-def cli(*args, env=None):
-    """Run train.py in a subprocess."""
+@pytest.fixture(scope="module")
+def xla_cache(tmp_path_factory):
+    return str(tmp_path_factory.mktemp("xla"))
+
+
+def cli(*args, cache, env=None):
+    """Run train.py in a subprocess, with its XLA compilation cache in ``cache``."""
     environment = dict(os.environ, KERAS_BACKEND="jax", **(env or {}))
+    environment["JAX_COMPILATION_CACHE_DIR"] = cache
+    environment["JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS"] = "0"
     return subprocess.Popen(
         [sys.executable, os.path.join(REPO, "train.py"), *args],
         cwd=REPO, env=environment, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
@@ -103,12 +110,12 @@ def test_every_variant_writes_the_run_directory(variant, dataset, tmp_path):
 # ---------------------------------------------------------------------------
 # Faults
 # ---------------------------------------------------------------------------
-def test_killed_run_resumes_with_the_same_epoch_count(dataset, tmp_path):
+def test_killed_run_resumes_with_the_same_epoch_count(dataset, tmp_path, xla_cache):
     run_dir = str(tmp_path / "run")
     args = ["--variant", "baseline", "--data", dataset, "--backbone", "small", "--epochs", "4",
             "--batch-size", "5", "--patience", "10", "--run-dir", run_dir, "--quiet"]
     state = os.path.join(run_dir, "backup", "state.json")
-    process = cli(*args)
+    process = cli(*args, cache=xla_cache)
     deadline = time.time() + 90
     while time.time() < deadline:
         try:
@@ -124,7 +131,7 @@ def test_killed_run_resumes_with_the_same_epoch_count(dataset, tmp_path):
         done = json.load(f)["epoch"]
     assert 1 <= done < 4, "the run must be killed mid-training"
 
-    process = cli(*args)
+    process = cli(*args, cache=xla_cache)
     out, err = process.communicate(timeout=120)
     assert process.returncode == 0, err
     assert f"Resuming {run_dir} after epoch {done}" in err
@@ -153,11 +160,11 @@ def test_nan_loss_stops_and_keeps_the_best_weights(dataset, tmp_path):
         assert os.path.isfile(os.path.join(run_dir, "model.keras"))
 
 
-def test_data_parallel_on_two_devices_with_uneven_batches(dataset, tmp_path):
+def test_data_parallel_on_two_devices_with_uneven_batches(dataset, tmp_path, xla_cache):
     run_dir = str(tmp_path / "run")
     process = cli("--variant", "cpl-u", "--data", dataset, "--backbone", "small",
                   "--epochs", "2", "--batch-size", "5", "--data-parallel", "--run-dir", run_dir,
-                  "--quiet", env={"XLA_FLAGS": "--xla_force_host_platform_device_count=2"})
+                  "--quiet", cache=xla_cache, env={"XLA_FLAGS": "--xla_force_host_platform_device_count=2"})
     out, err = process.communicate(timeout=120)
     assert process.returncode == 0, err
     with open(os.path.join(run_dir, "config.json")) as f:
@@ -218,14 +225,14 @@ def test_bad_input_is_one_line_exit_2_and_writes_nothing(tmp_path, capsys):
     assert os.listdir(occupied) == ["config.json"]
 
 
-def test_bad_arguments_from_the_shell(tmp_path):
+def test_bad_arguments_from_the_shell(tmp_path, xla_cache):
     run_dir = tmp_path / "run"
     for args, message in (
         (["--variant", "cpl-x"], "invalid choice"),
         (["--variant", "cpl-a", "--data", str(tmp_path / "missing.h5"), "--run-dir", str(run_dir)],
          "dataset not found"),
     ):
-        process = cli(*args)
+        process = cli(*args, cache=xla_cache)
         out, err = process.communicate(timeout=60)
         assert process.returncode == 2
         assert message in err and len(err.strip().splitlines()) == 1, err
