@@ -221,6 +221,13 @@ def _cast_objects(town, origin, rays, hits, view):
         c0, c1, r0, r1, nearest = _screen_rects(view, lo, hi)
         size = np.max(hi - lo, axis=1)
         keep = (c1 > c0) & (r1 > r0) & (size * focal / np.maximum(nearest, 1e-3) > _LOD_PIXELS)
+        # tighten the bounding-sphere rectangles of the survivors: exact box outlines
+        k = np.flatnonzero(keep)
+        if k.size:
+            e0, e1, f0, f1, _ = _clipped_rects(view, lo[k], hi[k])
+            c0[k], c1[k] = np.maximum(c0[k], e0), np.minimum(c1[k], e1)
+            r0[k], r1[k] = np.maximum(r0[k], f0), np.minimum(r1[k], f1)
+            keep[k] = (c1[k] > c0[k]) & (r1[k] > r0[k])
         # skip large objects hidden behind what is already there (walls, ground)
         grid = hits.t.reshape(H, W)
         big = keep & ((c1 - c0) * (r1 - r0) > 64)
@@ -600,9 +607,9 @@ def shade(town, view, origin, rays, hits):
         out[g] = rgb * (ambient + diffuse * np.maximum(0.0, n @ sun))[:, None].astype(np.float32)
 
     # Aerial perspective: fade to the haze colour with distance (not the sky).
-    solid = np.flatnonzero(surface != SKY)
-    fog = np.exp(-dist[solid] / town.haze).astype(np.float32)[:, None]
-    out[solid] = out[solid] * fog + town.haze_colour * (1 - fog)
+    fog = np.exp(np.where(surface == SKY, 0.0, dist) * (-1.0 / town.haze)).astype(np.float32)
+    out *= fog[:, None]
+    out += (1 - fog)[:, None] * town.haze_colour
     return out.reshape(shape + (3,))
 
 
