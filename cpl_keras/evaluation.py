@@ -38,6 +38,9 @@ ROWS = ("Average", "Average (release bug)", "Deep-Homo", "MTL-CPL-U", "MTL-Basel
 VARIANT_ROWS = {"deep-homo": "Deep-Homo", "cpl-u": "MTL-CPL-U", "baseline": "MTL-Baseline",
                 "cpl-a": "MTL-CPL-A"}
 #: Table columns (the paper's names) and the parameter each one is.
+#: Suffix of the row of a run trained with ``as_released`` (its own row, so
+#: the paper's and the release's version of a model can share a table).
+RELEASED = " (as released)"
 COLUMNS = ("fx", "fy", "u0", "v0", "b", "d", "tx", "ty", "tz", "theta_p")
 COLUMN_PARAMETER = dict(zip(COLUMNS, PARAMETERS))
 #: Which NMAE convention the paper used for each table (REPRODUCTION_NOTES.md).
@@ -245,7 +248,7 @@ def make_table(number, run_dirs, data_path=None, geometric=True, geometric_max=N
     runs = [load_run(r) for r in run_dirs]
     rows_seen = {}
     for run in runs:
-        row = VARIANT_ROWS[run["config"]["variant"]]
+        row = row_name(run)
         if row in rows_seen:
             raise EvaluationError(f"two runs for {row}: {rows_seen[row]} and {run['run_dir']}")
         rows_seen[row] = run["run_dir"]
@@ -290,7 +293,7 @@ def make_table(number, run_dirs, data_path=None, geometric=True, geometric_max=N
             model = load_model(run)
             pred = predict_run(model, data, indices, batch_size)
             truth = truth_targets(labels, indices, as_released(run))
-            rows[VARIANT_ROWS[run["config"]["variant"]]] = {
+            rows[row_name(run)] = {
                 "source": run["run_dir"], "as_released": as_released(run), "num_pairs": n,
                 **score(truth, pred, width)}
             del model
@@ -317,10 +320,16 @@ def make_table(number, run_dirs, data_path=None, geometric=True, geometric_max=N
             "source", "protocol", "seed", "image_size", "crops", "right", "labels", "split")},
         "num_pairs": int(n), "image_width": int(width),
         "runs": [r["run_dir"] for r in runs],
-        "rows": {row: rows[row] for row in ROWS if row in rows},
+        "rows": {row: rows[row] for base in ROWS for row in (base, base + RELEASED) if row in rows},
         "paper": read_paper_table(number), "paper_convention": PAPER_CONVENTION[number],
     }
     return _jsonable(table)
+
+
+def row_name(run):
+    """The table row of a run: its variant's row, marked when trained as released."""
+    row = VARIANT_ROWS[run["config"]["variant"]]
+    return row + RELEASED if as_released(run) else row
 
 
 def _jsonable(value):
@@ -387,7 +396,8 @@ def markdown(table, command=None):
                 if row in best.get(column, ()):
                     text = f"**{text}**"
                 if with_paper:
-                    paper_row = "Average" if row == "Average (release bug)" else row
+                    paper_row = row[: -len(RELEASED)] if row.endswith(RELEASED) else row
+                    paper_row = "Average" if paper_row == "Average (release bug)" else paper_row
                     paper = table["paper"].get(paper_row, {}).get(column)
                     if paper is not None and row != "Average":
                         text += f" ({paper:.3f})"
