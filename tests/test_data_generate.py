@@ -136,3 +136,27 @@ def test_killed_write_leaves_no_file_at_final_path(tmp_path):
     proc.send_signal(signal.SIGKILL)
     proc.wait()
     assert not out.exists()
+
+
+def test_generator_imports_no_deep_learning_backend():
+    code = ("import sys\n"
+            "from cpl_keras.data.generate import render_pair\n"
+            "render_pair('cvgl', 0, 4, 32, 0)\n"
+            "print(sorted({m.split('.')[0] for m in sys.modules} & "
+            "{'keras', 'jax', 'tensorflow', 'torch'}))\n")
+    result = subprocess.run([sys.executable, "-c", code], cwd=REPO, capture_output=True,
+                            text=True, timeout=120)
+    assert result.returncode == 0, result.stderr
+    assert result.stdout.strip() == "[]"
+
+
+def test_configurations_own_contiguous_drives():
+    from cpl_keras.data.protocols import config_of_pair, num_configs
+
+    for protocol, pairs in (("cvgl", 120), ("random", 37)):
+        ids = [config_of_pair(protocol, pairs, i) for i in range(pairs)]
+        configs = [c for c, _ in ids]
+        assert configs == sorted(configs)
+        assert configs[-1] == num_configs(protocol, pairs) - 1
+        for (c0, f0), (c1, f1) in zip(ids, ids[1:]):
+            assert (f1 == f0 + 1) if c1 == c0 else (f1 == 0)
