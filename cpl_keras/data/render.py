@@ -65,15 +65,6 @@ class View:
         cam = np.stack(np.broadcast_arrays(np.ones_like(yCam), yCam, zCam))
         return np.tensordot(self.rotation, cam, axes=1)
 
-    def project(self, points):
-        """Pixel (u, v) and depth xCam of world points (..., 3) (Eqs. 4b-4c inverted)."""
-        cam = (np.asarray(points) - self.position) @ self.rotation   # R^T (P - o)
-        x = cam[..., 0]
-        safe = np.where(np.abs(x) < 1e-9, 1e-9, x)
-        u = self.u0 - self.fx * cam[..., 1] / safe
-        v = self.v0 - self.fy * cam[..., 2] / safe
-        return u, v, x
-
 
 @functools.lru_cache(maxsize=64)
 def _camera_rays(fx, fy, u0, v0, width, height):

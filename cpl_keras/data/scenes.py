@@ -100,10 +100,6 @@ class Town:
     def ncell(self):
         return len(self.intersection)
 
-    def cell_index(self, x):
-        """Table index of world coordinate x (wraps with the period)."""
-        return np.floor(np.asarray(x) / self.cell).astype(np.intp) % self.ncell
-
     def describe(self):
         """A JSON-able summary, stored in dataset metadata."""
         return {
