@@ -477,6 +477,22 @@ def _sun_shadow(town, x, y, z):
     return shadow
 
 
+def _car_shadow(town, x, y):
+    """True for ground points whose sun ray passes through a parked car
+    (tested where the ray is 0.2 m and 0.8 m above the ground)."""
+    sun = town.sun
+    y_in, y_out = town.car_band
+    cells = town.car_cells.reshape(-1)
+    shadow = np.zeros(x.shape, bool)
+    for height in (0.2, 0.8):
+        t = height / sun[2]
+        xs, ys = x + t * sun[0], y + t * sun[1]
+        ay = np.abs(ys)
+        band = (ay > y_in) & (ay < y_out)
+        shadow |= band & cells[(ys < 0) * town.ncell + _cell(town, xs)]
+    return shadow
+
+
 _LOOK_MATERIAL = np.array([MATERIAL_ID[m] for m in (
     "paint", "paint", "metal", "metal", "paint", "bark", "foliage")])
 _LOOK_GAIN = np.array([1 / 0.8, 1 / 0.8, 1 / 0.45, 1 / 0.45, 1 / 0.8, 1 / 0.3, 1 / 0.25],
@@ -565,7 +581,7 @@ def shade(town, view, origin, rays, hits):
     g = select(GROUND)
     if g.size:
         x, y, z = point(g)
-        lit = np.where(_sun_shadow(town, x, y, z), 0.0, diffuse * sun[2])
+        lit = np.where(_sun_shadow(town, x, y, z) | _car_shadow(town, x, y), 0.0, diffuse * sun[2])
         out[g] = _ground_albedo(town, bank, x, y, footprint(g, 2)) * (ambient + lit)[:, None]
     b = town.buildings
     for kind in (FACADE, BACK):

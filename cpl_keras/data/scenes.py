@@ -38,6 +38,9 @@ SKY_DISTANCE = 1000.0
 #: Names of the towns, indexed by town id.
 TOWNS = ("Town01", "Town02")
 
+#: Parked cars stand between road_half - 1.95 and road_half - 0.2 m from the centre line.
+CAR_BAND = (1.95, 0.2)
+
 # Object kinds and looks.
 BOX, CYLINDER, SPHERE = 0, 1, 2
 CAR_BODY, CAR_CABIN, POLE, LAMP, SIGN, TRUNK, CROWN = range(7)
@@ -95,6 +98,9 @@ class Town:
     buildings: dict = field(repr=False)
     # objects, one row per primitive, sorted by x centre
     objects: dict = field(repr=False)
+    # cells covered by a parked car, (2, ncell), and the cars' |y| band
+    car_cells: np.ndarray = field(repr=False)
+    car_band: tuple = (0.0, 0.0)
 
     @property
     def ncell(self):
@@ -211,6 +217,11 @@ def make_town(town_id):
         prev_id[side] = ext_ids1[k]
 
     objects = _make_objects(rng, st, blocks)
+    # where the parked cars stand (for their shadows on the ground)
+    car_cells = np.zeros((2, ncell), bool)
+    body = objects["look"] == CAR_BODY
+    for lo, hi in zip(objects["lo"][body], objects["hi"][body]):
+        car_cells[0 if lo[1] > 0 else 1, (xs >= lo[0]) & (xs < hi[0])] = True
     return Town(
         town_id=town_id, name=name, period=period, cell=cell,
         road_half=st["road_half"], verge=st["verge"], facade=st["facade"], back=st["back"],
@@ -219,7 +230,8 @@ def make_town(town_id):
         haze_colour=np.asarray(st["haze_colour"], np.float32),
         intersection=intersection, front_id=front_id, next_start=next_start,
         next_id=next_id, prev_end=prev_end, prev_id=prev_id, back_id=back_id,
-        buildings=buildings, objects=objects,
+        buildings=buildings, objects=objects, car_cells=car_cells,
+        car_band=(st["road_half"] - CAR_BAND[0], st["road_half"] - CAR_BAND[1]),
     )
 
 
@@ -250,7 +262,7 @@ def _make_objects(rng, st, blocks):
             while x < b1 - 6.0:
                 length = rng.uniform(3.8, 5.0)
                 if rng.random() < st["car_prob"]:
-                    y_in, y_out = road - 1.95, road - 0.2
+                    y_in, y_out = road - CAR_BAND[0], road - CAR_BAND[1]
                     ylo, yhi = sorted((sign * y_in, sign * y_out))
                     colour = car_colours[rng.integers(len(car_colours))] * rng.uniform(0.8, 1.1)
                     top = rng.uniform(1.35, 1.7)
