@@ -244,6 +244,7 @@ def _make_stereo_sequence_class():
         def on_epoch_end(self):
             # Called after the epoch's worker threads have stopped; shuffling in
             # on_epoch_begin would race with the prefetching of the next epoch.
+            # (Training sets the epoch explicitly with ``set_epoch``.)
             self.epoch += 1
 
         # -- helpers -----------------------------------------------------------

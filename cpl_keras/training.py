@@ -28,6 +28,7 @@ A non-finite training loss stops the run and keeps the best weights so far.
 
 from __future__ import annotations
 
+import contextlib
 import csv
 import json
 import math
@@ -248,6 +249,10 @@ def _make_run_callback():
         # -- keras hooks ---------------------------------------------------
         def on_epoch_begin(self, epoch, logs=None):
             self._epoch_start = time.perf_counter()
+            # Keras calls the dataset's on_epoch_end an extra time around its
+            # first peek at the data, so the epoch is set here, explicitly:
+            # the order of epoch e is then the same in a resumed run.
+            self.sequence.set_epoch(epoch)
 
         def on_train_batch_end(self, batch, logs=None):
             loss = (logs or {}).get("loss")
@@ -385,16 +390,24 @@ def train(data, *, variant, run_dir, epochs=200, batch_size=16, learning_rate=No
         test_fraction=test_fraction, val_fraction=val_fraction, workers=workers,
         command=command,
     )
-    config = plan["config"]
+    import keras
+
+    scope = contextlib.nullcontext()
+    if data_parallel:
+        devices = keras.distribution.list_devices()
+        scope = keras.distribution.DataParallel(devices=devices).scope()
+    with scope:
+        return _run(plan, learning_rate, steps_per_execution, verbose)
+
+
+def _run(plan, learning_rate, steps_per_execution, verbose):
     import keras
 
     from cpl_keras.datasets import StereoSequence
     from cpl_keras.models import build_model, compile_model
 
-    if data_parallel:
-        keras.distribution.set_distribution(
-            keras.distribution.DataParallel(devices=keras.distribution.list_devices())
-        )
+    config = plan["config"]
+    variant = config["variant"]
     try:
         model = build_model(variant, **config["build"])
         compile_model(model, learning_rate=learning_rate, steps_per_execution=steps_per_execution)
@@ -440,8 +453,11 @@ def train(data, *, variant, run_dir, epochs=200, batch_size=16, learning_rate=No
         if initial_epoch:
             print(f"Resuming {run_dir} after epoch {initial_epoch}", file=sys.stderr)
         train_seq.set_epoch(initial_epoch)
+        # shuffle=False: the sequence shuffles itself, seeded per epoch; Keras's
+        # own shuffle of the batch order uses Python's unseeded global RNG.
         model.fit(train_seq, validation_data=val_seq, epochs=config["epochs"],
-                  initial_epoch=initial_epoch, callbacks=[run_state], verbose=verbose)
+                  initial_epoch=initial_epoch, callbacks=[run_state], shuffle=False,
+                  verbose=verbose)
     train_seq.close()
     val_seq.close()
     summary = _finish(model, run_dir, config, run_state.state)

@@ -142,6 +142,17 @@ def test_killed_run_resumes_with_the_same_epoch_count(dataset, tmp_path, xla_cac
         config = json.load(f)
     assert config["epochs_run"] == 4 and config["status"] == "finished"
 
+    # The resumed run is the uninterrupted run: same batches, same state.
+    from cpl_keras.training import train
+
+    straight = str(tmp_path / "straight")
+    train(dataset, variant="baseline", run_dir=straight, backbone="small", epochs=4,
+          batch_size=5, patience=10, verbose=0)
+    for resumed_row, straight_row in zip(rows, read_log(straight)):
+        assert float(resumed_row["loss"]) == pytest.approx(float(straight_row["loss"]), rel=1e-5)
+        assert float(resumed_row["val_loss"]) == pytest.approx(
+            float(straight_row["val_loss"]), rel=1e-5)
+
 
 def test_nan_loss_stops_and_keeps_the_best_weights(dataset, tmp_path):
     from cpl_keras.training import summary_line, train
