@@ -88,21 +88,23 @@ class TextureBank:
     """All materials as one uint8 array ``pixels[material, level, row, col, rgb]``."""
 
     def __init__(self):
-        photos = {}
+        # Tinting is linear in the grey photo, so each photo's mip pyramid is
+        # computed once and tinted per material.
+        pyramids = {}
         stacks = []
         for name in MATERIAL_NAMES:
             photo, mean, contrast = MATERIALS[name]
             if photo is None:
-                gray = _clouds()
-                rgb = gray[..., None] * np.ones(3, np.float32)
+                if "clouds" not in pyramids:
+                    pyramids["clouds"] = _pyramid(_clouds())
+                rgb = pyramids["clouds"][..., None] * np.ones(3, np.float32)
             else:
-                if photo not in photos:
+                if photo not in pyramids:
                     p = _photo(photo)
-                    photos[photo] = (p - p.mean()) / (p.std() + 1e-6)
-                gray = photos[photo]
+                    pyramids[photo] = _pyramid((p - p.mean()) / (p.std() + 1e-6))
+                gray = pyramids[photo]
                 rgb = np.asarray(mean, np.float32) * (1.0 + 0.25 * contrast * gray[..., None])
-            pyramid = np.stack([_pyramid(rgb[..., c]) for c in range(3)], axis=-1)
-            stacks.append(np.clip(pyramid * 255.0 + 0.5, 0, 255).astype(np.uint8))
+            stacks.append(np.clip(rgb * 255.0 + 0.5, 0, 255).astype(np.uint8))
         self.pixels = np.stack(stacks)            # (M, L, S, S, 3)
         rgba = np.concatenate([self.pixels, np.zeros(self.pixels.shape[:-1] + (1,), np.uint8)],
                               axis=-1)
