@@ -62,15 +62,10 @@ def build_parser():
     return parser
 
 
-def cache_dir():
-    return os.environ.get("CPL_KERAS_CACHE") or os.path.join(
-        os.path.expanduser("~"), ".cache", "cpl_keras"
-    )
-
-
 def demo_dataset():
     """The demonstration dataset, generated on first use."""
     from cpl_keras.data.storage import DatasetError
+    from cpl_keras.training import cache_dir
 
     path = os.path.join(
         cache_dir(), f"demo-cvgl-{DEMO['pairs']}-{DEMO['image_size']}px-s{DEMO['seed']}.h5"
@@ -82,7 +77,7 @@ def demo_dataset():
     except ImportError:
         raise DatasetError("the data generator (cpl_keras.data.generate) is not available; "
                            "pass --data") from None
-    os.makedirs(cache_dir(), exist_ok=True)
+    os.makedirs(os.path.dirname(path), exist_ok=True)
     print(f"Generating the demonstration dataset ({DEMO['pairs']} pairs) into {path}",
           file=sys.stderr)
     try:
@@ -105,12 +100,10 @@ def main(argv=None):
     command = " ".join(shlex.quote(a) for a in [os.path.basename(sys.argv[0]) or "train.py"]
                        + list(sys.argv[1:] if argv is None else argv))
 
-    # Compiled training steps are cached on disk, so a resumed or repeated run
-    # skips most of XLA's compile time (set JAX_COMPILATION_CACHE_DIR to move it).
-    os.environ.setdefault("JAX_COMPILATION_CACHE_DIR", os.path.join(cache_dir(), "xla"))
-
     from cpl_keras.data.storage import DatasetError
-    from cpl_keras.training import TrainingError, summary_line, train
+    from cpl_keras.training import TrainingError, enable_compile_cache, summary_line, train
+
+    enable_compile_cache()
 
     try:
         data = demo_dataset() if demo else args.data

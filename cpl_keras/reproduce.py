@@ -4,8 +4,9 @@
     python evaluate.py --reproduce --quick    # the same pipeline in minutes
     python evaluate.py --reproduce --pairs 2000 --epochs 4   # a chosen scale
 
-The pipeline, every stage resumable (datasets and finished runs are reused,
-killed training runs resume from their last epoch):
+The pipeline, every stage resumable (datasets, finished runs and tables
+newer than their runs are reused; killed training runs resume from their
+last epoch):
 
 1. data: a ``cvgl``-protocol dataset (the paper's 50 rigs), a ``random``-
    protocol dataset (realistic rigs) and the real Middlebury crops set;
@@ -126,12 +127,35 @@ def make_tables(config, paths, runs, out_dir, command):
             ("table1_random", 1, runs["random"], None),
             ("table2_middlebury", 2, runs["cvgl"], paths["real"])]
     for stem, number, run_dirs, data in jobs:
+        cached = _cached_table(os.path.join(out_dir, f"{stem}.json"), run_dirs, data)
+        if cached is not None:
+            _log(f"{stem}: up to date with its runs, reused")
+            tables[stem] = cached
+            continue
         _log(f"evaluating {stem}")
         table = evaluation.make_table(number, run_dirs, data, geometric=True,
                                       geometric_max=config["geometric_max"], progress=_log)
         evaluation.write_outputs(out_dir, stem, table, command)
         tables[stem] = table
     return tables
+
+
+def _cached_table(path, run_dirs, data):
+    """A table written earlier from the same runs and data, if none changed since."""
+    if not os.path.exists(path):
+        return None
+    with open(path) as f:
+        table = json.load(f)
+    if table.get("runs") != list(run_dirs):
+        return None
+    if data is not None and table.get("data") != os.path.abspath(data):
+        return None
+    models = [os.path.join(r, "model.keras") for r in run_dirs]
+    if not all(os.path.exists(m) for m in models):
+        return None
+    if max(os.path.getmtime(m) for m in models) > os.path.getmtime(path):
+        return None
+    return table
 
 
 def collect_run_files(runs, out_dir):
@@ -229,6 +253,9 @@ def reproduce(*, out_dir, data_dir, runs_dir, config, seed=0, command="", discus
     for directory in (out_dir, data_dir, runs_dir):
         os.makedirs(directory, exist_ok=True)
     start = time.time()
+    from cpl_keras.training import enable_compile_cache
+
+    enable_compile_cache()
     paths = make_datasets(config, data_dir, seed)
     runs = train_all(config, paths, runs_dir, seed)
     tables = make_tables(config, paths, runs, out_dir, command)
