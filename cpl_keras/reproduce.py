@@ -214,7 +214,9 @@ def write_report(out_dir, config, paths, summaries, tables, info, command, discu
               f"random weights (none can be downloaded).", "",
               f"Machine: {info['platform']}, Python {info['python']}, {info['cpus']} CPUs, "
               f"Keras {info['keras']}, JAX {info['jax']}, devices {', '.join(info['devices'])}. "
-              f"Total wall time {info['wall_time_s'] / 60:.1f} min.", "",
+              f"Training wall time, summed over the runs: "
+              f"{sum(s['wall_time_s'] or 0 for s in summaries) / 60:.1f} min; this invocation "
+              f"(stages not reused from earlier ones): {info['wall_time_s'] / 60:.1f} min.", "",
               "## Data", ""]
     lines += [f"- {kind}: {_dataset_line(path)}" for kind, path in paths.items()]
     lines += ["", "## Training runs", "",
