@@ -151,7 +151,8 @@ def focal_from_fov(fov, size):
 
 def fov_from_focal(focal, size):
     """Field of view (radians) across ``size`` pixels for a focal length in px."""
-    return 2.0 * np.arctan(np.asarray(size, dtype=np.float64) / (2.0 * np.asarray(focal)))
+    # arctan2 keeps a focal length of 0 finite (fov = pi) and its sign
+    return 2.0 * np.arctan2(np.asarray(size, dtype=np.float64), 2.0 * np.asarray(focal, dtype=np.float64))
 
 
 # ---------------------------------------------------------------------------
@@ -233,12 +234,22 @@ def world_to_camera(X, Y, Z, pitch, tx, ty, tz, ops=NUMPY):
     return xCam, dY, zCam
 
 
-def camera_to_image(xCam, yCam, zCam, fx, fy, u0, v0, baseline, ops=NUMPY):
-    """Inverse of Eqs. 4a-4c: camera point -> pixel (u, v) and disparity d."""
+def camera_to_pixel(xCam, yCam, zCam, fx, fy, u0, v0, ops=NUMPY):
+    """Inverse of Eqs. 4b-4c: the pixel (u, v) where a camera point projects."""
     u = ops.sub(u0, ops.mul(fx, ops.div(yCam, xCam)))
     v = ops.sub(v0, ops.mul(fy, ops.div(zCam, xCam)))
-    disparity = ops.div(ops.mul(fx, baseline), xCam)
-    return u, v, disparity
+    return u, v
+
+
+def disparity_from_depth(fx, baseline, xCam, ops=NUMPY):
+    """Inverse of Eq. 4a: ``d = fx * b / xCam``."""
+    return ops.div(ops.mul(fx, baseline), xCam)
+
+
+def camera_to_image(xCam, yCam, zCam, fx, fy, u0, v0, baseline, ops=NUMPY):
+    """Inverse of Eqs. 4a-4c: camera point -> pixel (u, v) and disparity d."""
+    u, v = camera_to_pixel(xCam, yCam, zCam, fx, fy, u0, v0, ops)
+    return u, v, disparity_from_depth(fx, baseline, xCam, ops)
 
 
 def world_to_image(X, Y, Z, fx, fy, u0, v0, baseline, pitch, tx, ty, tz, ops=NUMPY):
@@ -264,6 +275,16 @@ def rotation_matrix(pitch=0.0, yaw=0.0, roll=0.0):
     Rz = np.array([[cy, -sy, 0.0], [sy, cy, 0.0], [0.0, 0.0, 1.0]])
     Rx = np.array([[1.0, 0.0, 0.0], [0.0, cr, -sr], [0.0, sr, cr]])
     return Rz @ Ry @ Rx
+
+
+def euler_from_rotation(R):
+    """(pitch, yaw, roll) of a rotation ``R = Rz(yaw) @ Ry(pitch) @ Rx(roll)``,
+    the inverse of ``rotation_matrix`` (pitch in [-pi/2, pi/2])."""
+    R = np.asarray(R, dtype=np.float64)
+    pitch = math.asin(max(-1.0, min(1.0, -R[2, 0])))
+    yaw = math.atan2(R[1, 0], R[0, 0])
+    roll = math.atan2(R[2, 1], R[2, 2])
+    return pitch, yaw, roll
 
 
 #: The paper's equation behind each named quantity of the camera graph.

@@ -257,8 +257,12 @@ def _make_stereo_sequence_class():
             epoch = self.epoch if epoch is None else int(epoch)
             if not self.shuffle:
                 return self.indices
-            rng = np.random.default_rng([self.seed, epoch])
-            return self.indices[rng.permutation(len(self.indices))]
+            cached = getattr(self, "_order_cache", None)
+            if cached is None or cached[0] != epoch:
+                rng = np.random.default_rng([self.seed, epoch])
+                cached = (epoch, self.indices[rng.permutation(len(self.indices))])
+                self._order_cache = cached  # one permutation per epoch, not per batch
+            return cached[1]
 
         def batch_indices(self, index):
             """Pair indices of batch ``index`` of the current epoch."""

@@ -98,6 +98,14 @@ def train_all(config, paths, runs_dir, seed):
         for variant, released in jobs:
             name = variant + ("-released" if released else "")
             run_dir = os.path.join(runs_dir, protocol, name)
+            plan = dict(
+                variant=variant, run_dir=run_dir, epochs=config["epochs"],
+                batch_size=config["batch_size"], backbone=config["backbone"], split=split,
+                as_released=released, seed=seed, patience=config["patience"],
+            )
+            # Refuses (TrainingError) a run directory that holds a run of other
+            # settings, so a run made at another scale is never reused.
+            training.plan_run(paths[protocol], **plan)
             config_path = os.path.join(run_dir, "config.json")
             if os.path.exists(config_path):
                 with open(config_path) as f:
@@ -106,14 +114,10 @@ def train_all(config, paths, runs_dir, seed):
                         runs[protocol].append(run_dir)
                         continue
             _log(f"training {protocol}/{name} ({config['backbone']}, up to {config['epochs']} epochs)")
-            summary = training.train(
-                paths[protocol], variant=variant, run_dir=run_dir, epochs=config["epochs"],
-                batch_size=config["batch_size"], backbone=config["backbone"], split=split,
-                as_released=released, seed=seed, patience=config["patience"], verbose=2,
-            )
+            summary = training.train(paths[protocol], verbose=2, **plan)
             _log(training.summary_line(summary))
             if summary["best_epoch"] is None:
-                raise RuntimeError(f"{run_dir}: no epoch completed ({summary['stopped']})")
+                raise training.TrainingError(f"{run_dir}: no epoch completed ({summary['stopped']})")
             runs[protocol].append(run_dir)
     return runs
 
@@ -146,7 +150,7 @@ def _cached_table(path, run_dirs, data):
         return None
     with open(path) as f:
         table = json.load(f)
-    if table.get("runs") != list(run_dirs):
+    if table.get("runs") != [os.path.abspath(r) for r in run_dirs]:
         return None
     if data is not None and table.get("data") != os.path.abspath(data):
         return None

@@ -457,7 +457,10 @@ def _run(plan, learning_rate, steps_per_execution, verbose):
     else:
         save_split(split_path + ".partial.npz", plan["split"])
         os.replace(split_path + ".partial.npz", split_path)
-    stats = training_statistics(plan["targets"], plan["split"]["train"])
+    # The release's Average bug depends on the order of the training set: its
+    # frames were shuffled, so sample i is the i-th of a shuffled order.
+    train_order = np.random.default_rng(config["seed"]).permutation(plan["split"]["train"])
+    stats = training_statistics(plan["targets"], train_order)
     save_statistics(os.path.join(run_dir, "train_stats.json"), stats)
 
     multiple = config["num_devices"]

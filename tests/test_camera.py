@@ -94,3 +94,18 @@ def test_tensor_ops_agree_with_numpy():
                                 ops=camera.tensor_ops())
     for e, g in zip(expected, got):
         np.testing.assert_allclose(ops.convert_to_numpy(g), e, rtol=1e-5)
+
+
+def test_euler_from_rotation_inverts_rotation_matrix():
+    rng = np.random.default_rng(2)
+    for pitch, yaw, roll in rng.uniform(-1.2, 1.2, (50, 3)):
+        R = camera.rotation_matrix(pitch, yaw, roll)
+        assert camera.euler_from_rotation(R) == pytest.approx((pitch, yaw, roll), abs=1e-9)
+
+
+def test_pixel_and_disparity_inverses_by_hand():
+    # xCam 5, yCam -0.5, zCam 0.25 with fx 100, fy 200, (u0, v0) = (50, 50)
+    u, v = camera.camera_to_pixel(5.0, -0.5, 0.25, 100.0, 200.0, 50.0, 50.0)
+    assert (u, v) == pytest.approx((60.0, 40.0))
+    assert camera.disparity_from_depth(100.0, 0.5, 5.0) == pytest.approx(10.0)
+    assert np.isfinite(camera.fov_from_focal(0.0, 112)) and camera.fov_from_focal(0.0, 112) == pytest.approx(math.pi)

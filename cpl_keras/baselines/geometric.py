@@ -73,6 +73,7 @@ import math
 
 import numpy as np
 
+from cpl_keras import camera
 from cpl_keras.camera import TARGETS, focal_from_fov, fov_from_focal, image_to_world
 
 #: Failure flags counted by ``failure_report``.
@@ -284,7 +285,7 @@ def calibrate_from_matches(pts_left, pts_right, width, height, priors=None, min_
             # OpenCV: X_right = R_cv X_left + t_cv, so X_left = R_cv^T X_right - R_cv^T t_cv
             R_lr = _CV_TO_PROJECT @ R_cv.T @ _CV_TO_PROJECT.T
             t_lr = _CV_TO_PROJECT @ (-R_cv.T @ t_cv.ravel())
-            pitch = float(np.arcsin(np.clip(-R_lr[2, 0], -1.0, 1.0)))
+            pitch = float(camera.euler_from_rotation(R_lr)[0])
             direction = t_lr / max(float(np.linalg.norm(t_lr)), 1e-12)
             status["pose_failed"] = False
     result = {"fx": focal, "fy": focal, "u0": cx, "v0": cy, "pitch": pitch,

@@ -123,7 +123,7 @@ def render_pair(protocol, seed, pairs, image_size, index):
     u, v = float(u), float(v)
     # the depth of exactly (u, v), cast on its own (also for non-integer pixels)
     xCam = float(render.depth_at(town, right, u, v)[0])
-    disparity = cfg["fx"] * cfg["baseline"] / xCam
+    disparity = float(camera.disparity_from_depth(cfg["fx"], cfg["baseline"], xCam))
     X, Y, Z = camera.image_to_world(
         cfg["fx"], cfg["fy"], cfg["u0"], cfg["v0"], cfg["baseline"], disparity,
         cfg["pitch"], cfg["tx"], cfg["ty"], cfg["tz"], u, v,

@@ -102,10 +102,7 @@ def _relative(rot_left, pos_left, rot_right, pos_right):
     """Right pose in the left camera's frame: R_rel = R_L^T R_R, t = R_L^T (c_R - c_L)."""
     rel = rot_left.T @ rot_right
     t = rot_left.T @ (np.asarray(pos_right) - np.asarray(pos_left))
-    # Euler angles of R = Rz(yaw) Ry(pitch) Rx(roll) (camera.rotation_matrix)
-    pitch = math.asin(max(-1.0, min(1.0, -rel[2, 0])))
-    yaw = math.atan2(rel[1, 0], rel[0, 0])
-    roll = math.atan2(rel[2, 1], rel[2, 2])
+    pitch, yaw, roll = camera.euler_from_rotation(rel)
     return pitch, yaw, roll, t
 
 

@@ -296,8 +296,8 @@ def _screen_rects(view, lo, hi):
     ahead = nearest > 0.05 * np.maximum(radius, 1.0)
     # a sphere seen from distance x: its image lies within fx * r / (x - r) of the centre
     safe = np.where(ahead, nearest, 1.0)
-    u = view.u0 - view.fx * cam[:, 1] / np.where(ahead, x, 1.0)
-    v = view.v0 - view.fy * cam[:, 2] / np.where(ahead, x, 1.0)
+    u, v = camera.camera_to_pixel(np.where(ahead, x, 1.0), cam[:, 1], cam[:, 2],
+                                  view.fx, view.fy, view.u0, view.v0)
     # |u(p) - u(centre)| <= fx r / (x - r) * (1 + |yCam| / x) for every point p
     # of the sphere (and likewise for v)
     ru = view.fx * radius / safe * (1.0 + np.abs(cam[:, 1]) / np.where(ahead, x, 1.0))
@@ -327,8 +327,8 @@ def _clipped_rects(view, lo, hi):
     points = np.concatenate([cam, clipped], axis=1)                       # (n, 20, 3)
     ok = np.concatenate([cam[..., 0] >= _NEAR, crossing], axis=1)
     x = np.where(ok, points[..., 0], 1.0)
-    u = view.u0 - view.fx * points[..., 1] / x
-    v = view.v0 - view.fy * points[..., 2] / x
+    u, v = camera.camera_to_pixel(x, points[..., 1], points[..., 2],
+                                  view.fx, view.fy, view.u0, view.v0)
     big = 1e9
     umin = np.where(ok, u, big).min(axis=1)
     umax = np.where(ok, u, -big).max(axis=1)
