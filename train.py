@@ -115,8 +115,9 @@ def main(argv=None):
             steps_per_execution=args.steps_per_execution, verbose=0 if args.quiet else 1,
             command=command,
         )
-    except (DatasetError, TrainingError) as error:
-        print(f"train.py: error: {error}", file=sys.stderr)
+    except (DatasetError, TrainingError, OSError) as error:
+        message = str(error).splitlines()[0] if str(error) else type(error).__name__
+        print(f"train.py: error: {message}", file=sys.stderr)
         return 2
     print(summary_line(summary))
     if demo:

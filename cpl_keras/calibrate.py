@@ -129,13 +129,19 @@ def main(argv=None):
             directory = os.path.dirname(os.path.abspath(args.json_out))
             if not os.path.isdir(directory):
                 raise CalibrationError(f"output directory does not exist: {directory}")
+            if os.path.isdir(args.json_out):
+                raise CalibrationError(f"--json-out is a directory: {args.json_out}")
         result = calibrate_pair(args.left, args.right, args.run)
         text = json.dumps(result, indent=2, allow_nan=False)
         if args.json_out:
             tmp = args.json_out + ".partial"
-            with open(tmp, "w") as f:
-                f.write(text + "\n")
-            os.replace(tmp, args.json_out)
+            try:
+                with open(tmp, "w") as f:
+                    f.write(text + "\n")
+                os.replace(tmp, args.json_out)
+            finally:
+                if os.path.exists(tmp):
+                    os.remove(tmp)
     except (CalibrationError, OSError) as error:
         message = str(error).splitlines()[0] if str(error) else type(error).__name__
         print(f"error: {message}", file=sys.stderr)

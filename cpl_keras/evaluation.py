@@ -477,13 +477,13 @@ def write_outputs(out_dir, stem, table, command):
     try:
         for name, text in targets.items():
             tmp = os.path.join(out_dir, f".{name}.partial")
+            written.append((tmp, os.path.join(out_dir, name)))  # cleaned up on failure
             with open(tmp, "w") as f:
                 f.write(text)
-            written.append((tmp, os.path.join(out_dir, name)))
         if table.get("rows"):
             tmp = os.path.join(out_dir, f".{stem}_fov.png.partial")
-            fov_plot(table, tmp)
             written.append((tmp, os.path.join(out_dir, f"{stem}_fov.png")))
+            fov_plot(table, tmp)
     except Exception:
         for tmp, _ in written:
             if os.path.exists(tmp):

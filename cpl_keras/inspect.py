@@ -100,13 +100,23 @@ def draw_graph(graph, path, title):
     ax.set_title(title, fontsize=10)
     fig.tight_layout()
     tmp = path + ".partial" + os.path.splitext(path)[1]
-    fig.savefig(tmp, dpi=130)
-    plt.close(fig)
-    os.replace(tmp, path)
+    try:
+        fig.savefig(tmp, dpi=130)
+        os.replace(tmp, path)
+    finally:
+        plt.close(fig)
+        if os.path.exists(tmp):
+            os.remove(tmp)
+
+
+class _Parser(argparse.ArgumentParser):
+    def error(self, message):
+        print(f"error: {message}", file=sys.stderr)  # one line, no usage block
+        raise SystemExit(2)
 
 
 def main(argv=None):
-    parser = argparse.ArgumentParser(
+    parser = _Parser(
         prog="python -m cpl_keras.inspect", description="Show the Lambda camera graph of a model."
     )
     parser.add_argument("--variant", default="cpl-a", help="cpl-u or cpl-a (default cpl-a)")
@@ -136,7 +146,11 @@ def main(argv=None):
     print(f"Camera graph of {args.variant} ({mode}): {len(graph)} Lambda layers, "
           f"loss '{model.loss_mode}'")
     print(format_table(graph))
-    draw_graph(graph, args.out, f"{args.variant} camera graph ({mode}): Eqs. 4a-5c as Lambda layers")
+    try:
+        draw_graph(graph, args.out, f"{args.variant} camera graph ({mode}): Eqs. 4a-5c as Lambda layers")
+    except OSError as error:
+        print(f"error: cannot write {args.out}: {error.strerror or error}", file=sys.stderr)
+        return 2
     print(f"diagram written to {args.out}")
     return 0
 

@@ -258,3 +258,22 @@ def test_numpy_modules_do_not_import_keras():
     result = subprocess.run([sys.executable, "-c", code], cwd=os.path.dirname(os.path.dirname(
         os.path.abspath(__file__))))
     assert result.returncode == 0
+
+
+def test_malformed_hdf5_objects_are_named_in_one_line(tmp_path):
+    import h5py
+
+    from cpl_keras.data.storage import DatasetError, StereoFile
+
+    path = tmp_path / "odd.h5"
+    with h5py.File(path, "w") as f:
+        f.create_group("left")
+        f.create_dataset("right", data=np.zeros((2, 8, 8, 3), np.uint8))
+    with pytest.raises(DatasetError, match="'/left' is not an array"):
+        StereoFile(path)
+    with h5py.File(path, "w") as f:
+        for side in ("left", "right"):
+            f.create_dataset(side, data=np.zeros((2, 8, 8, 3), np.uint8))
+        f.create_group("labels").create_dataset("fx", data=np.array([b"a", b"b"]))
+    with pytest.raises(DatasetError, match="label 'fx' is not a numeric array"):
+        StereoFile(path)

@@ -90,7 +90,7 @@ def test_gradients_reach_every_head_through_the_camera_graph(variant, as_release
     heads = list(camera.PARAMETERS) + ["u", "v"]
     before = _head_kernels(model, heads)
     x, y = batch(8)
-    # MAE on X, Y, Z alone still reaches every parameter head: only through the graph.
+    # one step of the model's own loss moves every head, u and v only through the graph
     model.train_on_batch(x, y)
     after = _head_kernels(model, heads)
     for name in heads:
@@ -204,3 +204,19 @@ def test_bad_arguments_raise_a_clear_value_error(kwargs, message):
     variant = kwargs.pop("variant")
     with pytest.raises(ValueError, match=message):
         build_model(variant, **kwargs)
+
+
+def test_every_head_reaches_x_y_z_through_the_camera_graph():
+    """Perturb each head's value alone: X, Y, Z must move (the graph connects them)."""
+    model = build_model("cpl-u", backbone="small", image_size=SIZE)
+    heads = list(camera.PARAMETERS) + ["u", "v"]
+    graph = keras.Model([model.get_layer(h).output for h in heads],
+                        [model.get_layer(q).output for q in ("X", "Y", "Z")])
+    base = {h: np.full((1, 1), 1.3, "float32") for h in heads}
+    base.update(u=np.full((1, 1), 10.0, "float32"), v=np.full((1, 1), 20.0, "float32"),
+                pitch=np.full((1, 1), 0.2, "float32"))
+    reference = np.concatenate(graph.predict([base[h] for h in heads], verbose=0), axis=1)
+    for head in heads:
+        moved = dict(base, **{head: base[head] + 0.5})
+        point = np.concatenate(graph.predict([moved[h] for h in heads], verbose=0), axis=1)
+        assert np.abs(point - reference).max() > 1e-3, f"{head} does not reach X, Y, Z"

@@ -162,10 +162,13 @@ class StereoFile:
             raise
 
     def _validate(self, required_labels):
+        h5py = _h5py()
         f = self._file
         for side in ("left", "right"):
             if side not in f:
                 raise DatasetError(f"{self.path}: missing image array '/{side}'")
+            if not isinstance(f[side], h5py.Dataset):
+                raise DatasetError(f"{self.path}: '/{side}' is not an array")
         left, right = f["left"], f["right"]
         if left.ndim != 4 or left.shape[-1] != 3 or left.dtype != np.uint8:
             raise DatasetError(
@@ -179,12 +182,15 @@ class StereoFile:
         self.image_shape = tuple(int(s) for s in left.shape[1:])
         if self.num_pairs == 0:
             raise DatasetError(f"{self.path}: dataset holds no pairs")
-        if "labels" not in f:
+        if "labels" not in f or not isinstance(f["labels"], h5py.Group):
             raise DatasetError(f"{self.path}: missing label group '/labels'")
         group = f["labels"]
         self.labels = {}
         for name in group:
-            values = group[name][()]
+            item = group[name]
+            if not isinstance(item, h5py.Dataset) or item.dtype.kind not in "fiub":
+                raise DatasetError(f"{self.path}: label '{name}' is not a numeric array")
+            values = item[()]
             if values.shape != (self.num_pairs,):
                 raise DatasetError(
                     f"{self.path}: label '{name}' has shape {values.shape}, "
