@@ -18,9 +18,8 @@ import sys
 
 os.environ.setdefault("KERAS_BACKEND", "jax")
 
-VARIANTS = ("baseline", "cpl-u", "cpl-a", "deep-homo")
-BACKBONES = ("inception_v3", "small")
-SPLITS = ("paper", "held-out-config")
+from cpl_keras.datasets import SPLITS  # noqa: E402
+from cpl_keras.models import BACKBONES, VARIANTS  # noqa: E402
 
 #: The demonstration run (no --data): dataset and training settings chosen to
 #: finish in about five minutes on a 2-core CPU.

@@ -10,7 +10,8 @@ length and principal point are scaled back per axis (``fx``, ``u0``,
 integer coordinates: ``u = (u_S + 0.5) W / S - 0.5``). Metres and radians
 are unchanged. A run trained ``as_released`` predicts pitch in degrees and
 the release's StereoBM disparity; pitch is converted to radians and the
-disparity is reported as predicted, with a note.
+disparity is scaled like the others, with a note that it is the release's
+quantity.
 
 Bad input (unreadable or non-image files, images of different sizes, a run
 directory without weights) prints one line and exits with status 2; no
@@ -29,7 +30,7 @@ os.environ.setdefault("KERAS_BACKEND", "jax")
 
 import numpy as np  # noqa: E402
 
-from cpl_keras.camera import PARAMETERS, fov_from_focal  # noqa: E402
+from cpl_keras.camera import PARAMETERS, UNITS, fov_from_focal  # noqa: E402
 
 
 class CalibrationError(ValueError):
@@ -109,8 +110,7 @@ def calibrate_pair(left_path, right_path, run_dir):
         "pitch_deg": math.degrees(values["pitch"]),
         "fov_horizontal_deg": float(np.degrees(fov_from_focal(values["fx"], width))),
         "fov_vertical_deg": float(np.degrees(fov_from_focal(values["fy"], height))),
-        "units": {"fx": "px", "fy": "px", "u0": "px", "v0": "px", "disparity": "px",
-                  "baseline": "m", "tx": "m", "ty": "m", "tz": "m", "pitch": "rad"},
+        "units": {name: UNITS[name] for name in PARAMETERS},
     }
     if notes:
         result["notes"] = notes
