@@ -74,23 +74,26 @@ def load_run(run_dir):
         if not os.path.isfile(path):
             what = "weights (model.keras)" if name == "model.keras" else name
             raise EvaluationError(f"run directory {run_dir} has no {what}")
+    from cpl_keras.baselines.average import load_statistics
+    from cpl_keras.datasets import load_split
+
     run = {"run_dir": run_dir, "model_path": paths["model.keras"]}
-    for key, name in (("config", "config.json"), ("stats", "train_stats.json")):
-        try:
-            with open(paths[name]) as f:
-                run[key] = json.load(f)
-        except (OSError, json.JSONDecodeError) as error:
-            raise EvaluationError(f"cannot read {paths[name]}: {error}") from None
+    try:
+        with open(paths["config.json"]) as f:
+            run["config"] = json.load(f)
+    except (OSError, json.JSONDecodeError) as error:
+        raise EvaluationError(f"cannot read {paths['config.json']}: {error}") from None
+    try:
+        run["stats"] = load_statistics(paths["train_stats.json"])
+    except (OSError, ValueError) as error:  # JSONDecodeError is a ValueError
+        raise EvaluationError(f"cannot read {paths['train_stats.json']}: {error}") from None
     for key in ("variant", "build", "data"):
         if key not in run["config"]:
             raise EvaluationError(f"{paths['config.json']} has no '{key}'")
     if run["config"]["variant"] not in VARIANT_ROWS:
         raise EvaluationError(f"{paths['config.json']}: unknown variant {run['config']['variant']!r}")
-    if not all(k in run["stats"] for k in ("mean", "release_average")):
-        raise EvaluationError(f"{paths['train_stats.json']} lacks 'mean' or 'release_average'")
     try:
-        with np.load(paths["split.npz"], allow_pickle=False) as split:
-            run["split"] = {k: np.asarray(split[k], dtype=np.int64) for k in ("train", "val", "test")}
+        run["split"] = load_split(paths["split.npz"])
     except (OSError, ValueError, KeyError) as error:
         raise EvaluationError(f"cannot read {paths['split.npz']}: {error}") from None
     return run
