@@ -177,7 +177,7 @@ def test_bad_inputs_one_line_errors(tmp_path, capsys):
     assert build.main(["middlebury", "--crops", "0", "--out", str(out)]) == 2
     assert "crops" in capsys.readouterr().err and not out.exists()
     with pytest.raises(SystemExit) as exit_info:
-        build.main(["kitti", "--out", str(out)])
+        build.main(["carla", "--out", str(out)])
     assert exit_info.value.code == 2
 
 

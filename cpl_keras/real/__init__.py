@@ -5,10 +5,16 @@
   disparity, exact intrinsics per crop).
 * ``cpl_keras.real.tsinghua``: the Tsinghua-Daimler Cyclist Benchmark and
   Cityscapes layouts (camera JSON, left image, 16-bit disparity PNG).
-* ``cpl_keras.real.build``: the command line that writes either as HDF5.
+* ``cpl_keras.real.chessboard``: OpenCV's 13 sample chessboard pairs from one
+  real, unrectified rig, every label derived from the images
+  (``cv2.stereoCalibrate``, triangulated corners).
+* ``cpl_keras.real.kitti``: the KITTI stereo 2015 / scene-flow and KITTI raw
+  layouts (rectified projection matrices, ``disp_occ_0`` disparity).
+* ``cpl_keras.real.build``: the command line that writes any of them as HDF5.
 
-The helpers below are shared by both builders: the exact intrinsics of a
-crop + resize, and the release's StereoBM disparity label.
+The helpers below are shared by the builders: the exact intrinsics of a
+crop + resize, the release's StereoBM disparity label, the OpenCV-to-project
+axis change.
 """
 
 from __future__ import annotations
@@ -17,6 +23,28 @@ import numpy as np
 
 #: Label conventions a real-data builder can write (see docs/evaluation.md).
 LABEL_MODES = ("rig", "vehicle")
+
+#: OpenCV camera axes (x right, y down, z forward) -> project axes (x forward,
+#: y left, z up): ``p_project = CV_TO_PROJECT @ p_opencv``.
+CV_TO_PROJECT = np.array([[0.0, 0.0, 1.0], [-1.0, 0.0, 0.0], [0.0, -1.0, 0.0]])
+
+
+class RealDataError(ValueError):
+    """A real-data file or directory is missing or malformed (one-line message)."""
+
+
+def opencv_pose_to_rig(R, T):
+    """The right camera's pose in the left camera frame, project axes, from
+    OpenCV's stereo extrinsics (``X_right = R X_left + T``, OpenCV axes).
+
+    Returns ``(R_lr, t)`` with ``P_left = R_lr P_right + t`` (docs/data.md):
+    ``R_lr = C R^T C^T`` and ``t = C (-R^T T)``, ``C = CV_TO_PROJECT``; ``t`` is
+    the right camera centre in the left camera frame. Pitch, yaw and roll are
+    ``camera.euler_from_rotation(R_lr)``.
+    """
+    R = np.asarray(R, dtype=np.float64).reshape(3, 3)
+    T = np.asarray(T, dtype=np.float64).reshape(3)
+    return CV_TO_PROJECT @ R.T @ CV_TO_PROJECT.T, CV_TO_PROJECT @ (-R.T @ T)
 
 
 def crop_resize_coordinate(x, start, scale):

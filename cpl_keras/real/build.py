@@ -2,11 +2,20 @@
 
 Usage::
 
+    python -m cpl_keras.real.build all --out-dir data/real [--kitti DIR] [--kitti-raw DIR]
+                                       [--tsinghua DIR] [--cityscapes DIR]
+    python -m cpl_keras.real.build chessboard --out data/real/chessboard.h5 [--root DIR] [--crops 20]
     python -m cpl_keras.real.build middlebury --out data/middlebury.h5 [--crops 500]
+    python -m cpl_keras.real.build kitti --root DIR --out data/kitti.h5 [--layout stereo|raw] [--split training]
     python -m cpl_keras.real.build tsinghua --root DIR --out data/tdcb.h5 [--split test]
     python -m cpl_keras.real.build cityscapes --root DIR --out data/cityscapes.h5
 
-Options: ``--image-size`` (112), ``--seed`` (0), ``--right {warp,released}``
+``all`` builds every real set that needs no download (the chessboard rig and
+Middlebury) and each dataset whose root is given, one file per rig in
+``--out-dir`` (existing files are kept; ``--force`` rebuilds them).
+
+Options: ``--image-size`` (112), ``--seed`` (0), ``--crops`` (chessboard: per
+pair, default 20; middlebury: total, default 500), ``--right {warp,released}``
 and ``--labels {rig,vehicle}`` (Tsinghua-Daimler / Cityscapes only),
 ``--limit N`` (first N images). Bad input prints one line and exits with
 status 2; the output file appears only when complete.
@@ -21,6 +30,19 @@ import sys
 
 from cpl_keras.real import LABEL_MODES
 
+SOURCES = ("all", "chessboard", "middlebury", "kitti", "tsinghua", "cityscapes")
+#: Default crops of the sets that draw crops.
+DEFAULT_CROPS = {"chessboard": 20, "middlebury": 500}
+#: ``all``: (file stem, source, option holding the root, extra arguments).
+ALL_SETS = (
+    ("chessboard", "chessboard", None, {}),
+    ("middlebury", "middlebury", None, {}),
+    ("kitti", "kitti", "kitti", {"layout": "stereo"}),
+    ("kitti_raw", "kitti", "kitti_raw", {"layout": "raw"}),
+    ("tsinghua", "tsinghua", "tsinghua", {}),
+    ("cityscapes", "cityscapes", "cityscapes", {}),
+)
+
 
 class _Parser(argparse.ArgumentParser):
     def error(self, message):
@@ -30,50 +52,112 @@ class _Parser(argparse.ArgumentParser):
 
 def parse_args(argv=None):
     parser = _Parser(prog="python -m cpl_keras.real.build", description=__doc__.split("\n")[0])
-    parser.add_argument("source", choices=("middlebury", "tsinghua", "cityscapes"))
-    parser.add_argument("--out", required=True, help="output HDF5 file")
-    parser.add_argument("--root", help="dataset root (tsinghua, cityscapes)")
-    parser.add_argument("--split", help="split folder under leftImg8bit/ (e.g. test)")
+    parser.add_argument("source", choices=SOURCES)
+    parser.add_argument("--out", help="output HDF5 file (every source but all)")
+    parser.add_argument("--out-dir", help="output folder (all)")
+    parser.add_argument("--root", help="dataset root (kitti, tsinghua, cityscapes; "
+                        "chessboard: a folder of left*/right* pairs, default the shipped one)")
+    for name in ("kitti", "kitti-raw", "tsinghua", "cityscapes"):
+        parser.add_argument(f"--{name}", help=f"all: {name} root")
+    parser.add_argument("--split", help="split folder (tsinghua/cityscapes: under leftImg8bit/; "
+                        "kitti: e.g. training)")
+    parser.add_argument("--layout", choices=("stereo", "raw"), default="stereo",
+                        help="kitti: stereo 2015 / scene flow, or raw")
     parser.add_argument("--image-size", type=int, default=112)
-    parser.add_argument("--crops", type=int, default=500, help="middlebury: number of crops")
+    parser.add_argument("--crops", type=int, help="chessboard: crops per pair (20); "
+                        "middlebury: number of crops (500)")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--right", choices=("warp", "released"), default="warp")
     parser.add_argument("--labels", choices=LABEL_MODES, default="rig")
     parser.add_argument("--limit", type=int, help="use only the first N images")
-    return parser.parse_args(argv)
+    parser.add_argument("--force", action="store_true", help="all: rebuild existing files")
+    args = parser.parse_args(argv)
+    if args.source == "all":
+        if not args.out_dir:
+            parser.error("all needs --out-dir DIR")
+    elif not args.out:
+        parser.error(f"{args.source} needs --out FILE")
+    return args
+
+
+def _check_out(path):
+    out_dir = os.path.dirname(os.path.abspath(path))
+    if not os.path.isdir(out_dir):
+        raise ValueError(f"output directory does not exist: {out_dir}")
+    if os.path.isdir(path):
+        raise ValueError(f"output path is a directory: {path}")
+
+
+def build_one(source, out, *, root=None, args=None, command=None, report=None):
+    """Build one real set; returns its path."""
+    _check_out(out)
+    crops = args.crops if args.crops is not None else DEFAULT_CROPS.get(source)
+    if source == "middlebury":
+        from cpl_keras.real.middlebury import build_middlebury
+
+        return build_middlebury(out, crops=crops, image_size=args.image_size, seed=args.seed,
+                                command=command)
+    if source == "chessboard":
+        from cpl_keras.real.chessboard import DATA_DIR, build_chessboard
+
+        return build_chessboard(out, root=root or DATA_DIR, crops=crops,
+                                image_size=args.image_size, seed=args.seed, command=command,
+                                report=report)
+    if not root:
+        raise ValueError(f"--root is required for {source}")
+    if not os.path.isdir(root):
+        raise ValueError(f"dataset root not found: {root}")
+    if source == "kitti":
+        from cpl_keras.real.kitti import build_kitti
+
+        return build_kitti(root, out, layout=args.layout, split=args.split,
+                           image_size=args.image_size, limit=args.limit, command=command)
+    from cpl_keras.real.tsinghua import build_stereo_dataset
+
+    return build_stereo_dataset(
+        root, out, dataset=source, split=args.split, image_size=args.image_size,
+        right=args.right, labels=args.labels, seed=args.seed, limit=args.limit, command=command)
+
+
+def build_all(args, command=None, report=print):
+    """``all``: every set that needs no download, and each one given a root."""
+    if not os.path.isdir(args.out_dir):
+        raise ValueError(f"output directory does not exist: {args.out_dir}")
+    paths = []
+    for stem, source, option, extra in ALL_SETS:
+        root = getattr(args, option) if option else None
+        if option and not root:
+            continue
+        out = os.path.join(args.out_dir, f"{stem}.h5")
+        if os.path.exists(out) and not args.force:
+            report(f"{out}: exists, kept (--force rebuilds it)")
+            paths.append(out)
+            continue
+        one = argparse.Namespace(**{**vars(args), **extra})
+        paths.append(build_one(source, out, root=root, args=one, command=command, report=report))
+        report(f"{out}: built ({stem})")
+    return paths
 
 
 def main(argv=None):
     args = parse_args(argv)
     command = "python -m cpl_keras.real.build " + shlex.join(
         sys.argv[1:] if argv is None else list(argv))
-    out_dir = os.path.dirname(os.path.abspath(args.out))
+
+    def report(line):
+        print(line, file=sys.stderr)
+
     try:
-        if not os.path.isdir(out_dir):
-            raise ValueError(f"output directory does not exist: {out_dir}")
-        if os.path.isdir(args.out):
-            raise ValueError(f"output path is a directory: {args.out}")
-        if args.source == "middlebury":
-            from cpl_keras.real.middlebury import build_middlebury
-
-            path = build_middlebury(args.out, crops=args.crops, image_size=args.image_size,
-                                    seed=args.seed, command=command)
+        if args.source == "all":
+            paths = build_all(args, command, report)
         else:
-            if not args.root:
-                raise ValueError(f"--root is required for {args.source}")
-            if not os.path.isdir(args.root):
-                raise ValueError(f"dataset root not found: {args.root}")
-            from cpl_keras.real.tsinghua import build_stereo_dataset
-
-            path = build_stereo_dataset(
-                args.root, args.out, dataset=args.source, split=args.split,
-                image_size=args.image_size, right=args.right, labels=args.labels,
-                seed=args.seed, limit=args.limit, command=command)
+            paths = [build_one(args.source, args.out, root=args.root, args=args, command=command,
+                               report=report)]
     except (ValueError, OSError) as error:
         message = str(error).splitlines()[0] if str(error) else type(error).__name__
         print(f"error: {message}", file=sys.stderr)
         return 2
-    print(path)
+    print("\n".join(paths))
     return 0
 
 

@@ -147,6 +147,7 @@ def build_middlebury(out, *, crops=500, image_size=112, seed=0, block=64, comman
         raise ValueError(f"image size must be at least 32 (StereoBM block 15 + 16 disparities), got {image_size}")
     metadata = {
         "source": "Middlebury 2014 Motorcycle (skimage.data.stereo_motorcycle, 4x down-sampled)",
+        "rig": "middlebury", "rectified": True,
         "calibration": CALIBRATION, "crops": crops, "image_size": image_size, "seed": int(seed),
         "labels": "rig: right camera pose in the left camera frame; (u, v) in the right image",
         "min_crop_fraction": MIN_CROP_FRACTION, "full_image_share": FULL_IMAGE_SHARE,

@@ -52,8 +52,8 @@ import numpy as np
 
 from cpl_keras.camera import image_to_world
 from cpl_keras.data.storage import StereoWriter
-from cpl_keras.real import (
-    LABEL_MODES, crop_resize_coordinate, crop_resize_intrinsics, released_disparity,
+from cpl_keras.real import (  # noqa: F401  (RealDataError is re-exported)
+    LABEL_MODES, RealDataError, crop_resize_coordinate, crop_resize_intrinsics, released_disparity,
     resize_image,
 )
 
@@ -62,10 +62,6 @@ RIGHT_MODES = ("warp", "released")
 INTRINSIC_KEYS = ("fx", "fy", "u0", "v0")
 EXTRINSIC_KEYS = ("baseline", "pitch", "roll", "x", "y", "yaw", "z")
 LEFT_SUFFIX = "_leftImg8bit.png"
-
-
-class RealDataError(ValueError):
-    """A real-data file or directory is missing or malformed (one-line message)."""
 
 
 def find_samples(root, split=None):
@@ -266,7 +262,7 @@ def build_stereo_dataset(root, out, *, dataset="tsinghua", split=None, image_siz
         samples = samples[: int(limit)]
     rng = np.random.default_rng(seed)
     metadata = {
-        "source": dataset, "root": os.path.abspath(os.fspath(root)), "split": split,
+        "source": dataset, "rig": dataset, "rectified": labels == "rig", "root": os.path.abspath(os.fspath(root)), "split": split,
         "image_size": image_size, "right": right, "labels": labels, "seed": int(seed),
         "names": [s[0] for s in samples], "command": command,
     }
