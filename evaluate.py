@@ -2,7 +2,7 @@
 
     python evaluate.py --run RUN_DIR --data DATA.h5
     python evaluate.py --table 1 --runs RUN_DIR [RUN_DIR ...] [--data DATA.h5]
-    python evaluate.py --table 2 --runs RUN_DIR [RUN_DIR ...] --data REAL.h5
+    python evaluate.py --table 2 --runs RUN_DIR [RUN_DIR ...] --data data/real [MORE.h5 ...]
     python evaluate.py --reproduce [--quick] [--pairs N --epochs E ...]
 
 ``--reproduce`` regenerates everything in paper_results/ (datasets, training
@@ -36,7 +36,9 @@ def parse_args(argv=None):
     parser.add_argument("--run", help="evaluate one run directory (with --data)")
     parser.add_argument("--table", type=int, choices=(1, 2), help="make the paper's Table 1 or 2")
     parser.add_argument("--runs", nargs="+", help="run directories for --table")
-    parser.add_argument("--data", help="dataset file (HDF5)")
+    parser.add_argument("--data", nargs="+", help="dataset file (HDF5); Table 2: one or more "
+                        "real sets or folders of them (cpl_keras.real.build all), scored per "
+                        "rig and pooled")
     parser.add_argument("--out", help="output directory (default: paper_results/; "
                         "with --reproduce --quick: runs/quick/paper_results)")
     parser.add_argument("--batch-size", type=int, default=32)
@@ -80,6 +82,10 @@ def parse_args(argv=None):
         parser.error("--run needs --data DATA.h5")
     if args.table is not None and not args.runs:
         parser.error("--table needs --runs RUN_DIR [RUN_DIR ...]")
+    if args.data is not None and args.table != 2:
+        if len(args.data) > 1:
+            parser.error("several --data files go with --table 2 only")
+        args.data = args.data[0]
     if args.batch_size < 1:
         parser.error(f"--batch-size must be positive, got {args.batch_size}")
     if args.geometric_max is not None and args.geometric_max < 1:
@@ -101,6 +107,17 @@ def main(argv=None):
         if args.run is not None:
             table = evaluation.evaluate_run(args.run, args.data, args.batch_size)
             stem = "eval_" + os.path.basename(os.path.normpath(args.run))
+        elif args.table == 2:
+            from cpl_keras.real import table2
+
+            table = table2.make_table2(
+                args.runs, args.data, geometric=not args.no_geometric,
+                geometric_max=args.geometric_max,
+                progress=lambda message: print(message, file=sys.stderr))
+            paths = table2.write_table2(args.out, "table2", table, command)
+            print(table2.markdown(table))
+            print("wrote " + ", ".join(paths), file=sys.stderr)
+            return 0
         else:
             table = evaluation.make_table(
                 args.table, args.runs, args.data, geometric=not args.no_geometric,

@@ -1,0 +1,399 @@
+"""The paper's Table 2 over every real rig: one table per rig and one pooled.
+
+``make_table2(run_dirs, data_paths)`` runs each model's forward pass (no
+fine-tuning) and the Average and Geometric rows on every real set given (a
+folder stands for its ``*.h5`` files), and scores them per rig and pooled
+over all rigs, in both NMAE conventions, with the paper's Table 2 beside the
+pooled table. ``write_table2`` writes Markdown, CSV, JSON, the
+FOV-threshold curves and a plot of predicted against true horizontal field
+of view per rig for every method, atomically.
+
+Undefined values are never invented:
+
+* a sample whose ``disparity_valid`` label is 0 (KITTI frames without
+  ground-truth disparity) has no truth for disparity, X, Y, Z: those columns
+  use the other samples, and are ``n/a`` when none is left;
+* on a rectified rig (metadata ``rectified``, or pitch = yaw = roll = 0 for
+  every sample) the Geometric row's fundamental-matrix focal length is
+  degenerate (Bougnoux's formula is 0/0 when the optical axes are coplanar):
+  its fx, fy cells say ``degenerate`` and those samples are left out of the
+  pooled fx, fy and of the FOV curves and plot;
+* a zero mean (pitch, tx, tz of a rectified rig) leaves NMAE undefined
+  (``n/a``; ``cpl_keras.metrics``).
+"""
+
+from __future__ import annotations
+
+import glob
+import json
+import math
+import os
+
+import numpy as np
+
+from cpl_keras import evaluation, metrics
+from cpl_keras.camera import TARGETS, fov_from_focal
+from cpl_keras.evaluation import (
+    COLUMN_PARAMETER, COLUMNS, CONVENTION_TITLES, CONVENTIONS, RELEASED, ROWS, EvaluationError,
+)
+
+#: Targets that need the ground-truth disparity.
+DISPARITY_TARGETS = ("disparity", "X", "Y", "Z")
+#: Geometric columns that are degenerate on a rectified rig.
+DEGENERATE_ON_RECTIFIED = ("fx", "fy")
+
+
+def expand_data_paths(paths):
+    """Files as given; a folder stands for its ``*.h5`` files (sorted)."""
+    out = []
+    for path in paths:
+        if os.path.isdir(path):
+            found = sorted(glob.glob(os.path.join(path, "*.h5")))
+            if not found:
+                raise EvaluationError(f"no *.h5 files in {path}")
+            out += found
+        elif not os.path.exists(path):
+            raise EvaluationError(f"dataset not found: {path}")
+        else:
+            out.append(path)
+    return out
+
+
+def rig_name(metadata, path):
+    return str(metadata.get("rig") or os.path.splitext(os.path.basename(path))[0])
+
+
+def is_rectified(metadata, labels):
+    if "rectified" in metadata:
+        return bool(metadata["rectified"])
+    return all(np.all(labels[k] == 0) for k in ("pitch", "yaw", "roll") if k in labels)
+
+
+def _defined(labels, indices, n):
+    valid = np.ones(n, bool)
+    if "disparity_valid" in labels:
+        valid = np.asarray(labels["disparity_valid"])[indices] != 0
+    return {name: (valid if name in DISPARITY_TARGETS else np.ones(n, bool)) for name in TARGETS}
+
+
+def score_masked(truth, pred, defined, width):
+    """``evaluation.score`` on the samples where each target is defined."""
+    targets = {}
+    for name in TARGETS:
+        ok = np.asarray(defined[name], bool)
+        targets[name] = metrics.parameter_metrics(
+            {name: np.asarray(truth[name])[ok]}, {name: np.asarray(pred[name])[ok]},
+            names=(name,))[name]
+        targets[name]["num_defined"] = int(ok.sum())
+    ok = np.asarray(defined["fx"], bool)
+    curve = metrics.fov_threshold_curve(np.asarray(truth["fx"])[ok], np.asarray(pred["fx"])[ok],
+                                        width)
+    return {"targets": targets, "fov_within_deg": {
+        str(k): float(p) for k, p in zip(metrics.FOV_THRESHOLDS_DEG, curve)}}
+
+
+def _rig_rows(runs, data_path, geometric, geometric_max, progress):
+    """Truth, predictions and definedness of every row on one rig."""
+    from cpl_keras.baselines.average import average_predictions
+
+    reference = runs[0]
+    with evaluation.open_dataset(data_path) as data:
+        indices, description = evaluation.evaluation_indices(reference, data_path, data.num_pairs)
+        labels, metadata = data.labels, data.metadata
+        width, n = data.image_shape[1], len(indices)
+        rectified = is_rectified(metadata, labels)
+        defined = _defined(labels, indices, n)
+        rows = {}
+        for row, kind, released in (("Average", "mean", evaluation.as_released(reference)),
+                                    ("Average (release bug)", "release", True)):
+            pred = {k: np.asarray(v, np.float64)
+                    for k, v in average_predictions(reference["stats"], n, kind=kind).items()}
+            rows[row] = {"source": f"{reference['run_dir']}/train_stats.json ({kind})",
+                         "as_released": released, "indices": indices,
+                         "truth": evaluation.truth_targets(labels, indices, released),
+                         "pred": pred, "defined": defined}
+        for run in runs:
+            if progress:
+                progress(f"forward pass on {rig_name(metadata, data_path)}: "
+                         f"{run['config']['variant']} ({run['run_dir']})")
+            model = run.get("_model") or evaluation.load_model(run)
+            run["_model"] = model
+            rows[evaluation.row_name(run)] = {
+                "source": run["run_dir"], "as_released": evaluation.as_released(run),
+                "indices": indices, "truth": evaluation.truth_targets(
+                    labels, indices, evaluation.as_released(run)),
+                "pred": evaluation.predict_run(model, data, indices), "defined": defined}
+        if geometric:
+            from cpl_keras.baselines import geometric as geo
+
+            subset = indices if geometric_max is None else indices[: int(geometric_max)]
+            if progress:
+                progress(f"geometric baseline on {len(subset)} pairs of {rig_name(metadata, data_path)}")
+            stats_mean = reference["stats"]["mean"]
+            priors = {"baseline": stats_mean["baseline"], "fx": stats_mean["fx"],
+                      "fy": stats_mean["fx"]}
+            pred, statuses = geo.predict_file(data, subset, priors=priors)
+            geo_defined = _defined(labels, subset, len(subset))
+            if rectified:
+                geo_defined = dict(geo_defined, **{k: np.zeros(len(subset), bool)
+                                                   for k in DEGENERATE_ON_RECTIFIED})
+            rows["Geometric"] = {
+                "source": "cpl_keras.baselines.geometric", "as_released": False,
+                "indices": subset, "truth": evaluation.truth_targets(labels, subset, False),
+                "pred": pred, "defined": geo_defined, "priors": priors,
+                "statuses": statuses,
+                "degenerate": list(DEGENERATE_ON_RECTIFIED) if rectified else []}
+    return {"rig": rig_name(metadata, data_path), "data": os.path.abspath(data_path),
+            "data_description": description, "rectified": rectified, "width": int(width),
+            "data_source": metadata.get("source", metadata.get("protocol")),
+            "num_pairs": int(n), "rows": rows}
+
+
+def _table(raw_rows, *, number_of_pairs, width, data, description, source, runs, paper):
+    from cpl_keras.baselines import geometric as geo
+
+    rows = {}
+    for row, r in raw_rows.items():
+        entry = {"source": r["source"], "as_released": r["as_released"],
+                 "num_pairs": int(len(r["indices"])),
+                 **score_masked(r["truth"], r["pred"], r["defined"], width)}
+        if row == "Geometric":
+            entry.update(priors=r["priors"], failures=geo.failure_report(r["statuses"]),
+                         degenerate=r["degenerate"])
+        rows[row] = entry
+    return evaluation._jsonable({
+        "table": 2, "data": data, "data_description": description, "data_source": source,
+        "num_pairs": int(number_of_pairs), "image_width": int(width), "runs": runs,
+        "rows": {row: rows[row] for base in ROWS for row in (base, base + RELEASED) if row in rows},
+        "paper": paper, "paper_convention": evaluation.PAPER_CONVENTION[2],
+    })
+
+
+def _fov_points(r, width):
+    ok = np.asarray(r["defined"]["fx"], bool)
+    true = np.degrees(fov_from_focal(np.asarray(r["truth"]["fx"])[ok], width))
+    pred = np.degrees(fov_from_focal(np.asarray(r["pred"]["fx"])[ok], width))
+    return {"true_deg": true.tolist(), "pred_deg": pred.tolist()}
+
+
+def make_table2(run_dirs, data_paths, geometric=True, geometric_max=None, progress=None):
+    """Table 2 per rig and pooled (see the module doc); a JSON-ready dict:
+    the pooled table's fields, ``rigs`` (one table per rig) and ``fov_points``
+    (true and predicted horizontal FOV per rig and row)."""
+    if not run_dirs:
+        raise EvaluationError("no runs given (--runs RUN_DIR ...)")
+    if not data_paths:
+        raise EvaluationError("table 2 needs --data REAL.h5 (or a folder of real sets)")
+    runs = [evaluation.load_run(r) for r in run_dirs]
+    seen = {}
+    for run in runs:
+        row = evaluation.row_name(run)
+        if row in seen:
+            raise EvaluationError(f"two runs for {row}: {seen[row]} and {run['run_dir']}")
+        seen[row] = run["run_dir"]
+    paths = expand_data_paths(data_paths)
+    try:
+        rigs = [_rig_rows(runs, path, geometric, geometric_max, progress) for path in paths]
+    finally:
+        for run in runs:
+            run.pop("_model", None)
+    names = [r["rig"] for r in rigs]
+    for i, rig in enumerate(rigs):                      # two files of one rig: tell apart
+        if names.count(rig["rig"]) > 1:
+            rig["rig"] = f"{rig['rig']} ({os.path.basename(rig['data'])})"
+    widths = {r["width"] for r in rigs}
+    if len(widths) > 1:
+        raise EvaluationError(f"real sets differ in image width ({sorted(widths)}); build them "
+                              f"with one --image-size")
+    width = widths.pop()
+    run_list = [r["run_dir"] for r in runs]
+    tables = {}
+    for rig in rigs:
+        tables[rig["rig"]] = dict(_table(
+            rig["rows"], number_of_pairs=rig["num_pairs"], width=width, data=rig["data"],
+            description=rig["data_description"], source=rig["data_source"], runs=run_list,
+            paper={}), rectified=rig["rectified"])
+    pooled_rows = {}
+    for row in rigs[0]["rows"]:
+        parts = [rig["rows"][row] for rig in rigs if row in rig["rows"]]
+        pooled_rows[row] = dict(parts[0], indices=np.concatenate([p["indices"] for p in parts]),
+                                truth={k: np.concatenate([p["truth"][k] for p in parts]) for k in TARGETS},
+                                pred={k: np.concatenate([np.asarray(p["pred"][k]) for p in parts])
+                                      for k in TARGETS},
+                                defined={k: np.concatenate([p["defined"][k] for p in parts])
+                                         for k in TARGETS})
+        if row == "Geometric":
+            pooled_rows[row]["statuses"] = [s for p in parts for s in p["statuses"]]
+            pooled_rows[row]["degenerate"] = [
+                k for k in DEGENERATE_ON_RECTIFIED if not pooled_rows[row]["defined"][k].any()]
+    total = sum(r["num_pairs"] for r in rigs)
+    single = len(rigs) == 1
+    table = _table(pooled_rows, number_of_pairs=total, width=width,
+                   data=rigs[0]["data"] if single else ", ".join(r["data"] for r in rigs),
+                   description=rigs[0]["data_description"] if single else (
+                       f"{total} pairs pooled over {len(rigs)} rigs: " + ", ".join(
+                           f"{r['rig']} {r['num_pairs']}" for r in rigs)),
+                   source=rigs[0]["data_source"] if single else "pooled real rigs", runs=run_list,
+                   paper=evaluation.read_paper_table(2))
+    table["rigs"] = tables
+    table["fov_points"] = {rig["rig"]: {row: _fov_points(r, width) for row, r in rig["rows"].items()}
+                           for rig in rigs}
+    return evaluation._jsonable(table)
+
+
+def _cell(row_metrics, column, convention):
+    if COLUMN_PARAMETER[column] in row_metrics.get("degenerate", ()):
+        return "degenerate"
+    value = row_metrics["targets"][COLUMN_PARAMETER[column]][convention]
+    return metrics.format_value(math.nan if value is None else value)
+
+
+def _nmae_tables(table, level):
+    lines = []
+    for convention in CONVENTIONS:
+        with_paper = convention == table["paper_convention"] and table["paper"]
+        lines += [f"{level} {CONVENTION_TITLES[convention]}", ""]
+        if with_paper:
+            lines += ["Cells: ours (paper's Table 2).", ""]
+        best = evaluation.best_rows(table, convention)
+        lines.append("| method | " + " | ".join(COLUMNS) + " |")
+        lines.append("|---" * (len(COLUMNS) + 1) + "|")
+        for row, row_metrics in table["rows"].items():
+            cells = []
+            for column in COLUMNS:
+                text = _cell(row_metrics, column, convention)
+                if row in best.get(column, ()) and text != "degenerate":
+                    text = f"**{text}**"
+                if with_paper:
+                    paper_row = row[: -len(RELEASED)] if row.endswith(RELEASED) else row
+                    paper_row = "Average" if paper_row == "Average (release bug)" else paper_row
+                    paper = table["paper"].get(paper_row, {}).get(column)
+                    if paper is not None and row != "Average":
+                        text += f" ({paper:.3f})"
+                cells.append(text)
+            lines.append(f"| {row} | " + " | ".join(cells) + " |")
+        lines.append("")
+    lines += ["| method | " + " | ".join(f"within {k} deg FOV" for k in metrics.FOV_THRESHOLDS_DEG)
+              + " |", "|---" * (len(metrics.FOV_THRESHOLDS_DEG) + 1) + "|"]
+    for row, row_metrics in table["rows"].items():
+        if "fx" in row_metrics.get("degenerate", ()):
+            cells = ["degenerate"] * len(metrics.FOV_THRESHOLDS_DEG)
+        else:
+            cells = [metrics.format_value(row_metrics["fov_within_deg"][str(k)], 2)
+                     for k in metrics.FOV_THRESHOLDS_DEG]
+        lines.append(f"| {row} | " + " | ".join(cells) + " |")
+    lines.append("")
+    geo = table["rows"].get("Geometric")
+    if geo:
+        report = geo["failures"]
+        parts = [f"{flag} {report[flag]['count']}/{report['num_pairs']}" for flag in report
+                 if isinstance(report[flag], dict)]
+        lines += [f"Geometric baseline on {geo['num_pairs']} pairs; stage failures (fallback "
+                  f"to priors {geo['priors']}): " + ", ".join(parts) + ".", ""]
+        if geo.get("degenerate"):
+            lines += ["Geometric fx, fy: degenerate on a rectified rig (Bougnoux's formula is "
+                      "0/0 when the optical axes are coplanar); no number is reported.", ""]
+    undefined = [f"{name} ({m['num_defined']} of {table['num_pairs']} pairs)"
+                 for name, m in next(iter(table["rows"].values()))["targets"].items()
+                 if m["num_defined"] < table["num_pairs"]]
+    if undefined:
+        lines += ["Ground truth defined on part of the pairs only: " + ", ".join(undefined)
+                  + "; the other pairs are left out of those columns.", ""]
+    return lines
+
+
+def markdown(table, command=None):
+    """Pooled table (with the paper's numbers), then one section per rig."""
+    lines = ["# Table 2: NMAE per parameter on real rigs", ""]
+    if command:
+        lines += ["Command:", "", "```", command, "```", ""]
+    lines += [f"Pooled: {table['data_description']}; image width {table['image_width']} px. "
+              "Forward pass only (no fine-tuning). `n/a` = undefined (zero mean, or no "
+              "ground truth on that rig).", "", "## Pooled over all rigs", ""]
+    lines += _nmae_tables(table, "###")
+    for name, rig in table["rigs"].items():
+        kind = "rectified" if rig["rectified"] else "not rectified"
+        lines += [f"## Rig: {name} ({kind})", "",
+                  f"Data: `{rig['data']}` ({rig['data_description']}; source: "
+                  f"{rig['data_source']}).", ""]
+        lines += _nmae_tables(rig, "###")
+    lines += ["Best per column (smallest |NMAE|) in bold. The paper's Average row is placed "
+              "beside 'Average (release bug)'. Plot of predicted against true horizontal field "
+              "of view per rig: `*_fov_scatter.png`.", ""]
+    return "\n".join(lines)
+
+
+def csv_text(table):
+    """``rig,method,metric,<columns>``; rig ``pooled`` for the pooled table."""
+    lines = ["rig,method,metric," + ",".join(COLUMNS)]
+    for rig, sub in [("pooled", table)] + list(table["rigs"].items()):
+        for row, row_metrics in sub["rows"].items():
+            for metric in ("mae",) + CONVENTIONS:
+                cells = []
+                for column in COLUMNS:
+                    if COLUMN_PARAMETER[column] in row_metrics.get("degenerate", ()):
+                        cells.append("degenerate")
+                        continue
+                    v = row_metrics["targets"][COLUMN_PARAMETER[column]][metric]
+                    cells.append("n/a" if v is None or not math.isfinite(v) else f"{v:.6g}")
+                lines.append(f"{rig},{row},{metric}," + ",".join(cells))
+    return "\n".join(lines) + "\n"
+
+
+def fov_scatter_plot(table, path):
+    """Predicted against true horizontal FOV, one panel per rig, one colour
+    per method (degenerate rows left out)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    rigs = list(table["fov_points"].items())
+    fig, axes = plt.subplots(1, len(rigs), figsize=(4.5 * len(rigs), 4.2), squeeze=False)
+    for ax, (rig, rows) in zip(axes[0], rigs):
+        values = []
+        for row, points in rows.items():
+            if points["true_deg"]:
+                ax.scatter(points["true_deg"], points["pred_deg"], s=8, alpha=0.6, label=row)
+                values += points["true_deg"] + points["pred_deg"]
+        if values:
+            lo, hi = min(values), max(values)
+            ax.plot([lo, hi], [lo, hi], "k--", lw=1)
+        ax.set_title(rig)
+        ax.set_xlabel("true horizontal FOV (deg)")
+        ax.set_ylabel("predicted horizontal FOV (deg)")
+        ax.grid(alpha=0.3)
+    axes[0][0].legend(fontsize=7)
+    fig.tight_layout()
+    fig.savefig(path, dpi=100, format="png")
+    plt.close(fig)
+
+
+def write_table2(out_dir, stem, table, command):
+    """Write ``stem``.md/.csv/.json, ``stem``_fov.png (pooled FOV-threshold
+    curves) and ``stem``_fov_scatter.png; renamed into place only when all
+    were written."""
+    if not os.path.isdir(out_dir):
+        raise EvaluationError(f"output directory does not exist: {out_dir}")
+    texts = {f"{stem}.md": markdown(table, command), f"{stem}.csv": csv_text(table),
+             f"{stem}.json": json.dumps(dict(table, command=command), indent=2,
+                                        allow_nan=False) + "\n"}
+    written = []
+    try:
+        for name, text in texts.items():
+            tmp = os.path.join(out_dir, f".{name}.partial")
+            written.append((tmp, os.path.join(out_dir, name)))
+            with open(tmp, "w") as f:
+                f.write(text)
+        for suffix, draw in (("_fov.png", evaluation.fov_plot), ("_fov_scatter.png", fov_scatter_plot)):
+            tmp = os.path.join(out_dir, f".{stem}{suffix}.partial")
+            written.append((tmp, os.path.join(out_dir, stem + suffix)))
+            draw(table, tmp)
+    except Exception:
+        for tmp, _ in written:
+            if os.path.exists(tmp):
+                os.remove(tmp)
+        raise
+    for tmp, final in written:
+        os.replace(tmp, final)
+    return [final for _, final in written]
