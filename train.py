@@ -20,6 +20,7 @@ os.environ.setdefault("KERAS_BACKEND", "jax")
 
 from cpl_keras.datasets import SPLITS  # noqa: E402
 from cpl_keras.models import BACKBONES, VARIANTS  # noqa: E402
+from cpl_keras.models.factory import DISENTANGLE  # noqa: E402
 
 #: The demonstration run (no --data): dataset and training settings chosen to
 #: finish in about five minutes on a 2-core CPU.
@@ -57,6 +58,14 @@ def build_parser():
     parser.add_argument("--patience", type=int, default=5, help="early stopping patience")
     parser.add_argument("--workers", type=int, default=1, help="data reading threads")
     parser.add_argument("--steps-per-execution", type=int, default=1)
+    parser.add_argument("--disentangle", choices=DISENTANGLE, default="exact",
+                        help="CPL: the X, Y, Z terms of Eq. 7 train only the pixel heads "
+                        "(exact, default) or every head the camera graph reads (partial)")
+    parser.add_argument("--linear-pitch-head", action="store_true",
+                        help="an unbounded pitch head (the release's; default (pi/2) tanh)")
+    parser.add_argument("--bn-recompute-batches", type=int,
+                        help="training batches for recomputing BatchNorm statistics before "
+                        "each validation (default 16; 0 = Keras's moving averages, as released)")
     parser.add_argument("--quiet", action="store_true", help="no progress bars")
     return parser
 
@@ -66,8 +75,15 @@ def demo_dataset():
     from cpl_keras.data.storage import DatasetError
     from cpl_keras.training import cache_dir
 
+    try:
+        from cpl_keras.data.generate import GENERATOR_VERSION as version
+    except ImportError:
+        version = "none"
+    # the format version in the name: a cached file of an older format is
+    # regenerated, never refused
     path = os.path.join(
-        cache_dir(), f"demo-cvgl-{DEMO['pairs']}-{DEMO['image_size']}px-s{DEMO['seed']}.h5"
+        cache_dir(),
+        f"demo-cvgl-{DEMO['pairs']}-{DEMO['image_size']}px-s{DEMO['seed']}-v{version}.h5"
     )
     if os.path.exists(path):
         return path
@@ -111,7 +127,9 @@ def main(argv=None):
             batch_size=args.batch_size, learning_rate=args.lr, image_size=args.image_size,
             backbone=backbone, split=args.split, as_released=args.as_released, seed=seed,
             data_parallel=args.data_parallel, patience=args.patience, workers=args.workers,
-            steps_per_execution=args.steps_per_execution, verbose=0 if args.quiet else 1,
+            steps_per_execution=args.steps_per_execution, disentangle=args.disentangle,
+            bounded_pitch_head=False if args.linear_pitch_head else None,
+            bn_recompute_batches=args.bn_recompute_batches, verbose=0 if args.quiet else 1,
             command=command,
         )
     except (DatasetError, TrainingError, OSError) as error:

@@ -29,7 +29,10 @@ With Eq. 5 the optical axis (1, 0, 0) of a camera with pitch > 0 points to
 
 Division is "safe": every divisor is floored away from zero, keeping its sign
 (``safe_divisor``), so a predicted disparity or focal length at or near 0
-gives large but finite values, never inf or NaN.
+gives large but finite values, never inf or NaN. The floor depends on the
+quantity divided by (``FLOORS``): the graph divides by the disparity d
+(Eq. 4a) and by the focal lengths fx, fy (Eqs. 4b-4c), all in pixels; the
+inverse model divides by the depth xCam, in metres (``EPSILON``).
 """
 
 from __future__ import annotations
@@ -38,8 +41,23 @@ import math
 
 import numpy as np
 
-#: Smallest magnitude a divisor may have (pixels for d, fx, fy; metres for xCam).
+#: Smallest magnitude of a divisor with no floor of its own (the inverse
+#: model's depth xCam, metres).
 EPSILON = 1e-3
+
+#: Divisor floors of the camera graph, per quantity, in pixels. Both lie below
+#: every label of the project's data (the smallest true disparity of the
+#: rendered protocols is above 0.01 px; the smallest focal length is about
+#: 15 px at 112 x 112), so the floor never changes a label; it only bounds
+#: what a wrong prediction can do: at d = 0.01 px the gradient of
+#: xCam = fx * b / d, fx * b / d^2, is, compared with the
+#: former common floor of 1e-3 px, 100 times smaller.
+FLOORS = {"disparity": 1e-2, "focal": 1.0}
+
+#: The release divided plainly. ``as_released`` keeps that, with a floor
+#: small enough to change nothing a finite prediction can reach but still
+#: keeping float32 values and gradients finite (never inf or NaN).
+RELEASED_FLOORS = {"disparity": 1e-6, "focal": 1e-6}
 
 #: The 10 camera parameters, in the release's order.
 PARAMETERS = (
@@ -62,10 +80,20 @@ UNITS = {
 # Op sets
 # ---------------------------------------------------------------------------
 class NumpyOps:
-    """The op set on numpy arrays (and Python floats)."""
+    """The op set on numpy arrays (and Python floats).
 
-    def __init__(self, epsilon=EPSILON):
+    ``floors`` maps a quantity the camera graph divides by (``"disparity"``,
+    ``"focal"``) to its divisor floor; ``div(..., floor=key)`` uses it, and a
+    division without a key uses ``epsilon``.
+    """
+
+    def __init__(self, epsilon=EPSILON, floors=None):
         self.epsilon = float(epsilon)
+        self.floors = check_floors(FLOORS if floors is None else floors)
+
+    def floor(self, key=None):
+        """The divisor floor of quantity ``key`` (``epsilon`` for None)."""
+        return self.epsilon if key is None else self.floors[key]
 
     def add(self, a, b, name=None):
         return np.add(a, b)
@@ -76,8 +104,8 @@ class NumpyOps:
     def mul(self, a, b, name=None):
         return np.multiply(a, b)
 
-    def div(self, a, b, name=None):
-        return np.divide(a, safe_divisor(b, self.epsilon, np))
+    def div(self, a, b, name=None, floor=None):
+        return np.divide(a, safe_divisor(b, self.floor(floor), np))
 
     def neg(self, a, name=None):
         return np.negative(a)
@@ -93,8 +121,8 @@ class TensorOps(NumpyOps):
     """The op set on backend tensors, through ``keras.ops`` (imported lazily,
     so the numpy side never loads a deep-learning backend)."""
 
-    def __init__(self, epsilon=EPSILON):
-        super().__init__(epsilon)
+    def __init__(self, epsilon=EPSILON, floors=None):
+        super().__init__(epsilon, floors)
         from keras import ops
 
         self._ops = ops
@@ -108,8 +136,8 @@ class TensorOps(NumpyOps):
     def mul(self, a, b, name=None):
         return self._ops.multiply(a, b)
 
-    def div(self, a, b, name=None):
-        return self._ops.divide(a, safe_divisor(b, self.epsilon, self._ops))
+    def div(self, a, b, name=None, floor=None):
+        return self._ops.divide(a, safe_divisor(b, self.floor(floor), self._ops))
 
     def neg(self, a, name=None):
         return self._ops.negative(a)
@@ -132,12 +160,26 @@ def safe_divisor(b, epsilon=EPSILON, xp=np):
     return xp.where(small, floor, b)
 
 
+def check_floors(floors):
+    """``floors`` as a dict of positive floats with the keys of ``FLOORS``."""
+    if not isinstance(floors, dict) or set(floors) != set(FLOORS):
+        raise ValueError(f"floors must be a dict with the keys {sorted(FLOORS)}, got {floors!r}")
+    out = {}
+    for key, value in floors.items():
+        if isinstance(value, bool) or not isinstance(value, (int, float, np.floating)) or not (
+            math.isfinite(float(value)) and float(value) > 0
+        ):
+            raise ValueError(f"the {key} floor must be a positive number, got {value!r}")
+        out[key] = float(value)
+    return out
+
+
 NUMPY = NumpyOps()
 
 
-def tensor_ops(epsilon=EPSILON):
+def tensor_ops(epsilon=EPSILON, floors=None):
     """A ``TensorOps`` instance (keras.ops on the active backend)."""
-    return TensorOps(epsilon)
+    return TensorOps(epsilon, floors)
 
 
 # ---------------------------------------------------------------------------
@@ -161,7 +203,7 @@ def fov_from_focal(focal, size):
 def depth_from_disparity(fx, baseline, disparity, ops=NUMPY):
     """Eq. 4a: ``xCam = fx * b / d``, the depth of the point along x."""
     fx_b = ops.mul(fx, baseline, name="fx_times_baseline")
-    return ops.div(fx_b, disparity, name="xCam")
+    return ops.div(fx_b, disparity, name="xCam", floor="disparity")
 
 
 def camera_point(xCam, fx, fy, u0, v0, u, v, ops=NUMPY):
@@ -170,12 +212,12 @@ def camera_point(xCam, fx, fy, u0, v0, u, v, ops=NUMPY):
     ``yCam = -(xCam / fx) * (u - u0)`` and ``zCam = (xCam / fy) * (v0 - v)``.
     With ``xCam = 1`` this is the viewing ray of the pixel (paper Eq. 6).
     """
-    xCam_over_fx = ops.div(xCam, fx, name="xCam_over_fx")
+    xCam_over_fx = ops.div(xCam, fx, name="xCam_over_fx", floor="focal")
     u_minus_u0 = ops.sub(u, u0, name="u_minus_u0")
     yCam = ops.mul(
         ops.neg(xCam_over_fx, name="neg_xCam_over_fx"), u_minus_u0, name="yCam"
     )
-    xCam_over_fy = ops.div(xCam, fy, name="xCam_over_fy")
+    xCam_over_fy = ops.div(xCam, fy, name="xCam_over_fy", floor="focal")
     v0_minus_v = ops.sub(v0, v, name="v0_minus_v")
     zCam = ops.mul(xCam_over_fy, v0_minus_v, name="zCam")
     return yCam, zCam

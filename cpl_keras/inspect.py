@@ -23,21 +23,32 @@ def camera_graph(model):
     """The camera-graph layers of ``model`` in topological order.
 
     Returns a list of dicts with ``name``, ``op``, ``inputs`` (names of the
-    layers feeding it) and ``equation`` (paper equation number, formula).
+    layers feeding it), ``detached`` (those of the inputs read through
+    ``stop_gradient``: the exact disentangling of Eq. 7) and ``equation``
+    (paper equation number, formula).
     """
-    from cpl_keras.layers import OP_NAMES, is_camera_layer
+    from cpl_keras.layers import OP_NAMES, is_camera_layer, stop_gradient
+
+    def source(tensor):
+        """The layer behind ``tensor``, seen through a stop_gradient Lambda."""
+        layer = tensor._keras_history.operation
+        if getattr(layer, "function", None) is stop_gradient:
+            return layer._inbound_nodes[0].input_tensors[0]._keras_history.operation.name, True
+        return layer.name, False
 
     graph = []
     for layer in model.layers:
         if not is_camera_layer(layer):
             continue
         node = layer._inbound_nodes[0]
-        inputs = [t._keras_history.operation.name for t in node.input_tensors]
+        sources = [source(t) for t in node.input_tensors]
+        inputs = [name for name, _ in sources]
         base = layer.name.replace("_projected", "")
         gated = layer.name in ("X", "Y", "Z") and any(i.endswith("_gate") for i in inputs)
         equation = GATE_EQUATION if gated else camera.EQUATIONS.get(base, ("", ""))
         graph.append({
             "name": layer.name, "op": OP_NAMES[layer.function], "inputs": inputs,
+            "detached": [name for name, detached in sources if detached],
             "equation": equation[0], "formula": equation[1],
         })
     return graph
@@ -146,6 +157,10 @@ def main(argv=None):
     print(f"Camera graph of {args.variant} ({mode}): {len(graph)} Lambda layers, "
           f"loss '{model.loss_mode}'")
     print(format_table(graph))
+    detached = sorted({name for g in graph for name in g["detached"]})
+    if detached:
+        print(f"The graph reads {', '.join(detached)} through stop_gradient: the X, Y, Z terms "
+              "of the loss train only the pixel heads u, v (exact disentangling of Eq. 7).")
     try:
         draw_graph(graph, args.out, f"{args.variant} camera graph ({mode}): Eqs. 4a-5c as Lambda layers")
     except OSError as error:

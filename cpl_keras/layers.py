@@ -10,6 +10,8 @@ stores their names, not their bytecode, and loads with ``safe_mode=True``.
 
 from __future__ import annotations
 
+import math
+
 import keras
 from keras import ops
 
@@ -62,6 +64,26 @@ def cos(x):
 
 
 @keras.saving.register_keras_serializable(package=PACKAGE)
+def stop_gradient(x):
+    """``x`` forward, no gradient backward (the exact disentangling of Eq. 7)."""
+    return ops.stop_gradient(x)
+
+
+@keras.saving.register_keras_serializable(package=PACKAGE)
+def bounded_pitch(x):
+    """The pitch head's output activation: ``pitch = (pi / 2) tanh(z)``.
+
+    Pitch enters the camera graph only through sin and cos (Eqs. 5a, 5c), so
+    with an unbounded head the projection terms have a minimum every 2 pi
+    and a head can settle in a far one. Bounded to (-pi/2, pi/2), every
+    pitch a camera rig can have, the loss has one minimum. The paper's
+    "Parameterization" paragraph argues for such output parameterisations;
+    the release's head was linear (``as_released``).
+    """
+    return (math.pi / 2.0) * ops.tanh(x)
+
+
+@keras.saving.register_keras_serializable(package=PACKAGE)
 def take(x, index=0):
     """Column ``index`` of a (batch, n) tensor, kept as (batch, 1)."""
     return x[:, index : index + 1]
@@ -96,13 +118,15 @@ OP_NAMES = {
 class LambdaOps:
     """The camera op set on symbolic Keras tensors: every op is a named Lambda.
 
+    ``floors`` are the divisor floors per quantity (``camera.FLOORS``).
+
     ``rename`` maps a quantity's name to the layer name to use instead (the
     released CPL-A gates X, Y, Z after the camera graph, so there the graph's
     last layers are called ``X_projected`` and so on).
     """
 
-    def __init__(self, epsilon=camera.EPSILON, rename=None):
-        self.epsilon = float(epsilon)
+    def __init__(self, floors=None, rename=None):
+        self.floors = camera.check_floors(camera.FLOORS if floors is None else floors)
         self.rename = dict(rename or {})
 
     def _layer(self, function, inputs, name, arguments=None):
@@ -122,8 +146,9 @@ class LambdaOps:
     def mul(self, a, b, name=None):
         return self._layer(multiply, [a, b], name)
 
-    def div(self, a, b, name=None):
-        return self._layer(safe_divide, [a, b], name, {"epsilon": self.epsilon})
+    def div(self, a, b, name=None, floor=None):
+        epsilon = camera.EPSILON if floor is None else self.floors[floor]
+        return self._layer(safe_divide, [a, b], name, {"epsilon": epsilon})
 
     def neg(self, a, name=None):
         return self._layer(negative, a, name)

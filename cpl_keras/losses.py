@@ -27,23 +27,38 @@ dataset needs to supply nothing beyond the 13 targets.
   (the log-variance weighting of Kendall et al., 2018): a small alpha_i costs
   a large s_i, so the weights settle at alpha_i ~ 1 / L_i instead of
   collapsing, which is exactly the balancing of heterogeneous ranges the
-  paper asks of them.
+  paper asks of them. Each s_i starts at log L_i of the first training batch
+  (``initial_log_variances``), so the weights start balanced, and is floored
+  ``log(ADAPTIVE_WEIGHT_RANGE)`` below that, so a term that reaches 0 cannot
+  drive the objective to minus infinity.
+
+Exact disentangling. The terms of the 10 parameters are computed here from
+the parameter heads' outputs, so each trains only its own head. The X, Y, Z
+terms compare the camera graph's outputs; in the model (as the paper writes
+it) the graph sees the parameters through ``stop_gradient``, so those errors
+reach only the graph's own free parameters, the pixel heads u, v. With
+``disentangle="partial"`` (the first version of this project) they reach
+every head the graph reads.
 """
 
 from __future__ import annotations
 
+import math
+
+import numpy as np
 from keras import ops
 
 from cpl_keras import camera
 
 
-def projection_terms(y_true, y_pred, epsilon=camera.EPSILON):
+def projection_terms(y_true, y_pred, floors=None):
     """The 13 disentangled projection losses ``L_p`` of Eq. 7, in TARGETS order.
 
     ``y_true`` and ``y_pred`` map each name of ``camera.TARGETS`` to a
-    (batch, 1) tensor. Returns a list of 13 scalars (batch means).
+    (batch, 1) tensor; ``floors`` are the camera graph's divisor floors
+    (``camera.FLOORS``). Returns a list of 13 scalars (batch means).
     """
-    tensor = camera.tensor_ops(epsilon)
+    tensor = camera.tensor_ops(floors=floors)
     gt = {name: ops.cast(y_true[name], "float32") for name in camera.TARGETS}
     params = {name: gt[name] for name in camera.PARAMETERS}
     # The ground-truth projection pixel, by the inverse of Eqs. 4a-5c.
@@ -71,10 +86,36 @@ def uniform_projection_loss(terms):
     return ops.sum(ops.stack(terms)) / float(len(terms))
 
 
-def adaptive_projection_loss(terms, log_variances):
-    """Eq. 9 with ``alpha_i = exp(-s_i)`` and the regulariser ``sum_i s_i``."""
+def adaptive_projection_loss(terms, log_variances, floor=None):
+    """Eq. 9 with ``alpha_i = exp(-s_i)`` and the regulariser ``sum_i s_i``.
+
+    ``floor`` (one value per term) bounds each ``s_i`` from below: a term
+    that reaches 0 (u0 and v0 are constant in the cvgl protocol) would
+    otherwise drive its ``s_i`` to minus infinity and the objective with it.
+    """
     terms = ops.stack(terms)
+    if floor is not None:
+        log_variances = ops.maximum(log_variances, floor)
     return ops.sum(ops.exp(-log_variances) * terms + log_variances)
+
+
+#: How far below its initial value each log-variance s_i may go: alpha_i may
+#: grow to at most this factor times its initial value 1 / L_i.
+ADAPTIVE_WEIGHT_RANGE = 1e3
+
+
+def initial_log_variances(terms):
+    """``s_i = log L_i`` and the floor ``s_i - log(ADAPTIVE_WEIGHT_RANGE)``.
+
+    Eq. 9 with alpha_i = exp(-s_i) is minimised at alpha_i = 1 / L_i, so
+    starting there (from one batch's terms) makes every weighted term start
+    at 1: the adaptive weights begin balanced instead of at 1, where terms
+    in metres, pixels and radians differ by orders of magnitude. Returns two
+    numpy arrays (13,).
+    """
+    terms = np.maximum(np.asarray(terms, dtype=np.float64), 1e-12)
+    start = np.log(terms)
+    return start.astype("float32"), (start - math.log(ADAPTIVE_WEIGHT_RANGE)).astype("float32")
 
 
 def euclidean_loss(y_true, y_pred, epsilon=1e-7):

@@ -47,7 +47,12 @@ from cpl_keras.datasets import SPLITS, load_split, make_split, save_split, targe
 RESUME_KEYS = (
     "variant", "build", "data", "split", "seed", "batch_size", "learning_rate", "epochs",
     "as_released", "data_parallel", "patience", "test_fraction", "val_fraction",
+    "bn_recompute_batches",
 )
+#: Training batches over which BatchNorm's moving statistics are recomputed
+#: before every validation (0: keep Keras's moving averages, the default as
+#: released).
+BN_RECOMPUTE_BATCHES = 16
 
 
 def cache_dir():
@@ -83,7 +88,8 @@ class TrainingError(ValueError):
 def plan_run(data, *, variant, run_dir, epochs=200, batch_size=16, learning_rate=None,
              image_size=None, backbone="inception_v3", split="paper", as_released=False,
              seed=0, data_parallel=False, patience=5, test_fraction=0.3, val_fraction=0.1,
-             workers=1, command=None):
+             workers=1, disentangle="exact", bounded_pitch_head=None,
+             bn_recompute_batches=None, command=None):
     """Check the dataset and the arguments; return the run's plan (a dict).
 
     Raises ``DatasetError`` or ``TrainingError`` with a one-line message.
@@ -102,6 +108,20 @@ def plan_run(data, *, variant, run_dir, epochs=200, batch_size=16, learning_rate
             raise TrainingError(f"{name} must be a positive integer, got {value!r}")
     if not (isinstance(patience, (int, np.integer)) and patience >= 0):
         raise TrainingError(f"patience must be a non-negative integer, got {patience!r}")
+    if bn_recompute_batches is None:
+        bn_recompute_batches = 0 if as_released else BN_RECOMPUTE_BATCHES
+    if isinstance(bn_recompute_batches, bool) or not (
+        isinstance(bn_recompute_batches, (int, np.integer)) and bn_recompute_batches >= 0
+    ):
+        raise TrainingError(
+            f"BatchNorm recompute batches must be a non-negative integer, got {bn_recompute_batches!r}"
+        )
+    from cpl_keras.models.factory import DISENTANGLE
+
+    if disentangle not in DISENTANGLE:
+        raise TrainingError(
+            f"unknown disentangle {disentangle!r}; choose one of {', '.join(DISENTANGLE)}"
+        )
     if learning_rate is not None and not (
         isinstance(learning_rate, (int, float)) and math.isfinite(learning_rate) and learning_rate > 0
     ):
@@ -135,9 +155,14 @@ def plan_run(data, *, variant, run_dir, epochs=200, batch_size=16, learning_rate
 
     devices = _device_count() if data_parallel else 1
     run_batch = -(-batch_size // devices) * devices
+    from cpl_keras.camera import FLOORS, RELEASED_FLOORS
+
     build = {
         "backbone": backbone, "image_size": [height, width], "as_released": bool(as_released),
-        "epsilon": _default_epsilon(), "seed": int(seed),
+        "floors": dict(RELEASED_FLOORS if as_released else FLOORS),
+        "bounded_pitch_head": (not as_released) if bounded_pitch_head is None
+        else bool(bounded_pitch_head),
+        "disentangle": disentangle, "seed": int(seed),
     }
     run_dir = os.path.abspath(os.fspath(run_dir))
     config = {
@@ -156,6 +181,7 @@ def plan_run(data, *, variant, run_dir, epochs=200, batch_size=16, learning_rate
         "learning_rate": None if learning_rate is None else float(learning_rate),
         "epochs": int(epochs),
         "patience": int(patience),
+        "bn_recompute_batches": int(bn_recompute_batches),
         "as_released": bool(as_released),
         "data_parallel": bool(data_parallel),
         "num_devices": devices,
@@ -166,12 +192,6 @@ def plan_run(data, *, variant, run_dir, epochs=200, batch_size=16, learning_rate
     }
     _check_run_dir(run_dir, config)
     return {"config": config, "targets": targets, "split": indices, "workers": int(workers)}
-
-
-def _default_epsilon():
-    from cpl_keras.camera import EPSILON
-
-    return float(EPSILON)
 
 
 def _backend():
@@ -232,6 +252,8 @@ def _read_json(path, default=None):
 def _make_run_callback():
     import keras
 
+    from cpl_keras.models.batchnorm import recompute_batchnorm_statistics
+
     class RunState(keras.callbacks.Callback):
         """Checkpoints every epoch and does early stopping, crash-safely.
 
@@ -242,9 +264,10 @@ def _make_run_callback():
         leaves the previous epoch's state intact.
         """
 
-        def __init__(self, run_dir, patience, sequence):
+        def __init__(self, run_dir, patience, sequence, bn_recompute_batches=0):
             super().__init__()
             self.run_dir = run_dir
+            self.bn_recompute_batches = int(bn_recompute_batches)
             self.backup = os.path.join(run_dir, "backup")
             self.state_path = os.path.join(self.backup, "state.json")
             self.patience = patience
@@ -270,6 +293,22 @@ def _make_run_callback():
             return int(self.state["epoch"])
 
         # -- keras hooks ---------------------------------------------------
+        def on_train_begin(self, logs=None):
+            if self.state["epoch"] == 0 and self.state["checkpoint"] is None:
+                # Eq. 9's weights start balanced on the first training batch
+                # (a resumed run has them in its checkpoint).
+                x, y = self.sequence[0]
+                self.model.initialise_adaptive_weights(x, y)
+
+        def on_test_begin(self, logs=None):
+            # Validation (and so the checkpoints and the saved model) runs in
+            # inference mode: give it BatchNorm statistics of these weights.
+            if self.bn_recompute_batches:
+                count = min(self.bn_recompute_batches, len(self.sequence))
+                recompute_batchnorm_statistics(
+                    self.model, (self.sequence[i] for i in range(count))
+                )
+
         def on_epoch_begin(self, epoch, logs=None):
             self._epoch_start = time.perf_counter()
             # Keras calls the dataset's on_epoch_end an extra time around its
@@ -309,6 +348,8 @@ def _make_run_callback():
                         f"early stopping: no improvement of val_loss for {self.patience} epochs"
                     )
                     self.model.stop_training = True
+            alphas = self.model.adaptive_weights() or {}
+            logs.update({f"alpha_{name}": value for name, value in alphas.items()})
             state["rows"].append({"epoch": epoch, **logs})
             state["epoch"] = epoch + 1
             state["wall_time_s"] += time.perf_counter() - (self._epoch_start or time.perf_counter())
@@ -364,14 +405,18 @@ def write_log(path, rows):
 
 
 def plot_curves(path, rows, best_epoch=None):
-    """Training and validation loss per epoch (log scale when positive)."""
+    """Training and validation loss per epoch (log scale when positive), and
+    the adaptive weights alpha_i of Eq. 9 beside them when the run has them."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
     epochs = [row["epoch"] + 1 for row in rows]
-    fig, ax = plt.subplots(figsize=(6, 4))
+    alpha_keys = sorted({k for row in rows for k in row if k.startswith("alpha_")})
+    fig, axes = plt.subplots(1, 2 if alpha_keys else 1, figsize=(11 if alpha_keys else 6, 4),
+                             squeeze=False)
+    ax = axes[0, 0]
     for key, label in (("loss", "training"), ("val_loss", "validation")):
         values = [row.get(key, np.nan) for row in rows]
         ax.plot(epochs, values, marker="o", markersize=3, label=label)
@@ -384,6 +429,15 @@ def plot_curves(path, rows, best_epoch=None):
     ax.set_ylabel("loss")
     ax.legend()
     ax.grid(True, alpha=0.3)
+    if alpha_keys:
+        ax = axes[0, 1]
+        for key in alpha_keys:
+            ax.plot(epochs, [row.get(key, np.nan) for row in rows], label=key[len("alpha_"):])
+        ax.set_yscale("log")
+        ax.set_xlabel("epoch")
+        ax.set_ylabel("alpha_i (Eq. 9)")
+        ax.legend(fontsize=7, ncol=2)
+        ax.grid(True, alpha=0.3)
     fig.tight_layout()
     tmp = path + ".partial.png"
     fig.savefig(tmp, dpi=100)
@@ -397,7 +451,8 @@ def plot_curves(path, rows, best_epoch=None):
 def train(data, *, variant, run_dir, epochs=200, batch_size=16, learning_rate=None,
           image_size=None, backbone="inception_v3", split="paper", as_released=False, seed=0,
           data_parallel=False, patience=5, test_fraction=0.3, val_fraction=0.1, workers=1,
-          steps_per_execution=1, verbose=1, command=None):
+          steps_per_execution=1, disentangle="exact", bounded_pitch_head=None,
+          bn_recompute_batches=None, verbose=1, command=None):
     """Train ``variant`` on the dataset file ``data``; returns the summary dict.
 
     Everything is validated before the run directory is created (see
@@ -411,7 +466,8 @@ def train(data, *, variant, run_dir, epochs=200, batch_size=16, learning_rate=No
         learning_rate=learning_rate, image_size=image_size, backbone=backbone, split=split,
         as_released=as_released, seed=seed, data_parallel=data_parallel, patience=patience,
         test_fraction=test_fraction, val_fraction=val_fraction, workers=workers,
-        command=command,
+        disentangle=disentangle, bounded_pitch_head=bounded_pitch_head,
+        bn_recompute_batches=bn_recompute_batches, command=command,
     )
     import keras
 
@@ -460,7 +516,10 @@ def _run(plan, learning_rate, steps_per_execution, verbose):
     # The release's Average bug depends on the order of the training set: its
     # frames were shuffled, so sample i is the i-th of a shuffled order.
     train_order = np.random.default_rng(config["seed"]).permutation(plan["split"]["train"])
-    stats = training_statistics(plan["targets"], train_order)
+    # ... and it averaged the release's labels (its frame, degrees, StereoBM).
+    with StereoFile(config["data"]) as data_file:
+        release_targets = targets_from_labels(data_file.labels, as_released=True)
+    stats = training_statistics(plan["targets"], train_order, release_targets=release_targets)
     save_statistics(os.path.join(run_dir, "train_stats.json"), stats)
 
     multiple = config["num_devices"]
@@ -471,7 +530,7 @@ def _run(plan, learning_rate, steps_per_execution, verbose):
     val_seq = StereoSequence(config["data"], plan["split"]["val"], shuffle=False, **common)
 
     RunState = _make_run_callback()
-    run_state = RunState(run_dir, config["patience"], train_seq)
+    run_state = RunState(run_dir, config["patience"], train_seq, config["bn_recompute_batches"])
     state = run_state.state
     done = state.get("stopped") is not None or state["epoch"] >= config["epochs"]
     if not done:
@@ -509,6 +568,7 @@ def _finish(model, run_dir, config, state):
         wall_time_s=round(float(state.get("wall_time_s", 0.0)), 3),
         stopped=state.get("stopped"),
         status="failed" if failed else "finished",
+        adaptive_weights=model.adaptive_weights(),
     )
     _atomic_json(os.path.join(run_dir, "config.json"), config)
     for name in os.listdir(os.path.join(run_dir, "backup")):

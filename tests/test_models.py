@@ -198,7 +198,10 @@ def test_keras_file_and_weights_round_trip(variant, tmp_path):
     (dict(variant="baseline", backbone="resnet"), "unknown backbone"),
     (dict(variant="cpl-u", backbone="small", image_size=8), "below the minimum of 16"),
     (dict(variant="cpl-u", backbone="small", image_size="big"), "image_size must be"),
-    (dict(variant="cpl-u", backbone="small", epsilon=0.0), "epsilon"),
+    (dict(variant="cpl-u", backbone="small", floors={"disparity": 0.0, "focal": 1.0}),
+     "disparity floor must be a positive number"),
+    (dict(variant="cpl-u", backbone="small", floors={"disparity": 1.0}), "floors must be a dict"),
+    (dict(variant="cpl-u", backbone="small", disentangle="some"), "unknown disentangle"),
 ])
 def test_bad_arguments_raise_a_clear_value_error(kwargs, message):
     variant = kwargs.pop("variant")

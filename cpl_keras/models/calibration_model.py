@@ -24,6 +24,8 @@ from cpl_keras import camera, losses
 from cpl_keras.layers import PACKAGE
 
 LOSS_MODES = ("mae", "projection-uniform", "projection-adaptive", "euclidean")
+#: The log-variance floor before ``initialise_adaptive_weights``: none.
+NO_FLOOR = -1e4
 
 
 @keras.saving.register_keras_serializable(package=PACKAGE)
@@ -33,7 +35,7 @@ class CalibrationModel(keras.Model):
     Args:
         *args, **kwargs: as for a functional ``keras.Model`` (inputs, outputs).
         calibration: dict of the build arguments (variant, backbone,
-            image_size, as_released, epsilon) and ``loss`` (a LOSS_MODE).
+            image_size, as_released, floors, ...) and ``loss`` (a LOSS_MODE).
     """
 
     def __init__(self, *args, calibration=None, **kwargs):
@@ -42,10 +44,17 @@ class CalibrationModel(keras.Model):
         if self.calibration["loss"] not in LOSS_MODES:
             raise ValueError(f"unknown loss mode {self.calibration['loss']!r}")
         if self.calibration["loss"] == "projection-adaptive":
-            # s_i of Eq. 9 (alpha_i = exp(-s_i)), one per disentangled term.
+            # s_i of Eq. 9 (alpha_i = exp(-s_i)), one per disentangled term,
+            # and their floors (set with the starting values, see
+            # ``initialise_adaptive_weights``; until then no floor).
             self.log_variances = self.add_weight(
                 shape=(len(camera.TARGETS),), initializer="zeros",
                 name="log_variances", trainable=True,
+            )
+            self.log_variance_floor = self.add_weight(
+                shape=(len(camera.TARGETS),),
+                initializer=keras.initializers.Constant(NO_FLOOR),
+                name="log_variance_floor", trainable=False,
             )
 
     @property
@@ -59,6 +68,38 @@ class CalibrationModel(keras.Model):
         alphas = ops.convert_to_numpy(ops.exp(-self.log_variances.value))
         return {name: float(a) for name, a in zip(camera.TARGETS, alphas)}
 
+    @property
+    def floors(self):
+        """The camera graph's divisor floors (``camera.FLOORS`` keys).
+
+        Models saved before per-quantity floors stored one ``epsilon``.
+        """
+        if "floors" in self.calibration:
+            return dict(self.calibration["floors"])
+        epsilon = float(self.calibration.get("epsilon", camera.EPSILON))
+        return {key: epsilon for key in camera.FLOORS}
+
+    def projection_terms(self, y, y_pred):
+        """The 13 disentangled terms of Eq. 7 for targets ``y`` (dict)."""
+        return losses.projection_terms(y, self._as_dict(y_pred), self.floors)
+
+    def initialise_adaptive_weights(self, x, y):
+        """Start Eq. 9's weights balanced: alpha_i = 1 / L_i on one batch.
+
+        ``x`` is a batch of inputs and ``y`` its targets (dict by name). Sets
+        ``s_i = log L_i`` and the floor ``log(losses.ADAPTIVE_WEIGHT_RANGE)``
+        below it. A no-op for other loss modes. Returns the alphas.
+        """
+        if self.loss_mode != "projection-adaptive":
+            return None
+        terms = self.projection_terms(y, self(x, training=False))
+        start, floor = losses.initial_log_variances(
+            [float(ops.convert_to_numpy(t)) for t in terms]
+        )
+        self.log_variances.assign(start)
+        self.log_variance_floor.assign(floor)
+        return self.adaptive_weights()
+
     def _as_dict(self, y_pred):
         if isinstance(y_pred, dict):
             return y_pred
@@ -68,16 +109,22 @@ class CalibrationModel(keras.Model):
         mode = self.loss_mode
         if mode == "mae":
             return super().compute_loss(x, y, y_pred, sample_weight, training)
+        if sample_weight is not None:
+            raise ValueError(
+                f"the {mode} loss couples all 13 outputs and takes no sample_weight; "
+                "pass none (or train with the 'mae' loss)"
+            )
         y_pred = self._as_dict(y_pred)
-        epsilon = self.calibration.get("epsilon", camera.EPSILON)
         if mode == "euclidean":
             loss = losses.euclidean_loss(y, y_pred)
         else:
-            terms = losses.projection_terms(y, y_pred, epsilon)
+            terms = self.projection_terms(y, y_pred)
             if mode == "projection-uniform":
                 loss = losses.uniform_projection_loss(terms)
             else:
-                loss = losses.adaptive_projection_loss(terms, self.log_variances)
+                loss = losses.adaptive_projection_loss(
+                    terms, self.log_variances, self.log_variance_floor
+                )
         if self.losses:
             loss = loss + ops.sum(self.losses)
         return loss

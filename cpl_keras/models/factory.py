@@ -26,7 +26,14 @@ CPL-A loss                    Eq. 9, learned alpha_i       MAE of the 13 outputs
 CPL-A adaptive weights        per-term alpha_i (loss)      per-sample sigmoid gates
                                                            multiplying X, Y, Z
 Deep-Homo input               grey level of each image     one channel of each image
+pitch head                    (pi/2) tanh, one minimum     linear (a minimum every 2 pi)
+X, Y, Z terms of Eq. 7        reach only the pixel heads   (MAE: every head)
+divisor floors                ``camera.FLOORS``            ``camera.RELEASED_FLOORS``
 ============================  ===========================  ============================
+
+The bounded pitch head and the exact disentangling are this project's
+readings of the paper (its "Parameterization" paragraph and Eq. 7); each has
+its own argument, so either can be compared with the other form.
 
 (The dataset side of the switch, the release's disparity and pitch labels, is
 in ``cpl_keras.datasets``.)
@@ -34,21 +41,27 @@ in ``cpl_keras.datasets``.)
 
 from __future__ import annotations
 
+import contextlib
 import numbers
+import random
 
 import keras
+import numpy as np
 
 from cpl_keras import camera
-from cpl_keras.layers import LambdaOps, multiply, regression_head
+from cpl_keras.layers import LambdaOps, bounded_pitch, multiply, regression_head, stop_gradient
 from cpl_keras.models import backbones, deep_homo
 from cpl_keras.models.calibration_model import CalibrationModel
 
 VARIANTS = ("baseline", "cpl-u", "cpl-a", "deep-homo")
 PIXEL_HEADS = ("u", "v")
+#: How the X, Y, Z terms of the camera projection loss reach the heads.
+DISENTANGLE = ("exact", "partial")
 
 
 def build_model(variant, *, backbone="inception_v3", image_size=112, as_released=False,
-                epsilon=camera.EPSILON, seed=None, name=None):
+                floors=None, bounded_pitch_head=None, disentangle="exact", seed=None,
+                name=None):
     """Build one of the paper's networks.
 
     Args:
@@ -59,8 +72,15 @@ def build_model(variant, *, backbone="inception_v3", image_size=112, as_released
             or ``(height, width, 3)``. At least 75 for InceptionV3.
         as_released: reproduce the released code instead of the paper's text
             (see the module docstring).
-        epsilon: smallest divisor magnitude in the camera graph.
-        seed: seeds Keras's initialisers when given.
+        floors: the camera graph's divisor floors per quantity (default
+            ``camera.FLOORS``; as released ``camera.RELEASED_FLOORS``).
+        bounded_pitch_head: pitch = (pi/2) tanh(z) for the MTL variants
+            (default: True, as released False).
+        disentangle: ``"exact"`` (the X, Y, Z terms of Eq. 7 reach only the
+            pixel heads u, v) or ``"partial"`` (they reach every head the
+            camera graph reads). CPL variants as the paper writes them only.
+        seed: seeds Keras's initialisers when given. Python's and NumPy's
+            global random generators are left as they were.
         name: the model's name (default: the variant).
     """
     if variant not in VARIANTS:
@@ -69,13 +89,41 @@ def build_model(variant, *, backbone="inception_v3", image_size=112, as_released
         raise ValueError(
             f"unknown backbone {backbone!r}; choose one of {', '.join(backbones.BACKBONES)}"
         )
-    if not (isinstance(epsilon, numbers.Real) and epsilon > 0):
-        raise ValueError(f"epsilon must be a positive number, got {epsilon!r}")
+    floors = camera.check_floors(
+        (camera.RELEASED_FLOORS if as_released else camera.FLOORS) if floors is None else floors
+    )
+    if bounded_pitch_head is None:
+        bounded_pitch_head = not as_released
+    if disentangle not in DISENTANGLE:
+        raise ValueError(
+            f"unknown disentangle {disentangle!r}; choose one of {', '.join(DISENTANGLE)}"
+        )
     minimum = deep_homo.MIN_IMAGE_SIZE if variant == "deep-homo" else backbones.MIN_IMAGE_SIZE[backbone]
     height, width = _image_shape(image_size, minimum, backbone)
-    if seed is not None:
-        keras.utils.set_random_seed(int(seed))
+    with _seeded(seed):
+        return _build(variant, backbone, height, width, bool(as_released), floors,
+                      bool(bounded_pitch_head), disentangle, name)
 
+
+@contextlib.contextmanager
+def _seeded(seed):
+    """Seed Keras's initialisers, leaving Python's and NumPy's global random
+    generators as they were (``keras.utils.set_random_seed`` reseeds both)."""
+    if seed is None:
+        yield
+        return
+    python_state, numpy_state = random.getstate(), np.random.get_state()
+    try:
+        keras.utils.set_random_seed(int(seed))
+        yield
+    finally:
+        random.setstate(python_state)
+        np.random.set_state(numpy_state)
+
+
+def _build(variant, backbone, height, width, as_released, floors, bounded_pitch_head,
+           disentangle, name):
+    pitch_activation = bounded_pitch if bounded_pitch_head else None
     left = keras.Input((height, width, 3), name="left_image")
     right = keras.Input((height, width, 3), name="right_image")
     scaled_left, scaled_right = _scale_inputs(left, right, as_released)
@@ -86,17 +134,26 @@ def build_model(variant, *, backbone="inception_v3", image_size=112, as_released
     else:
         features = backbones.stereo_features(scaled_left, scaled_right, backbone)
         if variant == "baseline":
-            outputs = [regression_head(features, target) for target in camera.TARGETS]
+            outputs = [
+                regression_head(features, target,
+                                activation=pitch_activation if target == "pitch" else None)
+                for target in camera.TARGETS
+            ]
             loss = "mae"
         else:
-            outputs = camera_projection_outputs(features, variant, as_released, epsilon)
             loss = "mae" if as_released else {
                 "cpl-u": "projection-uniform", "cpl-a": "projection-adaptive"
             }[variant]
+            outputs = camera_projection_outputs(
+                features, variant, as_released, floors, pitch_activation,
+                detach=loss != "mae" and disentangle == "exact",
+            )
 
     calibration = {
         "variant": variant, "backbone": backbone, "image_size": [height, width],
-        "as_released": bool(as_released), "epsilon": float(epsilon), "loss": loss,
+        "as_released": as_released, "floors": floors, "loss": loss,
+        "bounded_pitch_head": bounded_pitch_head and variant != "deep-homo",
+        "disentangle": disentangle if loss.startswith("projection") else None,
     }
     return CalibrationModel(
         inputs={"left_image": left, "right_image": right}, outputs=outputs,
@@ -104,19 +161,33 @@ def build_model(variant, *, backbone="inception_v3", image_size=112, as_released
     )
 
 
-def camera_projection_outputs(features, variant, as_released, epsilon):
+def camera_projection_outputs(features, variant, as_released, floors, pitch_activation=None,
+                              detach=False):
     """The CPL heads and the Lambda camera graph (Eqs. 4a-5c).
 
     12 heads predict the 10 parameters and a pixel (u, v) (unsupervised: no
     label is compared with it); the camera graph turns them into X, Y, Z.
-    The released CPL-A multiplies X, Y, Z by per-sample sigmoid gates, each
-    its own Dense(120) -> Dense(84) -> Dense(1, sigmoid) branch.
+    With ``detach`` the graph reads the 10 parameters through
+    ``stop_gradient`` (same values), so the X, Y, Z terms of Eq. 7 train
+    only the pixel heads: each error is charged to the parameter that made
+    it. The released CPL-A multiplies X, Y, Z by per-sample sigmoid gates,
+    each its own Dense(120) -> Dense(84) -> Dense(1, sigmoid) branch.
     """
-    params = {name: regression_head(features, name) for name in camera.PARAMETERS}
+    params = {
+        name: regression_head(features, name,
+                              activation=pitch_activation if name == "pitch" else None)
+        for name in camera.PARAMETERS
+    }
     pixel = {name: regression_head(features, name) for name in PIXEL_HEADS}
+    graph_params = params
+    if detach:
+        graph_params = {
+            name: keras.layers.Lambda(stop_gradient, name=f"{name}_detached")(tensor)
+            for name, tensor in params.items()
+        }
     gated = as_released and variant == "cpl-a"
     rename = {q: f"{q}_projected" for q in ("X", "Y", "Z")} if gated else None
-    X, Y, Z = camera.image_to_world(**params, **pixel, ops=LambdaOps(epsilon, rename))
+    X, Y, Z = camera.image_to_world(**graph_params, **pixel, ops=LambdaOps(floors, rename))
     points = {"X": X, "Y": Y, "Z": Z}
     if gated:
         for q in ("X", "Y", "Z"):

@@ -1,0 +1,245 @@
+"""Traps of the loss and of training from scratch, each closed by a default:
+the bounded pitch head, the adaptive weights' start and floor, the exact
+disentangling of Eq. 7, per-quantity divisor floors, BatchNorm statistics
+that belong to the weights, local random seeding and sample weights."""
+
+import math
+import random
+
+import jax
+import keras
+import numpy as np
+import pytest
+from keras import ops
+
+from cpl_keras import TARGETS, build_model, camera, compile_model, losses
+from cpl_keras.models.batchnorm import batchnorm_layers, recompute_batchnorm_statistics
+
+from test_datasets import write_stereo_fixture
+from test_models import SIZE, batch
+
+
+@pytest.fixture(scope="module")
+def tiny_cvgl(tmp_path_factory):
+    # 40 pairs -> 25 training pairs: five equal batches of 5
+    return str(write_stereo_fixture(tmp_path_factory.mktemp("data") / "tiny.h5", n=40,
+                                    image_size=32))
+
+
+# ---------------------------------------------------------------------------
+# Pitch: one minimum
+# ---------------------------------------------------------------------------
+@pytest.mark.parametrize("variant", ["baseline", "cpl-u", "cpl-a"])
+def test_pitch_head_is_bounded_by_default_and_linear_as_released(variant):
+    x, _ = batch(2)
+    for as_released, bounded in ((False, True), (True, False)):
+        model = build_model(variant, backbone="small", image_size=SIZE, as_released=as_released,
+                            seed=0)
+        head = model.get_layer("pitch")
+        head.kernel.assign(np.zeros(head.kernel.shape, "float32"))
+        head.bias.assign(np.full(head.bias.shape, 40.0, "float32"))
+        pitch = model.predict(x, verbose=0)[TARGETS.index("pitch")]
+        if bounded:
+            assert np.all(np.abs(pitch) <= math.pi / 2) and np.all(pitch > 1.5)
+        else:
+            assert np.allclose(pitch, 40.0)
+        assert model.calibration["bounded_pitch_head"] is bounded
+
+
+def _pitch_term(y, pitch_values):
+    """L_pitch of Eq. 7 for one sample as a function of the predicted pitch."""
+    yt = {k: ops.convert_to_tensor(np.repeat(v, len(pitch_values), axis=0)) for k, v in y.items()}
+    wrong = dict(yt, pitch=ops.convert_to_tensor(pitch_values.reshape(-1, 1).astype("float32")))
+    per_sample = []
+    for i in range(len(pitch_values)):
+        one = {k: v[i:i + 1] for k, v in wrong.items()}
+        truth = {k: v[i:i + 1] for k, v in yt.items()}
+        per_sample.append(float(losses.projection_terms(truth, one)[TARGETS.index("pitch")]))
+    return np.array(per_sample)
+
+
+def _local_minima(values):
+    inner = (values[1:-1] < values[:-2]) & (values[1:-1] < values[2:])
+    return int(inner.sum())
+
+
+def test_the_bounded_pitch_loss_has_one_minimum_where_the_linear_one_has_many():
+    _, y = batch(1, seed=3)
+    y = dict(y, X=y["X"] * 0 + 40.0)  # a far point: the projection terms dominate
+    X, Y, Z = camera.image_to_world(**{k: y[k] for k in camera.PARAMETERS}, u=9.0, v=21.0)
+    y.update(X=np.float32(X).reshape(1, 1), Y=np.float32(Y).reshape(1, 1),
+             Z=np.float32(Z).reshape(1, 1))
+    linear = np.linspace(-20.0, 20.0, 801)  # radians, what an unbounded head can output
+    assert _local_minima(_pitch_term(y, linear)) >= 3
+    z = np.linspace(-8.0, 8.0, 801)  # the bounded head's pre-activation
+    bounded = _pitch_term(y, (math.pi / 2) * np.tanh(z))
+    assert _local_minima(bounded) == 1
+    best = (math.pi / 2) * np.tanh(z[np.argmin(bounded)])
+    assert best == pytest.approx(float(y["pitch"][0, 0]), abs=0.02)
+
+
+# ---------------------------------------------------------------------------
+# Eq. 9: balanced start, bounded below
+# ---------------------------------------------------------------------------
+def test_adaptive_weights_start_balanced_on_the_first_batch_and_are_floored():
+    model = compile_model(build_model("cpl-a", backbone="small", image_size=SIZE, seed=0))
+    x, y = batch(8)
+    alphas = model.initialise_adaptive_weights(x, y)
+    terms = [float(t) for t in model.projection_terms(y, model(x, training=False))]
+    for name, term in zip(TARGETS, terms):
+        assert alphas[name] * term == pytest.approx(1.0, rel=1e-4)
+    s = ops.convert_to_numpy(model.log_variances)
+    floor = ops.convert_to_numpy(model.log_variance_floor)
+    assert np.allclose(s - floor, math.log(losses.ADAPTIVE_WEIGHT_RANGE), atol=1e-4)
+    # A term at 0 can no longer drive the objective to minus infinity.
+    zero_terms = [ops.convert_to_tensor(0.0)] * 13
+    far_below = ops.convert_to_tensor(np.full(13, -60.0, "float32"))
+    bounded = float(losses.adaptive_projection_loss(zero_terms, far_below, model.log_variance_floor))
+    assert bounded == pytest.approx(float(floor.sum()), rel=1e-5)
+    assert float(losses.adaptive_projection_loss(zero_terms, far_below)) == pytest.approx(-780.0)
+
+
+def test_balanced_start_survives_save_and_load(tmp_path):
+    model = compile_model(build_model("cpl-a", backbone="small", image_size=SIZE, seed=0))
+    x, y = batch(8)
+    alphas = model.initialise_adaptive_weights(x, y)
+    path = str(tmp_path / "m.keras")
+    model.save(path)
+    loaded = keras.saving.load_model(path, safe_mode=True)
+    assert loaded.adaptive_weights() == pytest.approx(alphas)
+    assert np.allclose(ops.convert_to_numpy(loaded.log_variance_floor),
+                       ops.convert_to_numpy(model.log_variance_floor))
+
+
+# ---------------------------------------------------------------------------
+# Eq. 7: each error charged to the parameter that made it
+# ---------------------------------------------------------------------------
+def _graph_gradients(model):
+    """d(X + Y + Z)/d(head value) for every head, through the model's graph."""
+    heads = list(camera.PARAMETERS) + ["u", "v"]
+    graph = keras.Model([model.get_layer(h).output for h in heads],
+                        [model.get_layer(q).output for q in ("X", "Y", "Z")])
+    values = {h: np.full((1, 1), 1.3, "float32") for h in heads}
+    values.update(u=np.full((1, 1), 10.0, "float32"), v=np.full((1, 1), 20.0, "float32"),
+                  pitch=np.full((1, 1), 0.2, "float32"))
+
+    def point_sum(inputs):
+        return sum(ops.sum(o) for o in graph(inputs))
+
+    grads = jax.grad(point_sum)([values[h] for h in heads])
+    return {h: float(np.abs(g).sum()) for h, g in zip(heads, grads)}
+
+
+def test_exact_disentangling_charges_x_y_z_only_to_the_pixel_heads():
+    exact = _graph_gradients(build_model("cpl-u", backbone="small", image_size=SIZE))
+    partial = _graph_gradients(build_model("cpl-u", backbone="small", image_size=SIZE,
+                                           disentangle="partial"))
+    for name in camera.PARAMETERS:
+        assert exact[name] == 0.0, name
+        assert partial[name] > 0.0, name
+    for name in ("u", "v"):
+        assert exact[name] > 0.0 and partial[name] > 0.0
+
+
+def test_exact_disentangling_keeps_the_forward_values():
+    x, _ = batch(3)
+    a = build_model("cpl-a", backbone="small", image_size=SIZE, seed=1)
+    b = build_model("cpl-a", backbone="small", image_size=SIZE, seed=1, disentangle="partial")
+    for pa, pb in zip(a.predict(x, verbose=0), b.predict(x, verbose=0)):
+        np.testing.assert_array_equal(pa, pb)
+
+
+# ---------------------------------------------------------------------------
+# Divisor floors per quantity
+# ---------------------------------------------------------------------------
+def test_each_division_of_the_graph_has_its_quantitys_floor():
+    model = build_model("cpl-u", backbone="small", image_size=SIZE)
+    floor = {layer.name: layer.arguments.get("epsilon") for layer in model.layers
+             if isinstance(layer, keras.layers.Lambda) and layer.arguments}
+    assert floor["xCam"] == camera.FLOORS["disparity"]
+    assert floor["xCam_over_fx"] == floor["xCam_over_fy"] == camera.FLOORS["focal"]
+    released = build_model("cpl-u", backbone="small", image_size=SIZE, as_released=True)
+    assert released.get_layer("xCam").arguments["epsilon"] == camera.RELEASED_FLOORS["disparity"]
+    assert camera.FLOORS["disparity"] != camera.FLOORS["focal"]
+
+
+def test_gradient_at_the_disparity_floor_is_bounded():
+    """d xCam / d d = -fx b / d^2 just outside the floor (fx b = 100 px m)."""
+    ops_set = camera.tensor_ops()
+    grad = jax.grad(lambda d: ops.sum(camera.depth_from_disparity(50.0, 2.0, d, ops_set)))
+    outside = float(np.abs(grad(np.float32(camera.FLOORS["disparity"] * 1.01))))
+    assert outside < 1e7
+    inside = float(np.abs(grad(np.float32(camera.FLOORS["disparity"] * 0.5))))
+    assert inside == 0.0 and np.isfinite(outside)
+
+
+# ---------------------------------------------------------------------------
+# BatchNorm statistics that belong to the weights
+# ---------------------------------------------------------------------------
+def test_recomputed_batchnorm_statistics_are_the_batch_averages():
+    inputs = keras.Input((3,))
+    hidden = keras.layers.Dense(4, name="dense")(inputs)
+    outputs = keras.layers.BatchNormalization(name="bn")(hidden)
+    model = keras.Model(inputs, outputs)
+    rng = np.random.default_rng(0)
+    batches = [rng.normal(5.0, 2.0, (8, 3)).astype("float32") for _ in range(5)]
+    assert recompute_batchnorm_statistics(model, batches) == 5
+    dense = keras.Model(inputs, hidden)
+    activations = [dense.predict(b, verbose=0) for b in batches]
+    bn = model.get_layer("bn")
+    np.testing.assert_allclose(ops.convert_to_numpy(bn.moving_mean),
+                               np.mean([a.mean(0) for a in activations], 0), rtol=1e-4, atol=1e-5)
+    np.testing.assert_allclose(ops.convert_to_numpy(bn.moving_variance),
+                               np.mean([a.var(0) for a in activations], 0), rtol=1e-3, atol=1e-5)
+    assert bn.momentum == pytest.approx(0.99)
+    assert batchnorm_layers(model) == [bn]
+
+
+def test_deep_homo_saved_by_training_has_statistics_of_its_weights(tmp_path, tiny_cvgl):
+    from cpl_keras.training import train
+
+    def first_bn_mean(bn_batches):
+        summary = train(tiny_cvgl, variant="deep-homo", run_dir=str(tmp_path / f"r{bn_batches}"),
+                        epochs=1, batch_size=5, image_size=None, backbone="small", seed=0,
+                        bn_recompute_batches=bn_batches, verbose=0)
+        model = keras.saving.load_model(str(tmp_path / f"r{bn_batches}" / "model.keras"),
+                                        safe_mode=True)
+        bn = model.get_layer("batch_norm1")
+        conv = keras.Model(model.inputs, bn.input)
+        from cpl_keras.datasets import StereoSequence, load_split
+
+        split = load_split(str(tmp_path / f"r{bn_batches}" / "split.npz"))
+        seq = StereoSequence(tiny_cvgl, split["train"], batch_size=5)
+        means = [conv.predict(seq[i][0], verbose=0).mean(axis=(0, 1, 2)) for i in range(len(seq))]
+        seq.close()
+        assert summary["status"] == "finished"
+        return ops.convert_to_numpy(bn.moving_mean), np.mean(means, axis=0)
+
+    recomputed, truth = first_bn_mean(1000)
+    np.testing.assert_allclose(recomputed, truth, rtol=0.05, atol=1e-3 * np.abs(truth).max())
+    lagging, truth = first_bn_mean(0)  # Keras's moving average, as released
+    assert np.abs(lagging - truth).max() > 0.3 * np.abs(truth).max()
+
+
+# ---------------------------------------------------------------------------
+# Seeds and sample weights
+# ---------------------------------------------------------------------------
+def test_build_model_leaves_python_and_numpy_random_state_alone():
+    random.seed(7)
+    np.random.seed(7)
+    expected = (random.random(), np.random.rand())
+    random.seed(7)
+    np.random.seed(7)
+    a = build_model("cpl-u", backbone="small", image_size=SIZE, seed=123)
+    assert (random.random(), np.random.rand()) == expected
+    b = build_model("cpl-u", backbone="small", image_size=SIZE, seed=123)
+    for wa, wb in zip(a.get_weights(), b.get_weights()):
+        np.testing.assert_array_equal(wa, wb)
+
+
+@pytest.mark.parametrize("variant", ["cpl-u", "cpl-a", "deep-homo"])
+def test_coupled_losses_refuse_sample_weights_loudly(variant):
+    model = compile_model(build_model(variant, backbone="small", image_size=SIZE, seed=0))
+    x, y = batch(4)
+    with pytest.raises(ValueError, match="sample_weight"):
+        model.fit(x, y, sample_weight=np.ones(4, "float32"), epochs=1, verbose=0)
