@@ -24,6 +24,10 @@ from cpl_keras.camera import TARGETS
 from cpl_keras.data.storage import DatasetError, StereoFile
 
 SPLITS = ("paper", "held-out-config")
+#: Labels of the extrinsics in the release's frame and its projection pixel
+#: (written by ``cpl_keras.data.generate``; pitch_released in degrees).
+RELEASED_EXTRINSICS = ("baseline_released", "tx_released", "ty_released", "tz_released",
+                       "pitch_released", "u_released", "v_released")
 
 
 # ---------------------------------------------------------------------------
@@ -35,11 +39,24 @@ def targets_from_labels(labels, as_released=False):
     Paper mode returns the stored targets. ``as_released=True`` reproduces the
     released code's labels:
 
-    * disparity is the release's StereoBM mean (``labels["disparity_released"]``),
-    * pitch is in degrees (the release stored degrees and fed them to sin/cos),
+    * the extrinsics in the release's frame (``baseline_released``,
+      ``tx_released``, ``ty_released``, ``tz_released``: right-minus-left
+      vehicle-frame differences in CARLA's conventions, baseline = tx),
+    * pitch in degrees, CARLA's sign (``pitch_released``; the release fed
+      degrees to sin/cos as radians, and so does the model with these targets),
+    * disparity is the release's StereoBM mean (``disparity_released``),
     * X, Y, Z are the camera equations (Eqs. 4a-5c, ``camera.image_to_world``)
-      evaluated with those two values at the stored pixel (u, v).
+      of those values at the release's fixed pixel (``u_released``,
+      ``v_released`` = W/2, H/2), not at the label pixel (u, v).
+
+    Labels without the release-frame names (``RELEASED_EXTRINSICS``: files
+    that have one frame only, such as the real-data sets) use the stored
+    extrinsics with pitch converted to degrees, and the stored (u, v).
     """
+    present = [name for name in RELEASED_EXTRINSICS if name in labels]
+    if as_released and present and len(present) < len(RELEASED_EXTRINSICS):
+        missing = [name for name in RELEASED_EXTRINSICS if name not in labels]
+        raise DatasetError(f"missing label(s) {', '.join(missing)}")
     required = TARGETS + (("u", "v", "disparity_released") if as_released else ())
     missing = [name for name in required if name not in labels]
     if missing:
@@ -47,10 +64,16 @@ def targets_from_labels(labels, as_released=False):
     out = {name: np.asarray(labels[name], dtype=np.float64) for name in TARGETS}
     if as_released:
         out["disparity"] = np.asarray(labels["disparity_released"], dtype=np.float64)
-        out["pitch"] = np.degrees(out["pitch"])
+        if present:
+            for name in ("baseline", "tx", "ty", "tz", "pitch"):
+                out[name] = np.asarray(labels[f"{name}_released"], dtype=np.float64)
+            u, v = labels["u_released"], labels["v_released"]
+        else:
+            out["pitch"] = np.degrees(out["pitch"])
+            u, v = labels["u"], labels["v"]
         params = {name: out[name] for name in camera.PARAMETERS}
-        u = np.asarray(labels["u"], dtype=np.float64)
-        v = np.asarray(labels["v"], dtype=np.float64)
+        u = np.asarray(u, dtype=np.float64)
+        v = np.asarray(v, dtype=np.float64)
         out["X"], out["Y"], out["Z"] = camera.image_to_world(**params, u=u, v=v)
     result = {name: out[name].astype(np.float32) for name in TARGETS}
     for name, values in result.items():

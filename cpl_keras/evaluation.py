@@ -283,12 +283,15 @@ def make_table(number, run_dirs, data_path=None, geometric=True, geometric_max=N
 
         from cpl_keras.baselines.average import average_predictions
 
-        truth_ref = truth_targets(labels, indices, as_released(reference))
-        for row, kind in (("Average", "mean"), ("Average (release bug)", "release")):
+        # the release's buggy Average averaged the release's labels: scored
+        # against the release's truth (its frame, degrees, StereoBM disparity)
+        for row, kind, released in (("Average", "mean", as_released(reference)),
+                                    ("Average (release bug)", "release", True)):
+            truth_ref = truth_targets(labels, indices, released)
             pred = {k: np.asarray(v, np.float64)
                     for k, v in average_predictions(reference["stats"], n, kind=kind).items()}
             rows[row] = {"source": f"{reference['run_dir']}/train_stats.json ({kind})",
-                         "as_released": as_released(reference), "num_pairs": n,
+                         "as_released": released, "num_pairs": n,
                          **score(truth_ref, pred, width)}
         for run in runs:
             if progress:

@@ -77,3 +77,27 @@ def test_dataset_and_preview(tmp_path):
     with Image.open(sheet) as image:
         assert image.width > 2 * 32 and image.height > 32
     assert sorted(os.listdir(tmp_path)) == ["d.h5", "p.png"]
+
+
+def test_summary_reports_sky_at_the_release_pixel(tmp_path):
+    import re
+
+    import numpy as np
+
+    from cpl_keras.data.generate import label_summary
+
+    out = tmp_path / "d.h5"
+    result = _cli("--protocol", "cvgl", "--pairs", "6", "--image-size", "32", "--workers", "1",
+                  "--out", str(out), "--no-progress")
+    assert result.returncode == 0, result.stderr
+    assert result.stdout.strip() == str(out)
+    line = [x for x in result.stderr.splitlines() if x.startswith("summary:")]
+    assert len(line) == 1, result.stderr
+    with StereoFile(out) as data:
+        sky = int(np.sum(data.labels["sky_at_release_pixel"]))
+        fallback = int(np.sum(data.labels["projection_fallback"]))
+        summary = label_summary(data.labels)
+    assert summary["pairs"] == 6 and summary["sky_at_release_pixel"] == sky
+    assert re.search(rf"sees the sky in {sky} of 6 pairs", line[0]), line[0]
+    assert re.search(rf"{fallback} from the fallback", line[0]), line[0]
+    assert summary["beyond_max_distance"] == 0

@@ -64,6 +64,8 @@ def test_round_trip_with_metadata(tmp_path, protocol):
         assert len(data) == 5 and data.image_shape == (32, 32, 3)
         for name in REQUIRED_LABELS + ("yaw", "roll", "config_id", "town_id", "frame_index"):
             assert name in data.labels, name
+        # every stored label is described
+        assert set(data.labels) == set(generate.LABEL_DESCRIPTIONS)
         meta = data.metadata
         assert meta["protocol"] == protocol and meta["seed"] == 2 and meta["image_size"] == 32
         assert [t["name"] for t in meta["towns"]] == ["Town01", "Town02"]
@@ -82,10 +84,90 @@ def test_round_trip_with_metadata(tmp_path, protocol):
     with h5py.File(path, "r") as f:
         assert f["labels/pitch"].attrs["unit"] == "rad"
         assert "degrees" in f["labels/pitch"].attrs["description"]
+        assert f["labels/pitch_released"].attrs["unit"] == "deg"
+        assert f["labels/tz_released"].attrs["unit"] == "m"
+        assert f["labels/sky_at_release_pixel"].dtype == np.int32
+        for name in f["labels"]:
+            assert f["labels"][name].attrs["description"], name
         assert f["left"].chunks == (1, 32, 32, 3) and f["left"].compression == "gzip"
+    # the release's pixel is kept only for the as-released labels
+    np.testing.assert_array_equal(lab["u_released"], 16.0)
+    np.testing.assert_array_equal(lab["v_released"], 16.0)
+    np.testing.assert_array_equal(lab["yaw"], 0.0)
+    np.testing.assert_array_equal(lab["roll"], 0.0)
     if protocol == "cvgl":
-        np.testing.assert_array_equal(lab["u"], 16.0)
         np.testing.assert_array_equal(lab["baseline"], lab["tx"])
+        np.testing.assert_array_equal(lab["baseline_released"], lab["tx_released"])
+
+
+def _released_by_hand(protocol, cfg):
+    """The release's extrinsics of a configuration, from the metadata."""
+    if protocol == "cvgl":
+        c = cfg["carla"]         # right camera minus the fixed left (2, 0, 1.4, -15 deg)
+        tx = c["x"] - 2.0
+        return {"baseline": tx, "tx": tx, "ty": c["y"] - 0.0, "tz": c["z"] - 1.4,
+                "pitch": c["pitch_deg"] - (-15.0)}
+    left = np.array(cfg["left_pose"]["position"])
+    right = np.array(cfg["right_pose"]["position"])
+    right_pitch = camera.euler_from_rotation(np.array(cfg["right_rotation"]))[0]
+    return {"baseline": cfg["baseline"], "tx": right[0] - left[0], "ty": left[1] - right[1],
+            "tz": right[2] - left[2],
+            "pitch": np.degrees(cfg["left_pose"]["pitch"] - right_pitch)}
+
+
+@pytest.mark.parametrize("protocol", PROTOCOLS)
+def test_as_released_targets_reproduce_the_release_labels(tmp_path, protocol):
+    """Release frame (vehicle-frame right-minus-left, CARLA conventions, degrees),
+    StereoBM disparity and X, Y, Z at the release's pixel (W/2, H/2)."""
+    from cpl_keras.datasets import targets_from_labels
+
+    size = 32
+    path = generate_dataset(tmp_path / "d.h5", protocol=protocol, pairs=6, seed=4,
+                            image_size=size, workers=1, progress=False)
+    with StereoFile(path) as data:
+        lab = data.labels
+        configs = data.metadata["configurations"]
+    released = targets_from_labels(lab, as_released=True)
+    paper = targets_from_labels(lab)
+    for i in range(6):
+        expected = _released_by_hand(protocol, configs[lab["config_id"][i]])
+        for name, value in expected.items():
+            assert released[name][i] == pytest.approx(value, rel=1e-5, abs=1e-5), (name, i)
+    np.testing.assert_array_equal(released["disparity"], lab["disparity_released"])
+    for name in ("fx", "fy", "u0", "v0"):
+        np.testing.assert_array_equal(released[name], lab[name])
+    params = {name: released[name].astype(np.float64) for name in camera.PARAMETERS}
+    X, Y, Z = camera.image_to_world(**params, u=size / 2, v=size / 2)   # the release's pixel
+    np.testing.assert_allclose(released["X"], X, rtol=1e-5, atol=1e-4)
+    np.testing.assert_allclose(released["Y"], Y, rtol=1e-5, atol=1e-4)
+    np.testing.assert_allclose(released["Z"], Z, rtol=1e-5, atol=1e-4)
+    if protocol == "cvgl":
+        # release tz is the height difference (-0.4..1.6 m); ours is far larger
+        assert np.all((released["tz"] >= -0.4 - 1e-6) & (released["tz"] <= 1.6 + 1e-6))
+        assert np.all(paper["tz"] > 1.0)
+        np.testing.assert_allclose(released["pitch"], -np.degrees(paper["pitch"]), rtol=1e-4)
+        np.testing.assert_allclose(released["ty"], -paper["ty"], rtol=1e-5)
+
+
+def test_old_format_files_are_refused_with_a_one_line_hint(tmp_path):
+    import json
+
+    from cpl_keras.data.storage import DatasetError
+
+    path = generate_dataset(tmp_path / "old.h5", protocol="cvgl", pairs=2, seed=0,
+                            image_size=16, workers=1, progress=False)
+    with StereoFile(path) as data:
+        assert data.metadata["generator_version"] == generate.GENERATOR_VERSION
+    with h5py.File(path, "r+") as f:
+        meta = json.loads(f.attrs["metadata_json"])
+        meta["generator_version"] = "1.0"
+        f.attrs["metadata_json"] = json.dumps(meta)
+    with pytest.raises(DatasetError) as error:
+        StereoFile(path)
+    message = str(error.value)
+    assert "\n" not in message
+    assert str(path) in message and "1.0" in message
+    assert "python -m cpl_keras.data.generate --protocol cvgl --pairs 2" in message
 
 
 def test_released_disparity_is_the_raw_stereobm_mean():

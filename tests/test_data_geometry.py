@@ -102,13 +102,97 @@ def test_labels_obey_camera_equations_and_describe_the_rendered_point(protocol):
         assert lab["disparity"] == pytest.approx(lab["fx"] * lab["baseline"] / xCam)
         world = right.position + xCam * right.rays(lab["u"], lab["v"])
         in_left = left.rotation.T @ (world - left.position)
-        if protocol == "cvgl":       # yaw = roll = 0: X, Y, Z is exactly that point
-            np.testing.assert_allclose([X, Y, Z], in_left, rtol=1e-9, atol=1e-9)
+        # no relative yaw or roll in either protocol: X, Y, Z is exactly that point
+        assert lab["yaw"] == 0.0 and lab["roll"] == 0.0
+        np.testing.assert_allclose([X, Y, Z], in_left, rtol=1e-9, atol=1e-9)
         # relative pose labels: P_left = R(pitch, yaw, roll) P_right + t
         R = camera.rotation_matrix(lab["pitch"], lab["yaw"], lab["roll"])
         in_right = right.rotation.T @ (world - right.position)
         np.testing.assert_allclose(R @ in_right + [lab["tx"], lab["ty"], lab["tz"]], in_left,
                                    atol=1e-9 * max(1.0, abs(xCam)))
+
+
+@pytest.mark.parametrize("protocol", ["cvgl", "random"])
+def test_label_point_is_the_rendered_point_in_both_cameras(protocol):
+    """(X, Y, Z) projected into the LEFT camera lands on a surface at depth X,
+    and the right camera's depth at (u, v) is fx * b / d."""
+    pairs, seen, matched = 40, 0, 0
+    for index in range(0, pairs, 2):
+        _, _, lab = render_pair(protocol, 2, pairs, SIZE, index)
+        s = protocols.pair_setup(protocol, 2, pairs, SIZE, index)
+        fx, fy, u0, v0 = lab["fx"], lab["fy"], lab["u0"], lab["v0"]
+        xCam = render.depth_at(s["town"], s["right"], lab["u"], lab["v"])[0]
+        assert xCam == pytest.approx(fx * lab["baseline"] / lab["disparity"], rel=1e-9)
+        # never the sky dome: the point is a surface point near the right camera
+        ray = camera.camera_point(1.0, fx, fy, u0, v0, lab["u"], lab["v"])
+        assert xCam * math.hypot(1.0, *ray) < protocols.MAX_LABEL_DISTANCE
+        X, Y, Z = lab["X"], lab["Y"], lab["Z"]
+        u_left, v_left = camera.camera_to_pixel(X, Y, Z, fx, fy, u0, v0)
+        if not (X > 0 and 0 <= u_left <= SIZE - 1 and 0 <= v_left <= SIZE - 1):
+            continue                       # outside the left image
+        seen += 1
+        depth_left = render.depth_at(s["town"], s["left"], u_left, v_left)[0]
+        # the left ray ends on a surface at or before the point (occlusion) ...
+        assert depth_left <= X * (1 + 1e-9)
+        # ... and most label points are visible there, at depth X (measured:
+        # relative error below 1.2e-14 at the visible ones; 1e-9 allowed)
+        if abs(depth_left - X) <= 1e-9 * X:
+            matched += 1
+    assert seen >= 8, seen
+    assert matched >= 0.75 * seen, (matched, seen)
+
+
+def test_random_rigs_have_no_relative_yaw_or_roll():
+    """The right camera's rotation relative to the left is Ry(pitch) (Eq. 5)."""
+    configs = protocols.configurations("random", 4, 80, 64)
+    for index in range(0, 80, 8):
+        s = protocols.pair_setup("random", 4, 80, 64, index)
+        cfg = s["config"]
+        relative = s["left"].rotation.T @ s["right"].rotation
+        np.testing.assert_allclose(relative, camera.rotation_matrix(cfg["pitch"]), atol=1e-12)
+        assert cfg["yaw"] == 0.0 and cfg["roll"] == 0.0
+    assert len({round(c["pitch"], 6) for c in configs}) > 5          # pitch still varies
+    # the left camera's own mounting yaw and roll stay
+    assert any(abs(c["left_pose"]["yaw"]) > 1e-3 for c in configs)
+
+
+@pytest.mark.parametrize("protocol", ["cvgl", "random"])
+def test_projection_pixel_on_geometry_and_release_pixel_sky_flag(protocol):
+    pairs = 50
+    sky_flags = []
+    for index in range(0, pairs, 5):
+        _, _, lab = render_pair(protocol, 0, pairs, SIZE, index)
+        s = protocols.pair_setup(protocol, 0, pairs, SIZE, index)
+        margin = protocols.projection_margin(SIZE)
+        assert lab["u"] == int(lab["u"]) and lab["v"] == int(lab["v"])
+        assert margin <= lab["u"] < SIZE - margin and margin <= lab["v"] < SIZE - margin
+        assert lab["projection_fallback"] in (0, 1)
+        # the release's fixed pixel, and whether it sees the sky dome
+        assert (lab["u_released"], lab["v_released"]) == (SIZE / 2, SIZE / 2)
+        d = render.depth_at(s["town"], s["right"], SIZE / 2, SIZE / 2)[0]
+        ray = camera.camera_point(1.0, lab["fx"], lab["fy"], lab["u0"], lab["v0"],
+                                  SIZE / 2, SIZE / 2)
+        assert lab["sky_at_release_pixel"] == int(
+            d * math.hypot(1.0, *ray) >= 0.99 * scenes.SKY_DISTANCE)
+        sky_flags.append(lab["sky_at_release_pixel"])
+    if protocol == "cvgl":
+        assert 0 < sum(sky_flags) < len(sky_flags)    # the release's pixel often sees the sky
+
+
+def test_projection_fallback_takes_the_nearest_pixel_inside_the_margin():
+    from cpl_keras.data.generate import choose_projection_pixel
+
+    cfg = {"fx": 30.0, "fy": 30.0, "u0": 16.0, "v0": 16.0}
+    depth = np.full((32, 32), scenes.SKY_DISTANCE)
+    depth[30, 30] = 1.0                     # nearest, but inside the border margin
+    depth[20, 9] = 50.0
+    candidates = np.array([[5.0, 5.0], [16.0, 16.0]])       # both see the sky
+    (u, v), fallback = choose_projection_pixel(cfg, depth, candidates, margin=4)
+    assert (u, v, fallback) == (9.0, 20.0, 1)
+    depth[16, 16] = 150.0                   # a candidate near enough: no fallback
+    assert choose_projection_pixel(cfg, depth, candidates, margin=4) == ((16.0, 16.0), 0)
+    depth[16, 16] = 250.0                   # beyond MAX_LABEL_DISTANCE: not taken
+    assert choose_projection_pixel(cfg, depth, candidates, margin=4)[1] == 1
 
 
 def test_cvgl_labels_convert_carla_conventions():
@@ -122,6 +206,22 @@ def test_cvgl_labels_convert_carla_conventions():
         assert cfg["ty"] == pytest.approx(dy)
         assert cfg["tz"] == pytest.approx(math.sin(p) * dx + math.cos(p) * dz)
         assert cfg["baseline"] == cfg["tx"] and abs(cfg["tx"]) >= 0.5
+        # the release's frame: CARLA values minus the left camera's, pitch in degrees
+        released = cfg["released"]
+        assert released["tx"] == pytest.approx(carla["x"] - 2.0)
+        assert released["ty"] == pytest.approx(carla["y"])
+        assert released["tz"] == pytest.approx(carla["z"] - 1.4)
+        assert -0.4 - 1e-9 <= released["tz"] <= 1.6 + 1e-9
+        assert released["pitch"] == pytest.approx(carla["pitch_deg"] + 15.0)
+        assert released["pitch"] == pytest.approx(-math.degrees(cfg["pitch"]))
+        assert released["baseline"] == released["tx"]
+        # the generic vehicle-frame difference (used by the random protocol) agrees
+        generic = protocols.released_extrinsics(
+            camera.rotation_matrix(p), (2.0, 0.0, 1.4),
+            camera.rotation_matrix(math.radians(-carla["pitch_deg"])),
+            (carla["x"], -carla["y"], carla["z"]))
+        for key in released:
+            assert generic[key] == pytest.approx(released[key], abs=1e-9)
 
 
 def test_random_protocol_ranges():
@@ -131,8 +231,20 @@ def test_random_protocol_ranges():
         lateral = -cfg["ty"]
         assert 0.04 < lateral < 1.01
         assert cfg["baseline"] == pytest.approx(math.sqrt(cfg["tx"]**2 + cfg["ty"]**2 + cfg["tz"]**2))
-        for angle in ("pitch", "yaw", "roll"):
-            assert abs(cfg[angle]) < math.radians(3.5)
+        assert abs(cfg["pitch"]) < math.radians(3.5)
+        # release-frame analogue: vehicle-frame difference of the camera centres,
+        # CARLA's y (right) and pitch sign (up), degrees
+        left = np.array(cfg["left_pose"]["position"])
+        right = np.array(cfg["right_pose"]["position"])
+        released = cfg["released"]
+        assert released["tx"] == pytest.approx(right[0] - left[0])
+        assert released["ty"] == pytest.approx(-(right[1] - left[1]))
+        assert released["tz"] == pytest.approx(right[2] - left[2])
+        right_pitch = camera.euler_from_rotation(np.array(cfg["right_rotation"]))[0]
+        assert released["pitch"] == pytest.approx(
+            math.degrees(cfg["left_pose"]["pitch"] - right_pitch))
+        assert released["baseline"] == pytest.approx(cfg["baseline"])
+        assert 0.0 < released["ty"] < 1.1            # the right camera is to the right
         assert 40.0 <= cfg["fov_deg"] <= 120.0
         assert abs(cfg["fy"] / cfg["fx"] - 1) <= 0.05 + 1e-9
     assert len({round(c["u0"], 3) for c in configs}) > 40        # off-centre, varied

@@ -83,6 +83,43 @@ def test_released_targets_use_degrees_and_stereobm_disparity():
         np.testing.assert_array_equal(targets[name], labels[name])
 
 
+def released_frame_labels(labels, seed=1):
+    """``labels`` plus release-frame extrinsics and pixel (as the generator stores)."""
+    rng = np.random.default_rng(seed)
+    n, size = len(labels["fx"]), float(labels["u0"][0] * 2)
+    out = dict(labels)
+    out["tx_released"] = rng.uniform(0.5, 168, n).astype(np.float32)
+    out["baseline_released"] = out["tx_released"].copy()
+    out["ty_released"] = rng.uniform(-5, 5, n).astype(np.float32)
+    out["tz_released"] = rng.uniform(-0.4, 1.6, n).astype(np.float32)
+    out["pitch_released"] = rng.uniform(-15, 45, n).astype(np.float32)
+    out["u_released"] = np.full(n, size / 2, np.float32)
+    out["v_released"] = np.full(n, size / 2, np.float32)
+    return out
+
+
+def test_released_targets_use_the_release_frame_and_pixel():
+    labels = released_frame_labels(fixture_labels(20, 32))
+    targets = targets_from_labels(labels, as_released=True)
+    for name in ("baseline", "tx", "ty", "tz", "pitch"):
+        np.testing.assert_array_equal(targets[name], labels[f"{name}_released"])
+    np.testing.assert_array_equal(targets["disparity"], labels["disparity_released"])
+    params = {name: targets[name].astype(np.float64) for name in camera.PARAMETERS}
+    X, Y, Z = camera.image_to_world(**params, u=16.0, v=16.0)      # the release's pixel
+    np.testing.assert_allclose(targets["X"], X, rtol=1e-5, atol=1e-4)
+    np.testing.assert_allclose(targets["Y"], Y, rtol=1e-5, atol=1e-4)
+    np.testing.assert_allclose(targets["Z"], Z, rtol=1e-5, atol=1e-4)
+    # not the label pixel (u, v)
+    X_uv, _, _ = camera.image_to_world(**params, u=labels["u"], v=labels["v"])
+    assert not np.allclose(targets["X"], X_uv, rtol=1e-3)
+    # the paper's targets ignore them
+    np.testing.assert_array_equal(targets_from_labels(labels)["tx"], labels["tx"])
+    # half a release frame is an error, not a silent mix
+    del labels["tz_released"]
+    with pytest.raises(DatasetError, match="tz_released"):
+        targets_from_labels(labels, as_released=True)
+
+
 def test_targets_name_missing_label():
     labels = fixture_labels(10, 32)
     del labels["disparity_released"]
@@ -167,6 +204,62 @@ def test_training_statistics_and_the_release_bug(tmp_path):
     assert release["pitch"][0] == np.float32(stats["release_average"]["pitch"])
     with pytest.raises(ValueError, match="unknown Average kind"):
         average_predictions(stats, 2, kind="median")
+
+
+def test_release_average_comes_from_the_release_labels():
+    labels = released_frame_labels(fixture_labels(60, 32))
+    paper = targets_from_labels(labels)
+    released = targets_from_labels(labels, as_released=True)
+    order = np.random.default_rng(5).permutation(np.arange(10, 50))
+    stats = training_statistics(paper, order, release_targets=released)
+    # the means are the paper targets' ...
+    np.testing.assert_allclose(stats["mean"]["tz"], paper["tz"][order].mean(), rtol=1e-5)
+    # ... the release's bug averages the release's 13 labels of sample i
+    for i, name in enumerate(TARGETS):
+        expected = np.mean([released[t][order[i]] for t in TARGETS])
+        np.testing.assert_allclose(stats["release_average"][name], expected, rtol=1e-5)
+    assert stats["release_average"] != training_statistics(paper, order)["release_average"]
+
+
+def test_training_writes_the_release_average_of_the_release_labels(tmp_path):
+    """train_stats.json's release_average: as-released targets, shuffled training order."""
+    import json
+
+    from cpl_keras.datasets import load_split
+    from cpl_keras.training import train
+
+    labels = released_frame_labels(fixture_labels(30, 16))
+    path = write_stereo_fixture(tmp_path / "d.h5", n=30, image_size=16, labels=labels)
+    run_dir = tmp_path / "run"
+    train(path, variant="baseline", run_dir=str(run_dir), backbone="small", epochs=1,
+          batch_size=21, seed=2, verbose=0)
+    with open(run_dir / "train_stats.json") as f:
+        stats = json.load(f)
+    split = load_split(run_dir / "split.npz")
+    order = np.random.default_rng(2).permutation(split["train"])
+    released = targets_from_labels(labels, as_released=True)
+    paper = targets_from_labels(labels)
+    for i, name in enumerate(TARGETS):
+        # parameter i <- the mean of the release's 13 labels of training sample i
+        expected = np.mean([np.float64(released[t][order[i]]) for t in TARGETS])
+        assert stats["release_average"][name] == pytest.approx(expected, rel=1e-6)
+        assert stats["mean"][name] == pytest.approx(
+            np.mean(paper[name][split["train"]].astype(np.float64)), rel=1e-5)
+    # the evaluation scores the buggy row against the release's truth, the
+    # plain Average (of a paper-mode run) against the paper's
+    from cpl_keras.evaluation import make_table
+
+    rows = make_table(1, [str(run_dir)], geometric=False)["rows"]
+    test = split["test"]
+    bug, plain = rows["Average (release bug)"], rows["Average"]
+    assert bug["as_released"] is True and plain["as_released"] is False
+    for name in ("tx", "pitch", "X"):
+        truth = released[name][test].astype(np.float64)
+        assert bug["targets"][name]["mae"] == pytest.approx(
+            np.mean(np.abs(truth - np.float32(stats["release_average"][name]))), rel=1e-5)
+        assert bug["targets"][name]["mean"] == pytest.approx(truth.mean(), rel=1e-5)
+        assert plain["targets"][name]["mean"] == pytest.approx(
+            paper[name][test].astype(np.float64).mean(), rel=1e-5)
 
 
 # ---------------------------------------------------------------------------

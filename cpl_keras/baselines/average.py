@@ -7,7 +7,10 @@ test pairs.
 
 The released code had a bug the paper's Average rows come from: parameter
 ``i`` (``i = 0..12`` in ``TARGETS`` order) was predicted as the mean of the 13
-labels of *training sample* ``i``. ``kind="release"`` reproduces it.
+labels of *training sample* ``i`` -- the release's labels (its extrinsic
+frame, pitch in degrees, StereoBM disparity), so ``release_average`` is
+computed from the as-released targets and the row is scored against them.
+``kind="release"`` reproduces it.
 """
 
 from __future__ import annotations
@@ -22,7 +25,7 @@ from cpl_keras.camera import TARGETS
 KINDS = ("mean", "release")
 
 
-def training_statistics(targets, train_indices):
+def training_statistics(targets, train_indices, release_targets=None):
     """Per-target mean and standard deviation over the training pairs.
 
     Args:
@@ -30,6 +33,9 @@ def training_statistics(targets, train_indices):
         train_indices: the training pairs, in the training set's order (the
             release's bug depends on that order: sample ``i`` is
             ``train_indices[i]``).
+        release_targets: the release's labels (``datasets.targets_from_labels(
+            labels, as_released=True)``), which the release's buggy Average
+            averaged; ``None`` uses ``targets``.
 
     Returns a JSON-ready dict: ``targets`` (the names, in order), ``mean`` and
     ``std`` (name -> float), ``num_train`` and ``release_average``
@@ -43,8 +49,14 @@ def training_statistics(targets, train_indices):
         )
     table = np.stack([np.asarray(targets[name], np.float64)[train_indices] for name in TARGETS], 1)
     mean, std = table.mean(axis=0), table.std(axis=0)
-    # The release's bug: row i (training sample i) averaged over its 13 labels.
-    release = table[: len(TARGETS)].mean(axis=1)
+    # The release's bug: row i (training sample i) averaged over its 13 labels
+    # (the release's labels: its frame, degrees, StereoBM disparity).
+    if release_targets is None:
+        release_table = table
+    else:
+        release_table = np.stack([np.asarray(release_targets[name], np.float64)[train_indices]
+                                  for name in TARGETS], 1)
+    release = release_table[: len(TARGETS)].mean(axis=1)
     return {
         "targets": list(TARGETS),
         "mean": {name: float(m) for name, m in zip(TARGETS, mean)},

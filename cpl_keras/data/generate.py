@@ -13,12 +13,19 @@ labelled with the paper's 13 targets:
   right camera relative to the left one (see ``protocols``),
 * the true disparity at the projection pixel (u, v) of the right image,
   ``d = fx * baseline / xCam`` (Eq. 4a inverted), xCam being the rendered
-  depth of that pixel,
+  depth of that pixel; (u, v) is chosen on scene geometry, never the sky
+  (``choose_projection_pixel``),
 * X, Y, Z = ``camera.image_to_world`` of those labels (Eqs. 4a-5c), so the
-  labels obey the camera equations exactly.
+  labels obey the camera equations exactly and name the rendered point in
+  the left camera's frame.
 
-The release's disparity (mean of the raw ``cv2.StereoBM`` map) is stored as
-``disparity_released``. Pairs are rendered in blocks by worker processes and
+What the release's labels need is stored beside them: its disparity (mean
+of the raw ``cv2.StereoBM`` map) as ``disparity_released``, its extrinsics
+(vehicle-frame differences, CARLA conventions, pitch in degrees) as
+``<name>_released`` and its fixed pixel (W/2, H/2) as ``u_released``,
+``v_released``; ``sky_at_release_pixel`` says whether that pixel sees the
+sky. ``datasets.targets_from_labels(..., as_released=True)`` turns them into
+the release's targets. The CLI prints a one-line ``summary_text``. Pairs are rendered in blocks by worker processes and
 written in order through ``storage.StereoWriter`` (atomic: a killed run leaves
 no file at the final path); pair i depends only on (seed, i), so the bytes
 do not depend on the number of workers.
@@ -41,7 +48,7 @@ from cpl_keras.data import protocols
 from cpl_keras.data.protocols import PROTOCOLS
 from cpl_keras.data.scenes import SKY_DISTANCE
 
-GENERATOR_VERSION = "1.0"
+GENERATOR_VERSION = "2.0"
 MIN_IMAGE_SIZE = 16
 MAX_IMAGE_SIZE = 1024
 BLOCK = 32
@@ -60,19 +67,47 @@ LABEL_DESCRIPTIONS = {
     "tz": "right camera centre in the left camera frame, z (up)",
     "pitch": "relative pitch right-to-left (Eq. 5), radians, positive tilts down; the release "
              "stored degrees and fed them to sin/cos as radians",
-    "yaw": "relative yaw right-to-left, radians (nuisance, not in Eq. 5)",
-    "roll": "relative roll right-to-left, radians (nuisance, not in Eq. 5)",
-    "X": "Eq. 5a at (u, v): image_to_world of the stored labels",
-    "Y": "Eq. 5b at (u, v): image_to_world of the stored labels",
-    "Z": "Eq. 5c at (u, v): image_to_world of the stored labels",
-    "u": "projection pixel u (column) in the right image",
-    "v": "projection pixel v (row) in the right image",
+    "yaw": "relative yaw right-to-left, radians: always 0 (the relative rotation is a pitch "
+           "only); kept for format stability",
+    "roll": "relative roll right-to-left, radians: always 0 (the relative rotation is a pitch "
+            "only); kept for format stability",
+    "X": "Eq. 5a at (u, v): image_to_world of the stored labels (left camera frame)",
+    "Y": "Eq. 5b at (u, v): image_to_world of the stored labels (left camera frame)",
+    "Z": "Eq. 5c at (u, v): image_to_world of the stored labels (left camera frame)",
+    "u": "projection pixel u (column) in the right image, on scene geometry (not the sky)",
+    "v": "projection pixel v (row) in the right image, on scene geometry (not the sky)",
+    "baseline_released": "baseline as released (release frame): cvgl tx_released; random: "
+                         "distance between the camera centres",
+    "tx_released": "as released: right-minus-left camera x in the vehicle frame (CARLA, "
+                   "forward), metres",
+    "ty_released": "as released: right-minus-left camera y in the vehicle frame (CARLA, "
+                   "RIGHT), metres",
+    "tz_released": "as released: right-minus-left camera z in the vehicle frame (CARLA, up), "
+                   "metres",
+    "pitch_released": "as released: right-minus-left camera pitch, DEGREES, CARLA convention "
+                      "(positive up); the release fed it to sin/cos as radians",
+    "u_released": "the release's fixed projection pixel u = W/2 (as-released X, Y, Z)",
+    "v_released": "the release's fixed projection pixel v = H/2 (as-released X, Y, Z)",
+    "sky_at_release_pixel": "1 if the release's pixel (W/2, H/2) of the right image sees the "
+                            "sky dome, else 0",
+    "projection_fallback": "1 if no drawn candidate pixel was nearer than MAX_LABEL_DISTANCE "
+                           "and the nearest pixel inside the margin was taken, else 0",
     "config_id": "rig configuration",
     "town_id": "town (0 = Town01, 1 = Town02)",
     "frame_index": "frame along the configuration's drive",
 }
-FLOAT_LABELS = camera.TARGETS + ("u", "v", "disparity_released", "yaw", "roll")
-INT_LABELS = ("config_id", "town_id", "frame_index")
+#: The extrinsics stored a second time in the release's frame (``<name>_released``).
+RELEASE_FRAME = ("baseline", "tx", "ty", "tz", "pitch")
+FLOAT_LABELS = camera.TARGETS + ("u", "v", "disparity_released", "yaw", "roll") + tuple(
+    f"{k}_released" for k in RELEASE_FRAME) + ("u_released", "v_released")
+INT_LABELS = ("config_id", "town_id", "frame_index", "sky_at_release_pixel",
+              "projection_fallback")
+#: Units of the labels that ``camera.UNITS`` does not name.
+EXTRA_UNITS = {"baseline_released": "m", "tx_released": "m", "ty_released": "m",
+               "tz_released": "m", "pitch_released": "deg", "u_released": "px",
+               "v_released": "px"}
+#: A ray sees the sky when its hit is at least this fraction of SKY_DISTANCE away.
+SKY_FRACTION = 0.99
 
 
 # ---------------------------------------------------------------------------
@@ -112,17 +147,13 @@ def render_pair(protocol, seed, pairs, image_size, index):
     town, cfg, right = s["town"], s["config"], s["right"]
     left_img, _ = render.render(town, s["left"])
     right_img, right_depth = render.render(town, right)
-    u, v = s["uv_candidates"][0]
-    for cu, cv in s["uv_candidates"]:
-        # distance along the ray = xCam * |(1, yCam, zCam)| (Eq. 6 ray)
-        ray_y, ray_z = camera.camera_point(1.0, cfg["fx"], cfg["fy"], cfg["u0"], cfg["v0"], cu, cv)
-        distance = right_depth[int(cv), int(cu)] * math.sqrt(1.0 + ray_y**2 + ray_z**2)
-        if distance < 0.99 * SKY_DISTANCE:
-            u, v = cu, cv
-            break
-    u, v = float(u), float(v)
+    (u, v), fallback = choose_projection_pixel(cfg, right_depth, s["uv_candidates"], s["margin"])
     # the depth of exactly (u, v), cast on its own (also for non-integer pixels)
     xCam = float(render.depth_at(town, right, u, v)[0])
+    # the release's fixed pixel: does it see the sky dome?
+    u_rel, v_rel = s["release_uv"]
+    sky = _ray_distance(cfg, render.depth_at(town, right, u_rel, v_rel)[0], u_rel, v_rel) \
+        >= SKY_FRACTION * SKY_DISTANCE
     disparity = float(camera.disparity_from_depth(cfg["fx"], cfg["baseline"], xCam))
     X, Y, Z = camera.image_to_world(
         cfg["fx"], cfg["fy"], cfg["u0"], cfg["v0"], cfg["baseline"], disparity,
@@ -134,7 +165,39 @@ def render_pair(protocol, seed, pairs, image_size, index):
                   disparity_released=released_disparity(left_img, right_img),
                   config_id=cfg["config_id"], town_id=cfg["town_id"],
                   frame_index=s["frame_index"])
+    labels.update({f"{k}_released": float(cfg["released"][k]) for k in RELEASE_FRAME})
+    labels.update(u_released=float(u_rel), v_released=float(v_rel),
+                  sky_at_release_pixel=int(sky), projection_fallback=int(fallback))
     return left_img, right_img, labels
+
+
+def _ray_distance(cfg, xCam, u, v):
+    """Distance from the camera centre of the point at depth xCam seen at (u, v):
+    xCam * |(1, yCam, zCam)| with the pixel's Eq. 6 ray."""
+    ray_y, ray_z = camera.camera_point(1.0, cfg["fx"], cfg["fy"], cfg["u0"], cfg["v0"], u, v)
+    return np.asarray(xCam) * np.sqrt(1.0 + np.square(ray_y) + np.square(ray_z))
+
+
+def choose_projection_pixel(cfg, depth, candidates, margin):
+    """The projection pixel of a pair: ``((u, v), fallback)``.
+
+    The first candidate (integer pixels) whose point is nearer than
+    ``protocols.MAX_LABEL_DISTANCE`` along the ray (so never the sky) is taken,
+    ``fallback = 0``. If none is, the nearest pixel at least ``margin`` from
+    the border is taken (first in row-major order among equals),
+    ``fallback = 1``.
+    """
+    cu = np.asarray(candidates)[:, 0].astype(np.intp)
+    cv = np.asarray(candidates)[:, 1].astype(np.intp)
+    distance = _ray_distance(cfg, depth[cv, cu], cu, cv)
+    near = np.flatnonzero(distance < protocols.MAX_LABEL_DISTANCE)
+    if len(near):
+        return (float(cu[near[0]]), float(cv[near[0]])), 0
+    H, W = depth.shape
+    v, u = np.mgrid[margin:H - margin, margin:W - margin]
+    inner = _ray_distance(cfg, depth[v, u], u, v)
+    k = int(np.argmin(inner))
+    return (float(u.flat[k]), float(v.flat[k])), 1
 
 
 def render_block(protocol, seed, pairs, image_size, start, stop):
@@ -202,7 +265,12 @@ def metadata(protocol, pairs, seed, image_size, command_line=None):
         "ranges": protocols.ranges(protocol),
         "configurations": protocols.configurations(protocol, seed, pairs, image_size),
         "geometry": "x forward, y left, z up; label extrinsics = right camera pose in the left "
-                    "camera frame, P_left = R(pitch) P_right + t; pixel centres at integer (u, v)",
+                    "camera frame, P_left = Ry(pitch) P_right + t (no relative yaw or roll); "
+                    "pixel centres at integer (u, v)",
+        "release_frame": "<name>_released: right-minus-left differences of the camera poses "
+                         "in the vehicle frame, CARLA conventions (x forward, y right, z up, "
+                         "pitch in degrees positive up); X, Y, Z as released at "
+                         "(u_released, v_released) = (W/2, H/2)",
         "sky_distance_m": scenes.SKY_DISTANCE,
         "command_line": command_line,
     }
@@ -294,7 +362,8 @@ def _generate(out, protocol, pairs, seed, image_size, workers, progress, command
     meta = metadata(protocol, pairs, seed, image_size, command_line)
     bar = _Progress(pairs, f"{protocol}", progress)
     with StereoWriter(out, pairs, image_size, metadata=meta,
-                      label_descriptions=LABEL_DESCRIPTIONS) as writer:
+                      label_descriptions=LABEL_DESCRIPTIONS, label_units=EXTRA_UNITS,
+                      int_labels=INT_LABELS) as writer:
         for start, (left, right, labels) in _iter_blocks(protocol, seed, pairs, image_size,
                                                          workers):
             writer.write(start, left, right, labels)
@@ -312,6 +381,51 @@ def generate_dataset(out, *, protocol="cvgl", pairs, seed=0, image_size=112, wor
     Returns the path written. Raises ``ValueError`` (one line) on bad arguments.
     """
     return _generate(out, protocol, pairs, seed, image_size, workers, progress)
+
+
+# ---------------------------------------------------------------------------
+# Summary
+# ---------------------------------------------------------------------------
+def label_summary(labels):
+    """Figures about a dataset's label points (dict, JSON-able).
+
+    ``pairs``; ``sky_at_release_pixel``: pairs whose release pixel (W/2, H/2)
+    sees the sky; ``projection_fallback``: pairs where no drawn candidate was
+    near enough and the nearest pixel was taken; ``beyond_max_distance``:
+    label points at least ``protocols.MAX_LABEL_DISTANCE`` from the right
+    camera (0 unless a whole image is sky or far); ``distance_median_m``,
+    ``distance_max_m``: the label points' distances from the right camera.
+    """
+    lab = {k: np.asarray(labels[k], np.float64) for k in
+           ("fx", "fy", "u0", "v0", "baseline", "disparity", "u", "v")}
+    xyz = camera.image_to_camera(lab["fx"], lab["fy"], lab["u0"], lab["v0"], lab["baseline"],
+                                 lab["disparity"], lab["u"], lab["v"])
+    distance = np.sqrt(sum(np.square(c) for c in xyz))
+    return {
+        "pairs": int(len(distance)),
+        "sky_at_release_pixel": int(np.sum(labels["sky_at_release_pixel"])),
+        "projection_fallback": int(np.sum(labels["projection_fallback"])),
+        "beyond_max_distance": int(np.sum(distance >= protocols.MAX_LABEL_DISTANCE)),
+        "distance_median_m": float(np.median(distance)),
+        "distance_max_m": float(distance.max()),
+    }
+
+
+def summary_text(path):
+    """One line about the dataset file ``path`` (printed by the CLI)."""
+    from cpl_keras.data.storage import StereoFile
+
+    with StereoFile(path) as data:
+        s = label_summary(data.labels)
+        h, w, _ = data.image_shape
+        protocol = data.metadata.get("protocol")
+    n = s["pairs"]
+    return (f"{n} {protocol} pairs at {w} px; label points {s['distance_median_m']:.1f} m "
+            f"(median), {s['distance_max_m']:.1f} m (max) from the right camera, "
+            f"{s['beyond_max_distance']} beyond {protocols.MAX_LABEL_DISTANCE:g} m, "
+            f"{s['projection_fallback']} from the fallback (nearest pixel); the release's "
+            f"pixel ({w / 2:g}, {h / 2:g}) sees the sky in {s['sky_at_release_pixel']} of {n} "
+            f"pairs ({100.0 * s['sky_at_release_pixel'] / n:.1f} %)")
 
 
 # ---------------------------------------------------------------------------
@@ -410,6 +524,7 @@ def main(argv=None):
             path = _generate(args.out, args.protocol, args.pairs, args.seed, args.image_size,
                              args.workers, not args.no_progress, command_line)
             print(path)
+            sys.stderr.write(f"summary: {summary_text(path)}\n")
         if args.preview is not None:
             print(write_preview(args.preview, args.protocol, args.pairs, args.seed,
                                 args.image_size))

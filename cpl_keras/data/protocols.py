@@ -5,9 +5,32 @@ Frames and labels
 The label extrinsics (pitch, tx, ty, tz, and the nuisance yaw, roll) are the
 RIGHT camera's pose relative to the LEFT camera, in the left camera's frame
 (x forward, y left, z up): ``P_left = R(pitch, yaw, roll) P_right + t`` with
-``t = (tx, ty, tz)`` the right camera centre seen from the left camera. With
-yaw = roll = 0 this is paper Eq. 5 (positive pitch tilts the axis down).
-Both cameras share the intrinsics fx, fy, u0, v0.
+``t = (tx, ty, tz)`` the right camera centre seen from the left camera. In
+both protocols the relative rotation is a pitch only, ``R_rel = Ry(pitch)``
+(yaw = roll = 0), so paper Eq. 5 maps the right camera's points into the left
+camera's frame exactly (positive pitch tilts the axis down). Both cameras
+share the intrinsics fx, fy, u0, v0.
+
+Release frame
+-------------
+The release stored its extrinsics in another frame: right-minus-left
+differences of the two cameras' mounting poses in the VEHICLE frame, in
+CARLA's conventions (x forward, y RIGHT, z up; pitch in DEGREES, positive
+up), and baseline = tx. ``released_extrinsics`` gives those values for a
+configuration (``tx/ty/tz/pitch/baseline_released`` labels). Against ours,
+pitch and ty flip sign and tx, tz are not rotated into the left camera's
+frame (cvgl: tz_released is -0.4..1.6 m, our tz 1..44 m).
+
+Projection pixel
+----------------
+Both protocols choose the projection pixel (u, v) on scene geometry: integer
+pixels at least 1/8 of the image from the border are drawn per pair
+(``PROJECTION_TRIES`` of them) and the generator takes the first whose point
+is nearer than ``MAX_LABEL_DISTANCE`` along the ray (so never the sky dome,
+whose 1000 m depth gave X, Y, Z labels of hundreds of metres). If none is,
+it takes the nearest pixel inside the margin and flags the pair
+(``projection_fallback``). The release's fixed pixel (W/2, H/2)
+(``RELEASE_PIXEL``) is kept only for the as-released labels.
 
 ``cvgl`` (the paper's protocol, CARLA conventions converted)
     Left camera on the vehicle at (x=2, y=0, z=1.4) m, looking down 15 deg
@@ -15,23 +38,26 @@ Both cameras share the intrinsics fx, fy, u0, v0.
     town, drawn once from the seed: fov 50-150 deg (shared by both cameras),
     x 2-170 m, y -5..5 m, z 1-3 m, pitch -30..30 deg in CARLA's convention
     (y right, pitch up), converted with y = -y_carla, pitch = -pitch_carla.
-    fx = fy = W / (2 tan(fov/2)), u0 = v0 = W/2, baseline = tx (as released),
-    projection pixel (u, v) = (W/2, H/2). Configurations with |tx| < 0.5 m are
-    redrawn so that the disparity never underflows the camera model's
-    division floor (a deviation from the release, which had no such rule).
+    fx = fy = W / (2 tan(fov/2)), u0 = v0 = W/2, baseline = tx (as released).
+    Configurations with |tx| < 0.5 m are redrawn so that the disparity never
+    underflows the camera model's division floor (a deviation from the
+    release, which had no such rule). Release frame: the CARLA values minus
+    the left camera's (x=2, y=0, z=1.4, pitch=-15 deg).
 
 ``random`` (realistic stereo rigs, continuous ranges)
     Every configuration is drawn independently: lateral baseline 0.05-1.0 m
     with the right camera to the right (ty = -baseline), small tx and tz,
-    relative pitch/yaw/roll of a few degrees, horizontal fov 40-120 deg,
-    fy = fx * (1 +- 5 %), principal point off centre by up to 10 % of the
-    image (as a crop would do), left camera mounted 1.2-2.0 m high looking
-    -5..15 deg down. baseline = |t| (the distance between the centres). One
-    configuration per ``RANDOM_FRAMES_PER_CONFIG`` frames, so whole
-    configurations can be held out. The projection pixel (u, v) is drawn per
-    pair: an integer pixel at least 1/8 of the image from the border, redrawn
-    (up to ``PROJECTION_TRIES`` times) while it sees the sky, whose 1000 m
-    depth would give X, Y, Z labels of hundreds of metres.
+    relative pitch of a few degrees and NO relative yaw or roll (Eq. 5 models
+    pitch only), horizontal fov 40-120 deg, fy = fx * (1 +- 5 %), principal
+    point off centre by up to 10 % of the image (as a crop would do), left
+    camera mounted 1.2-2.0 m high looking -5..15 deg down with a small
+    absolute yaw and roll (shared by the right camera). baseline = |t| (the
+    distance between the centres). One configuration per
+    ``RANDOM_FRAMES_PER_CONFIG`` frames, so whole configurations can be held
+    out. Release frame (an analogue): the vehicle-frame differences of the
+    two camera poses in CARLA's conventions, as for cvgl, with
+    baseline_released = |t| (the release's ``baseline = tx`` fitted the
+    forward-offset CVGL rigs, not lateral ones).
 
 Frames: configuration c owns a contiguous run of pair indices (a drive); frame
 k of it puts the vehicle at x = start + k * step along the main street, with a
@@ -63,12 +89,16 @@ RANDOM_RANGES = {
     "fov_deg": (40.0, 120.0), "aspect_jitter": (-0.05, 0.05),
     "principal_offset_fraction": (-0.1, 0.1), "baseline_m": (0.05, 1.0),
     "tx_m": (-0.05, 0.05), "tz_m": (-0.03, 0.03), "pitch_deg": (-3.0, 3.0),
-    "yaw_deg": (-3.0, 3.0), "roll_deg": (-2.0, 2.0),
     "left_x_m": (0.5, 2.5), "left_y_m": (-0.8, 0.8), "left_z_m": (1.2, 2.0),
     "left_pitch_deg": (-5.0, 15.0), "left_yaw_deg": (-3.0, 3.0), "left_roll_deg": (-2.0, 2.0),
-    "projection_margin_fraction": 0.125,
 }
-PROJECTION_TRIES = 8
+#: Projection pixels are drawn at least this fraction of the image from the border.
+PROJECTION_MARGIN_FRACTION = 0.125
+#: Candidate projection pixels drawn per pair.
+PROJECTION_TRIES = 16
+#: A candidate is taken only if its point is nearer than this along the ray
+#: (metres; the sky dome is at ``scenes.SKY_DISTANCE`` = 1000 m).
+MAX_LABEL_DISTANCE = 200.0
 DRIVE = {"step_m": (1.5, 4.0), "sway_m": 0.35}
 
 
@@ -78,6 +108,9 @@ def ranges(protocol):
     base = CVGL_RANGES if protocol == "cvgl" else RANDOM_RANGES
     out = {k: list(v) if isinstance(v, tuple) else v for k, v in base.items()}
     out.update({f"drive_{k}": list(v) if isinstance(v, tuple) else v for k, v in DRIVE.items()})
+    out["projection_margin_fraction"] = PROJECTION_MARGIN_FRACTION
+    out["projection_tries"] = PROJECTION_TRIES
+    out["max_label_distance_m"] = MAX_LABEL_DISTANCE
     if protocol == "cvgl":
         out["left_camera"] = dict(CVGL_LEFT)
         out["min_abs_tx_m"] = CVGL_MIN_BASELINE
@@ -104,6 +137,25 @@ def _relative(rot_left, pos_left, rot_right, pos_right):
     t = rot_left.T @ (np.asarray(pos_right) - np.asarray(pos_left))
     pitch, yaw, roll = camera.euler_from_rotation(rel)
     return pitch, yaw, roll, t
+
+
+def released_extrinsics(rot_left, pos_left, rot_right, pos_right, baseline=None):
+    """The release's extrinsic labels of a rig: right-minus-left differences
+    of the two mounting poses in the vehicle frame, in CARLA's conventions.
+
+    Positions are vehicle-frame (x forward, y left, z up, ours); CARLA's y
+    points right and its pitch (degrees) is positive up, i.e. ``-`` our pitch
+    of the camera's absolute rotation. Returns a dict ``tx, ty, tz`` (m),
+    ``pitch`` (degrees) and ``baseline`` (m): ``tx`` as released unless
+    ``baseline`` is given.
+    """
+    d = np.asarray(pos_right, np.float64) - np.asarray(pos_left, np.float64)
+    pitch_left = camera.euler_from_rotation(rot_left)[0]
+    pitch_right = camera.euler_from_rotation(rot_right)[0]
+    out = {"tx": float(d[0]), "ty": float(-d[1]), "tz": float(d[2]),
+           "pitch": math.degrees(pitch_left - pitch_right)}
+    out["baseline"] = out["tx"] if baseline is None else float(baseline)
+    return out
 
 
 def _u(rng, lo_hi):
@@ -155,16 +207,28 @@ def _configurations(protocol, seed, pairs, image_size):
             rot_left = camera.rotation_matrix(lp, ly, lr)
             lateral = _u(rng, R["baseline_m"])
             t = np.array([_u(rng, R["tx_m"]), -lateral, _u(rng, R["tz_m"])])
-            rp, ry, rr = (math.radians(_u(rng, R[k])) for k in ("pitch_deg", "yaw_deg", "roll_deg"))
-            rot_right = rot_left @ camera.rotation_matrix(rp, ry, rr)
+            # relative rotation: pitch only (R_rel = Ry(pitch)), so Eq. 5 is exact
+            rp = math.radians(_u(rng, R["pitch_deg"]))
+            rot_right = rot_left @ camera.rotation_matrix(rp)
             right = tuple(np.asarray(left) + rot_left @ t)
-            pitch, yaw, roll, t = _relative(rot_left, left, rot_right, right)
+            _, _, _, t = _relative(rot_left, left, rot_right, right)
+            pitch, yaw, roll = rp, 0.0, 0.0
             baseline = float(np.linalg.norm(t))
             cfg = {
                 "left_pose": {"position": list(left), "pitch": lp, "yaw": ly, "roll": lr},
                 "right_rotation": rot_right.tolist(),
                 "right_pose": {"position": [float(p) for p in right]},
             }
+        if protocol == "cvgl":
+            # as released: CARLA's right-camera values minus the fixed left
+            # camera's (x=2, y=0, z=1.4, pitch=-15 deg); baseline = tx
+            released = {"tx": x - CVGL_LEFT["x"], "ty": y_carla - CVGL_LEFT["y"],
+                        "tz": z - CVGL_LEFT["z"],
+                        "pitch": pitch_carla - (-CVGL_LEFT["pitch_deg"])}
+            released["baseline"] = released["tx"]
+        else:
+            released = released_extrinsics(rot_left, left, rot_right, right, baseline=baseline)
+        cfg["released"] = released
         cfg.update({
             "config_id": c, "town_id": town_id, "town": scenes.TOWNS[town_id],
             "fov_deg": fov, "fx": fx, "fy": fy, "u0": u0, "v0": v0, "baseline": baseline,
@@ -216,13 +280,20 @@ def pair_setup(protocol, seed, pairs, image_size, index):
     intr = (cfg["fx"], cfg["fy"], cfg["u0"], cfg["v0"], W, H)
     left = View(*intr, vehicle + np.asarray(cfg["left_pose"]["position"]), left_rot)
     right = View(*intr, vehicle + np.asarray(cfg["right_pose"]["position"]), right_rot)
-    if protocol == "cvgl":
-        candidates = np.array([[W / 2, H / 2]])
-    else:
-        # integer pixels inside the image; the generator takes the first one
-        # that does not see the sky
-        rng = np.random.default_rng([seed, 7, index])
-        margin = int(RANDOM_RANGES["projection_margin_fraction"] * W)
-        candidates = rng.integers(margin, W - margin, size=(PROJECTION_TRIES, 2)).astype(float)
+    # integer pixels inside the image (both protocols); the generator takes the
+    # first one whose point is nearer than MAX_LABEL_DISTANCE (never the sky)
+    rng = np.random.default_rng([seed, 7, index])
+    margin = projection_margin(W)
+    candidates = rng.integers(margin, W - margin, size=(PROJECTION_TRIES, 2)).astype(float)
     return {"config": cfg, "frame_index": frame, "town": town, "left": left, "right": right,
-            "uv_candidates": candidates}
+            "uv_candidates": candidates, "margin": margin, "release_uv": release_pixel(W, H)}
+
+
+def projection_margin(size):
+    """Smallest distance (pixels) of a projection pixel from the border."""
+    return int(PROJECTION_MARGIN_FRACTION * size)
+
+
+def release_pixel(width, height):
+    """The release's fixed projection pixel (W/2, H/2) (56, 56 at 112 px)."""
+    return width / 2, height / 2

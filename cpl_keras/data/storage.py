@@ -8,8 +8,14 @@ Layout (``SCHEMA_VERSION`` 1)::
     /labels/config_id    int32 (N,)  rig configuration
     /labels/town_id      int32 (N,)  scene / town
     /labels/frame_index  int32 (N,)  frame along the drive
+    /labels/<flag>       int32 (N,)  other integer labels named by the writer's
+                         ``int_labels`` (e.g. the generator's sky_at_release_pixel)
     root attrs           schema_version, num_pairs, image_height, image_width,
                          and the generator's metadata (``metadata_json``)
+
+Files made by ``cpl_keras.data.generate`` carry its ``generator_version`` in
+the metadata; ``StereoFile`` refuses one whose major version differs from the
+installed generator's (the labels changed meaning), saying how to regenerate it.
 
 Writes go to ``<path>.partial`` and are renamed to ``path`` only when the
 writer closes without error, so an interrupted write never leaves a file
@@ -49,12 +55,14 @@ class StereoWriter:
     """Writes a dataset of ``num_pairs`` stereo pairs, atomically.
 
     Use as a context manager; ``write(start, left, right, labels)`` stores a
-    block of pairs at ``start``. On a clean exit the file is renamed into
+    block of pairs at ``start``. Labels are float32 except ``INDEX_LABELS`` and
+    the names in ``int_labels`` (int32); ``label_units`` adds units to
+    ``camera.UNITS``. On a clean exit the file is renamed into
     place; on an exception the partial file is deleted.
     """
 
     def __init__(self, path, num_pairs, image_size, metadata=None, label_descriptions=None,
-                 compression="gzip", compression_opts=1):
+                 compression="gzip", compression_opts=1, label_units=None, int_labels=()):
         num_pairs = int(num_pairs)
         if num_pairs <= 0:
             raise DatasetError(f"number of pairs must be positive, got {num_pairs}")
@@ -65,6 +73,8 @@ class StereoWriter:
         self.shape = (int(h), int(w), 3)
         self.metadata = dict(metadata or {})
         self.descriptions = dict(label_descriptions or {})
+        self.units = {**UNITS, **dict(label_units or {})}
+        self.int_labels = set(INDEX_LABELS) | set(int_labels)
         self._compression = compression
         self._compression_opts = compression_opts
         self._file = None
@@ -111,10 +121,10 @@ class StereoWriter:
         for name, values in labels.items():
             values = np.asarray(values)
             if name not in group:
-                dtype = "int32" if name in INDEX_LABELS else "float32"
+                dtype = "int32" if name in self.int_labels else "float32"
                 ds = group.create_dataset(name, shape=(self.num_pairs,), dtype=dtype)
-                if name in UNITS:
-                    ds.attrs["unit"] = UNITS[name]
+                if name in self.units:
+                    ds.attrs["unit"] = self.units[name]
                 if name in self.descriptions:
                     ds.attrs["description"] = self.descriptions[name]
             group[name][start:stop] = values
@@ -135,6 +145,37 @@ class StereoWriter:
             elif os.path.exists(self.tmp_path):
                 os.remove(self.tmp_path)
         return False
+
+
+GENERATOR = "cpl_keras.data.generate"
+
+
+def _major(version):
+    try:
+        return int(str(version).split(".")[0])
+    except ValueError:
+        return None
+
+
+def check_generator_version(path, metadata):
+    """Raise ``DatasetError`` (one line) if ``metadata`` says the file was made
+    by another major version of the data generator than the installed one.
+    Files from other writers (real data, tests) are not checked."""
+    if metadata.get("generator") != GENERATOR:
+        return
+    from cpl_keras.data.generate import GENERATOR_VERSION
+
+    version = metadata.get("generator_version")
+    found, current = _major(version), _major(GENERATOR_VERSION)
+    if found == current:
+        return
+    command = (f"python -m cpl_keras.data.generate --protocol {metadata.get('protocol', 'cvgl')} "
+               f"--pairs {metadata.get('pairs', 'N')} --seed {metadata.get('seed', 0)} "
+               f"--image-size {metadata.get('image_size', 112)} --out {path}")
+    age = "a newer" if found is not None and found > current else "an older"
+    raise DatasetError(
+        f"{path}: dataset format {version} is {age} format than this generator's "
+        f"{GENERATOR_VERSION} (its labels differ); regenerate it: {command}")
 
 
 class StereoFile:
@@ -207,6 +248,9 @@ class StereoFile:
             self.metadata = json.loads(f.attrs.get("metadata_json", "{}"))
         except json.JSONDecodeError:
             raise DatasetError(f"{self.path}: metadata is not valid JSON") from None
+        if not isinstance(self.metadata, dict):
+            raise DatasetError(f"{self.path}: metadata is not a JSON object")
+        check_generator_version(self.path, self.metadata)
 
     def read_pairs(self, indices):
         """Left and right images (uint8, (n, H, W, 3)) of ``indices``, in that order."""
