@@ -243,3 +243,16 @@ def test_coupled_losses_refuse_sample_weights_loudly(variant):
     x, y = batch(4)
     with pytest.raises(ValueError, match="sample_weight"):
         model.fit(x, y, sample_weight=np.ones(4, "float32"), epochs=1, verbose=0)
+
+
+@pytest.mark.parametrize("protocol", ["cvgl", "random"])
+def test_no_label_of_the_rendered_data_is_floored(protocol, tmp_path):
+    from cpl_keras.data.generate import generate_dataset
+    from cpl_keras.data.storage import StereoFile
+
+    path = generate_dataset(str(tmp_path / "d.h5"), protocol=protocol, pairs=24, seed=0,
+                            image_size=16, workers=1)
+    with StereoFile(path) as f:
+        labels = f.labels
+    assert np.abs(labels["disparity"]).min() > camera.FLOORS["disparity"]
+    assert min(np.abs(labels["fx"]).min(), np.abs(labels["fy"]).min()) > camera.FLOORS["focal"]
