@@ -66,6 +66,9 @@ def build_parser():
     parser.add_argument("--bn-recompute-batches", type=int,
                         help="training batches for recomputing BatchNorm statistics before "
                         "each validation (default 16; 0 = Keras's moving averages, as released)")
+    parser.add_argument("--target-scaling", choices=("none", "std"), default="none",
+                        help="MTL-Baseline: divide each output's MAE by the target's training "
+                        "standard deviation (std; not the paper's) or not (none, default)")
     parser.add_argument("--quiet", action="store_true", help="no progress bars")
     return parser
 
@@ -129,7 +132,8 @@ def main(argv=None):
             data_parallel=args.data_parallel, patience=args.patience, workers=args.workers,
             steps_per_execution=args.steps_per_execution, disentangle=args.disentangle,
             bounded_pitch_head=False if args.linear_pitch_head else None,
-            bn_recompute_batches=args.bn_recompute_batches, verbose=0 if args.quiet else 1,
+            bn_recompute_batches=args.bn_recompute_batches, target_scaling=args.target_scaling,
+            verbose=0 if args.quiet else 1,
             command=command,
         )
     except (DatasetError, TrainingError, OSError) as error:

@@ -47,8 +47,11 @@ from cpl_keras.datasets import SPLITS, load_split, make_split, save_split, targe
 RESUME_KEYS = (
     "variant", "build", "data", "split", "seed", "batch_size", "learning_rate", "epochs",
     "as_released", "data_parallel", "patience", "test_fraction", "val_fraction",
-    "bn_recompute_batches",
+    "bn_recompute_batches", "target_scaling",
 )
+#: Per-output MAE as the paper sums it ("none"), or each divided by the
+#: target's training standard deviation ("std": standardised targets).
+TARGET_SCALINGS = ("none", "std")
 #: Training batches over which BatchNorm's moving statistics are recomputed
 #: before every validation (0: keep Keras's moving averages, the default as
 #: released).
@@ -122,6 +125,16 @@ def plan_run(data, *, variant, run_dir, epochs=200, batch_size=16, learning_rate
         raise TrainingError(
             f"unknown disentangle {disentangle!r}; choose one of {', '.join(DISENTANGLE)}"
         )
+    if target_scaling not in TARGET_SCALINGS:
+        raise TrainingError(
+            f"unknown target scaling {target_scaling!r}; choose one of {', '.join(TARGET_SCALINGS)}"
+        )
+    if target_scaling != "none" and not (variant == "baseline" or (
+            as_released and variant in ("cpl-u", "cpl-a"))):
+        raise TrainingError(
+            "target scaling applies to the per-output MAE loss (MTL-Baseline, or CPL as "
+            f"released), not to {variant}"
+        )
     if learning_rate is not None and not (
         isinstance(learning_rate, (int, float)) and math.isfinite(learning_rate) and learning_rate > 0
     ):
@@ -182,6 +195,7 @@ def plan_run(data, *, variant, run_dir, epochs=200, batch_size=16, learning_rate
         "epochs": int(epochs),
         "patience": int(patience),
         "bn_recompute_batches": int(bn_recompute_batches),
+        "target_scaling": target_scaling,
         "as_released": bool(as_released),
         "data_parallel": bool(data_parallel),
         "num_devices": devices,
@@ -452,7 +466,7 @@ def train(data, *, variant, run_dir, epochs=200, batch_size=16, learning_rate=No
           image_size=None, backbone="inception_v3", split="paper", as_released=False, seed=0,
           data_parallel=False, patience=5, test_fraction=0.3, val_fraction=0.1, workers=1,
           steps_per_execution=1, disentangle="exact", bounded_pitch_head=None,
-          bn_recompute_batches=None, verbose=1, command=None):
+          bn_recompute_batches=None, target_scaling="none", verbose=1, command=None):
     """Train ``variant`` on the dataset file ``data``; returns the summary dict.
 
     Everything is validated before the run directory is created (see
@@ -467,7 +481,8 @@ def train(data, *, variant, run_dir, epochs=200, batch_size=16, learning_rate=No
         as_released=as_released, seed=seed, data_parallel=data_parallel, patience=patience,
         test_fraction=test_fraction, val_fraction=val_fraction, workers=workers,
         disentangle=disentangle, bounded_pitch_head=bounded_pitch_head,
-        bn_recompute_batches=bn_recompute_batches, command=command,
+        bn_recompute_batches=bn_recompute_batches, target_scaling=target_scaling,
+        command=command,
     )
     import keras
 
@@ -489,7 +504,8 @@ def _run(plan, learning_rate, steps_per_execution, verbose):
     variant = config["variant"]
     try:
         model = build_model(variant, **config["build"])
-        compile_model(model, learning_rate=learning_rate, steps_per_execution=steps_per_execution)
+        compile_model(model, learning_rate=learning_rate, steps_per_execution=steps_per_execution,
+                      target_scale=_target_scale(plan) if config["target_scaling"] == "std" else None)
     except ValueError as error:
         raise TrainingError(f"cannot build {variant}: {error}") from None
     config["learning_rate_used"] = float(
@@ -548,6 +564,17 @@ def _run(plan, learning_rate, steps_per_execution, verbose):
     summary = _finish(model, run_dir, config, run_state.state)
     summary["model"] = model
     return summary
+
+
+def _target_scale(plan):
+    """Training standard deviation of every target (1 for a constant one,
+    such as the cvgl protocol's u0 and v0)."""
+    train = plan["split"]["train"]
+    scale = {}
+    for name, values in plan["targets"].items():
+        std = float(np.std(np.asarray(values, np.float64)[train]))
+        scale[name] = std if std > 1e-6 else 1.0
+    return scale
 
 
 def _finish(model, run_dir, config, state):

@@ -256,3 +256,30 @@ def test_no_label_of_the_rendered_data_is_floored(protocol, tmp_path):
         labels = f.labels
     assert np.abs(labels["disparity"]).min() > camera.FLOORS["disparity"]
     assert min(np.abs(labels["fx"]).min(), np.abs(labels["fy"]).min()) > camera.FLOORS["focal"]
+
+
+def test_standardised_targets_divide_each_mae_by_its_scale():
+    model = build_model("baseline", backbone="small", image_size=SIZE, seed=0)
+    x, y = batch(8)
+    scale = {name: float(k + 1) for k, name in enumerate(TARGETS)}
+    compile_model(model, target_scale=scale)
+    logs = model.evaluate(x, y, verbose=0, return_dict=True)
+    expected = sum(logs[f"{name}_mae"] / scale[name] for name in TARGETS)
+    assert logs["loss"] == pytest.approx(expected, rel=1e-4)
+    with pytest.raises(ValueError, match="per-output MAE"):
+        compile_model(build_model("cpl-u", backbone="small", image_size=SIZE), target_scale=scale)
+    with pytest.raises(ValueError, match="positive number for fx"):
+        compile_model(model, target_scale=dict(scale, fx=0.0))
+
+
+def test_training_records_target_scaling_and_refuses_it_for_the_projection_loss(tiny_cvgl,
+                                                                                 tmp_path):
+    from cpl_keras.training import TrainingError, plan_run
+
+    plan = plan_run(tiny_cvgl, variant="baseline", run_dir=str(tmp_path / "b"),
+                    backbone="small", target_scaling="std")
+    assert plan["config"]["target_scaling"] == "std"
+    with pytest.raises(TrainingError, match="target scaling"):
+        plan_run(tiny_cvgl, variant="cpl-u", run_dir=str(tmp_path / "c"), backbone="small",
+                 target_scaling="std")
+    assert not (tmp_path / "b").exists() and not (tmp_path / "c").exists()

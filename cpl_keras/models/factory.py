@@ -42,6 +42,7 @@ in ``cpl_keras.datasets``.)
 from __future__ import annotations
 
 import contextlib
+import math
 import numbers
 import random
 
@@ -196,12 +197,19 @@ def camera_projection_outputs(features, variant, as_released, floors, pitch_acti
     return [params[name] for name in camera.PARAMETERS] + [points[q] for q in ("X", "Y", "Z")]
 
 
-def compile_model(model, *, learning_rate=None, jit_compile="auto", steps_per_execution=1):
+def compile_model(model, *, learning_rate=None, jit_compile="auto", steps_per_execution=1,
+                  target_scale=None):
     """Compile with the paper's optimiser and loss.
 
     Adam, lr 1e-3 (Deep-Homo 1.5e-3). Loss: the model's own (see
     ``CalibrationModel``): summed per-output MAE, the camera projection loss
     or the Euclidean loss. Every output's MAE is reported either way.
+
+    ``target_scale`` (name -> positive number, e.g. the training standard
+    deviations) divides each output's MAE by its scale: standardised
+    targets, so that targets in hundreds of pixels or metres do not drown
+    those in radians. Not the paper's (it summed the raw MAEs); only for the
+    per-output MAE loss.
     """
     if not isinstance(model, CalibrationModel):
         raise ValueError("compile_model expects a model made by cpl_keras.build_model")
@@ -210,13 +218,25 @@ def compile_model(model, *, learning_rate=None, jit_compile="auto", steps_per_ex
     if not (isinstance(learning_rate, numbers.Real) and learning_rate > 0):
         raise ValueError(f"learning rate must be a positive number, got {learning_rate!r}")
     names = list(model.output_names)
+    loss_weights = None
     if model.loss_mode == "mae":
         loss, metrics = {name: "mae" for name in names}, None
     else:
         loss, metrics = None, {name: ["mae"] for name in names}
+    if target_scale is not None:
+        if model.loss_mode != "mae":
+            raise ValueError(
+                f"target scaling applies to the per-output MAE loss, not {model.loss_mode!r}"
+            )
+        bad = [n for n in names if not (isinstance(target_scale.get(n), numbers.Real)
+                                        and math.isfinite(target_scale[n]) and target_scale[n] > 0)]
+        if bad:
+            raise ValueError(f"target scale must be a positive number for {', '.join(bad)}")
+        loss_weights = {name: 1.0 / float(target_scale[name]) for name in names}
+        metrics = {name: ["mae"] for name in names}  # the unscaled MAE in the logs
     model.compile(
         optimizer=keras.optimizers.Adam(learning_rate=learning_rate),
-        loss=loss, metrics=metrics, jit_compile=jit_compile,
+        loss=loss, loss_weights=loss_weights, metrics=metrics, jit_compile=jit_compile,
         steps_per_execution=steps_per_execution,
     )
     return model
