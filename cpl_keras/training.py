@@ -92,7 +92,7 @@ def plan_run(data, *, variant, run_dir, epochs=200, batch_size=16, learning_rate
              image_size=None, backbone="inception_v3", split="paper", as_released=False,
              seed=0, data_parallel=False, patience=5, test_fraction=0.3, val_fraction=0.1,
              workers=1, disentangle="exact", bounded_pitch_head=None,
-             bn_recompute_batches=None, command=None):
+             bn_recompute_batches=None, target_scaling="none", command=None):
     """Check the dataset and the arguments; return the run's plan (a dict).
 
     Raises ``DatasetError`` or ``TrainingError`` with a one-line message.
