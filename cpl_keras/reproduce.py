@@ -67,13 +67,15 @@ def _log(message):
 
 def make_datasets(config, data_dir, seed):
     """Stage 1: the synthetic datasets and the real set (reused when present)."""
-    from cpl_keras.data.generate import generate_dataset
+    from cpl_keras.data.generate import GENERATOR_VERSION, generate_dataset
     from cpl_keras.real.middlebury import build_middlebury
 
     size = config["image_size"]
     paths = {}
     for protocol, pairs in (("cvgl", config["pairs"]), ("random", config["random_pairs"])):
-        path = os.path.join(data_dir, f"{protocol}_{pairs}_{size}px_s{seed}.h5")
+        # the format version in the name: a file of an older generator is
+        # never reused (it would be refused), a new one is made beside it
+        path = os.path.join(data_dir, f"{protocol}_{pairs}_{size}px_s{seed}_v{GENERATOR_VERSION}.h5")
         if not os.path.exists(path):
             _log(f"generating {pairs} {protocol} pairs at {size}px -> {path}")
             generate_dataset(path, protocol=protocol, pairs=pairs, seed=seed, image_size=size,
