@@ -364,9 +364,12 @@ def _make_run_callback():
                     self.model.stop_training = True
             alphas = self.model.adaptive_weights() or {}
             logs.update({f"alpha_{name}": value for name, value in alphas.items()})
+            state["wall_time_s"] += time.perf_counter() - (self._epoch_start or time.perf_counter())
+            # the run's training time so far and the machine's load, per epoch
+            logs.update(wall_time_s=round(state["wall_time_s"], 3),
+                        load_average=round(os.getloadavg()[0], 2))
             state["rows"].append({"epoch": epoch, **logs})
             state["epoch"] = epoch + 1
-            state["wall_time_s"] += time.perf_counter() - (self._epoch_start or time.perf_counter())
             self._commit(checkpoint=True, best_name=best_name)
 
         # -- helpers -------------------------------------------------------
@@ -516,6 +519,7 @@ def _run(plan, learning_rate, steps_per_execution, verbose):
     # Nothing has been written so far; from here on the run directory exists.
     run_dir = config["run_dir"]
     os.makedirs(os.path.join(run_dir, "backup"), exist_ok=True)
+    lock = _lock_run_dir(run_dir)  # held until this process ends
     previous = _read_json(os.path.join(run_dir, "config.json"), {})
     for key in ("epochs_run", "best_epoch", "best_val_loss", "wall_time_s", "status", "stopped"):
         config[key] = previous.get(key)
@@ -563,7 +567,26 @@ def _run(plan, learning_rate, steps_per_execution, verbose):
     val_seq.close()
     summary = _finish(model, run_dir, config, run_state.state)
     summary["model"] = model
+    lock.close()
     return summary
+
+
+def _lock_run_dir(run_dir):
+    """An exclusive lock on ``run_dir/backup/lock``: a second process training
+    into the same run directory (say, after a kill that missed the first)
+    stops with one line instead of both writing its checkpoints. The lock
+    ends with the process, however it ends."""
+    import fcntl
+
+    handle = open(os.path.join(run_dir, "backup", "lock"), "a+")
+    try:
+        fcntl.flock(handle, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except OSError:
+        handle.close()
+        raise TrainingError(
+            f"run directory {run_dir} is in use by another training process"
+        ) from None
+    return handle
 
 
 def _target_scale(plan):

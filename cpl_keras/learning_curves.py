@@ -1,0 +1,299 @@
+"""Does it learn? Validation NMAE per parameter against samples seen.
+
+``curves(run_dir)`` turns a finished (or running) run directory into one
+NMAE curve per camera parameter: the validation MAE that training logged
+after every epoch (``log.csv``) divided by mean(|y|) over the run's
+validation pairs (the paper's NMAE), against the number of training samples
+seen. The Average baseline's NMAE on the same pairs (each parameter
+predicted as its training mean, ``train_stats.json``) is the level a network
+must get below to have learned anything from the images.
+
+    python -m cpl_keras.learning_curves RUN [RUN ...] --out DIR
+
+writes ``DIR/<run name>.png`` (one panel per parameter) and
+``DIR/learning_curves.md`` / ``.json`` (best validation NMAE per parameter
+beside Average's, the scale of each run). ``--experiment`` first makes the
+datasets and trains the runs of docs/training.md's "Does it learn?" section
+(resumable: run it again after a kill).
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import json
+import math
+import os
+import sys
+import time
+
+import numpy as np
+
+from cpl_keras.camera import PARAMETERS
+from cpl_keras.metrics import nmae
+
+#: The parameters the write-up quotes.
+KEY_PARAMETERS = ("fx", "fy", "baseline", "pitch")
+
+
+class CurveError(ValueError):
+    """A run directory cannot be read (one line)."""
+
+
+def read_log(run_dir):
+    """log.csv as a list of dicts of floats (one per epoch)."""
+    path = os.path.join(run_dir, "log.csv")
+    if not os.path.isfile(path):
+        raise CurveError(f"{run_dir} has no log.csv")
+    with open(path) as f:
+        rows = list(csv.DictReader(f))
+    return [{k: float(v) for k, v in row.items() if v not in ("", None)} for row in rows]
+
+
+def _val_mae(row, name):
+    """The logged validation MAE of output ``name`` (``_mae`` metric or, for
+    the per-output MAE loss, ``_loss``)."""
+    for key in (f"val_{name}_mae", f"val_{name}_loss"):
+        if key in row:
+            return row[key]
+    return math.nan
+
+
+def curves(run_dir, data=None):
+    """Validation NMAE per parameter after every epoch of a run.
+
+    ``data`` is the run's dataset file (default: the path in config.json).
+    Returns a dict: ``run_dir``, ``config``, ``samples_seen`` (list),
+    ``nmae`` (parameter -> list, one value per epoch), ``average`` (parameter
+    -> Average's NMAE on the same validation pairs), ``best`` (parameter ->
+    lowest NMAE over the epochs) and ``best_epoch_nmae`` (parameter -> NMAE
+    at the epoch early stopping kept).
+    """
+    from cpl_keras.baselines.average import load_statistics
+    from cpl_keras.data.storage import StereoFile
+    from cpl_keras.datasets import load_split, targets_from_labels
+
+    run_dir = os.path.abspath(run_dir)
+    try:
+        with open(os.path.join(run_dir, "config.json")) as f:
+            config = json.load(f)
+        stats = load_statistics(os.path.join(run_dir, "train_stats.json"))
+        split = load_split(os.path.join(run_dir, "split.npz"))
+    except (OSError, ValueError, KeyError) as error:
+        raise CurveError(f"cannot read run {run_dir}: {error}") from None
+    rows = read_log(run_dir)
+    data = data or config["data"]
+    with StereoFile(data) as f:
+        targets = targets_from_labels(f.labels, as_released=bool(config.get("as_released")))
+    val = split["val"]
+    scale = {}
+    average = {}
+    for name in PARAMETERS:
+        truth = np.asarray(targets[name], np.float64)[val]
+        scale[name] = float(np.mean(np.abs(truth)))
+        average[name] = nmae(truth, np.full_like(truth, stats["mean"][name]))
+    out = {name: [_val_mae(row, name) / scale[name] if scale[name] > 0 else math.nan
+                  for row in rows] for name in PARAMETERS}
+    num_train = int(config.get("num_train", len(split["train"])))
+    best_epoch = config.get("best_epoch")
+    return {
+        "run_dir": run_dir, "config": config,
+        "samples_seen": [int(row["epoch"] + 1) * num_train for row in rows],
+        "nmae": out, "average": average,
+        "best": {name: float(np.nanmin(v)) if v and not np.all(np.isnan(v)) else math.nan
+                 for name, v in out.items()},
+        "best_epoch_nmae": {name: v[best_epoch - 1] if best_epoch and len(v) >= best_epoch
+                            else math.nan for name, v in out.items()},
+    }
+
+
+def run_label(curve):
+    config = curve["config"]
+    released = " (as released)" if config.get("as_released") else ""
+    return (f"{config['variant']}{released}, {config['build']['backbone']}, "
+            f"{os.path.basename(config['data'])}, split {config['split']}")
+
+
+def plot(curve, path):
+    """One panel per camera parameter: validation NMAE (log scale) against
+    samples seen, Average's level dashed, the kept epoch marked."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(2, 5, figsize=(16, 6.2), sharex=True)
+    seen = np.asarray(curve["samples_seen"]) / 1000.0
+    best_epoch = curve["config"].get("best_epoch")
+    for ax, name in zip(axes.ravel(), PARAMETERS):
+        values = np.asarray(curve["nmae"][name], np.float64)
+        ax.plot(seen, values, marker="o", markersize=2.5, label="network (validation)")
+        level = curve["average"][name]
+        if math.isfinite(level):
+            ax.axhline(level, color="tab:red", linestyle="--", label="Average")
+        if best_epoch and best_epoch <= len(seen):
+            ax.axvline(seen[best_epoch - 1], color="grey", linestyle=":", label="kept epoch")
+        finite = values[np.isfinite(values)]
+        if finite.size and np.all(finite > 0) and (not math.isfinite(level) or level > 0):
+            ax.set_yscale("log")
+        ax.set_title(name, fontsize=10)
+        ax.grid(True, alpha=0.3)
+    for ax in axes[1]:
+        ax.set_xlabel("training samples seen (thousands)")
+    for ax in axes[:, 0]:
+        ax.set_ylabel("validation NMAE")
+    axes[0, 0].legend(fontsize=7)
+    config = curve["config"]
+    fig.suptitle(
+        f"{run_label(curve)}: {config.get('num_train')} training pairs, "
+        f"{config.get('epochs_run')} epochs ({config.get('stopped') or 'epoch cap'})",
+        fontsize=10,
+    )
+    fig.tight_layout()
+    tmp = path + ".partial.png"
+    fig.savefig(tmp, dpi=90)
+    plt.close(fig)
+    os.replace(tmp, path)
+
+
+def summary_rows(curve, load=None):
+    config = curve["config"]
+    row = {
+        "run": os.path.basename(curve["run_dir"]), "label": run_label(curve),
+        "num_train": config.get("num_train"), "num_val": config.get("num_val"),
+        "epochs_run": config.get("epochs_run"), "best_epoch": config.get("best_epoch"),
+        "stopped": config.get("stopped"), "wall_time_s": config.get("wall_time_s"),
+        "load_average": load,
+        "best_epoch_nmae": curve["best_epoch_nmae"], "average_nmae": curve["average"],
+    }
+    return row
+
+
+def markdown(rows):
+    lines = ["# Does it learn? Validation NMAE (MAE / mean|y|) at the kept epoch, "
+             "beside the Average baseline", ""]
+    header = "| run | pairs (train/val) | epochs (kept) | stopped | wall time | load |"
+    header += "".join(f" {p} | Avg {p} |" for p in KEY_PARAMETERS)
+    lines += [header, "|" + "---|" * (6 + 2 * len(KEY_PARAMETERS))]
+    for row in rows:
+        cells = [row["label"], f"{row['num_train']}/{row['num_val']}",
+                 f"{row['epochs_run']} ({row['best_epoch']})", row["stopped"] or "epoch cap",
+                 f"{(row['wall_time_s'] or 0) / 60:.1f} min",
+                 "" if row["load_average"] is None else f"{row['load_average']:.1f}"]
+        for p in KEY_PARAMETERS:
+            cells += [f"{row['best_epoch_nmae'][p]:.3f}", f"{row['average_nmae'][p]:.3f}"]
+        lines.append("| " + " | ".join(cells) + " |")
+    lines.append("")
+    lines.append("All ten parameters of each run are in the JSON file and the figures.")
+    return "\n".join(lines) + "\n"
+
+
+def _json_default(value):
+    if isinstance(value, float) and not math.isfinite(value):
+        return None
+    raise TypeError(type(value).__name__)
+
+
+def _finite(value):
+    if isinstance(value, dict):
+        return {k: _finite(v) for k, v in value.items()}
+    if isinstance(value, list):
+        return [_finite(v) for v in value]
+    if isinstance(value, float) and not math.isfinite(value):
+        return None
+    return value
+
+
+def write_outputs(run_dirs, out_dir, loads=None):
+    """Figures and the summary table of ``run_dirs`` into ``out_dir``."""
+    os.makedirs(out_dir, exist_ok=True)
+    rows, payload = [], []
+    for run_dir in run_dirs:
+        curve = curves(run_dir)
+        name = os.path.basename(os.path.abspath(run_dir))
+        plot(curve, os.path.join(out_dir, f"{name}.png"))
+        row = summary_rows(curve, (loads or {}).get(name))
+        rows.append(row)
+        payload.append(dict(row, samples_seen=curve["samples_seen"], nmae=curve["nmae"]))
+    for filename, text in (("learning_curves.md", markdown(rows)),
+                           ("learning_curves.json", json.dumps(_finite(payload), indent=1))):
+        tmp = os.path.join(out_dir, filename + ".partial")
+        with open(tmp, "w") as f:
+            f.write(text)
+        os.replace(tmp, os.path.join(out_dir, filename))
+    return rows
+
+
+# ---------------------------------------------------------------------------
+# The experiment of docs/training.md, "Does it learn?"
+# ---------------------------------------------------------------------------
+#: (protocol, split, variant) of each run.
+EXPERIMENT_RUNS = (
+    ("cvgl", "paper", "cpl-a"), ("cvgl", "paper", "baseline"),
+    ("random", "held-out-config", "cpl-a"), ("random", "held-out-config", "baseline"),
+)
+
+
+def run_experiment(*, data_dir, runs_dir, out_dir, pairs, backbone, image_size=112,
+                   patience=5, max_epochs=200, seed=0, only=None, verbose=0):
+    """Make the datasets, train the runs (resuming any that were killed) and
+    write the curves. Returns the summary rows."""
+    from cpl_keras.data.generate import GENERATOR_VERSION, generate_dataset
+    from cpl_keras.training import train
+
+    os.makedirs(data_dir, exist_ok=True)
+    run_dirs, loads = [], {}
+    for protocol, split, variant in EXPERIMENT_RUNS:
+        data = os.path.join(data_dir, f"{protocol}-{pairs}-{image_size}px-v{GENERATOR_VERSION}.h5")
+        if not os.path.exists(data):
+            print(f"generating {data}", file=sys.stderr)
+            generate_dataset(data, protocol=protocol, pairs=pairs, seed=seed + (protocol == "random"),
+                             image_size=image_size)
+        name = f"{protocol}-{variant}-{backbone}"
+        run_dir = os.path.join(runs_dir, name)
+        run_dirs.append(run_dir)
+        if only and name not in only:
+            continue
+        start = time.time()
+        summary = train(data, variant=variant, run_dir=run_dir, epochs=max_epochs,
+                        backbone=backbone, split=split, seed=seed, patience=patience,
+                        verbose=verbose, command=f"python -m cpl_keras.learning_curves --experiment")
+        loads[name] = os.getloadavg()[2] if time.time() - start > 600 else os.getloadavg()[1]
+        print(f"{name}: {summary['epochs_run']} epochs, {summary['stopped']}", file=sys.stderr)
+    run_dirs = [r for r in run_dirs if os.path.exists(os.path.join(r, "log.csv"))]
+    return write_outputs(run_dirs, out_dir, loads)
+
+
+def main(argv=None):
+    parser = argparse.ArgumentParser(prog="python -m cpl_keras.learning_curves",
+                                     description=__doc__.split("\n\n")[0])
+    parser.add_argument("runs", nargs="*", help="run directories")
+    parser.add_argument("--out", required=True, help="output folder (created if missing)")
+    parser.add_argument("--experiment", action="store_true",
+                        help="make the datasets and train the four runs first")
+    parser.add_argument("--pairs", type=int, default=8000)
+    parser.add_argument("--backbone", default="small_resnet")
+    parser.add_argument("--only", action="append",
+                        help="with --experiment: train only this run (repeatable; e.g. "
+                        "cvgl-cpl-a-small_resnet), so runs can share the machine in parallel")
+    parser.add_argument("--data-dir", default="data")
+    parser.add_argument("--runs-dir", default="runs/learning")
+    args = parser.parse_args(argv)
+    try:
+        if args.experiment:
+            rows = run_experiment(data_dir=args.data_dir, runs_dir=args.runs_dir,
+                                  out_dir=args.out, pairs=args.pairs, backbone=args.backbone,
+                                  only=args.only)
+        elif args.runs:
+            rows = write_outputs(args.runs, args.out)
+        else:
+            parser.error("give run directories or --experiment")
+    except (CurveError, OSError, ValueError) as error:
+        print(f"{parser.prog}: error: {str(error).splitlines()[0]}", file=sys.stderr)
+        return 2
+    print(markdown(rows))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,108 @@
+"""Learning curves: validation NMAE per parameter from a run directory, and
+the regression tests that fail if learning breaks."""
+
+import json
+import math
+import os
+
+import numpy as np
+import pytest
+
+from cpl_keras import learning_curves
+from cpl_keras.camera import PARAMETERS
+from cpl_keras.data.storage import StereoFile
+from cpl_keras.datasets import load_split, targets_from_labels
+from cpl_keras.training import train
+
+from test_datasets import write_stereo_fixture
+
+
+@pytest.fixture(scope="module")
+def tiny(tmp_path_factory):
+    return str(write_stereo_fixture(tmp_path_factory.mktemp("data") / "tiny.h5", n=40,
+                                    image_size=32))
+
+
+@pytest.fixture(scope="module")
+def tiny_run(tiny, tmp_path_factory):
+    run_dir = str(tmp_path_factory.mktemp("runs") / "cpl-a")
+    train(tiny, variant="cpl-a", run_dir=run_dir, epochs=3, batch_size=5, backbone="small",
+          seed=0, verbose=0)
+    return run_dir
+
+
+def test_curves_are_the_logged_validation_mae_over_mean_abs_truth(tiny, tiny_run):
+    curve = learning_curves.curves(tiny_run)
+    rows = learning_curves.read_log(tiny_run)
+    split = load_split(os.path.join(tiny_run, "split.npz"))
+    with StereoFile(tiny) as f:
+        targets = targets_from_labels(f.labels)
+    assert curve["samples_seen"] == [25 * (k + 1) for k in range(len(rows))]
+    for name in PARAMETERS:
+        scale = np.mean(np.abs(targets[name][split["val"]].astype(np.float64)))
+        expected = [row[f"val_{name}_mae"] / scale for row in rows]
+        assert curve["nmae"][name] == pytest.approx(expected, rel=1e-6)
+        assert math.isfinite(curve["average"][name])
+
+
+def test_outputs_figures_and_tables(tiny_run, tmp_path):
+    out = str(tmp_path / "new" / "folder")
+    assert learning_curves.main([tiny_run, "--out", out]) == 0
+    name = os.path.basename(tiny_run)
+    assert os.path.getsize(os.path.join(out, f"{name}.png")) > 10_000
+    with open(os.path.join(out, "learning_curves.json")) as f:
+        payload = json.load(f)
+    assert payload[0]["run"] == name and set(payload[0]["nmae"]) == set(PARAMETERS)
+    with open(os.path.join(out, "learning_curves.md")) as f:
+        assert "| cpl-a, small" in f.read()
+
+
+def test_a_missing_run_is_one_line_and_exit_2(tmp_path, capsys):
+    assert learning_curves.main([str(tmp_path / "nothing"), "--out", str(tmp_path / "o")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "error:" in err[0]
+
+
+# ---------------------------------------------------------------------------
+# Regression tests: learning must not break
+# ---------------------------------------------------------------------------
+def _nmae_sum(model, x, y):
+    """Sum over the 10 parameters of MAE / mean|y| on (x, y), inference mode."""
+    predictions = dict(zip(model.output_names, model.predict(x, verbose=0)))
+    return sum(float(np.mean(np.abs(predictions[n] - y[n])) / np.mean(np.abs(y[n])))
+               for n in PARAMETERS)
+
+
+@pytest.mark.parametrize("variant", ["baseline", "cpl-u", "cpl-a", "deep-homo"])
+def test_a_tiny_run_learns_and_its_pitch_stays_bounded(variant, tiny):
+    """Sixteen pairs fitted for 80 steps: the error on them must fall by a
+    clear factor, and every pitch prediction stays a plausible angle.
+
+    The MTL variants are judged by the summed NMAE of the 10 parameters in
+    inference mode; Deep-Homo (Dropout 0.75 before its last layers keeps its
+    inference-mode fit of 16 pairs loose) by its training loss."""
+    from cpl_keras import build_model, compile_model
+    from cpl_keras.datasets import StereoSequence
+    from cpl_keras.models.batchnorm import recompute_batchnorm_statistics
+
+    with StereoFile(tiny) as f:
+        targets = targets_from_labels(f.labels)
+    seq = StereoSequence(tiny, np.arange(16), targets=targets, batch_size=16)
+    x, y = seq[0]
+    seq.close()
+    model = compile_model(build_model(variant, backbone="small", image_size=32, seed=0))
+    model.initialise_adaptive_weights(x, y)
+    before = _nmae_sum(model, x, y)
+    history = model.fit(x, y, epochs=80, batch_size=16, verbose=0)
+    recompute_batchnorm_statistics(model, [x])  # Deep-Homo's BatchNorm, as training does
+    after = _nmae_sum(model, x, y)
+    assert np.all(np.isfinite(history.history["loss"]))
+    loss = history.history["loss"]
+    if variant == "deep-homo":
+        assert np.mean(loss[-10:]) < loss[0] / 2.5, loss
+    else:
+        assert after < before / 2, (before, after)
+    pitch = model.predict(x, verbose=0)[list(model.output_names).index("pitch")]
+    if variant != "deep-homo":  # Deep-Homo's 13 outputs are linear, as in the release
+        assert np.all(np.abs(pitch) <= np.pi / 2)
+        assert np.abs(pitch - y["pitch"]).mean() < 0.5
