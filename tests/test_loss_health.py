@@ -40,7 +40,8 @@ def test_pitch_head_is_bounded_by_default_and_linear_as_released(variant):
         head.bias.assign(np.full(head.bias.shape, 40.0, "float32"))
         pitch = model.predict(x, verbose=0)[TARGETS.index("pitch")]
         if bounded:
-            assert np.all(np.abs(pitch) <= math.pi / 2) and np.all(pitch > 1.5)
+            assert np.all(np.abs(pitch) <= math.pi / 2)
+            assert np.allclose(pitch, (math.pi / 2) * math.sin(40.0), atol=1e-5)
         else:
             assert np.allclose(pitch, 40.0)
         assert model.calibration["bounded_pitch_head"] is bounded
@@ -63,19 +64,43 @@ def _local_minima(values):
     return int(inner.sum())
 
 
-def test_the_bounded_pitch_loss_has_one_minimum_where_the_linear_one_has_many():
+def test_the_bounded_pitch_loss_has_only_true_minima_where_the_linear_one_has_far_ones():
     _, y = batch(1, seed=3)
-    y = dict(y, X=y["X"] * 0 + 40.0)  # a far point: the projection terms dominate
     X, Y, Z = camera.image_to_world(**{k: y[k] for k in camera.PARAMETERS}, u=9.0, v=21.0)
     y.update(X=np.float32(X).reshape(1, 1), Y=np.float32(Y).reshape(1, 1),
              Z=np.float32(Z).reshape(1, 1))
+    truth = float(y["pitch"][0, 0])
     linear = np.linspace(-20.0, 20.0, 801)  # radians, what an unbounded head can output
     assert _local_minima(_pitch_term(y, linear)) >= 3
-    z = np.linspace(-8.0, 8.0, 801)  # the bounded head's pre-activation
-    bounded = _pitch_term(y, (math.pi / 2) * np.tanh(z))
-    assert _local_minima(bounded) == 1
-    best = (math.pi / 2) * np.tanh(z[np.argmin(bounded)])
-    assert best == pytest.approx(float(y["pitch"][0, 0]), abs=0.02)
+    # In pitch, over the bounded head's range, one minimum: the truth.
+    in_range = np.linspace(-math.pi / 2, math.pi / 2, 401)
+    terms = _pitch_term(y, in_range)
+    assert _local_minima(terms) == 1
+    assert in_range[np.argmin(terms)] == pytest.approx(truth, abs=0.01)
+    # In the head's pre-activation z, every local minimum is the truth.
+    z = np.linspace(-8.0, 8.0, 1601)
+    pitch = (math.pi / 2) * np.sin(z)
+    terms = _pitch_term(y, pitch)
+    inner = np.flatnonzero((terms[1:-1] < terms[:-2]) & (terms[1:-1] < terms[2:])) + 1
+    assert len(inner) >= 2
+    assert np.allclose(pitch[inner], truth, atol=0.01)
+
+
+def test_the_bounded_pitch_head_does_not_saturate():
+    """Gradient descent on the head's pre-activation z, from far past the
+    bound, comes back to the target (a tanh head stays stranded)."""
+    from cpl_keras.layers import bounded_pitch
+
+    target = -0.31
+
+    def descend(activation, z=-20.0, steps=400):
+        grad = jax.jit(jax.grad(lambda z: (activation(z) - target) ** 2))
+        for _ in range(steps):
+            z = z - 0.1 * float(grad(z))
+        return float(activation(z))
+
+    assert descend(bounded_pitch) == pytest.approx(target, abs=0.01)
+    assert descend(lambda z: (math.pi / 2) * ops.tanh(z)) == pytest.approx(-math.pi / 2, abs=1e-3)
 
 
 # ---------------------------------------------------------------------------
