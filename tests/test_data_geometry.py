@@ -261,3 +261,29 @@ def test_every_pixel_has_finite_positive_depth():
     assert depth.max() <= scenes.SKY_DISTANCE
     assert image.dtype == np.uint8 and image.shape == (SIZE, SIZE, 3)
     assert image.std() > 10                   # a textured scene, not a flat colour
+
+
+@pytest.mark.parametrize("protocol", ["cvgl", "random"])
+def test_projection_pixel_is_the_release_pixel_or_the_first_geometry_below_it(protocol):
+    """The pixel depends on the image only (a network can see which point the
+    labels describe): (W/2, H/2) when it is on near geometry, else the first
+    such pixel below it in the same column."""
+    from cpl_keras.data.generate import render_pair
+
+    below = 0
+    for index in range(12):
+        s = protocols.pair_setup(protocol, 3, 12, SIZE, index)
+        _, _, lab = render_pair(protocol, 3, 12, SIZE, index)
+        if lab["projection_fallback"]:
+            continue
+        assert lab["u"] == SIZE // 2 and lab["v"] >= SIZE // 2
+        cfg = s["config"]
+        for v in range(SIZE // 2, int(lab["v"]) + 1):
+            ray = camera.camera_point(1.0, cfg["fx"], cfg["fy"], cfg["u0"], cfg["v0"],
+                                      SIZE // 2, v)
+            depth = render.depth_at(s["town"], s["right"], SIZE // 2, v)[0]
+            near = depth * math.hypot(1.0, *ray) < protocols.MAX_LABEL_DISTANCE
+            assert near == (v == lab["v"]), (index, v)
+        below += lab["v"] > SIZE // 2
+    if protocol == "cvgl":
+        assert below > 0          # the centre often sees the sky: the rule walks down

@@ -33,7 +33,6 @@ do not depend on the number of workers.
 
 from __future__ import annotations
 
-import argparse
 import contextlib
 import math
 import os
@@ -48,7 +47,7 @@ from cpl_keras.data import protocols
 from cpl_keras.data.protocols import PROTOCOLS
 from cpl_keras.data.scenes import SKY_DISTANCE
 
-GENERATOR_VERSION = "2.0"
+GENERATOR_VERSION = "2.1"
 MIN_IMAGE_SIZE = 16
 MAX_IMAGE_SIZE = 1024
 BLOCK = 32
@@ -134,8 +133,8 @@ def released_disparity(left, right):
 
     if left.shape[1] < BM_DISPARITIES + BM_BLOCK - 1 or left.shape[0] < BM_BLOCK:
         return -16.0
-    grey_l = cv2.cvtColor(left, cv2.COLOR_RGB2GRAY)
-    grey_r = cv2.cvtColor(right, cv2.COLOR_RGB2GRAY)
+    grey_l = cv2.cvtColor(np.ascontiguousarray(left, dtype=np.uint8), cv2.COLOR_RGB2GRAY)
+    grey_r = cv2.cvtColor(np.ascontiguousarray(right, dtype=np.uint8), cv2.COLOR_RGB2GRAY)
     return float(_stereo_bm().compute(grey_l, grey_r).mean())
 
 
@@ -471,28 +470,24 @@ def write_preview(path, protocol, pairs, seed=0, image_size=112, count=8, column
         ]
         for k, line in enumerate(lines):
             draw.text((x0 + 1, y0 + W + 1 + 11 * k), line, fill=(0, 0, 0))
-    tmp = path + ".partial.png"
-    try:
+    from cpl_keras.runs import atomic_path
+
+    with atomic_path(path) as tmp:
         sheet.save(tmp, optimize=True)
-        os.replace(tmp, path)
-    finally:
-        if os.path.exists(tmp):
-            os.remove(tmp)
     return path
 
 
 # ---------------------------------------------------------------------------
 # CLI
 # ---------------------------------------------------------------------------
-class _Parser(argparse.ArgumentParser):
-    def error(self, message):
-        sys.stderr.write(f"{self.prog}: error: {message}\n")
-        sys.exit(2)
+PROG = "python -m cpl_keras.data.generate"
 
 
 def _parser():
-    p = _Parser(
-        prog="python -m cpl_keras.data.generate",
+    from cpl_keras.cli import Parser
+
+    p = Parser(
+        prog=PROG,
         description="Render a synthetic CVGL-style stereo dataset to one HDF5 file.",
     )
     p.add_argument("--protocol", default="cvgl", choices=PROTOCOLS,
@@ -512,8 +507,9 @@ def main(argv=None):
     args = parser.parse_args(argv)
     if args.out is None and args.preview is None:
         parser.error("give --out (the dataset) and/or --preview (a contact sheet)")
-    command_line = " ".join(["python -m cpl_keras.data.generate"] + list(
-        sys.argv[1:] if argv is None else argv))
+    from cpl_keras import cli
+
+    command_line = cli.command_line(PROG, argv)
     try:
         _check_arguments(args.protocol, args.pairs, args.seed, args.image_size, args.workers)
         if args.out is not None:
@@ -532,9 +528,7 @@ def main(argv=None):
         sys.stderr.write(f"{parser.prog}: interrupted\n")
         return 130
     except (ValueError, OSError) as error:
-        message = " ".join(str(error).split())
-        sys.stderr.write(f"{parser.prog}: error: {message}\n")
-        return 2
+        return cli.fail(PROG, " ".join(str(error).split()))
     return 0
 
 

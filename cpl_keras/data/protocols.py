@@ -23,14 +23,18 @@ frame (cvgl: tz_released is -0.4..1.6 m, our tz 1..44 m).
 
 Projection pixel
 ----------------
-Both protocols choose the projection pixel (u, v) on scene geometry: integer
-pixels at least 1/8 of the image from the border are drawn per pair
-(``PROJECTION_TRIES`` of them) and the generator takes the first whose point
-is nearer than ``MAX_LABEL_DISTANCE`` along the ray (so never the sky dome,
-whose 1000 m depth gave X, Y, Z labels of hundreds of metres). If none is,
-it takes the nearest pixel inside the margin and flags the pair
-(``projection_fallback``). The release's fixed pixel (W/2, H/2)
-(``RELEASE_PIXEL``) is kept only for the as-released labels.
+Both protocols choose the projection pixel (u, v) on scene geometry, by a
+rule that depends on the image only, so that a network can tell from the
+pair which point its disparity and X, Y, Z labels describe: the release's
+pixel (W/2, H/2) when its point is nearer than ``MAX_LABEL_DISTANCE`` along
+the ray, otherwise the first pixel below it in the same column that is
+(never the sky dome, whose 1000 m depth gave X, Y, Z labels of hundreds of
+metres), down to 1/8 of the image from the bottom. If none is, the nearest
+pixel at least 1/8 of the image from the border is taken and the pair is
+flagged (``projection_fallback``). (A pixel drawn at random per pair, as an
+earlier version did, makes those labels unpredictable from the images: the
+network is not told the pixel.) The release's fixed pixel is kept as such
+only for the as-released labels.
 
 ``cvgl`` (the paper's protocol, CARLA conventions converted)
     Left camera on the vehicle at (x=2, y=0, z=1.4) m, looking down 15 deg
@@ -92,10 +96,11 @@ RANDOM_RANGES = {
     "left_x_m": (0.5, 2.5), "left_y_m": (-0.8, 0.8), "left_z_m": (1.2, 2.0),
     "left_pitch_deg": (-5.0, 15.0), "left_yaw_deg": (-3.0, 3.0), "left_roll_deg": (-2.0, 2.0),
 }
-#: Projection pixels are drawn at least this fraction of the image from the border.
+#: Projection pixels lie at least this fraction of the image from the border.
 PROJECTION_MARGIN_FRACTION = 0.125
-#: Candidate projection pixels drawn per pair.
-PROJECTION_TRIES = 16
+#: How the projection pixel is chosen (see the module docstring).
+PROJECTION_RULE = ("the release's pixel (W/2, H/2), else the first pixel below it in its "
+                   "column whose point is nearer than max_label_distance_m")
 #: A candidate is taken only if its point is nearer than this along the ray
 #: (metres; the sky dome is at ``scenes.SKY_DISTANCE`` = 1000 m).
 MAX_LABEL_DISTANCE = 200.0
@@ -109,7 +114,7 @@ def ranges(protocol):
     out = {k: list(v) if isinstance(v, tuple) else v for k, v in base.items()}
     out.update({f"drive_{k}": list(v) if isinstance(v, tuple) else v for k, v in DRIVE.items()})
     out["projection_margin_fraction"] = PROJECTION_MARGIN_FRACTION
-    out["projection_tries"] = PROJECTION_TRIES
+    out["projection_rule"] = PROJECTION_RULE
     out["max_label_distance_m"] = MAX_LABEL_DISTANCE
     if protocol == "cvgl":
         out["left_camera"] = dict(CVGL_LEFT)
@@ -280,11 +285,12 @@ def pair_setup(protocol, seed, pairs, image_size, index):
     intr = (cfg["fx"], cfg["fy"], cfg["u0"], cfg["v0"], W, H)
     left = View(*intr, vehicle + np.asarray(cfg["left_pose"]["position"]), left_rot)
     right = View(*intr, vehicle + np.asarray(cfg["right_pose"]["position"]), right_rot)
-    # integer pixels inside the image (both protocols); the generator takes the
-    # first one whose point is nearer than MAX_LABEL_DISTANCE (never the sky)
-    rng = np.random.default_rng([seed, 7, index])
+    # the release's pixel, then the pixels below it in its column (both
+    # protocols); the generator takes the first one whose point is nearer
+    # than MAX_LABEL_DISTANCE (never the sky)
     margin = projection_margin(W)
-    candidates = rng.integers(margin, W - margin, size=(PROJECTION_TRIES, 2)).astype(float)
+    u0, v0 = (int(c) for c in release_pixel(W, H))
+    candidates = np.array([(u0, v) for v in range(v0, H - margin)], dtype=float)
     return {"config": cfg, "frame_index": frame, "town": town, "left": left, "right": right,
             "uv_candidates": candidates, "margin": margin, "release_uv": release_pixel(W, H)}
 
