@@ -18,8 +18,6 @@ import keras
 from cpl_keras.camera import TARGETS
 from cpl_keras.layers import stack_channels, take
 
-MIN_IMAGE_SIZE = 16
-
 
 def deep_homo_outputs(left, right, as_released=False):
     """The Deep-Homo graph from the two (scaled) images to 13 named outputs."""

@@ -51,10 +51,9 @@ import numpy as np
 
 from cpl_keras import camera
 from cpl_keras.layers import LambdaOps, bounded_pitch, multiply, regression_head, stop_gradient
-from cpl_keras.models import backbones, deep_homo
+from cpl_keras.models import backbones, deep_homo, variants
 from cpl_keras.models.calibration_model import CalibrationModel
-
-VARIANTS = ("baseline", "cpl-u", "cpl-a", "deep-homo")
+from cpl_keras.models.variants import VARIANTS
 PIXEL_HEADS = ("u", "v")
 #: How the X, Y, Z terms of the camera projection loss reach the heads.
 DISENTANGLE = ("exact", "partial")
@@ -84,8 +83,7 @@ def build_model(variant, *, backbone="inception_v3", image_size=112, as_released
             global random generators are left as they were.
         name: the model's name (default: the variant).
     """
-    if variant not in VARIANTS:
-        raise ValueError(f"unknown variant {variant!r}; choose one of {', '.join(VARIANTS)}")
+    spec = variants.get(variant)
     if backbone not in backbones.BACKBONES:
         raise ValueError(
             f"unknown backbone {backbone!r}; choose one of {', '.join(backbones.BACKBONES)}"
@@ -99,10 +97,10 @@ def build_model(variant, *, backbone="inception_v3", image_size=112, as_released
         raise ValueError(
             f"unknown disentangle {disentangle!r}; choose one of {', '.join(DISENTANGLE)}"
         )
-    minimum = deep_homo.MIN_IMAGE_SIZE if variant == "deep-homo" else backbones.MIN_IMAGE_SIZE[backbone]
+    minimum = spec.min_image_size or backbones.MIN_IMAGE_SIZE[backbone]
     height, width = _image_shape(image_size, minimum, backbone)
     with _seeded(seed):
-        return _build(variant, backbone, height, width, bool(as_released), floors,
+        return _build(spec, backbone, height, width, bool(as_released), floors,
                       bool(bounded_pitch_head), disentangle, name)
 
 
@@ -122,44 +120,51 @@ def _seeded(seed):
         np.random.set_state(numpy_state)
 
 
-def _build(variant, backbone, height, width, as_released, floors, bounded_pitch_head,
+def _build(spec, backbone, height, width, as_released, floors, bounded_pitch_head,
            disentangle, name):
-    pitch_activation = bounded_pitch if bounded_pitch_head else None
     left = keras.Input((height, width, 3), name="left_image")
     right = keras.Input((height, width, 3), name="right_image")
     scaled_left, scaled_right = _scale_inputs(left, right, as_released)
-
-    if variant == "deep-homo":
-        outputs = deep_homo.deep_homo_outputs(scaled_left, scaled_right, as_released)
-        loss = "euclidean"
-    else:
-        features = backbones.stereo_features(scaled_left, scaled_right, backbone)
-        if variant == "baseline":
-            outputs = [
-                regression_head(features, target,
-                                activation=pitch_activation if target == "pitch" else None)
-                for target in camera.TARGETS
-            ]
-            loss = "mae"
-        else:
-            loss = "mae" if as_released else {
-                "cpl-u": "projection-uniform", "cpl-a": "projection-adaptive"
-            }[variant]
-            outputs = camera_projection_outputs(
-                features, variant, as_released, floors, pitch_activation,
-                detach=loss != "mae" and disentangle == "exact",
-            )
-
+    loss = spec.loss_mode(as_released)
+    outputs = BUILDERS[spec.builder](
+        spec, scaled_left, scaled_right, backbone=backbone, as_released=as_released,
+        floors=floors, pitch_activation=bounded_pitch if bounded_pitch_head else None,
+        detach=loss.startswith("projection") and disentangle == "exact",
+    )
     calibration = {
-        "variant": variant, "backbone": backbone, "image_size": [height, width],
+        "variant": spec.name, "backbone": backbone, "image_size": [height, width],
         "as_released": as_released, "floors": floors, "loss": loss,
-        "bounded_pitch_head": bounded_pitch_head and variant != "deep-homo",
+        "bounded_pitch_head": bounded_pitch_head and spec.builder != "deep_homo",
         "disentangle": disentangle if loss.startswith("projection") else None,
     }
     return CalibrationModel(
         inputs={"left_image": left, "right_image": right}, outputs=outputs,
-        name=name or variant.replace("-", "_"), calibration=calibration,
+        name=name or spec.name.replace("-", "_"), calibration=calibration,
     )
+
+
+def _deep_homo_outputs(spec, left, right, *, as_released, **_):
+    return deep_homo.deep_homo_outputs(left, right, as_released)
+
+
+def _direct_outputs(spec, left, right, *, backbone, pitch_activation, **_):
+    """Two towers and one regression head per target (X, Y, Z regressed too)."""
+    features = backbones.stereo_features(left, right, backbone)
+    return [regression_head(features, target,
+                            activation=pitch_activation if target == "pitch" else None)
+            for target in camera.TARGETS]
+
+
+def _camera_graph_outputs(spec, left, right, *, backbone, as_released, floors,
+                          pitch_activation, detach):
+    features = backbones.stereo_features(left, right, backbone)
+    return camera_projection_outputs(features, spec.name, as_released, floors, pitch_activation,
+                                     detach=detach)
+
+
+#: How each variant's outputs are made (``variants.Variant.builder``).
+BUILDERS = {"deep_homo": _deep_homo_outputs, "direct": _direct_outputs,
+            "camera_graph": _camera_graph_outputs}
 
 
 def camera_projection_outputs(features, variant, as_released, floors, pitch_activation=None,
@@ -186,7 +191,7 @@ def camera_projection_outputs(features, variant, as_released, floors, pitch_acti
             name: keras.layers.Lambda(stop_gradient, name=f"{name}_detached")(tensor)
             for name, tensor in params.items()
         }
-    gated = as_released and variant == "cpl-a"
+    gated = as_released and variants.get(variant).released_gates
     rename = {q: f"{q}_projected" for q in ("X", "Y", "Z")} if gated else None
     X, Y, Z = camera.image_to_world(**graph_params, **pixel, ops=LambdaOps(floors, rename))
     points = {"X": X, "Y": Y, "Z": Z}
@@ -214,7 +219,7 @@ def compile_model(model, *, learning_rate=None, jit_compile="auto", steps_per_ex
     if not isinstance(model, CalibrationModel):
         raise ValueError("compile_model expects a model made by cpl_keras.build_model")
     if learning_rate is None:
-        learning_rate = 1.5e-3 if model.calibration.get("variant") == "deep-homo" else 1e-3
+        learning_rate = variants.get(model.calibration.get("variant")).learning_rate
     if not (isinstance(learning_rate, numbers.Real) and learning_rate > 0):
         raise ValueError(f"learning rate must be a positive number, got {learning_rate!r}")
     names = list(model.output_names)

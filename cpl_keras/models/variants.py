@@ -1,0 +1,65 @@
+"""The model variants, one spec each: everything the rest of the package
+needs to know about a variant, in one place.
+
+The factory builds a variant with the builder its spec names
+(``factory.BUILDERS``); training takes its learning rate and loss from here;
+the tables take their row names and row order, the reproduction the variants
+it trains and ``cpl_keras.graph`` which variants have a camera graph. A new
+variant is one new ``Variant`` entry below plus, if no existing builder
+fits, its builder in ``factory.BUILDERS``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+
+@dataclass(frozen=True)
+class Variant:
+    """One network of the paper's Table 1."""
+
+    name: str            #: the variant's name on the command lines
+    row: str             #: its row in the paper's tables
+    table_order: int     #: position of that row among the paper's model rows
+    loss: str            #: loss mode as the paper writes it (``LOSS_MODES``)
+    released_loss: str   #: loss mode as released
+    learning_rate: float  #: Adam's learning rate (the paper's)
+    builder: str         #: key of ``factory.BUILDERS`` that makes its outputs
+    camera_graph: bool   #: X, Y, Z come out of the Lambda camera graph
+    min_image_size: int | None = None  #: its own minimum (None: the backbone's)
+    released_gates: bool = False  #: as released, X, Y, Z pass through sigmoid gates
+    description: str = ""
+
+    def loss_mode(self, as_released=False):
+        return self.released_loss if as_released else self.loss
+
+
+SPECS = (
+    Variant("baseline", "MTL-Baseline", 2, "mae", "mae", 1e-3, "direct", False,
+            description="two towers, 13 heads regressing all 13 targets (MAE)"),
+    Variant("cpl-u", "MTL-CPL-U", 1, "projection-uniform", "mae", 1e-3, "camera_graph", True,
+            description="12 heads, X, Y, Z from the camera graph; uniform projection loss"),
+    Variant("cpl-a", "MTL-CPL-A", 3, "projection-adaptive", "mae", 1e-3, "camera_graph", True,
+            released_gates=True,
+            description="CPL-U with adaptive weights (Eq. 9)"),
+    Variant("deep-homo", "Deep-Homo", 0, "euclidean", "euclidean", 1.5e-3, "deep_homo", False,
+            min_image_size=16,
+            description="the modified Deep-Homo network (8 convolutions, Euclidean loss)"),
+)
+REGISTRY = {spec.name: spec for spec in SPECS}
+#: Variant names, in the order of the command lines' choices.
+VARIANTS = tuple(REGISTRY)
+#: The model rows of the paper's tables, in the paper's order.
+MODEL_ROWS = tuple(spec.row for spec in sorted(SPECS, key=lambda s: s.table_order))
+#: Table row of each variant.
+VARIANT_ROWS = {spec.name: spec.row for spec in SPECS}
+#: Variants in the order of the paper's table rows (the reproduction trains these).
+TABLE_ORDER = tuple(spec.name for spec in sorted(SPECS, key=lambda s: s.table_order))
+
+
+def get(name):
+    """The spec of variant ``name`` (ValueError naming the choices if unknown)."""
+    try:
+        return REGISTRY[name]
+    except (KeyError, TypeError):
+        raise ValueError(f"unknown variant {name!r}; choose one of {', '.join(VARIANTS)}") from None
