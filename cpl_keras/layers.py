@@ -23,22 +23,31 @@ PACKAGE = "cpl_keras"
 # ---------------------------------------------------------------------------
 # Registered op functions (what the Lambda layers call)
 # ---------------------------------------------------------------------------
-@keras.saving.register_keras_serializable(package=PACKAGE)
-def add(inputs):
-    a, b = inputs
-    return ops.add(a, b)
+def _registered(name, op, arity, doc=None):
+    """The module-level function ``name``: ``op(x)`` (``arity`` 1) or
+    ``op(a, b)`` of ``inputs = [a, b]`` (``arity`` 2), registered under its
+    name for safe loading."""
+    if arity == 1:
+        def function(x):
+            return op(x)
+    else:
+        def function(inputs):
+            a, b = inputs
+            return op(a, b)
+    function.__name__ = function.__qualname__ = name
+    function.__doc__ = doc
+    return keras.saving.register_keras_serializable(package=PACKAGE, name=name)(function)
 
 
-@keras.saving.register_keras_serializable(package=PACKAGE)
-def subtract(inputs):
-    a, b = inputs
-    return ops.subtract(a, b)
-
-
-@keras.saving.register_keras_serializable(package=PACKAGE)
-def multiply(inputs):
-    a, b = inputs
-    return ops.multiply(a, b)
+add = _registered("add", ops.add, 2)
+subtract = _registered("subtract", ops.subtract, 2)
+multiply = _registered("multiply", ops.multiply, 2)
+negative = _registered("negative", ops.negative, 1)
+sin = _registered("sin", ops.sin, 1)
+cos = _registered("cos", ops.cos, 1)
+stop_gradient = _registered(
+    "stop_gradient", ops.stop_gradient, 1,
+    "``x`` forward, no gradient backward (the exact disentangling of Eq. 7).")
 
 
 @keras.saving.register_keras_serializable(package=PACKAGE)
@@ -46,27 +55,6 @@ def safe_divide(inputs, epsilon=camera.EPSILON):
     """``a / b`` with ``b`` floored to magnitude ``epsilon``, sign kept."""
     a, b = inputs
     return ops.divide(a, camera.safe_divisor(b, epsilon, ops))
-
-
-@keras.saving.register_keras_serializable(package=PACKAGE)
-def negative(x):
-    return ops.negative(x)
-
-
-@keras.saving.register_keras_serializable(package=PACKAGE)
-def sin(x):
-    return ops.sin(x)
-
-
-@keras.saving.register_keras_serializable(package=PACKAGE)
-def cos(x):
-    return ops.cos(x)
-
-
-@keras.saving.register_keras_serializable(package=PACKAGE)
-def stop_gradient(x):
-    """``x`` forward, no gradient backward (the exact disentangling of Eq. 7)."""
-    return ops.stop_gradient(x)
 
 
 @keras.saving.register_keras_serializable(package=PACKAGE)
