@@ -1,0 +1,228 @@
+"""The run directory, in one place: its files, their reading and writing.
+
+A run directory (written by ``cpl_keras.training``)::
+
+    config.json        everything needed to rebuild and reproduce the run
+    model.keras        the best model (loads with safe_mode=True)
+    best.weights.h5    its weights
+    log.csv            one row per epoch, continuous across resumes
+    curves.png         training curves
+    train_stats.json   training-set statistics (the Average baseline)
+    split.npz          train, val, test index arrays
+    backup/            resume state: state.json, checkpoints, the lock
+
+Training writes it through this module; evaluation, calibration, the
+reproduction and the learning curves read it only through ``load_run``,
+``read_config`` and ``load_model``. ``atomic_path`` is the package's one
+way of writing a file atomically (written under a temporary name, fsync'd,
+then renamed into place).
+
+config.json holds each fact once: ``as_released`` lives in ``build`` (the
+model's build arguments). Run directories of the older layout, which also
+had it at the top level, still load and resume (``normalise_config``).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import os
+
+CONFIG = "config.json"
+MODEL = "model.keras"
+BEST_WEIGHTS = "best.weights.h5"
+LOG = "log.csv"
+CURVES = "curves.png"
+STATS = "train_stats.json"
+SPLIT = "split.npz"
+BACKUP = "backup"
+STATE = os.path.join(BACKUP, "state.json")
+LOCK = os.path.join(BACKUP, "lock")
+#: The files a finished run must have to be evaluated.
+REQUIRED = (CONFIG, MODEL, STATS, SPLIT)
+#: Suffix of a table row of a run trained with ``as_released``.
+RELEASED = " (as released)"
+
+
+class RunError(ValueError):
+    """A run directory cannot be read (one-line message)."""
+
+
+# ---------------------------------------------------------------------------
+# Atomic files
+# ---------------------------------------------------------------------------
+def _partial(path):
+    """``path``'s temporary name, keeping its extension (savers pick the
+    format from it; Keras's weights files must end in ``.weights.h5``)."""
+    directory, name = os.path.split(path)
+    for ext in (".weights.h5", ".partial"):
+        if name.endswith(ext):
+            break
+    else:
+        ext = os.path.splitext(name)[1]
+    stem = name[: len(name) - len(ext)] if ext else name
+    return os.path.join(directory, f".{stem}.partial{ext}")
+
+
+def commit(tmp, path):
+    """Flush the finished temporary file ``tmp`` to disk and rename it to ``path``."""
+    with open(tmp, "rb") as f:
+        os.fsync(f.fileno())
+    os.replace(tmp, path)
+
+
+@contextlib.contextmanager
+def atomic_path(*paths):
+    """Yield temporary paths (one per ``path``, the same extension) to write
+    to; when the block ends without an error, each file is fsync'd and
+    renamed into place, all of them or (on an error) none: the temporary
+    files are removed and the final files left as they were. With one path,
+    yields one temporary path; with several, a list."""
+    tmps = [_partial(os.fspath(p)) for p in paths]
+    try:
+        yield tmps[0] if len(tmps) == 1 else tmps
+        for tmp, path in zip(tmps, paths):
+            commit(tmp, path)
+    finally:
+        for tmp in tmps:
+            if os.path.exists(tmp):
+                os.remove(tmp)
+
+
+def write_text(path, text):
+    """Write ``text`` to ``path`` atomically."""
+    with atomic_path(path) as tmp, open(tmp, "w") as f:
+        f.write(text)
+
+
+def write_json(path, payload, indent=2):
+    """Write ``payload`` as JSON to ``path`` atomically (strict JSON: no NaN)."""
+    write_text(path, json.dumps(payload, indent=indent) + "\n")
+
+
+def save_figure(fig, path, **savefig_args):
+    """Save the matplotlib figure ``fig`` to ``path`` atomically, then close it."""
+    import matplotlib.pyplot as plt
+
+    try:
+        with atomic_path(path) as tmp:
+            fig.savefig(tmp, **savefig_args)
+    finally:
+        plt.close(fig)
+
+
+def read_json(path, default=None):
+    """The JSON in ``path``, or ``default`` when there is no such file."""
+    if not os.path.exists(path):
+        return default
+    with open(path) as f:
+        return json.load(f)
+
+
+def relative(path, start):
+    """``path`` relative to the directory ``start`` (for files that are
+    committed or moved: no machine's absolute paths in them)."""
+    try:
+        return os.path.relpath(os.path.abspath(path), os.path.abspath(start))
+    except ValueError:  # another drive (Windows)
+        return os.path.abspath(path)
+
+
+# ---------------------------------------------------------------------------
+# config.json
+# ---------------------------------------------------------------------------
+def normalise_config(config):
+    """``config`` with each fact once: the top-level ``as_released`` of the
+    older layout moved into ``build`` (a new dict; the argument is kept)."""
+    config = dict(config)
+    build = dict(config.get("build") or {})
+    if "as_released" in config:
+        build.setdefault("as_released", bool(config.pop("as_released")))
+    config["build"] = build
+    return config
+
+
+def read_config(run_dir, default=None):
+    """The run's config.json (normalised), or ``default`` when it has none.
+    RunError when it is unreadable."""
+    path = os.path.join(run_dir, CONFIG)
+    try:
+        config = read_json(path)
+    except (OSError, ValueError) as error:  # JSONDecodeError is a ValueError
+        raise RunError(f"cannot read {path}: {error}") from None
+    return default if config is None else normalise_config(config)
+
+
+def write_config(run_dir, config):
+    write_json(os.path.join(run_dir, CONFIG), normalise_config(config))
+
+
+def config_as_released(config):
+    """Whether the run of ``config`` was trained as released (either layout)."""
+    return bool(config.get("build", {}).get("as_released", config.get("as_released", False)))
+
+
+def as_released(run):
+    """Whether the run (a ``load_run`` dict) was trained as released."""
+    return config_as_released(run["config"])
+
+
+def row_name(run):
+    """The table row of a run: its variant's row, marked when trained as released."""
+    from cpl_keras.models.variants import VARIANT_ROWS
+
+    row = VARIANT_ROWS[run["config"]["variant"]]
+    return row + RELEASED if as_released(run) else row
+
+
+# ---------------------------------------------------------------------------
+# Reading a finished run
+# ---------------------------------------------------------------------------
+def load_run(run_dir, error=RunError):
+    """The run's files as a dict: ``run_dir``, ``config``, ``stats``,
+    ``split`` (train/val/test arrays), ``model_path``. Raises ``error``
+    (default ``RunError``) naming the first missing or malformed file."""
+    from cpl_keras.baselines.average import load_statistics
+    from cpl_keras.datasets import load_split
+    from cpl_keras.models.variants import VARIANT_ROWS
+
+    run_dir = os.path.abspath(os.fspath(run_dir))
+    if not os.path.isdir(run_dir):
+        raise error(f"run directory not found: {run_dir}")
+    paths = {name: os.path.join(run_dir, name) for name in REQUIRED}
+    for name, path in paths.items():
+        if not os.path.isfile(path):
+            what = "weights (model.keras)" if name == MODEL else name
+            raise error(f"run directory {run_dir} has no {what}")
+    run = {"run_dir": run_dir, "model_path": paths[MODEL]}
+    try:
+        run["config"] = read_config(run_dir)
+    except RunError as problem:
+        raise error(str(problem)) from None
+    try:
+        run["stats"] = load_statistics(paths[STATS])
+    except (OSError, ValueError) as problem:
+        raise error(f"cannot read {paths[STATS]}: {problem}") from None
+    for key in ("variant", "build", "data"):
+        if key not in run["config"]:
+            raise error(f"{paths[CONFIG]} has no '{key}'")
+    if run["config"]["variant"] not in VARIANT_ROWS:
+        raise error(f"{paths[CONFIG]}: unknown variant {run['config']['variant']!r}")
+    try:
+        run["split"] = load_split(paths[SPLIT])
+    except (OSError, ValueError, KeyError) as problem:
+        raise error(f"cannot read {paths[SPLIT]}: {problem}") from None
+    return run
+
+
+def load_model(run, error=RunError):
+    """The run's best model (``keras.saving.load_model(..., safe_mode=True)``)."""
+    import keras
+
+    import cpl_keras.models  # noqa: F401  (registers the custom layers)
+    from cpl_keras.cli import one_line
+
+    try:
+        return keras.saving.load_model(run["model_path"], safe_mode=True)
+    except Exception as problem:  # corrupt archives raise many kinds of errors
+        raise error(f"cannot load {run['model_path']}: {one_line(problem)}") from None
