@@ -26,7 +26,7 @@ CPL-A loss                    Eq. 9, learned alpha_i       MAE of the 13 outputs
 CPL-A adaptive weights        per-term alpha_i (loss)      per-sample sigmoid gates
                                                            multiplying X, Y, Z
 Deep-Homo input               grey level of each image     one channel of each image
-pitch head                    (pi/2) sin, bounded          linear (a minimum every 2 pi)
+pitch head                    clipped to +-pi/2            linear (a minimum every 2 pi)
 X, Y, Z terms of Eq. 7        reach only the pixel heads   (MAE: every head)
 divisor floors                ``camera.FLOORS``            ``camera.RELEASED_FLOORS``
 ============================  ===========================  ============================
@@ -74,7 +74,7 @@ def build_model(variant, *, backbone="inception_v3", image_size=112, as_released
             (see the module docstring).
         floors: the camera graph's divisor floors per quantity (default
             ``camera.FLOORS``; as released ``camera.RELEASED_FLOORS``).
-        bounded_pitch_head: pitch = (pi/2) sin(z) for the MTL variants
+        bounded_pitch_head: pitch = clip(z, -pi/2, pi/2), straight-through, for the MTL variants
             (default: True, as released False).
         disentangle: ``"exact"`` (the X, Y, Z terms of Eq. 7 reach only the
             pixel heads u, v) or ``"partial"`` (they reach every head the
