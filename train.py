@@ -11,13 +11,12 @@ again. See docs/training.md.
 
 from __future__ import annotations
 
-import argparse
 import os
-import shlex
 import sys
 
 os.environ.setdefault("KERAS_BACKEND", "jax")
 
+from cpl_keras import cli  # noqa: E402
 from cpl_keras.datasets import SPLITS  # noqa: E402
 from cpl_keras.models import BACKBONES, VARIANTS  # noqa: E402
 from cpl_keras.models.factory import DISENTANGLE  # noqa: E402
@@ -27,15 +26,12 @@ from cpl_keras.models.factory import DISENTANGLE  # noqa: E402
 DEMO = {"pairs": 800, "image_size": 112, "epochs": 8, "backbone": "small", "seed": 0}
 
 
-class _Parser(argparse.ArgumentParser):
-    def error(self, message):
-        # One line, no usage block: "train.py: error: <problem>".
-        self.exit(2, f"{self.prog}: error: {message}\n")
+PROG = "train.py"
 
 
 def build_parser():
-    parser = _Parser(
-        prog="train.py",
+    parser = cli.Parser(
+        prog=PROG,
         description="Train a camera calibration network (Butt & Taj) on a stereo dataset.",
     )
     parser.add_argument("--variant", required=True, choices=VARIANTS)
@@ -62,7 +58,7 @@ def build_parser():
                         help="CPL: the X, Y, Z terms of Eq. 7 train only the pixel heads "
                         "(exact, default) or every head the camera graph reads (partial)")
     parser.add_argument("--linear-pitch-head", action="store_true",
-                        help="an unbounded pitch head (the release's; default (pi/2) sin, bounded)")
+                        help="an unbounded pitch head (the release's; default: clipped to +-pi/2)")
     parser.add_argument("--bn-recompute-batches", type=int,
                         help="training batches for recomputing BatchNorm statistics before "
                         "each validation (default 16; 0 = Keras's moving averages, as released)")
@@ -76,7 +72,7 @@ def build_parser():
 def demo_dataset():
     """The demonstration dataset, generated on first use."""
     from cpl_keras.data.storage import DatasetError
-    from cpl_keras.training import cache_dir
+    from cpl_keras.cache import cache_dir
 
     try:
         from cpl_keras.data.generate import GENERATOR_VERSION as version
@@ -115,11 +111,11 @@ def main(argv=None):
         "runs", ("demo-" if demo else "") + f"{args.variant}-{args.split}-s{seed}"
         + ("-released" if args.as_released else "")
     )
-    command = " ".join(shlex.quote(a) for a in [os.path.basename(sys.argv[0]) or "train.py"]
-                       + list(sys.argv[1:] if argv is None else argv))
+    command = cli.command_line(PROG, argv)
 
     from cpl_keras.data.storage import DatasetError
-    from cpl_keras.training import TrainingError, enable_compile_cache, summary_line, train
+    from cpl_keras.cache import enable_compile_cache
+    from cpl_keras.training import TrainingError, summary_line, train
 
     enable_compile_cache()
 
@@ -137,9 +133,7 @@ def main(argv=None):
             command=command,
         )
     except (DatasetError, TrainingError, OSError) as error:
-        message = str(error).splitlines()[0] if str(error) else type(error).__name__
-        print(f"train.py: error: {message}", file=sys.stderr)
-        return 2
+        return cli.fail(PROG, error)
     print(summary_line(summary))
     if demo:
         print(

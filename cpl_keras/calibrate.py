@@ -20,7 +20,6 @@ output file is written then.
 
 from __future__ import annotations
 
-import argparse
 import json
 import math
 import os
@@ -30,17 +29,15 @@ os.environ.setdefault("KERAS_BACKEND", "jax")
 
 import numpy as np  # noqa: E402
 
+from cpl_keras import cli, runs  # noqa: E402
 from cpl_keras.camera import PARAMETERS, UNITS, fov_from_focal  # noqa: E402
+from cpl_keras.real import crop_resize_coordinate  # noqa: E402
+
+PROG = "python -m cpl_keras.calibrate"
 
 
 class CalibrationError(ValueError):
     """Bad input to calibrate (one-line message)."""
-
-
-class _Parser(argparse.ArgumentParser):
-    def error(self, message):
-        print(f"error: {message}", file=sys.stderr)
-        raise SystemExit(2)
 
 
 def read_image(path):
@@ -57,13 +54,14 @@ def read_image(path):
 
 def to_input_pixels(values, width, height, size_w, size_h):
     """Scale predicted pixel quantities from the model's S x S grid back to
-    the input image's W x H grid (see the module doc)."""
+    the input image's W x H grid (see the module doc): the inverse of the
+    builders' resize, ``real.crop_resize_coordinate`` with the inverse scale."""
     sx, sy = width / size_w, height / size_h
     out = dict(values)
     out["fx"] = values["fx"] * sx
     out["fy"] = values["fy"] * sy
-    out["u0"] = (values["u0"] + 0.5) * sx - 0.5
-    out["v0"] = (values["v0"] + 0.5) * sy - 0.5
+    out["u0"] = float(crop_resize_coordinate(values["u0"], 0, sx))
+    out["v0"] = float(crop_resize_coordinate(values["v0"], 0, sy))
     out["disparity"] = values["disparity"] * sx
     return out
 
@@ -79,20 +77,14 @@ def calibrate_pair(left_path, right_path, run_dir):
         raise CalibrationError(
             f"left and right images differ in size: {left.shape[1]}x{left.shape[0]} "
             f"and {right.shape[1]}x{right.shape[0]}")
-    try:
-        run = evaluation.load_run(run_dir)
-    except evaluation.EvaluationError as error:
-        raise CalibrationError(str(error)) from None
-    try:
-        model = evaluation.load_model(run)
-    except evaluation.EvaluationError as error:
-        raise CalibrationError(str(error)) from None
+    run = runs.load_run(run_dir, error=CalibrationError)
+    model = runs.load_model(run, error=CalibrationError)
     size_h, size_w = evaluation.model_image_shape(model)
     height, width = left.shape[:2]
     pred = evaluation.predict_images(
         model, resize_image(left, size_w, size_h)[None], resize_image(right, size_w, size_h)[None])
     values = {name: float(pred[name][0]) for name in pred}
-    released = evaluation.as_released(run)
+    released = runs.as_released(run)
     notes = []
     if released:
         values["pitch"] = math.radians(values["pitch"])
@@ -118,7 +110,7 @@ def calibrate_pair(left_path, right_path, run_dir):
 
 
 def main(argv=None):
-    parser = _Parser(prog="python -m cpl_keras.calibrate", description=__doc__.split("\n")[0])
+    parser = cli.Parser(prog=PROG, description=__doc__.split("\n")[0])
     parser.add_argument("left")
     parser.add_argument("right")
     parser.add_argument("--run", required=True, help="run directory of a trained model")
@@ -134,18 +126,9 @@ def main(argv=None):
         result = calibrate_pair(args.left, args.right, args.run)
         text = json.dumps(result, indent=2, allow_nan=False)
         if args.json_out:
-            tmp = args.json_out + ".partial"
-            try:
-                with open(tmp, "w") as f:
-                    f.write(text + "\n")
-                os.replace(tmp, args.json_out)
-            finally:
-                if os.path.exists(tmp):
-                    os.remove(tmp)
+            runs.write_text(args.json_out, text + "\n")
     except (CalibrationError, OSError) as error:
-        message = str(error).splitlines()[0] if str(error) else type(error).__name__
-        print(f"error: {message}", file=sys.stderr)
-        return 2
+        return cli.fail(PROG, error)
     print(text)
     return 0
 

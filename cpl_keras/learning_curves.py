@@ -19,7 +19,6 @@ datasets and trains the runs of docs/training.md's "Does it learn?" section
 
 from __future__ import annotations
 
-import argparse
 import csv
 import json
 import math
@@ -29,6 +28,7 @@ import time
 
 import numpy as np
 
+from cpl_keras import cli, runs
 from cpl_keras.camera import PARAMETERS
 from cpl_keras.metrics import nmae
 
@@ -42,7 +42,7 @@ class CurveError(ValueError):
 
 def read_log(run_dir):
     """log.csv as a list of dicts of floats (one per epoch)."""
-    path = os.path.join(run_dir, "log.csv")
+    path = os.path.join(run_dir, runs.LOG)
     if not os.path.isfile(path):
         raise CurveError(f"{run_dir} has no log.csv")
     with open(path) as f:
@@ -75,16 +75,17 @@ def curves(run_dir, data=None):
 
     run_dir = os.path.abspath(run_dir)
     try:
-        with open(os.path.join(run_dir, "config.json")) as f:
-            config = json.load(f)
-        stats = load_statistics(os.path.join(run_dir, "train_stats.json"))
-        split = load_split(os.path.join(run_dir, "split.npz"))
+        config = runs.read_config(run_dir)
+        if config is None:
+            raise OSError(f"no {runs.CONFIG}")
+        stats = load_statistics(os.path.join(run_dir, runs.STATS))
+        split = load_split(os.path.join(run_dir, runs.SPLIT))
     except (OSError, ValueError, KeyError) as error:
         raise CurveError(f"cannot read run {run_dir}: {error}") from None
     rows = read_log(run_dir)
     data = data or config["data"]
     with StereoFile(data) as f:
-        targets = targets_from_labels(f.labels, as_released=bool(config.get("as_released")))
+        targets = targets_from_labels(f.labels, as_released=runs.config_as_released(config))
     val = split["val"]
     scale = {}
     average = {}
@@ -109,7 +110,7 @@ def curves(run_dir, data=None):
 
 def run_label(curve):
     config = curve["config"]
-    released = " (as released)" if config.get("as_released") else ""
+    released = runs.RELEASED if runs.config_as_released(config) else ""
     return (f"{config['variant']}{released}, {config['build']['backbone']}, "
             f"{os.path.basename(config['data'])}, split {config['split']}")
 
@@ -150,10 +151,7 @@ def plot(curve, path):
         fontsize=10,
     )
     fig.tight_layout()
-    tmp = path + ".partial.png"
-    fig.savefig(tmp, dpi=90)
-    plt.close(fig)
-    os.replace(tmp, path)
+    runs.save_figure(fig, path, dpi=90)
 
 
 def summary_rows(curve, load=None):
@@ -217,10 +215,7 @@ def write_outputs(run_dirs, out_dir, loads=None):
         payload.append(dict(row, samples_seen=curve["samples_seen"], nmae=curve["nmae"]))
     for filename, text in (("learning_curves.md", markdown(rows)),
                            ("learning_curves.json", json.dumps(_finite(payload), indent=1))):
-        tmp = os.path.join(out_dir, filename + ".partial")
-        with open(tmp, "w") as f:
-            f.write(text)
-        os.replace(tmp, os.path.join(out_dir, filename))
+        runs.write_text(os.path.join(out_dir, filename), text)
     return rows
 
 
@@ -265,8 +260,8 @@ def run_experiment(*, data_dir, runs_dir, out_dir, pairs, backbone, image_size=1
 
 
 def main(argv=None):
-    parser = argparse.ArgumentParser(prog="python -m cpl_keras.learning_curves",
-                                     description=__doc__.split("\n\n")[0])
+    parser = cli.Parser(prog="python -m cpl_keras.learning_curves",
+                        description=__doc__.split("\n\n")[0])
     parser.add_argument("runs", nargs="*", help="run directories")
     parser.add_argument("--out", required=True, help="output folder (created if missing)")
     parser.add_argument("--experiment", action="store_true",
@@ -289,8 +284,7 @@ def main(argv=None):
         else:
             parser.error("give run directories or --experiment")
     except (CurveError, OSError, ValueError) as error:
-        print(f"{parser.prog}: error: {str(error).splitlines()[0]}", file=sys.stderr)
-        return 2
+        return cli.fail(parser.prog, error)
     print(markdown(rows))
     return 0
 

@@ -1,8 +1,10 @@
 """Regenerate every result of ``paper_results/`` with one command.
 
-    python evaluate.py --reproduce            # the paper's scale (a GPU job)
-    python evaluate.py --reproduce --quick    # the same pipeline in minutes
-    python evaluate.py --reproduce --pairs 2000 --epochs 4   # a chosen scale
+    python -m cpl_keras.reproduce            # the paper's scale (a GPU job)
+    python -m cpl_keras.reproduce --quick    # the same pipeline in minutes
+    python -m cpl_keras.reproduce --pairs 2000 --epochs 4   # a chosen scale
+
+(``python evaluate.py --reproduce ...`` is the same command.)
 
 The pipeline, every stage resumable (datasets, finished runs and tables
 newer than their runs are reused; killed training runs resume from their
@@ -23,12 +25,18 @@ last epoch):
 
 from __future__ import annotations
 
-import json
 import os
 import platform
 import shutil
 import sys
 import time
+
+os.environ.setdefault("KERAS_BACKEND", "jax")
+
+from cpl_keras import cli, runs  # noqa: E402
+from cpl_keras.models.variants import TABLE_ORDER  # noqa: E402
+
+PROG = "python -m cpl_keras.reproduce"
 
 #: The paper's scale: CVGL's 123,017 pairs, 200 epochs, InceptionV3 at 112.
 PAPER_SCALE = {"pairs": 123017, "random_pairs": 123017, "epochs": 200, "image_size": 112,
@@ -40,8 +48,8 @@ QUICK = {"pairs": 150, "random_pairs": 150, "epochs": 1, "image_size": 32,
 
 #: (protocol, split, variants trained on it, with the as-released CPL-A where set)
 PROTOCOLS = (
-    ("cvgl", "paper", ("deep-homo", "cpl-u", "baseline", "cpl-a"), True),
-    ("random", "held-out-config", ("deep-homo", "cpl-u", "baseline", "cpl-a"), False),
+    ("cvgl", "paper", TABLE_ORDER, True),
+    ("random", "held-out-config", TABLE_ORDER, False),
 )
 
 
@@ -93,10 +101,10 @@ def train_all(config, paths, runs_dir, seed):
     """Stage 2: every model of every protocol; returns {protocol: [run dirs]}."""
     from cpl_keras import training
 
-    runs = {}
+    trained = {}
     for protocol, split, variants, with_released in PROTOCOLS:
         jobs = [(v, False) for v in variants] + ([("cpl-a", True)] if with_released else [])
-        runs[protocol] = []
+        trained[protocol] = []
         for variant, released in jobs:
             name = variant + ("-released" if released else "")
             run_dir = os.path.join(runs_dir, protocol, name)
@@ -108,30 +116,28 @@ def train_all(config, paths, runs_dir, seed):
             # Refuses (TrainingError) a run directory that holds a run of other
             # settings, so a run made at another scale is never reused.
             training.plan_run(paths[protocol], **plan)
-            config_path = os.path.join(run_dir, "config.json")
-            if os.path.exists(config_path):
-                with open(config_path) as f:
-                    if json.load(f).get("status") == "finished":
-                        _log(f"{protocol}/{name}: finished run found, reused")
-                        runs[protocol].append(run_dir)
-                        continue
+            if (runs.read_config(run_dir) or {}).get("status") == "finished":
+                _log(f"{protocol}/{name}: finished run found, reused")
+                trained[protocol].append(run_dir)
+                continue
             _log(f"training {protocol}/{name} ({config['backbone']}, up to {config['epochs']} epochs)")
             summary = training.train(paths[protocol], verbose=2, **plan)
             _log(training.summary_line(summary))
             if summary["best_epoch"] is None:
                 raise training.TrainingError(f"{run_dir}: no epoch completed ({summary['stopped']})")
-            runs[protocol].append(run_dir)
-    return runs
+            trained[protocol].append(run_dir)
+    return trained
 
 
-def make_tables(config, paths, runs, out_dir, command):
-    """Stage 3: Table 1 per protocol and Table 2; returns {stem: table}."""
-    from cpl_keras import evaluation
+def make_tables(config, paths, trained, out_dir, command):
+    """Stage 3: Table 1 per protocol and Table 2; returns {stem: table}, with
+    paths relative to ``out_dir``."""
+    from cpl_keras import evaluation, report
 
     tables = {}
-    jobs = [("table1_cvgl", 1, runs["cvgl"], None),
-            ("table1_random", 1, runs["random"], None),
-            ("table2_middlebury", 2, runs["cvgl"], paths["real"])]
+    jobs = [("table1_cvgl", 1, trained["cvgl"], None),
+            ("table1_random", 1, trained["random"], None),
+            ("table2_middlebury", 2, trained["cvgl"], paths["real"])]
     for stem, number, run_dirs, data in jobs:
         cached = _cached_table(os.path.join(out_dir, f"{stem}.json"), run_dirs, data)
         if cached is not None:
@@ -141,22 +147,25 @@ def make_tables(config, paths, runs, out_dir, command):
         _log(f"evaluating {stem}")
         table = evaluation.make_table(number, run_dirs, data, geometric=True,
                                       geometric_max=config["geometric_max"], progress=_log)
-        evaluation.write_outputs(out_dir, stem, table, command)
-        tables[stem] = table
+        report.write_outputs(out_dir, stem, table, command)
+        tables[stem] = report.portable(table, out_dir)
     return tables
 
 
 def _cached_table(path, run_dirs, data):
     """A table written earlier from the same runs and data, if none changed since."""
-    if not os.path.exists(path):
+    table = runs.read_json(path)
+    if table is None:
         return None
-    with open(path) as f:
-        table = json.load(f)
-    if table.get("runs") != [os.path.abspath(r) for r in run_dirs]:
+    # the table's paths are relative to its folder (older tables: absolute)
+    here = os.path.dirname(os.path.abspath(path))
+    recorded = [os.path.normpath(os.path.join(here, r)) for r in table.get("runs", [])]
+    if recorded != [os.path.abspath(r) for r in run_dirs]:
         return None
-    if data is not None and table.get("data") != os.path.abspath(data):
+    if data is not None and os.path.normpath(os.path.join(here, table.get("data", ""))) != \
+            os.path.abspath(data):
         return None
-    models = [os.path.join(r, "model.keras") for r in run_dirs]
+    models = [os.path.join(r, runs.MODEL) for r in run_dirs]
     if not all(os.path.exists(m) for m in models):
         return None
     if max(os.path.getmtime(m) for m in models) > os.path.getmtime(path):
@@ -164,23 +173,25 @@ def _cached_table(path, run_dirs, data):
     return table
 
 
-def collect_run_files(runs, out_dir):
-    """Copy each run's training log and curves into ``out_dir/runs``."""
+def collect_run_files(trained, out_dir):
+    """Copy each run's training log and curves into ``out_dir/runs``; the
+    runs' summaries (run directories relative to ``out_dir``)."""
     target = os.path.join(out_dir, "runs")
     os.makedirs(target, exist_ok=True)
     summaries = []
-    for protocol, run_dirs in runs.items():
+    for protocol, run_dirs in trained.items():
         for run_dir in run_dirs:
             name = f"{protocol}_{os.path.basename(run_dir)}"
-            for source, suffix in (("log.csv", "_log.csv"), ("curves.png", "_curves.png")):
+            for source, suffix in ((runs.LOG, "_log.csv"), (runs.CURVES, "_curves.png")):
                 path = os.path.join(run_dir, source)
                 if os.path.exists(path):
                     shutil.copyfile(path, os.path.join(target, name + suffix))
-            with open(os.path.join(run_dir, "config.json")) as f:
-                run_config = json.load(f)
-            summaries.append({"protocol": protocol, "name": name, "run_dir": run_dir,
+            run_config = runs.read_config(run_dir, {})
+            summaries.append({"protocol": protocol, "name": name,
+                              "run_dir": runs.relative(run_dir, out_dir),
+                              "as_released": runs.config_as_released(run_config),
                               **{k: run_config.get(k) for k in (
-                                  "variant", "as_released", "split", "epochs", "epochs_run",
+                                  "variant", "split", "epochs", "epochs_run",
                                   "best_epoch", "best_val_loss", "wall_time_s", "stopped")}})
     return summaries
 
@@ -207,7 +218,7 @@ def _dataset_line(path):
 
 def write_report(out_dir, config, paths, summaries, tables, info, command, discussion=None):
     """Stage 4: REPORT.md from the measured figures (and an optional discussion)."""
-    from cpl_keras import evaluation
+    from cpl_keras import report
 
     lines = ["# Reproducing Tables 1 and 2", ""]
     scale = "quick (tiny settings, a smoke test of the pipeline)" if config["quick"] else "as set below"
@@ -238,7 +249,7 @@ def write_report(out_dir, config, paths, summaries, tables, info, command, discu
               "table1_random": "Table 1, unseen rigs (random protocol, whole configurations held out)",
               "table2_middlebury": "Table 2, real data (Middlebury crops, forward pass only)"}
     for stem, table in tables.items():
-        body = evaluation.markdown(table).split("\n")
+        body = report.markdown(table).split("\n")
         body = ["###" + line[2:] if line.startswith("## ") else line for line in body[1:]]
         lines += [f"## {titles[stem]}", ""] + body
         lines += [f"![FOV-threshold curves, {stem}]({stem}_fov.png)", "",
@@ -246,14 +257,7 @@ def write_report(out_dir, config, paths, summaries, tables, info, command, discu
                   f"[`{stem}.json`]({stem}.json).", ""]
     if discussion:
         lines += ["## Comparison with the paper", "", discussion.strip(), ""]
-    _write_atomic(os.path.join(out_dir, "REPORT.md"), "\n".join(lines) + "\n")
-
-
-def _write_atomic(path, text):
-    tmp = path + ".partial"
-    with open(tmp, "w") as f:
-        f.write(text)
-    os.replace(tmp, path)
+    runs.write_text(os.path.join(out_dir, "REPORT.md"), "\n".join(lines) + "\n")
 
 
 def reproduce(*, out_dir, data_dir, runs_dir, config, seed=0, command="", discussion_file=None):
@@ -261,20 +265,97 @@ def reproduce(*, out_dir, data_dir, runs_dir, config, seed=0, command="", discus
     for directory in (out_dir, data_dir, runs_dir):
         os.makedirs(directory, exist_ok=True)
     start = time.time()
-    from cpl_keras.training import enable_compile_cache
+    from cpl_keras.cache import enable_compile_cache
 
     enable_compile_cache()
     paths = make_datasets(config, data_dir, seed)
-    runs = train_all(config, paths, runs_dir, seed)
-    tables = make_tables(config, paths, runs, out_dir, command)
-    summaries = collect_run_files(runs, out_dir)
+    trained = train_all(config, paths, runs_dir, seed)
+    tables = make_tables(config, paths, trained, out_dir, command)
+    summaries = collect_run_files(trained, out_dir)
     info = dict(machine(), wall_time_s=time.time() - start)
     discussion = None
     if discussion_file and os.path.exists(discussion_file):
         with open(discussion_file) as f:
             discussion = f.read()
-    _write_atomic(os.path.join(out_dir, "reproduce.json"), json.dumps(
-        {"command": command, "settings": config, "seed": seed, "data": paths,
-         "runs": summaries, "machine": info}, indent=2) + "\n")
+    runs.write_json(os.path.join(out_dir, "reproduce.json"), {
+        "command": command, "settings": config, "seed": seed,
+        "data": {kind: runs.relative(path, out_dir) for kind, path in paths.items()},
+        "runs": summaries, "machine": info})
     write_report(out_dir, config, paths, summaries, tables, info, command, discussion)
     return os.path.join(out_dir, "REPORT.md")
+
+
+# ---------------------------------------------------------------------------
+# Command line (also evaluate.py --reproduce)
+# ---------------------------------------------------------------------------
+def add_arguments(parser):
+    """The reproduction's options, as an argument group of ``parser``."""
+    from cpl_keras.models.backbones import BACKBONES
+
+    group = parser.add_argument_group("reproduce (cpl_keras/reproduce.py)")
+    group.add_argument("--quick", action="store_true", help="tiny settings (minutes)")
+    group.add_argument("--pairs", type=int, help="cvgl-protocol pairs (paper: 123017)")
+    group.add_argument("--random-pairs", type=int, help="random-protocol pairs")
+    group.add_argument("--epochs", type=int, help="maximum epochs per run (paper: 200)")
+    group.add_argument("--patience", type=int, help="early stopping patience (paper: 5)")
+    group.add_argument("--backbone", choices=BACKBONES)
+    group.add_argument("--image-size", type=int)
+    group.add_argument("--crops", type=int, help="Middlebury crops for Table 2")
+    group.add_argument("--seed", type=int, default=0)
+    group.add_argument("--data-dir", help="where the datasets go (default data/reproduce)")
+    group.add_argument("--runs-dir", help="where the runs go (default runs/reproduce)")
+    group.add_argument("--discussion", help="Markdown file appended to REPORT.md as the "
+                       "comparison with the paper (default paper_results/discussion.md "
+                       "when writing to paper_results/)")
+    return group
+
+
+def resolve_defaults(args):
+    """Fill in the output, data and runs folders (and the discussion file)."""
+    from cpl_keras.evaluation import PAPER_DIR
+
+    quick = "quick" if args.quick else "reproduce"
+    args.out = args.out or (os.path.join("runs", "quick", "paper_results") if args.quick
+                            else PAPER_DIR)
+    args.data_dir = args.data_dir or os.path.join("data", quick)
+    args.runs_dir = args.runs_dir or os.path.join("runs", quick)
+    if args.discussion is None and os.path.abspath(args.out) == os.path.abspath(PAPER_DIR):
+        args.discussion = os.path.join(PAPER_DIR, "discussion.md")
+    return args
+
+
+def run(args, command, prog=PROG):
+    """Run the reproduction for parsed ``args``; the exit status."""
+    from cpl_keras.data.storage import DatasetError
+
+    try:
+        config = settings(
+            args.quick, pairs=args.pairs, random_pairs=args.random_pairs, epochs=args.epochs,
+            patience=args.patience, backbone=args.backbone, image_size=args.image_size,
+            crops=args.crops, geometric_max=args.geometric_max,
+        )
+        report = reproduce(
+            out_dir=args.out, data_dir=args.data_dir, runs_dir=args.runs_dir, config=config,
+            seed=args.seed, command=command, discussion_file=args.discussion,
+        )
+    except (ValueError, DatasetError, OSError) as error:  # EvaluationError is a ValueError
+        return cli.fail(prog, error)
+    print(f"report written to {report}")
+    return 0
+
+
+def main(argv=None):
+    parser = cli.Parser(prog=PROG, description=__doc__.split("\n")[0])
+    parser.add_argument("--out", help="output directory (default: paper_results/; with "
+                        "--quick: runs/quick/paper_results)")
+    parser.add_argument("--geometric-max", type=int,
+                        help="run the Geometric baseline on the first N evaluation pairs only")
+    add_arguments(parser)
+    args = resolve_defaults(parser.parse_args(argv))
+    if args.geometric_max is not None and args.geometric_max < 1:
+        parser.error(f"--geometric-max must be positive, got {args.geometric_max}")
+    return run(args, cli.command_line(PROG, argv), PROG)
+
+
+if __name__ == "__main__":
+    sys.exit(main())

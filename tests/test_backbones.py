@@ -24,7 +24,9 @@ def test_every_backbone_is_registered_with_a_minimum_size_and_a_tower():
     assert backbones.BACKBONES[0] == "inception_v3"  # the paper's, the default
 
 
-@pytest.mark.parametrize("backbone", sorted(FEATURES_PER_TOWER))
+@pytest.mark.parametrize("backbone", [
+    pytest.param(name, marks=pytest.mark.slow) if name == "inception_v3" else name
+    for name in sorted(FEATURES_PER_TOWER)])
 @pytest.mark.parametrize("which", ["minimum", 112])
 def test_stereo_features_have_the_expected_size(backbone, which):
     size = backbones.MIN_IMAGE_SIZE[backbone] if which == "minimum" else which

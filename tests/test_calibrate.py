@@ -17,16 +17,9 @@ SIZE = 32
 
 
 @pytest.fixture(scope="module")
-def setup(tmp_path_factory):
-    from cpl_keras.data.generate import generate_dataset
-    from cpl_keras.training import train
-
+def setup(tiny_run, tmp_path_factory):
     root = tmp_path_factory.mktemp("calib")
-    data = generate_dataset(root / "d.h5", protocol="random", pairs=30, seed=0,
-                            image_size=SIZE, workers=1, progress=False)
-    run = root / "run"
-    train(data, variant="cpl-u", run_dir=run, epochs=1, batch_size=8, backbone="small",
-          verbose=0)
+    run = tiny_run["run"]
     rng = np.random.default_rng(0)
     left = (rng.random((40, 64, 3)) * 255).astype(np.uint8)        # W = 64, H = 40
     right = np.roll(left, -3, axis=1)
@@ -68,7 +61,7 @@ def test_calibrate_scales_back_to_input_pixels(setup, tmp_path, capsys):
 def _fails(args, capsys, match, out=None):
     assert calibrate.main(args) == 2
     err = capsys.readouterr().err.strip()
-    assert err.startswith("error:") and "\n" not in err and match in err, err
+    assert err.startswith("python -m cpl_keras.calibrate: error:") and "\n" not in err and match in err, err
     if out is not None:
         assert not os.path.exists(out) and not os.path.exists(str(out) + ".partial")
 

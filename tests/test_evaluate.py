@@ -8,26 +8,19 @@ import numpy as np
 import pytest
 
 import evaluate
-from cpl_keras import evaluation, metrics
+from cpl_keras import evaluation, metrics, report
 from cpl_keras.data.storage import StereoFile, StereoWriter
 
 SIZE = 32
 
 
 @pytest.fixture(scope="module")
-def tiny(tmp_path_factory):
-    from cpl_keras.data.generate import generate_dataset
+def tiny(tiny_run, tmp_path_factory):
     from cpl_keras.real.middlebury import build_middlebury
-    from cpl_keras.training import train
 
     root = tmp_path_factory.mktemp("eval")
-    data = generate_dataset(root / "cvgl.h5", protocol="cvgl", pairs=40, seed=0,
-                            image_size=SIZE, workers=1, progress=False)
     real = build_middlebury(root / "middlebury.h5", crops=5, image_size=SIZE, seed=0)
-    run = root / "run_baseline"
-    train(data, variant="baseline", run_dir=run, epochs=1, batch_size=8, backbone="small",
-          verbose=0)
-    return {"root": root, "data": data, "real": real, "run": str(run)}
+    return dict(tiny_run, root=root, real=real)
 
 
 def _outputs(directory, stem):
@@ -78,18 +71,34 @@ def test_table2_real_data_forward_pass(tiny, tmp_path):
 
 
 def test_single_run_evaluation(tiny, tmp_path):
-    assert evaluate.main(["--run", tiny["run"], "--data", tiny["data"], "--out", str(tmp_path)]) == 0
-    result = json.load(open(tmp_path / "eval_run_baseline.json"))
+    out = tmp_path / "new" / "folder"                  # created when missing
+    assert evaluate.main(["--run", tiny["run"], "--data", tiny["data"], "--out", str(out)]) == 0
+    result = json.load(open(out / "eval_run_baseline.json"))
     split = np.load(os.path.join(tiny["run"], "split.npz"))
     assert result["num_pairs"] == len(split["test"])
     curve = result["rows"]["MTL-Baseline"]["fov_within_deg"]
     assert [float(k) for k in curve] == list(metrics.FOV_THRESHOLDS_DEG)
+    # the paths it records are relative to where it was written
+    assert not os.path.isabs(result["data"]) and not os.path.isabs(result["runs"][0])
+    assert os.path.samefile(os.path.join(out, result["data"]), tiny["data"])
+    assert os.path.samefile(os.path.join(out, result["runs"][0]), tiny["run"])
+
+
+def test_single_run_writes_next_to_the_run(tiny, tmp_path):
+    """Without --out, --run writes beside the run directory, not into paper_results/."""
+    run = tmp_path / "runs" / "mine"
+    shutil.copytree(tiny["run"], run)
+    before = sorted(os.listdir(evaluation.PAPER_DIR))
+    assert evaluate.main(["--run", str(run), "--data", tiny["data"]]) == 0
+    assert (tmp_path / "runs" / "eval_mine.json").exists()
+    assert (tmp_path / "runs" / "eval_mine_fov.png").exists()
+    assert sorted(os.listdir(evaluation.PAPER_DIR)) == before
 
 
 def _fails(argv, capsys, match):
     assert evaluate.main(argv) == 2
     err = capsys.readouterr().err.strip()
-    assert err.startswith("error:") and "\n" not in err and match in err, err
+    assert err.startswith("evaluate.py: error:") and "\n" not in err and match in err, err
 
 
 def test_bad_inputs(tiny, tmp_path, capsys):
@@ -110,7 +119,8 @@ def test_bad_inputs(tiny, tmp_path, capsys):
     _fails(["--table", "2", "--runs", tiny["run"], "--out", str(out)], capsys, "--data")
     _fails(["--run", tiny["run"], "--data", str(tmp_path / "none.h5"), "--out", str(out)],
            capsys, "not found")
-    _fails(["--run", tiny["run"], "--data", tiny["data"], "--out", str(tmp_path / "nope")],
+    (tmp_path / "a_file").write_text("")
+    _fails(["--run", tiny["run"], "--data", tiny["data"], "--out", str(tmp_path / "a_file")],
            capsys, "output directory")
     with pytest.raises(SystemExit) as exit_info:
         evaluate.main(["--table", "3", "--runs", tiny["run"]])
@@ -120,7 +130,7 @@ def test_bad_inputs(tiny, tmp_path, capsys):
 
 def test_best_marks_smallest_magnitude_and_ties():
     def row(value):
-        return {"targets": {p: {"nmae_signed": value} for p in evaluation.PARAMETERS}}
+        return {"targets": {p: {"nmae_signed": value} for p in report.PARAMETERS}}
     table = {"rows": {"A": row(-1.9), "B": row(0.09), "C": row(-0.09), "D": row(None)}}
-    best = evaluation.best_rows(table, "nmae_signed")
+    best = report.best_rows(table, "nmae_signed")
     assert best["fx"] == {"B", "C"}

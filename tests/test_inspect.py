@@ -1,10 +1,10 @@
-"""The inspect CLI prints the camera graph and draws it."""
+"""The camera-graph CLI (cpl_keras.graph, alias cpl_keras.inspect) prints the graph and draws it."""
 
 import subprocess
 import sys
 
 from cpl_keras import build_model
-from cpl_keras.inspect import camera_graph, main
+from cpl_keras.graph import camera_graph, main
 
 
 def test_camera_graph_lists_every_equation():
@@ -43,6 +43,6 @@ def test_cli_bad_arguments_exit_2_without_output(tmp_path):
                                 if "--out" not in args else [sys.executable, "-m", "cpl_keras.inspect", *args],
                                 capture_output=True, text=True)
         assert result.returncode == 2
-        assert result.stderr.startswith("error: ") and "Traceback" not in result.stderr
+        assert result.stderr.startswith("python -m cpl_keras.inspect: error: ") and "Traceback" not in result.stderr
         assert len(result.stderr.strip().splitlines()) == 1
     assert not out.exists()

@@ -43,6 +43,7 @@ def test_outputs_are_the_13_targets_in_release_order(variant, as_released):
     assert len(out) == 13 and all(o.shape == (2, 1) for o in out)
 
 
+@pytest.mark.slow
 def test_baseline_has_the_release_parameter_count_and_runs_inceptionv3():
     model = build_model("baseline", image_size=112)
     assert model.count_params() == 69_299_405

@@ -152,7 +152,7 @@ def test_bad_chessboard_inputs(tmp_path, capsys):
     # corners found in too few pairs
     assert build.main(["chessboard", "--root", str(root), "--out", str(out)]) == 2
     err = capsys.readouterr().err.strip()
-    assert err.startswith("error: chessboard corners") and "\n" not in err
+    assert err.startswith("python -m cpl_keras.real.build: error: chessboard corners") and "\n" not in err
     # a left image without its right image
     os.remove(root / "right02.jpg")
     assert build.main(["chessboard", "--root", str(root), "--out", str(out)]) == 2

@@ -162,7 +162,7 @@ def test_bad_inputs_one_line_errors(tmp_path, capsys):
     out = tmp_path / "bad.h5"
     assert build.main(["tsinghua", "--root", str(tmp_path), "--out", str(out)]) == 2
     err = capsys.readouterr().err.strip()
-    assert err.startswith("error: missing") and "\n" not in err
+    assert err.startswith("python -m cpl_keras.real.build: error: missing") and "\n" not in err
     assert not out.exists() and not os.path.exists(str(out) + ".partial")
 
     broken = tmp_path / "broken"

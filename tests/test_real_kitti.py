@@ -109,7 +109,7 @@ def test_raw_layout(tmp_path):
 def _fails(argv, capsys, *needles):
     assert build.main(argv) == 2
     err = capsys.readouterr().err.strip()
-    assert err.startswith("error: ") and "\n" not in err, err
+    assert err.startswith("python -m cpl_keras.real.build: error: ") and "\n" not in err, err
     for needle in needles:
         assert needle in err, err
 

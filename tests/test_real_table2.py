@@ -13,16 +13,9 @@ SIZE = 32
 
 
 @pytest.fixture(scope="module")
-def setup(tmp_path_factory):
-    from cpl_keras.data.generate import generate_dataset
-    from cpl_keras.training import train
-
+def setup(tiny_run, tmp_path_factory):
     root = tmp_path_factory.mktemp("t2")
-    data = generate_dataset(root / "cvgl.h5", protocol="cvgl", pairs=24, seed=0,
-                            image_size=SIZE, workers=1, progress=False)
-    run = root / "run"
-    train(data, variant="baseline", run_dir=run, epochs=1, batch_size=8, backbone="small",
-          verbose=0)
+    run = tiny_run["run"]
     real = root / "real"
     real.mkdir()
     assert build.main(["all", "--out-dir", str(real), "--crops", "1", "--image-size",

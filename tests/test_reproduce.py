@@ -1,8 +1,11 @@
 """The one-command reproduction pipeline, in its quick mode (as CI runs it)."""
 
 import json
+import os
 import subprocess
 import sys
+
+import pytest
 
 
 def run(*args, cwd=None):
@@ -10,6 +13,7 @@ def run(*args, cwd=None):
                           cwd=cwd)
 
 
+@pytest.mark.slow
 def test_quick_reproduction_end_to_end(tmp_path):
     out, data, runs = tmp_path / "out", tmp_path / "data", tmp_path / "runs"
     result = run("--reproduce", "--quick", "--out", str(out), "--data-dir", str(data),
@@ -29,11 +33,28 @@ def test_quick_reproduction_end_to_end(tmp_path):
     assert len(summary["runs"]) == 9
     assert all(r["epochs_run"] == 1 and r["split"] in ("paper", "held-out-config") for r in summary["runs"])
     assert (out / "runs" / "random_cpl-a_log.csv").exists()
+    # no machine's absolute paths in the results (but in the command as typed):
+    # paths are relative to out/
+    command = summary["command"]
+    for name in os.listdir(out):
+        if name.endswith((".md", ".json", ".csv")):
+            text = (out / name).read_text().replace(json.dumps(command)[1:-1], "")
+            assert str(tmp_path) not in text.replace(command, ""), name
+    assert (out / cvgl["runs"][0] / "config.json").exists()
+    # run again: every stage is reused (the tables too, despite relative paths)
+    again = run("--reproduce", "--quick", "--out", str(out), "--data-dir", str(data),
+                "--runs-dir", str(runs))
+    assert again.returncode == 0 and "evaluating" not in again.stderr, again.stderr[-3000:]
 
 
 def test_reproduce_bad_arguments_exit_2(tmp_path):
     for args in (["--reproduce", "--pairs", "0"], ["--reproduce", "--table", "1"], ["--quick"]):
         result = run(*args, "--out", str(tmp_path / "out"), "--data-dir", str(tmp_path / "d"))
         assert result.returncode == 2, args
-        assert result.stderr.startswith("error: ") and "Traceback" not in result.stderr
+        assert result.stderr.startswith("evaluate.py: error: ") and "Traceback" not in result.stderr
+    # the reproduction's own entry point, same error format under its own name
+    result = subprocess.run([sys.executable, "-m", "cpl_keras.reproduce", "--pairs", "0",
+                             "--out", str(tmp_path / "out")], capture_output=True, text=True)
+    assert result.returncode == 2
+    assert result.stderr.startswith("python -m cpl_keras.reproduce: error: pairs must be positive")
     assert not (tmp_path / "out" / "REPORT.md").exists()

@@ -6,6 +6,7 @@ Small backbone, 32x32 images, a few dozen pairs, two or three epochs.
 import csv
 import json
 import os
+import re
 import signal
 import subprocess
 import sys
@@ -76,8 +77,10 @@ def test_every_variant_writes_the_run_directory(variant, dataset, tmp_path):
     assert config["build"]["image_size"] == [32, 32] and config["build"]["backbone"] == "small"
     assert config["epochs_run"] == 2 and config["best_epoch"] == summary["best_epoch"]
     assert config["learning_rate_used"] == (1.5e-3 if variant == "deep-homo" else 1e-3)
-    for key in ("seed", "batch_size", "split", "as_released", "data_parallel", "wall_time_s"):
+    for key in ("seed", "batch_size", "split", "data_parallel", "wall_time_s"):
         assert key in config
+    # each fact once: as_released is a build argument, not also a top-level key
+    assert config["build"]["as_released"] is False and "as_released" not in config
 
     rows = read_log(run_dir)
     assert [int(r["epoch"]) for r in rows] == [0, 1]
@@ -101,6 +104,13 @@ def test_every_variant_writes_the_run_directory(variant, dataset, tmp_path):
         np.testing.assert_array_equal(a, b)
     assert not [n for n in os.listdir(os.path.join(run_dir, "backup")) if n.endswith(".h5")]
     if variant == "baseline":
+        # A run directory of the older config.json layout (as_released also at
+        # the top level) still loads and resumes.
+        from cpl_keras import runs
+
+        with open(os.path.join(run_dir, "config.json"), "w") as f:
+            json.dump(dict(config, as_released=False), f)
+        assert runs.as_released(runs.load_run(run_dir)) is False
         # Running the same command on a finished run trains nothing more.
         again = train(dataset, variant=variant, run_dir=run_dir, seed=1, **TINY)
         assert again["epochs_run"] == 2 and again["best_epoch"] == summary["best_epoch"]
@@ -110,48 +120,119 @@ def test_every_variant_writes_the_run_directory(variant, dataset, tmp_path):
 # ---------------------------------------------------------------------------
 # Faults
 # ---------------------------------------------------------------------------
-def test_killed_run_resumes_with_the_same_epoch_count(dataset, tmp_path, xla_cache):
-    run_dir = str(tmp_path / "run")
-    args = ["--variant", "baseline", "--data", dataset, "--backbone", "small", "--epochs", "4",
-            "--batch-size", "5", "--patience", "10", "--run-dir", run_dir, "--quiet"]
-    state = os.path.join(run_dir, "backup", "state.json")
-    process = cli(*args, cache=xla_cache)
-    deadline = time.time() + 90
+RESUME_ARGS = ["--variant", "baseline", "--backbone", "small", "--epochs", "4",
+               "--batch-size", "5", "--patience", "10", "--quiet"]
+#: config.json entries that differ between two runs of one command.
+PER_PROCESS = ("wall_time_s", "run_dir", "command")
+
+
+def _wait_for(condition, timeout=90):
+    deadline = time.time() + timeout
     while time.time() < deadline:
         try:
-            with open(state) as f:
-                if json.load(f)["epoch"] >= 1:
-                    break
-        except (OSError, ValueError):
+            if condition():
+                return True
+        except (OSError, ValueError, KeyError):
             pass
-        time.sleep(0.05)
-    process.send_signal(signal.SIGKILL)
-    process.wait()
-    with open(state) as f:
-        done = json.load(f)["epoch"]
-    assert 1 <= done < 4, "the run must be killed mid-training"
+        time.sleep(0.02)
+    return False
 
-    process = cli(*args, cache=xla_cache)
-    out, err = process.communicate(timeout=120)
-    assert process.returncode == 0, err
-    assert f"Resuming {run_dir} after epoch {done}" in err
-    assert "best epoch" in out and run_dir in out
-    rows = read_log(run_dir)
+
+@pytest.fixture(scope="module")
+def uninterrupted(dataset, tmp_path_factory, xla_cache):
+    """The run of RESUME_ARGS made in one go, through train.py: its exit
+    status, stdout and run directory."""
+    run_dir = str(tmp_path_factory.mktemp("straight") / "run")
+    process = cli(*RESUME_ARGS, "--data", dataset, "--run-dir", run_dir, cache=xla_cache)
+    out, err = process.communicate(timeout=180)
+    return {"returncode": process.returncode, "out": out, "err": err, "run_dir": run_dir}
+
+
+def _ends_like(run_dir, returncode, out, err, uninterrupted):
+    """A resumed run ends exactly as the uninterrupted one: exit status, the
+    summary line, log.csv, config.json and the files of the run directory."""
+    assert returncode == uninterrupted["returncode"] == 0, err
+    assert "Traceback" not in err and ": error:" not in err, err
+
+    def summary(text, directory):
+        loss = re.search(r"best val_loss (\S+),", text)
+        return text.replace(directory, "R").replace(loss.group(1), "L"), float(loss.group(1))
+
+    line, loss = summary(out, run_dir)
+    straight_line, straight_loss = summary(uninterrupted["out"], uninterrupted["run_dir"])
+    assert line == straight_line and loss == pytest.approx(straight_loss, rel=1e-5)
+    rows, straight = read_log(run_dir), read_log(uninterrupted["run_dir"])
     assert [int(r["epoch"]) for r in rows] == [0, 1, 2, 3]
-    with open(os.path.join(run_dir, "config.json")) as f:
-        config = json.load(f)
-    assert config["epochs_run"] == 4 and config["status"] == "finished"
-
-    # The resumed run is the uninterrupted run: same batches, same state.
-    from cpl_keras.training import train
-
-    straight = str(tmp_path / "straight")
-    train(dataset, variant="baseline", run_dir=straight, backbone="small", epochs=4,
-          batch_size=5, patience=10, verbose=0)
-    for resumed_row, straight_row in zip(rows, read_log(straight)):
+    for resumed_row, straight_row in zip(rows, straight):
         assert float(resumed_row["loss"]) == pytest.approx(float(straight_row["loss"]), rel=1e-5)
         assert float(resumed_row["val_loss"]) == pytest.approx(
             float(straight_row["val_loss"]), rel=1e-5)
+    configs = []
+    for directory in (run_dir, uninterrupted["run_dir"]):
+        with open(os.path.join(directory, "config.json")) as f:
+            configs.append({k: v for k, v in json.load(f).items() if k not in PER_PROCESS})
+    assert configs[0]["status"] == "finished" and configs[0]["epochs_run"] == 4
+    assert configs[0]["best_val_loss"] == pytest.approx(configs[1].pop("best_val_loss"), rel=1e-5)
+    configs[0].pop("best_val_loss")
+    assert configs[0] == configs[1]
+    assert sorted(os.listdir(run_dir)) == sorted(os.listdir(uninterrupted["run_dir"]))
+    assert not [n for n in os.listdir(os.path.join(run_dir, "backup")) if n.endswith(".h5")]
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("when", ["after an epoch's commit", "in the middle of an epoch"])
+def test_killed_run_resumes_and_ends_like_an_uninterrupted_run(
+        when, dataset, tmp_path, xla_cache, uninterrupted):
+    run_dir = str(tmp_path / "run")
+    args = [*RESUME_ARGS, "--data", dataset, "--run-dir", run_dir]
+    state = os.path.join(run_dir, "backup", "state.json")
+    log = os.path.join(run_dir, "log.csv")
+
+    def epochs_done():
+        with open(state) as f:
+            return json.load(f)["epoch"]
+
+    process = cli(*args, cache=xla_cache)
+    if when == "after an epoch's commit":
+        # as reported: killed as soon as log.csv has two epoch rows
+        assert _wait_for(lambda: len(read_log(run_dir)) >= 2)
+    else:
+        # epoch 2 has begun (epoch 1 is committed), and a few batches into it
+        assert _wait_for(lambda: epochs_done() >= 1)
+        time.sleep(0.3)
+    process.send_signal(signal.SIGKILL)
+    process.wait()
+    done = epochs_done()
+    assert 1 <= done < 4, f"the run must be killed mid-training ({when})"
+    assert len(read_log(run_dir)) == done
+
+    process = cli(*args, cache=xla_cache)
+    out, err = process.communicate(timeout=180)
+    assert f"Resuming {run_dir} after epoch {done}" in err
+    _ends_like(run_dir, process.returncode, out, err, uninterrupted)
+    # the same command once more: nothing left to train, the same ending
+    process = cli(*args, cache=xla_cache)
+    out, err = process.communicate(timeout=180)
+    _ends_like(run_dir, process.returncode, out, err, uninterrupted)
+
+
+@pytest.mark.slow
+def test_second_process_waits_for_the_first_and_ends_like_it(
+        dataset, tmp_path, xla_cache, uninterrupted):
+    """A kill that missed: the command run again while the first process still
+    trains waits for it, then finds the run finished (exit 0, no error)."""
+    run_dir = str(tmp_path / "run")
+    args = [*RESUME_ARGS, "--data", dataset, "--run-dir", run_dir]
+    first = cli(*args, cache=xla_cache)
+    assert _wait_for(lambda: os.path.exists(os.path.join(run_dir, "backup", "lock")))
+    second = cli(*args, cache=xla_cache)
+    first_out, first_err = first.communicate(timeout=180)
+    out, err = second.communicate(timeout=180)
+    _ends_like(run_dir, first.returncode, first_out, first_err, uninterrupted)
+    assert "Resuming" not in err  # it found the run finished
+    _ends_like(run_dir, second.returncode, out, err.replace("Waiting for the training process "
+                                                            f"that is using {run_dir}", ""),
+               uninterrupted)
 
 
 def test_nan_loss_stops_and_keeps_the_best_weights(dataset, tmp_path):
@@ -171,6 +252,7 @@ def test_nan_loss_stops_and_keeps_the_best_weights(dataset, tmp_path):
         assert os.path.isfile(os.path.join(run_dir, "model.keras"))
 
 
+@pytest.mark.slow
 def test_data_parallel_on_two_devices_with_uneven_batches(dataset, tmp_path, xla_cache):
     run_dir = str(tmp_path / "run")
     process = cli("--variant", "cpl-u", "--data", dataset, "--backbone", "small",

@@ -80,10 +80,9 @@ def average_predictions(stats, n, kind="mean"):
 
 def save_statistics(path, stats):
     """Write statistics as JSON (atomically)."""
-    tmp = os.fspath(path) + ".partial"
-    with open(tmp, "w") as f:
-        json.dump(stats, f, indent=2)
-    os.replace(tmp, path)
+    from cpl_keras.runs import write_json
+
+    write_json(os.fspath(path), stats)
 
 
 def load_statistics(path):

@@ -141,7 +141,9 @@ class StereoWriter:
                 os.remove(self.tmp_path)
                 raise DatasetError(f"{missing} of {self.num_pairs} pairs were never written")
             if exc_type is None:
-                os.replace(self.tmp_path, self.path)
+                from cpl_keras.runs import commit
+
+                commit(self.tmp_path, self.path)
             elif os.path.exists(self.tmp_path):
                 os.remove(self.tmp_path)
         return False

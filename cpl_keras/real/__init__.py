@@ -13,13 +13,15 @@
 * ``cpl_keras.real.build``: the command line that writes any of them as HDF5.
 
 The helpers below are shared by the builders: the exact intrinsics of a
-crop + resize, the release's StereoBM disparity label, the OpenCV-to-project
-axis change.
+crop + resize, the OpenCV-to-project axis change (and, from
+``cpl_keras.data.generate``, the release's StereoBM disparity label).
 """
 
 from __future__ import annotations
 
 import numpy as np
+
+from cpl_keras.data.generate import released_disparity  # noqa: F401  (the builders' label)
 
 #: Label conventions a real-data builder can write (see docs/evaluation.md).
 LABEL_MODES = ("rig", "vehicle")
@@ -70,18 +72,6 @@ def crop_resize_intrinsics(fx, fy, u0, v0, x0, y0, crop_width, crop_height, out_
     sy = out_height / float(crop_height)
     return (fx * sx, fy * sy, float(crop_resize_coordinate(u0, x0, sx)),
             float(crop_resize_coordinate(v0, y0, sy)), sx, sy)
-
-
-def released_disparity(left, right):
-    """The release's disparity label of one pair: the mean of the raw
-    ``cv2.StereoBM_create(numDisparities=16, blockSize=15)`` output on the
-    grayscale images (16x fixed point, invalid pixels -16 included)."""
-    import cv2
-
-    gray_l = cv2.cvtColor(np.ascontiguousarray(left, dtype=np.uint8), cv2.COLOR_RGB2GRAY)
-    gray_r = cv2.cvtColor(np.ascontiguousarray(right, dtype=np.uint8), cv2.COLOR_RGB2GRAY)
-    matcher = cv2.StereoBM_create(numDisparities=16, blockSize=15)
-    return float(np.mean(matcher.compute(gray_l, gray_r)))
 
 
 def resize_image(image, width, height):

@@ -25,9 +25,9 @@ from __future__ import annotations
 
 import argparse
 import os
-import shlex
 import sys
 
+from cpl_keras import cli
 from cpl_keras.real import LABEL_MODES
 
 SOURCES = ("all", "chessboard", "middlebury", "kitti", "tsinghua", "cityscapes")
@@ -44,14 +44,11 @@ ALL_SETS = (
 )
 
 
-class _Parser(argparse.ArgumentParser):
-    def error(self, message):
-        print(f"error: {message}", file=sys.stderr)
-        raise SystemExit(2)
+PROG = "python -m cpl_keras.real.build"
 
 
 def parse_args(argv=None):
-    parser = _Parser(prog="python -m cpl_keras.real.build", description=__doc__.split("\n")[0])
+    parser = cli.Parser(prog=PROG, description=__doc__.split("\n")[0])
     parser.add_argument("source", choices=SOURCES)
     parser.add_argument("--out", help="output HDF5 file (every source but all)")
     parser.add_argument("--out-dir", help="output folder (all)")
@@ -141,8 +138,7 @@ def build_all(args, command=None, report=print):
 
 def main(argv=None):
     args = parse_args(argv)
-    command = "python -m cpl_keras.real.build " + shlex.join(
-        sys.argv[1:] if argv is None else list(argv))
+    command = cli.command_line(PROG, argv)
 
     def report(line):
         print(line, file=sys.stderr)
@@ -154,9 +150,7 @@ def main(argv=None):
             paths = [build_one(args.source, args.out, root=args.root, args=args, command=command,
                                report=report)]
     except (ValueError, OSError) as error:
-        message = str(error).splitlines()[0] if str(error) else type(error).__name__
-        print(f"error: {message}", file=sys.stderr)
-        return 2
+        return cli.fail(PROG, error)
     print("\n".join(paths))
     return 0
 

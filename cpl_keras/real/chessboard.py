@@ -50,7 +50,6 @@ derived calibration, full resolution, in the keys and units of
 
 from __future__ import annotations
 
-import argparse
 import glob
 import json
 import math
@@ -388,8 +387,10 @@ def calibration_report(cal, pair=None):
 
 
 def main(argv=None):
-    parser = argparse.ArgumentParser(prog="python -m cpl_keras.real.chessboard",
-                                     description="print a chessboard rig's calibration")
+    from cpl_keras import cli
+
+    prog = "python -m cpl_keras.real.chessboard"
+    parser = cli.Parser(prog=prog, description="print a chessboard rig's calibration")
     parser.add_argument("--root", default=DATA_DIR, help="folder of left*/right* pairs")
     parser.add_argument("--pair", help="also the point and disparity of this pair (e.g. 01)")
     args = parser.parse_args(argv)
@@ -397,8 +398,7 @@ def main(argv=None):
         cal = calibrate(args.root)
         print(json.dumps(calibration_report(cal, args.pair), indent=2))
     except (RealDataError, OSError) as error:
-        print(f"error: {str(error).splitlines()[0]}", file=sys.stderr)
-        return 2
+        return cli.fail(prog, error)
     return 0
 
 

@@ -25,17 +25,15 @@ Undefined values are never invented:
 from __future__ import annotations
 
 import glob
-import json
-import math
 import os
 
 import numpy as np
 
-from cpl_keras import evaluation, metrics
+from cpl_keras import evaluation, metrics, report, runs
 from cpl_keras.camera import TARGETS, fov_from_focal
-from cpl_keras.evaluation import (
-    COLUMN_PARAMETER, COLUMNS, CONVENTION_TITLES, CONVENTIONS, RELEASED, ROWS, EvaluationError,
-)
+from cpl_keras.evaluation import ROWS, EvaluationError
+from cpl_keras.report import COLUMNS
+from cpl_keras.runs import RELEASED
 
 #: Targets that need the ground-truth disparity.
 DISPARITY_TARGETS = ("disparity", "X", "Y", "Z")
@@ -92,47 +90,33 @@ def score_masked(truth, pred, defined, width):
         str(k): float(p) for k, p in zip(metrics.FOV_THRESHOLDS_DEG, curve)}}
 
 
-def _rig_rows(runs, data_path, geometric, geometric_max, progress):
+def _rig_rows(loaded, data_path, geometric, geometric_max, progress):
     """Truth, predictions and definedness of every row on one rig."""
-    from cpl_keras.baselines.average import average_predictions
-
-    reference = runs[0]
+    reference = loaded[0]
     with evaluation.open_dataset(data_path) as data:
         indices, description = evaluation.evaluation_indices(reference, data_path, data.num_pairs)
         labels, metadata = data.labels, data.metadata
         width, n = data.image_shape[1], len(indices)
         rectified = is_rectified(metadata, labels)
         defined = _defined(labels, indices, n)
-        rows = {}
-        for row, kind, released in (("Average", "mean", evaluation.as_released(reference)),
-                                    ("Average (release bug)", "release", True)):
-            pred = {k: np.asarray(v, np.float64)
-                    for k, v in average_predictions(reference["stats"], n, kind=kind).items()}
-            rows[row] = {"source": f"{reference['run_dir']}/train_stats.json ({kind})",
-                         "as_released": released, "indices": indices,
-                         "truth": evaluation.truth_targets(labels, indices, released),
-                         "pred": pred, "defined": defined}
-        for run in runs:
+        rows = {row: dict(raw, indices=indices, defined=defined)
+                for row, raw in evaluation.average_rows(reference, labels, indices).items()}
+        for run in loaded:
             if progress:
                 progress(f"forward pass on {rig_name(metadata, data_path)}: "
                          f"{run['config']['variant']} ({run['run_dir']})")
             model = run.get("_model") or evaluation.load_model(run)
             run["_model"] = model
-            rows[evaluation.row_name(run)] = {
-                "source": run["run_dir"], "as_released": evaluation.as_released(run),
+            rows[runs.row_name(run)] = {
+                "source": run["run_dir"], "as_released": runs.as_released(run),
                 "indices": indices, "truth": evaluation.truth_targets(
-                    labels, indices, evaluation.as_released(run)),
+                    labels, indices, runs.as_released(run)),
                 "pred": evaluation.predict_run(model, data, indices), "defined": defined}
         if geometric:
-            from cpl_keras.baselines import geometric as geo
-
             subset = indices if geometric_max is None else indices[: int(geometric_max)]
             if progress:
                 progress(f"geometric baseline on {len(subset)} pairs of {rig_name(metadata, data_path)}")
-            stats_mean = reference["stats"]["mean"]
-            priors = {"baseline": stats_mean["baseline"], "fx": stats_mean["fx"],
-                      "fy": stats_mean["fx"]}
-            pred, statuses = geo.predict_file(data, subset, priors=priors)
+            priors, pred, statuses = evaluation.geometric_predictions(reference, data, subset)
             geo_defined = _defined(labels, subset, len(subset))
             if rectified:
                 geo_defined = dict(geo_defined, **{k: np.zeros(len(subset), bool)
@@ -161,7 +145,7 @@ def _table(raw_rows, *, number_of_pairs, width, data, description, source, runs,
             entry.update(priors=r["priors"], failures=geo.failure_report(r["statuses"]),
                          degenerate=r["degenerate"])
         rows[row] = entry
-    return evaluation._jsonable({
+    return report.jsonable({
         "table": 2, "data": data, "data_description": description, "data_source": source,
         "num_pairs": int(number_of_pairs), "image_width": int(width), "runs": runs,
         "rows": {row: rows[row] for base in ROWS for row in (base, base + RELEASED) if row in rows},
@@ -184,18 +168,18 @@ def make_table2(run_dirs, data_paths, geometric=True, geometric_max=None, progre
         raise EvaluationError("no runs given (--runs RUN_DIR ...)")
     if not data_paths:
         raise EvaluationError("table 2 needs --data REAL.h5 (or a folder of real sets)")
-    runs = [evaluation.load_run(r) for r in run_dirs]
+    loaded = [evaluation.load_run(r) for r in run_dirs]
     seen = {}
-    for run in runs:
-        row = evaluation.row_name(run)
+    for run in loaded:
+        row = runs.row_name(run)
         if row in seen:
             raise EvaluationError(f"two runs for {row}: {seen[row]} and {run['run_dir']}")
         seen[row] = run["run_dir"]
     paths = expand_data_paths(data_paths)
     try:
-        rigs = [_rig_rows(runs, path, geometric, geometric_max, progress) for path in paths]
+        rigs = [_rig_rows(loaded, path, geometric, geometric_max, progress) for path in paths]
     finally:
-        for run in runs:
+        for run in loaded:
             run.pop("_model", None)
     names = [r["rig"] for r in rigs]
     for i, rig in enumerate(rigs):                      # two files of one rig: tell apart
@@ -206,7 +190,7 @@ def make_table2(run_dirs, data_paths, geometric=True, geometric_max=None, progre
         raise EvaluationError(f"real sets differ in image width ({sorted(widths)}); build them "
                               f"with one --image-size")
     width = widths.pop()
-    run_list = [r["run_dir"] for r in runs]
+    run_list = [r["run_dir"] for r in loaded]
     tables = {}
     for rig in rigs:
         tables[rig["rig"]] = dict(_table(
@@ -238,68 +222,12 @@ def make_table2(run_dirs, data_paths, geometric=True, geometric_max=None, progre
     table["rigs"] = tables
     table["fov_points"] = {rig["rig"]: {row: _fov_points(r, width) for row, r in rig["rows"].items()}
                            for rig in rigs}
-    return evaluation._jsonable(table)
-
-
-def _cell(row_metrics, column, convention):
-    if COLUMN_PARAMETER[column] in row_metrics.get("degenerate", ()):
-        return "degenerate"
-    value = row_metrics["targets"][COLUMN_PARAMETER[column]][convention]
-    return metrics.format_value(math.nan if value is None else value)
+    return report.jsonable(table)
 
 
 def _nmae_tables(table, level):
-    lines = []
-    for convention in CONVENTIONS:
-        with_paper = convention == table["paper_convention"] and table["paper"]
-        lines += [f"{level} {CONVENTION_TITLES[convention]}", ""]
-        if with_paper:
-            lines += ["Cells: ours (paper's Table 2).", ""]
-        best = evaluation.best_rows(table, convention)
-        lines.append("| method | " + " | ".join(COLUMNS) + " |")
-        lines.append("|---" * (len(COLUMNS) + 1) + "|")
-        for row, row_metrics in table["rows"].items():
-            cells = []
-            for column in COLUMNS:
-                text = _cell(row_metrics, column, convention)
-                if row in best.get(column, ()) and text != "degenerate":
-                    text = f"**{text}**"
-                if with_paper:
-                    paper_row = row[: -len(RELEASED)] if row.endswith(RELEASED) else row
-                    paper_row = "Average" if paper_row == "Average (release bug)" else paper_row
-                    paper = table["paper"].get(paper_row, {}).get(column)
-                    if paper is not None and row != "Average":
-                        text += f" ({paper:.3f})"
-                cells.append(text)
-            lines.append(f"| {row} | " + " | ".join(cells) + " |")
-        lines.append("")
-    lines += ["| method | " + " | ".join(f"within {k} deg FOV" for k in metrics.FOV_THRESHOLDS_DEG)
-              + " |", "|---" * (len(metrics.FOV_THRESHOLDS_DEG) + 1) + "|"]
-    for row, row_metrics in table["rows"].items():
-        if "fx" in row_metrics.get("degenerate", ()):
-            cells = ["degenerate"] * len(metrics.FOV_THRESHOLDS_DEG)
-        else:
-            cells = [metrics.format_value(row_metrics["fov_within_deg"][str(k)], 2)
-                     for k in metrics.FOV_THRESHOLDS_DEG]
-        lines.append(f"| {row} | " + " | ".join(cells) + " |")
-    lines.append("")
-    geo = table["rows"].get("Geometric")
-    if geo:
-        report = geo["failures"]
-        parts = [f"{flag} {report[flag]['count']}/{report['num_pairs']}" for flag in report
-                 if isinstance(report[flag], dict)]
-        lines += [f"Geometric baseline on {geo['num_pairs']} pairs; stage failures (fallback "
-                  f"to priors {geo['priors']}): " + ", ".join(parts) + ".", ""]
-        if geo.get("degenerate"):
-            lines += ["Geometric fx, fy: degenerate on a rectified rig (Bougnoux's formula is "
-                      "0/0 when the optical axes are coplanar); no number is reported.", ""]
-    undefined = [f"{name} ({m['num_defined']} of {table['num_pairs']} pairs)"
-                 for name, m in next(iter(table["rows"].values()))["targets"].items()
-                 if m["num_defined"] < table["num_pairs"]]
-    if undefined:
-        lines += ["Ground truth defined on part of the pairs only: " + ", ".join(undefined)
-                  + "; the other pairs are left out of those columns.", ""]
-    return lines
+    return (report.nmae_tables(table, level)
+            + report.fov_table(table, header="within {k} deg FOV") + report.notes(table))
 
 
 def markdown(table, command=None):
@@ -327,16 +255,7 @@ def csv_text(table):
     """``rig,method,metric,<columns>``; rig ``pooled`` for the pooled table."""
     lines = ["rig,method,metric," + ",".join(COLUMNS)]
     for rig, sub in [("pooled", table)] + list(table["rigs"].items()):
-        for row, row_metrics in sub["rows"].items():
-            for metric in ("mae",) + CONVENTIONS:
-                cells = []
-                for column in COLUMNS:
-                    if COLUMN_PARAMETER[column] in row_metrics.get("degenerate", ()):
-                        cells.append("degenerate")
-                        continue
-                    v = row_metrics["targets"][COLUMN_PARAMETER[column]][metric]
-                    cells.append("n/a" if v is None or not math.isfinite(v) else f"{v:.6g}")
-                lines.append(f"{rig},{row},{metric}," + ",".join(cells))
+        lines += report.csv_rows(sub, prefix=f"{rig},")
     return "\n".join(lines) + "\n"
 
 
@@ -371,29 +290,7 @@ def fov_scatter_plot(table, path):
 
 def write_table2(out_dir, stem, table, command):
     """Write ``stem``.md/.csv/.json, ``stem``_fov.png (pooled FOV-threshold
-    curves) and ``stem``_fov_scatter.png; renamed into place only when all
-    were written."""
-    if not os.path.isdir(out_dir):
-        raise EvaluationError(f"output directory does not exist: {out_dir}")
-    texts = {f"{stem}.md": markdown(table, command), f"{stem}.csv": csv_text(table),
-             f"{stem}.json": json.dumps(dict(table, command=command), indent=2,
-                                        allow_nan=False) + "\n"}
-    written = []
-    try:
-        for name, text in texts.items():
-            tmp = os.path.join(out_dir, f".{name}.partial")
-            written.append((tmp, os.path.join(out_dir, name)))
-            with open(tmp, "w") as f:
-                f.write(text)
-        for suffix, draw in (("_fov.png", evaluation.fov_plot), ("_fov_scatter.png", fov_scatter_plot)):
-            tmp = os.path.join(out_dir, f".{stem}{suffix}.partial")
-            written.append((tmp, os.path.join(out_dir, stem + suffix)))
-            draw(table, tmp)
-    except Exception:
-        for tmp, _ in written:
-            if os.path.exists(tmp):
-                os.remove(tmp)
-        raise
-    for tmp, final in written:
-        os.replace(tmp, final)
-    return [final for _, final in written]
+    curves) and ``stem``_fov_scatter.png (``report.write_outputs``)."""
+    return report.write_outputs(
+        out_dir, stem, table, command, render_markdown=markdown, render_csv=csv_text,
+        plots=(("_fov.png", report.fov_plot), ("_fov_scatter.png", fov_scatter_plot)))

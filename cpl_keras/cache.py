@@ -1,0 +1,36 @@
+"""The project's cache directory and JAX's persistent compile cache.
+
+``cache_dir()`` holds generated demonstration data and compiled XLA
+programs; ``enable_compile_cache()`` keeps compiled training steps there, so
+a resumed or repeated run (or another of the same model shape) skips most of
+XLA's compile time.
+"""
+
+from __future__ import annotations
+
+import os
+
+
+def cache_dir():
+    """The project's cache directory: ``$CPL_KERAS_CACHE`` or ``~/.cache/cpl_keras``."""
+    return os.environ.get("CPL_KERAS_CACHE") or os.path.join(
+        os.path.expanduser("~"), ".cache", "cpl_keras"
+    )
+
+
+def enable_compile_cache():
+    """Keep compiled training steps on disk (JAX), so a resumed or repeated run,
+    or another run of the same model shape, skips most of XLA's compile time.
+
+    ``$JAX_COMPILATION_CACHE_DIR`` wins when set; otherwise ``<cache_dir>/xla``.
+    Returns the directory, or None on other backends.
+    """
+    import keras
+
+    if keras.backend.backend() != "jax":
+        return None
+    import jax
+
+    path = os.environ.get("JAX_COMPILATION_CACHE_DIR") or os.path.join(cache_dir(), "xla")
+    jax.config.update("jax_compilation_cache_dir", path)
+    return path

@@ -1,0 +1,209 @@
+"""Checkpointing, early stopping and the NaN guard of a training run.
+
+``RunState`` is the one Keras callback of a run: after every epoch it
+checkpoints the model and optimizer state crash-safely, keeps the
+early-stopping counters and the per-epoch log, and stops on a non-finite
+training loss. ``publish_run_files`` brings the run directory's
+best.weights.h5, log.csv and curves.png in line with its state.
+"""
+
+from __future__ import annotations
+
+import csv
+import math
+import os
+import shutil
+import time
+
+import keras
+import numpy as np
+
+from cpl_keras import runs
+from cpl_keras.models.batchnorm import recompute_batchnorm_statistics
+
+
+class RunState(keras.callbacks.Callback):
+    """Checkpoints every epoch and does early stopping, crash-safely.
+
+    State (``backup/state.json``): completed epochs, the early-stopping
+    counters, the per-epoch logs and the names of the checkpoint files.
+    Checkpoint files are written under fresh names and only then named
+    by a new ``state.json`` (``os.replace``), so a kill at any moment
+    leaves the previous epoch's state intact.
+    """
+
+    def __init__(self, run_dir, patience, sequence, bn_recompute_batches=0):
+        super().__init__()
+        self.run_dir = run_dir
+        self.bn_recompute_batches = int(bn_recompute_batches)
+        self.backup = os.path.join(run_dir, runs.BACKUP)
+        self.state_path = os.path.join(run_dir, runs.STATE)
+        self.patience = patience
+        self.sequence = sequence
+        self.state = runs.read_json(self.state_path) or {
+            "epoch": 0, "best": None, "best_epoch": None, "wait": 0, "stopped": None,
+            "rows": [], "checkpoint": None, "best_weights": None, "wall_time_s": 0.0,
+        }
+        self.nan = None
+        self._epoch_start = None
+
+    # -- resume -------------------------------------------------------
+    def restore(self, model):
+        """Load the last checkpoint into ``model`` (weights + optimizer)."""
+        ckpt = self.state.get("checkpoint")
+        if ckpt is None:
+            return 0
+        # The weights file holds the optimizer's variables too; build the
+        # optimizer first so they are loaded rather than skipped.
+        if not model.optimizer.built:
+            model.optimizer.build(model.trainable_variables)
+        model.load_weights(os.path.join(self.backup, ckpt + ".weights.h5"))
+        return int(self.state["epoch"])
+
+    # -- keras hooks ---------------------------------------------------
+    def on_train_begin(self, logs=None):
+        if self.state["epoch"] == 0 and self.state["checkpoint"] is None:
+            # Eq. 9's weights start balanced on the first training batch
+            # (a resumed run has them in its checkpoint).
+            x, y = self.sequence[0]
+            self.model.initialise_adaptive_weights(x, y)
+
+    def on_test_begin(self, logs=None):
+        # Validation (and so the checkpoints and the saved model) runs in
+        # inference mode: give it BatchNorm statistics of these weights.
+        if self.bn_recompute_batches:
+            count = min(self.bn_recompute_batches, len(self.sequence))
+            recompute_batchnorm_statistics(
+                self.model, (self.sequence[i] for i in range(count))
+            )
+
+    def on_epoch_begin(self, epoch, logs=None):
+        self._epoch_start = time.perf_counter()
+        # Keras calls the dataset's on_epoch_end an extra time around its
+        # first peek at the data, so the epoch is set here, explicitly:
+        # the order of epoch e is then the same in a resumed run.
+        self.sequence.set_epoch(epoch)
+
+    def on_train_batch_end(self, batch, logs=None):
+        loss = (logs or {}).get("loss")
+        if loss is not None and not math.isfinite(float(np.asarray(loss))):
+            self.nan = {"epoch": self.state["epoch"], "batch": int(batch)}
+            self.model.stop_training = True
+
+    def on_epoch_end(self, epoch, logs=None):
+        if self.nan is not None:
+            self.state["stopped"] = (
+                f"non-finite training loss at epoch {self.nan['epoch'] + 1}, "
+                f"batch {self.nan['batch'] + 1}"
+            )
+            self._commit(checkpoint=False)
+            return
+        logs = {k: float(np.asarray(v)) for k, v in (logs or {}).items()}
+        state = self.state
+        val = logs.get("val_loss", logs.get("loss"))
+        improved = val is not None and math.isfinite(val) and (
+            state["best"] is None or val < state["best"]
+        )
+        best_name = None
+        if improved:
+            state["best"], state["best_epoch"], state["wait"] = val, epoch, 0
+            best_name = f"best-{epoch:04d}"
+            self.model.save_weights(os.path.join(self.backup, best_name + ".weights.h5"))
+        else:
+            state["wait"] += 1
+            if state["wait"] >= self.patience and epoch > 0:
+                state["stopped"] = (
+                    f"early stopping: no improvement of val_loss for {self.patience} epochs"
+                )
+                self.model.stop_training = True
+        alphas = self.model.adaptive_weights() or {}
+        logs.update({f"alpha_{name}": value for name, value in alphas.items()})
+        state["wall_time_s"] += time.perf_counter() - (self._epoch_start or time.perf_counter())
+        # the run's training time so far and the machine's load, per epoch
+        logs.update(wall_time_s=round(state["wall_time_s"], 3),
+                    load_average=round(os.getloadavg()[0], 2))
+        state["rows"].append({"epoch": epoch, **logs})
+        state["epoch"] = epoch + 1
+        self._commit(checkpoint=True, best_name=best_name)
+
+    # -- helpers -------------------------------------------------------
+    def _commit(self, checkpoint, best_name=None):
+        os.makedirs(self.backup, exist_ok=True)
+        old = (self.state.get("checkpoint"), self.state.get("best_weights"))
+        if checkpoint:
+            name = f"epoch-{self.state['epoch']:04d}"
+            # Model and optimizer variables (Keras saves both).
+            self.model.save_weights(os.path.join(self.backup, name + ".weights.h5"))
+            self.state["checkpoint"] = name
+        if best_name is not None:
+            self.state["best_weights"] = best_name
+        runs.write_json(self.state_path, self.state)
+        for stale in old:
+            if stale is not None and stale not in (self.state["checkpoint"],
+                                                   self.state["best_weights"]):
+                path = os.path.join(self.backup, stale + ".weights.h5")
+                if os.path.exists(path):
+                    os.remove(path)
+        publish_run_files(self.run_dir, self.state)
+
+
+def publish_run_files(run_dir, state):
+    """Bring best.weights.h5, log.csv and curves.png in line with ``state``."""
+    source = os.path.join(run_dir, runs.BACKUP, f"{state.get('best_weights')}.weights.h5")
+    if state.get("best_weights") and os.path.exists(source):
+        # (After a finished run the backup copy is gone; best.weights.h5 stays.)
+        with runs.atomic_path(os.path.join(run_dir, runs.BEST_WEIGHTS)) as tmp:
+            shutil.copyfile(source, tmp)
+    write_log(os.path.join(run_dir, runs.LOG), state.get("rows", []))
+    if state.get("rows"):
+        plot_curves(os.path.join(run_dir, runs.CURVES), state["rows"], state.get("best_epoch"))
+
+
+def write_log(path, rows):
+    """One CSV row per epoch (columns: epoch, then the sorted log keys)."""
+    keys = sorted({k for row in rows for k in row if k != "epoch"})
+    with runs.atomic_path(path) as tmp, open(tmp, "w", newline="") as f:
+        writer = csv.writer(f)
+        writer.writerow(["epoch"] + keys)
+        for row in rows:
+            writer.writerow([row["epoch"]] + [repr(row[k]) if k in row else "" for k in keys])
+
+
+def plot_curves(path, rows, best_epoch=None):
+    """Training and validation loss per epoch (log scale when positive), and
+    the adaptive weights alpha_i of Eq. 9 beside them when the run has them."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    epochs = [row["epoch"] + 1 for row in rows]
+    alpha_keys = sorted({k for row in rows for k in row if k.startswith("alpha_")})
+    fig, axes = plt.subplots(1, 2 if alpha_keys else 1, figsize=(11 if alpha_keys else 6, 4),
+                             squeeze=False)
+    ax = axes[0, 0]
+    for key, label in (("loss", "training"), ("val_loss", "validation")):
+        values = [row.get(key, np.nan) for row in rows]
+        ax.plot(epochs, values, marker="o", markersize=3, label=label)
+    losses = [row.get(k) for row in rows for k in ("loss", "val_loss") if row.get(k) is not None]
+    if losses and all(math.isfinite(v) and v > 0 for v in losses):
+        ax.set_yscale("log")
+    if best_epoch is not None:
+        ax.axvline(best_epoch + 1, color="grey", linestyle="--", label=f"best (epoch {best_epoch + 1})")
+    ax.set_xlabel("epoch")
+    ax.set_ylabel("loss")
+    ax.legend()
+    ax.grid(True, alpha=0.3)
+    if alpha_keys:
+        ax = axes[0, 1]
+        for key in alpha_keys:
+            ax.plot(epochs, [row.get(key, np.nan) for row in rows], label=key[len("alpha_"):])
+        ax.set_yscale("log")
+        ax.set_xlabel("epoch")
+        ax.set_ylabel("alpha_i (Eq. 9)")
+        ax.legend(fontsize=7, ncol=2)
+        ax.grid(True, alpha=0.3)
+    fig.tight_layout()
+    runs.save_figure(fig, path, dpi=100)
+
+
