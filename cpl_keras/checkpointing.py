@@ -65,8 +65,8 @@ class RunState(keras.callbacks.Callback):
         if self.state["epoch"] == 0 and self.state["checkpoint"] is None:
             # Eq. 9's weights start balanced on the first training batch
             # (a resumed run has them in its checkpoint).
-            x, y = self.sequence[0]
-            self.model.initialise_adaptive_weights(x, y)
+            _, y = self.sequence[0]
+            self.model.initialise_adaptive_weights(y)
 
     def on_test_begin(self, logs=None):
         # Validation (and so the checkpoints and the saved model) runs in

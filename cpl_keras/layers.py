@@ -85,6 +85,25 @@ def bounded_pitch(x):
 
 
 @keras.saving.register_keras_serializable(package=PACKAGE)
+def positive_disparity(x, floor=camera.FLOORS["disparity"]):
+    """The CPL disparity head's output: ``max(z, floor)``, with the gradient
+    of ``z`` (a straight-through clip, as ``bounded_pitch``).
+
+    The camera graph divides by the disparity (Eq. 4a), so the projection
+    terms have a pole at d = 0, and on its negative side they fall as
+    d -> -infinity: xCam = fx b / d tends to 0 from below, so |X(d) - X|
+    tends to |X|. A linear head that starts negative (half of them do) is
+    pushed away from the truth, to where the pull of |d' - d| balances the
+    pole's, near -sqrt(fx b) (measured: MTL-CPL-A's validation disparity MAE
+    stayed at 404 px for two epochs while MTL-Baseline's fell to 32 px). Every
+    true disparity is positive (the right camera's centre is ahead of or
+    beside the left one in every rig and real set here), so the head outputs
+    no less than the graph's disparity floor, and the gradient still moves z.
+    """
+    return ops.stop_gradient(ops.maximum(x, floor)) + (x - ops.stop_gradient(x))
+
+
+@keras.saving.register_keras_serializable(package=PACKAGE)
 def take(x, index=0):
     """Column ``index`` of a (batch, n) tensor, kept as (batch, 1)."""
     return x[:, index : index + 1]

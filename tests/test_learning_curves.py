@@ -91,7 +91,7 @@ def test_a_tiny_run_learns_and_its_pitch_stays_bounded(variant, tiny):
     x, y = seq[0]
     seq.close()
     model = compile_model(build_model(variant, backbone="small", image_size=32, seed=0))
-    model.initialise_adaptive_weights(x, y)
+    model.initialise_adaptive_weights(y)
     before = _nmae_sum(model, x, y)
     history = model.fit(x, y, epochs=80, batch_size=16, verbose=0)
     recompute_batchnorm_statistics(model, [x])  # Deep-Homo's BatchNorm, as training does

@@ -18,6 +18,7 @@ Loss modes:
 from __future__ import annotations
 
 import keras
+import numpy as np
 from keras import ops
 
 from cpl_keras import camera, losses
@@ -83,16 +84,30 @@ class CalibrationModel(keras.Model):
         """The 13 disentangled terms of Eq. 7 for targets ``y`` (dict)."""
         return losses.projection_terms(y, self._as_dict(y_pred), self.floors)
 
-    def initialise_adaptive_weights(self, x, y):
-        """Start Eq. 9's weights balanced: alpha_i = 1 / L_i on one batch.
+    def initialise_adaptive_weights(self, y):
+        """Start Eq. 9's weights balanced at the Average baseline's level.
 
-        ``x`` is a batch of inputs and ``y`` its targets (dict by name). Sets
-        ``s_i = log L_i`` and the floor ``log(losses.ADAPTIVE_WEIGHT_RANGE)``
-        below it. A no-op for other loss modes. Returns the alphas.
+        ``y`` is a batch of targets (dict by name). Each term L_i is computed
+        with every target predicted as its mean over the batch (what the
+        Average baseline does), plus the term of a 1% error in every target
+        (so that a target that is constant in the data, such as u0 in the
+        cvgl protocol, whose Average term is 0, still has a scale), and
+        ``s_i = log L_i`` (alpha_i = 1 / L_i): every weighted term starts
+        near 1 where a network has learned nothing;
+        the floor ``log(losses.ADAPTIVE_WEIGHT_RANGE)`` below it lets alpha_i
+        grow until its term is that many times better than Average. (The
+        untrained network's own terms are no measure: a disparity head near 0
+        puts X at fx b / d, millions of metres.) A no-op for other loss
+        modes. Returns the alphas.
         """
         if self.loss_mode != "projection-adaptive":
             return None
-        terms = self.projection_terms(y, self(x, training=False))
+        y = {name: ops.convert_to_tensor(np.asarray(y[name], "float32")) for name in camera.TARGETS}
+        average = {name: ops.broadcast_to(ops.mean(v, axis=0, keepdims=True), ops.shape(v))
+                   for name, v in y.items()}
+        one_percent = {name: v * 1.01 for name, v in y.items()}
+        terms = [a + b for a, b in zip(self.projection_terms(y, average),
+                                       self.projection_terms(y, one_percent))]
         start, floor = losses.initial_log_variances(
             [float(ops.convert_to_numpy(t)) for t in terms]
         )

@@ -50,7 +50,9 @@ import keras
 import numpy as np
 
 from cpl_keras import camera
-from cpl_keras.layers import LambdaOps, bounded_pitch, multiply, regression_head, stop_gradient
+from cpl_keras.layers import (
+    LambdaOps, bounded_pitch, multiply, positive_disparity, regression_head, stop_gradient,
+)
 from cpl_keras.models import backbones, deep_homo, variants
 from cpl_keras.models.calibration_model import CalibrationModel
 from cpl_keras.models.variants import VARIANTS
@@ -135,6 +137,7 @@ def _build(spec, backbone, height, width, as_released, floors, bounded_pitch_hea
         "variant": spec.name, "backbone": backbone, "image_size": [height, width],
         "as_released": as_released, "floors": floors, "loss": loss,
         "bounded_pitch_head": bounded_pitch_head and spec.builder != "deep_homo",
+        "positive_disparity_head": loss.startswith("projection"),
         "disentangle": disentangle if loss.startswith("projection") else None,
     }
     return CalibrationModel(
@@ -169,6 +172,8 @@ BUILDERS = {"deep_homo": _deep_homo_outputs, "direct": _direct_outputs,
 
 def camera_projection_outputs(features, variant, as_released, floors, pitch_activation=None,
                               detach=False):
+    # (the disparity head is positive where the projection loss trains it:
+    # as the paper writes it; see ``layers.positive_disparity``)
     """The CPL heads and the Lambda camera graph (Eqs. 4a-5c).
 
     12 heads predict the 10 parameters and a pixel (u, v) (unsupervised: no
@@ -179,11 +184,10 @@ def camera_projection_outputs(features, variant, as_released, floors, pitch_acti
     it. The released CPL-A multiplies X, Y, Z by per-sample sigmoid gates,
     each its own Dense(120) -> Dense(84) -> Dense(1, sigmoid) branch.
     """
-    params = {
-        name: regression_head(features, name,
-                              activation=pitch_activation if name == "pitch" else None)
-        for name in camera.PARAMETERS
-    }
+    activations = {"pitch": pitch_activation,
+                   "disparity": None if as_released else positive_disparity}
+    params = {name: regression_head(features, name, activation=activations.get(name))
+              for name in camera.PARAMETERS}
     pixel = {name: regression_head(features, name) for name in PIXEL_HEADS}
     graph_params = params
     if detach:
