@@ -323,3 +323,23 @@ def test_training_records_target_scaling_and_refuses_it_for_the_projection_loss(
         plan_run(tiny_cvgl, variant="cpl-u", run_dir=str(tmp_path / "c"), backbone="small",
                  target_scaling="std")
     assert not (tmp_path / "b").exists() and not (tmp_path / "c").exists()
+
+
+def test_cpl_disparity_head_is_positive_in_log_space_and_linear_as_released():
+    x, _ = batch(2)
+    for as_released in (False, True):
+        model = build_model("cpl-u", backbone="small", image_size=SIZE, as_released=as_released,
+                            seed=0)
+        head = model.get_layer("disparity")
+        head.kernel.assign(np.zeros(head.kernel.shape, "float32"))
+        for bias, expected in ((-50.0, camera.FLOORS["disparity"]), (2.0, math.exp(2.0))):
+            head.bias.assign(np.full(head.bias.shape, bias, "float32"))
+            d = model.predict(x, verbose=0)[TARGETS.index("disparity")]
+            if as_released:
+                assert np.allclose(d, bias)
+            else:
+                assert np.allclose(d, expected, rtol=1e-5)
+    # the gradient of z is never cut, even below the floor
+    from cpl_keras.layers import positive_disparity
+
+    assert float(jax.grad(lambda z: positive_disparity(z))(np.float32(-50.0))) > 0
