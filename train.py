@@ -113,11 +113,22 @@ def main(argv=None):
     )
     command = cli.command_line(PROG, argv)
 
-    from cpl_keras.data.storage import DatasetError
     from cpl_keras.cache import enable_compile_cache
-    from cpl_keras.training import TrainingError, summary_line, train
 
     enable_compile_cache()
+
+    try:
+        with cli.interruptible():
+            return _train(args, demo, seed, epochs, backbone, run_dir, command)
+    except KeyboardInterrupt:  # cli.Interrupted, or a Ctrl-C outside the block
+        # a kill's state: the last completed epoch is checkpointed; the same
+        # command resumes after it
+        return cli.interrupted(PROG, resume=command)
+
+
+def _train(args, demo, seed, epochs, backbone, run_dir, command):
+    from cpl_keras.data.storage import DatasetError
+    from cpl_keras.training import TrainingError, summary_line, train
 
     try:
         data = demo_dataset() if demo else args.data

@@ -18,7 +18,7 @@ import time
 import keras
 import numpy as np
 
-from cpl_keras import runs
+from cpl_keras import cli, runs
 from cpl_keras.models.batchnorm import recompute_batchnorm_statistics
 
 
@@ -84,7 +84,14 @@ class RunState(keras.callbacks.Callback):
         # the order of epoch e is then the same in a resumed run.
         self.sequence.set_epoch(epoch)
 
+    def on_train_batch_begin(self, batch, logs=None):
+        cli.check_interrupt()
+
+    def on_test_batch_end(self, batch, logs=None):
+        cli.check_interrupt()
+
     def on_train_batch_end(self, batch, logs=None):
+        cli.check_interrupt()  # Ctrl-C: stop now, with the last epoch's checkpoint
         loss = (logs or {}).get("loss")
         if loss is not None and not math.isfinite(float(np.asarray(loss))):
             self.nan = {"epoch": self.state["epoch"], "batch": int(batch)}

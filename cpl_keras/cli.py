@@ -6,14 +6,23 @@
   name when it has none);
 * ``fail(prog, error)``: print that error line, return 2 (for ``main``);
 * ``command_line(prog, argv)``: the command as it was typed, quoted, for the
-  files a command writes (config.json, tables, dataset metadata).
+  files a command writes (config.json, tables, dataset metadata);
+* ``interruptible()``, ``check_interrupt()``, ``interrupted(prog, resume)``:
+  Ctrl-C (SIGINT). Inside ``interruptible()`` one SIGINT raises ``Interrupted``
+  in the main thread and is remembered, so that a library that swallows the
+  exception still stops at the next ``check_interrupt()`` (training checks
+  between batches); the command then prints one line (with how to resume) and
+  exits 130.
 """
 
 from __future__ import annotations
 
 import argparse
+import contextlib
 import shlex
+import signal
 import sys
+import threading
 
 
 def one_line(error):
@@ -43,3 +52,63 @@ def command_line(prog, argv=None):
     args = list(sys.argv[1:] if argv is None else argv)
     head = f"python {prog}" if prog.endswith(".py") else prog
     return " ".join([head] + [shlex.quote(str(a)) for a in args])
+
+
+# ---------------------------------------------------------------------------
+# Ctrl-C
+# ---------------------------------------------------------------------------
+#: Exit status of a command stopped by Ctrl-C (128 + SIGINT, as a shell reports it).
+INTERRUPTED = 130
+
+
+class Interrupted(KeyboardInterrupt):
+    """Ctrl-C (SIGINT) during a command run inside ``interruptible()``."""
+
+
+_pending = threading.Event()
+
+
+def check_interrupt():
+    """Raise ``Interrupted`` when a SIGINT arrived inside ``interruptible()``
+    (for loops that a swallowed exception would otherwise carry on)."""
+    if _pending.is_set():
+        raise Interrupted()
+
+
+@contextlib.contextmanager
+def interruptible():
+    """Within the block, SIGINT raises ``Interrupted`` (a ``KeyboardInterrupt``)
+    and is remembered for ``check_interrupt()``. Outside the main thread it
+    does nothing (signal handlers can be set there only), nor in a process
+    started with SIGINT ignored."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+
+    def handler(signum, frame):
+        _pending.set()
+        raise Interrupted()
+
+    if signal.getsignal(signal.SIGINT) is signal.SIG_IGN:
+        # started with Ctrl-C ignored (nohup, a background job of a script)
+        yield
+        return
+    _pending.clear()
+    previous = signal.signal(signal.SIGINT, handler)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGINT, previous)
+        _pending.clear()
+
+
+def interrupted(prog, resume=None, note=None):
+    """Print ``<prog>: interrupted`` on one line on stderr, with how to resume
+    (``resume``: the command) or another ``note``; return 130."""
+    line = f"{prog}: interrupted"
+    if resume:
+        line += f"; to resume, run the same command again: {resume}"
+    elif note:
+        line += f"; {note}"
+    print(line, file=sys.stderr, flush=True)
+    return INTERRUPTED

@@ -334,10 +334,13 @@ def run(args, command, prog=PROG):
             patience=args.patience, backbone=args.backbone, image_size=args.image_size,
             crops=args.crops, geometric_max=args.geometric_max,
         )
-        report = reproduce(
-            out_dir=args.out, data_dir=args.data_dir, runs_dir=args.runs_dir, config=config,
-            seed=args.seed, command=command, discussion_file=args.discussion,
-        )
+        with cli.interruptible():
+            report = reproduce(
+                out_dir=args.out, data_dir=args.data_dir, runs_dir=args.runs_dir, config=config,
+                seed=args.seed, command=command, discussion_file=args.discussion,
+            )
+    except KeyboardInterrupt:  # every stage is resumable: the same command goes on
+        return cli.interrupted(prog, resume=command)
     except (ValueError, DatasetError, OSError) as error:  # EvaluationError is a ValueError
         return cli.fail(prog, error)
     print(f"report written to {report}")

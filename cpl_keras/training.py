@@ -309,18 +309,20 @@ def _run(plan, learning_rate, steps_per_execution, verbose):
     run_state = RunState(run_dir, config["patience"], train_seq, config["bn_recompute_batches"])
     state = run_state.state
     done = state.get("stopped") is not None or state["epoch"] >= config["epochs"]
-    if not done:
-        initial_epoch = run_state.restore(model)
-        if initial_epoch:
-            print(f"Resuming {run_dir} after epoch {initial_epoch}", file=sys.stderr)
-        train_seq.set_epoch(initial_epoch)
-        # shuffle=False: the sequence shuffles itself, seeded per epoch; Keras's
-        # own shuffle of the batch order uses Python's unseeded global RNG.
-        model.fit(train_seq, validation_data=val_seq, epochs=config["epochs"],
-                  initial_epoch=initial_epoch, callbacks=[run_state], shuffle=False,
-                  verbose=verbose)
-    train_seq.close()
-    val_seq.close()
+    try:
+        if not done:
+            initial_epoch = run_state.restore(model)
+            if initial_epoch:
+                print(f"Resuming {run_dir} after epoch {initial_epoch}", file=sys.stderr)
+            train_seq.set_epoch(initial_epoch)
+            # shuffle=False: the sequence shuffles itself, seeded per epoch; Keras's
+            # own shuffle of the batch order uses Python's unseeded global RNG.
+            model.fit(train_seq, validation_data=val_seq, epochs=config["epochs"],
+                      initial_epoch=initial_epoch, callbacks=[run_state], shuffle=False,
+                      verbose=verbose)
+    finally:  # (also on Ctrl-C: no reading threads left behind)
+        train_seq.close()
+        val_seq.close()
     summary = _finish(model, run_dir, config, run_state.state)
     summary["model"] = model
     lock.close()

@@ -212,6 +212,14 @@ def render_block(protocol, seed, pairs, image_size, start, stop):
     return np.stack(lefts), np.stack(rights), labels
 
 
+def _ignore_sigint():
+    """Workers leave Ctrl-C to the parent, which stops the pool (one line, no
+    traceback per worker)."""
+    import signal
+
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+
+
 def _render_block_task(args):
     return args[4], render_block(*args)
 
@@ -320,7 +328,8 @@ def _iter_blocks(protocol, seed, pairs, image_size, workers):
     window = 2 * workers
     # spawn: safe even when the caller has started threads (e.g. JAX).
     with _without_main_module():
-        pool = mp.get_context("spawn").Pool(min(workers, len(blocks)))
+        pool = mp.get_context("spawn").Pool(min(workers, len(blocks)),
+                                            initializer=module._ignore_sigint)
     with pool:
         pending = []
         todo = iter(blocks)
@@ -511,6 +520,19 @@ def main(argv=None):
 
     command_line = cli.command_line(PROG, argv)
     try:
+        with cli.interruptible():
+            return _main(args, command_line)
+    except KeyboardInterrupt:  # cli.Interrupted, or a Ctrl-C outside the block
+        if args.out is not None and os.path.exists(args.out + ".partial"):
+            os.remove(args.out + ".partial")  # (StereoWriter removes it too)
+        return cli.interrupted(PROG, note=f"{args.out} was not written; the same command "
+                               "starts again from the first pair" if args.out else None)
+
+
+def _main(args, command_line):
+    from cpl_keras import cli
+
+    try:
         _check_arguments(args.protocol, args.pairs, args.seed, args.image_size, args.workers)
         if args.out is not None:
             check_output_path(args.out)
@@ -524,9 +546,6 @@ def main(argv=None):
         if args.preview is not None:
             print(write_preview(args.preview, args.protocol, args.pairs, args.seed,
                                 args.image_size))
-    except KeyboardInterrupt:
-        sys.stderr.write(f"{parser.prog}: interrupted\n")
-        return 130
     except (ValueError, OSError) as error:
         return cli.fail(PROG, " ".join(str(error).split()))
     return 0

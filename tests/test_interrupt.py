@@ -1,0 +1,119 @@
+"""Ctrl-C (SIGINT to the process group, as a terminal sends it) stops a
+command promptly: one line on stderr, exit 130, nothing half-written, and a
+training run that the same command resumes (cpl_keras.cli.interruptible)."""
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+
+import pytest
+
+from test_datasets import write_stereo_fixture
+
+REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+
+
+def _start(args, cache=None):
+    env = dict(os.environ, KERAS_BACKEND="jax")
+    if cache:
+        env["JAX_COMPILATION_CACHE_DIR"] = cache
+        env["JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS"] = "0"
+    return subprocess.Popen([sys.executable, *args], cwd=REPO, env=env, text=True,
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                            start_new_session=True)
+
+
+def _ctrl_c(process):
+    os.killpg(process.pid, signal.SIGINT)
+
+
+def _wait_for(condition, timeout=120):
+    deadline = time.time() + timeout
+    while time.time() < deadline:
+        try:
+            if condition():
+                return True
+        except (OSError, ValueError, KeyError):
+            pass
+        time.sleep(0.02)
+    return False
+
+
+def _one_line_130(process, prog, timeout=30):
+    out, err = process.communicate(timeout=timeout)
+    assert process.returncode == 130, err
+    assert "Traceback" not in err, err
+    lines = [line for line in err.splitlines() if "interrupted" in line]
+    assert len(lines) == 1 and lines[0].startswith(f"{prog}: interrupted"), err
+    return lines[0]
+
+
+def test_interruptible_raises_once_and_remembers():
+    from cpl_keras import cli
+
+    with pytest.raises(cli.Interrupted), cli.interruptible():
+        try:
+            os.kill(os.getpid(), signal.SIGINT)
+            time.sleep(1)
+        except KeyboardInterrupt:
+            pass  # a library that swallows it: the next check stops
+        cli.check_interrupt()
+    cli.check_interrupt()  # outside the block: nothing pending
+    assert signal.getsignal(signal.SIGINT) is signal.default_int_handler
+
+
+@pytest.mark.slow
+def test_ctrl_c_stops_training_resumably(tmp_path):
+    data = write_stereo_fixture(tmp_path / "tiny.h5", n=40, image_size=32)
+    run_dir = str(tmp_path / "run")
+    args = ["train.py", "--variant", "baseline", "--backbone", "small", "--epochs", "6",
+            "--batch-size", "5", "--patience", "10", "--quiet", "--data", str(data),
+            "--run-dir", run_dir]
+    cache = str(tmp_path / "xla")
+    state = os.path.join(run_dir, "backup", "state.json")
+
+    def epochs_done():
+        with open(state) as f:
+            return json.load(f)["epoch"]
+
+    process = _start(args, cache)
+    assert _wait_for(lambda: epochs_done() >= 1)
+    _ctrl_c(process)
+    line = _one_line_130(process, "train.py")
+    assert "run the same command again" in line and run_dir in line
+    done = epochs_done()
+    assert 1 <= done < 6, "the run must be stopped mid-training"
+    process = _start(args, cache)
+    out, err = process.communicate(timeout=300)
+    assert process.returncode == 0, err
+    assert f"Resuming {run_dir} after epoch {done}" in err
+    with open(os.path.join(run_dir, "config.json")) as f:
+        config = json.load(f)
+    assert config["status"] == "finished" and config["epochs_run"] == 6
+
+
+def test_ctrl_c_stops_generation_and_leaves_no_partial_file(tmp_path):
+    out = tmp_path / "cvgl.h5"
+    process = _start(["-m", "cpl_keras.data.generate", "--pairs", "4000", "--image-size", "32",
+                      "--workers", "2", "--no-progress", "--out", str(out)])
+    assert _wait_for(lambda: os.path.exists(str(out) + ".partial"))
+    time.sleep(0.5)
+    _ctrl_c(process)
+    _one_line_130(process, "python -m cpl_keras.data.generate")
+    assert os.listdir(tmp_path) == []
+
+
+def test_ctrl_c_stops_the_reproduction_resumably(tmp_path):
+    data_dir, runs_dir = tmp_path / "data", tmp_path / "runs"
+    command = ["evaluate.py", "--reproduce", "--quick", "--out", str(tmp_path / "out"),
+               "--data-dir", str(data_dir), "--runs-dir", str(runs_dir)]
+    process = _start(command)
+    assert _wait_for(lambda: os.listdir(data_dir))  # generating its first dataset
+    time.sleep(0.3)
+    _ctrl_c(process)
+    line = _one_line_130(process, "evaluate.py")
+    assert "run the same command again: python evaluate.py --reproduce --quick" in line
+    assert not [n for n in os.listdir(data_dir) if n.endswith(".partial")]
