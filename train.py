@@ -101,6 +101,44 @@ def demo_dataset():
         raise DatasetError(f"cannot generate the demonstration dataset: {error}") from None
 
 
+#: The paper's number of cvgl pairs.
+FULL_PAIRS = 123017
+
+
+def next_step(variant, demo_file):
+    """What to run after the demonstration, with what the dataset will cost
+    (measured on ``demo_file`` and by rendering a few pairs now)."""
+    text = (
+        f"This was a demonstration ({DEMO['pairs']} pairs, the 'small' backbone, "
+        f"{DEMO['epochs']} epochs). Full-scale training (InceptionV3 towers, up to 200 "
+        "epochs with early stopping):\n"
+        f"  python -m cpl_keras.data.generate --protocol cvgl --pairs {FULL_PAIRS} "
+        "--out data/cvgl.h5\n"
+        f"  python train.py --variant {variant} --data data/cvgl.h5"
+    )
+    try:
+        from cpl_keras.data.generate import estimate_cost
+
+        cost = estimate_cost(FULL_PAIRS, demo_file)
+    except (ImportError, OSError, ValueError):
+        return text
+    return text + (
+        f"\nThe dataset takes about {cost['bytes'] / 1e9:.1f} GB of disk "
+        f"({cost['bytes_per_pair'] / 1e3:.1f} KB a pair at {cost['image_size']} px, measured "
+        f"on the demonstration file) and about {_duration(cost['seconds'])} to generate on "
+        f"{cost['workers']} core{'s' if cost['workers'] > 1 else ''} "
+        f"({cost['seconds_per_pair']:.3f} s a pair on one core, measured just now)."
+    )
+
+
+def _duration(seconds):
+    if seconds < 90:
+        return f"{seconds:.0f} s"
+    if seconds < 5400:
+        return f"{seconds / 60:.0f} min"
+    return f"{seconds / 3600:.1f} h"
+
+
 def main(argv=None):
     args = build_parser().parse_args(argv)
     demo = args.data is None
@@ -147,13 +185,7 @@ def _train(args, demo, seed, epochs, backbone, run_dir, command):
         return cli.fail(PROG, error)
     print(summary_line(summary))
     if demo:
-        print(
-            f"This was a demonstration ({DEMO['pairs']} pairs, the 'small' backbone, "
-            f"{DEMO['epochs']} epochs). Full-scale training (InceptionV3 towers, up to 200 "
-            "epochs with early stopping):\n"
-            "  python -m cpl_keras.data.generate --protocol cvgl --pairs 123017 --out data/cvgl.h5\n"
-            f"  python train.py --variant {args.variant} --data data/cvgl.h5"
-        )
+        print(next_step(args.variant, data))
     return 1 if summary["status"] == "failed" else 0
 
 

@@ -7,6 +7,10 @@
 * ``fail(prog, error)``: print that error line, return 2 (for ``main``);
 * ``command_line(prog, argv)``: the command as it was typed, quoted, for the
   files a command writes (config.json, tables, dataset metadata);
+* ``check_output_file(path)``, ``make_parent(path)``: an output file's path
+  checked without writing anything (its missing folders may be created:
+  their nearest existing ancestor is a writable folder), then its folders
+  created just before it is written;
 * ``interruptible()``, ``check_interrupt()``, ``interrupted(prog, resume)``:
   Ctrl-C (SIGINT). Inside ``interruptible()`` one SIGINT raises ``Interrupted``
   in the main thread and is remembered, so that a library that swallows the
@@ -19,6 +23,7 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import os
 import shlex
 import signal
 import sys
@@ -52,6 +57,34 @@ def command_line(prog, argv=None):
     args = list(sys.argv[1:] if argv is None else argv)
     head = f"python {prog}" if prog.endswith(".py") else prog
     return " ".join([head] + [shlex.quote(str(a)) for a in args])
+
+
+# ---------------------------------------------------------------------------
+# Output files
+# ---------------------------------------------------------------------------
+def check_output_file(path):
+    """``path`` as a string if a file can be written there, missing folders
+    included; ValueError (one line) otherwise. Writes nothing."""
+    if not isinstance(path, (str, os.PathLike)) or not os.fspath(path):
+        raise ValueError(f"output path must be a non-empty path, got {path!r}")
+    path = os.fspath(path)
+    if os.path.isdir(path):
+        raise ValueError(f"output path is a directory: {path}")
+    directory = os.path.dirname(os.path.abspath(path))
+    ancestor = directory
+    while not os.path.exists(ancestor):
+        ancestor = os.path.dirname(ancestor)
+    if not os.path.isdir(ancestor):
+        raise ValueError(f"cannot create the output directory {directory}: {ancestor} is a file")
+    if not os.access(ancestor, os.W_OK):
+        what = "output directory" if ancestor == directory else "directory"
+        raise ValueError(f"{what} is not writable: {ancestor}")
+    return path
+
+
+def make_parent(path):
+    """Create the missing folders above the output file ``path``."""
+    os.makedirs(os.path.dirname(os.path.abspath(os.fspath(path))), exist_ok=True)
 
 
 # ---------------------------------------------------------------------------

@@ -37,8 +37,8 @@ def test_bad_arguments_one_line_exit_2_no_file(tmp_path, args, needle):
 
 
 @pytest.mark.parametrize("make_out", [
-    lambda tmp: tmp / "missing" / "d.h5",                # directory does not exist
     lambda tmp: tmp / "file.txt" / "d.h5",               # parent is a file
+    lambda tmp: tmp / "file.txt" / "sub" / "d.h5",       # an ancestor is a file
     lambda tmp: tmp,                                     # a directory, not a file
 ])
 def test_unwritable_output_path(tmp_path, make_out):
@@ -49,6 +49,14 @@ def test_unwritable_output_path(tmp_path, make_out):
     assert "Traceback" not in result.stderr
     assert len(result.stderr.strip().splitlines()) == 1
     assert sorted(os.listdir(tmp_path)) == before
+
+
+def test_missing_output_folders_are_created(tmp_path):
+    out, sheet = tmp_path / "data" / "sub" / "d.h5", tmp_path / "previews" / "p.png"
+    result = _cli("--pairs", "2", "--image-size", "16", "--workers", "1", "--no-progress",
+                  "--out", str(out), "--preview", str(sheet))
+    assert result.returncode == 0, result.stderr
+    assert out.is_file() and sheet.is_file()
 
 
 def test_missing_out_and_preview(tmp_path):
@@ -101,3 +109,27 @@ def test_summary_reports_sky_at_the_release_pixel(tmp_path):
     assert re.search(rf"sees the sky in {sky} of 6 pairs", line[0]), line[0]
     assert re.search(rf"{fallback} from the fallback", line[0]), line[0]
     assert summary["beyond_max_distance"] == 0
+
+
+def test_demonstration_next_step_states_disk_and_time(tmp_path):
+    """The full-scale command the demonstration proposes comes with its cost,
+    measured on a generated file (bytes per pair) and by rendering (time)."""
+    import importlib.util
+    import re
+
+    from cpl_keras.data.generate import estimate_cost
+
+    sample = generate_dataset(tmp_path / "s.h5", pairs=8, image_size=32, workers=1,
+                              progress=False)
+    cost = estimate_cost(1000, sample, workers=2, sample=2)
+    assert cost["bytes_per_pair"] == pytest.approx(os.path.getsize(sample) / 8)
+    assert cost["bytes"] == pytest.approx(1000 * cost["bytes_per_pair"])
+    assert cost["seconds"] == pytest.approx(1000 * cost["seconds_per_pair"] / 2)
+    spec = importlib.util.spec_from_file_location(
+        "train_script", os.path.join(os.path.dirname(os.path.dirname(__file__)), "train.py"))
+    script = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(script)
+    text = script.next_step("cpl-a", sample)
+    assert "--pairs 123017" in text
+    assert re.search(r"about [\d.]+ GB of disk \([\d.]+ KB a pair at 32 px, measured on the "
+                     r"demonstration file\) and about [\d.]+ (s|min|h) to generate", text), text

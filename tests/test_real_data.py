@@ -172,8 +172,12 @@ def test_bad_inputs_one_line_errors(tmp_path, capsys):
 
     assert build.main(["tsinghua", "--out", str(out)]) == 2
     assert "--root is required" in capsys.readouterr().err
-    assert build.main(["middlebury", "--out", str(tmp_path / "no" / "x.h5")]) == 2
-    assert "output directory" in capsys.readouterr().err
+    (tmp_path / "file.txt").write_text("x")
+    assert build.main(["middlebury", "--out", str(tmp_path / "file.txt" / "x.h5")]) == 2
+    assert "is a file" in capsys.readouterr().err
+    assert build.main(["tsinghua", "--root", str(tmp_path / "none"),
+                       "--out", str(tmp_path / "new" / "x.h5")]) == 2
+    assert "root not found" in capsys.readouterr().err and not (tmp_path / "new").exists()
     assert build.main(["middlebury", "--crops", "0", "--out", str(out)]) == 2
     assert "crops" in capsys.readouterr().err and not out.exists()
     with pytest.raises(SystemExit) as exit_info:
@@ -182,7 +186,7 @@ def test_bad_inputs_one_line_errors(tmp_path, capsys):
 
 
 def test_cli_builds_middlebury(tmp_path, capsys):
-    out = tmp_path / "m.h5"
+    out = tmp_path / "new" / "folder" / "m.h5"  # missing folders are created
     assert build.main(["middlebury", "--crops", "3", "--image-size", "32", "--out", str(out)]) == 0
     assert capsys.readouterr().out.strip() == str(out)
     with StereoFile(out) as data:

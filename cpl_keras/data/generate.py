@@ -237,18 +237,11 @@ def _check_int(name, value, minimum, maximum=None):
 
 
 def check_output_path(out):
-    """The output path as a string, or ValueError if it cannot be written."""
-    if not isinstance(out, (str, os.PathLike)) or not os.fspath(out):
-        raise ValueError(f"output path must be a non-empty path, got {out!r}")
-    out = os.fspath(out)
-    if os.path.isdir(out):
-        raise ValueError(f"output path is a directory: {out}")
-    directory = os.path.dirname(os.path.abspath(out))
-    if not os.path.isdir(directory):
-        raise ValueError(f"output directory does not exist: {directory}")
-    if not os.access(directory, os.W_OK):
-        raise ValueError(f"output directory is not writable: {directory}")
-    return out
+    """The output path as a string, or ValueError if it cannot be written
+    (missing folders are fine: they are created when the file is written)."""
+    from cpl_keras.cli import check_output_file
+
+    return check_output_file(out)
 
 
 def _check_arguments(protocol, pairs, seed, image_size, workers):
@@ -369,6 +362,9 @@ def _generate(out, protocol, pairs, seed, image_size, workers, progress, command
         workers = os.cpu_count() or 1
     meta = metadata(protocol, pairs, seed, image_size, command_line)
     bar = _Progress(pairs, f"{protocol}", progress)
+    from cpl_keras.cli import make_parent
+
+    make_parent(out)
     with StereoWriter(out, pairs, image_size, metadata=meta,
                       label_descriptions=LABEL_DESCRIPTIONS, label_units=EXTRA_UNITS,
                       int_labels=INT_LABELS) as writer:
@@ -389,6 +385,31 @@ def generate_dataset(out, *, protocol="cvgl", pairs, seed=0, image_size=112, wor
     Returns the path written. Raises ``ValueError`` (one line) on bad arguments.
     """
     return _generate(out, protocol, pairs, seed, image_size, workers, progress)
+
+
+# ---------------------------------------------------------------------------
+# Cost of a dataset
+# ---------------------------------------------------------------------------
+def estimate_cost(pairs, sample_file, protocol="cvgl", workers=None, sample=8):
+    """What generating ``pairs`` pairs will take, measured here: disk from the
+    bytes per pair of ``sample_file`` (a generated file of the same image size;
+    the images are gzip-compressed, so this varies a little with the scenes),
+    time from rendering ``sample`` pairs on one core now, shared by ``workers``
+    processes (default: every core). Returns a dict: ``bytes_per_pair``,
+    ``seconds_per_pair`` (one core), ``workers``, ``bytes``, ``seconds``."""
+    from cpl_keras.data.storage import StereoFile
+
+    with StereoFile(sample_file) as data:
+        sample_pairs = data.num_pairs
+        image_size = data.image_shape[0]
+    bytes_per_pair = os.path.getsize(sample_file) / sample_pairs
+    start = time.perf_counter()
+    render_block(protocol, 0, pairs, image_size, 0, sample)
+    seconds_per_pair = (time.perf_counter() - start) / sample
+    workers = workers or os.cpu_count() or 1
+    return {"bytes_per_pair": bytes_per_pair, "seconds_per_pair": seconds_per_pair,
+            "workers": workers, "bytes": bytes_per_pair * pairs,
+            "seconds": seconds_per_pair * pairs / workers, "image_size": image_size}
 
 
 # ---------------------------------------------------------------------------
@@ -479,8 +500,10 @@ def write_preview(path, protocol, pairs, seed=0, image_size=112, count=8, column
         ]
         for k, line in enumerate(lines):
             draw.text((x0 + 1, y0 + W + 1 + 11 * k), line, fill=(0, 0, 0))
+    from cpl_keras.cli import make_parent
     from cpl_keras.runs import atomic_path
 
+    make_parent(path)
     with atomic_path(path) as tmp:
         sheet.save(tmp, optimize=True)
     return path

@@ -78,17 +78,18 @@ def parse_args(argv=None):
 
 
 def _check_out(path):
-    out_dir = os.path.dirname(os.path.abspath(path))
-    if not os.path.isdir(out_dir):
-        raise ValueError(f"output directory does not exist: {out_dir}")
-    if os.path.isdir(path):
-        raise ValueError(f"output path is a directory: {path}")
+    """Writes nothing; missing folders are created just before the build."""
+    cli.check_output_file(path)
 
 
 def build_one(source, out, *, root=None, args=None, command=None, report=None):
     """Build one real set; returns its path."""
     _check_out(out)
     crops = args.crops if args.crops is not None else DEFAULT_CROPS.get(source)
+    if source not in ("middlebury", "chessboard") and not (root and os.path.isdir(root)):
+        raise ValueError(f"--root is required for {source}" if not root
+                         else f"dataset root not found: {root}")
+    cli.make_parent(out)
     if source == "middlebury":
         from cpl_keras.real.middlebury import build_middlebury
 
@@ -118,8 +119,10 @@ def build_one(source, out, *, root=None, args=None, command=None, report=None):
 
 def build_all(args, command=None, report=print):
     """``all``: every set that needs no download, and each one given a root."""
-    if not os.path.isdir(args.out_dir):
-        raise ValueError(f"output directory does not exist: {args.out_dir}")
+    if os.path.exists(args.out_dir) and not os.path.isdir(args.out_dir):
+        raise ValueError(f"output directory is a file: {args.out_dir}")
+    cli.check_output_file(os.path.join(args.out_dir, "x.h5"))
+    os.makedirs(args.out_dir, exist_ok=True)
     paths = []
     for stem, source, option, extra in ALL_SETS:
         root = getattr(args, option) if option else None
