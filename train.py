@@ -37,10 +37,10 @@ def build_parser():
     parser.add_argument("--variant", required=True, choices=VARIANTS)
     parser.add_argument("--data", help="dataset file (.h5) from the data generator; "
                         "default: a small demonstration dataset")
-    parser.add_argument("--epochs", type=int, help="maximum epochs (default 200)")
-    parser.add_argument("--batch-size", type=int, default=16)
-    parser.add_argument("--lr", type=float, help="learning rate (default 1e-3, Deep-Homo 1.5e-3)")
-    parser.add_argument("--image-size", type=int,
+    parser.add_argument("--epochs", type=cli.positive_int, help="maximum epochs (default 200)")
+    parser.add_argument("--batch-size", type=cli.positive_int, default=16)
+    parser.add_argument("--lr", type=cli.positive_float, help="learning rate (default 1e-3, Deep-Homo 1.5e-3)")
+    parser.add_argument("--image-size", type=cli.positive_int,
                         help="expected image side; must match the dataset (default: the dataset's)")
     parser.add_argument("--backbone", choices=BACKBONES,
                         help="tower backbone (default inception_v3, the paper's)")
@@ -48,18 +48,18 @@ def build_parser():
     parser.add_argument("--as-released", action="store_true",
                         help="reproduce the released code (labels, loss, val = test)")
     parser.add_argument("--run-dir", help="run directory (default runs/<variant>-<split>-s<seed>)")
-    parser.add_argument("--seed", type=int, help="seed of split, shuffling and weights (default 0)")
+    parser.add_argument("--seed", type=cli.non_negative_int, help="seed of split, shuffling and weights (default 0)")
     parser.add_argument("--data-parallel", action="store_true",
                         help="data parallelism over all local devices")
-    parser.add_argument("--patience", type=int, default=5, help="early stopping patience")
-    parser.add_argument("--workers", type=int, default=1, help="data reading threads")
-    parser.add_argument("--steps-per-execution", type=int, default=1)
+    parser.add_argument("--patience", type=cli.non_negative_int, default=5, help="early stopping patience")
+    parser.add_argument("--workers", type=cli.positive_int, default=1, help="data reading threads")
+    parser.add_argument("--steps-per-execution", type=cli.positive_int, default=1)
     parser.add_argument("--disentangle", choices=DISENTANGLE, default="exact",
                         help="CPL: the X, Y, Z terms of Eq. 7 train only the pixel heads "
                         "(exact, default) or every head the camera graph reads (partial)")
     parser.add_argument("--linear-pitch-head", action="store_true",
                         help="an unbounded pitch head (the release's; default: clipped to +-pi/2)")
-    parser.add_argument("--bn-recompute-batches", type=int,
+    parser.add_argument("--bn-recompute-batches", type=cli.non_negative_int,
                         help="training batches for recomputing BatchNorm statistics before "
                         "each validation (default 16; 0 = Keras's moving averages, as released)")
     parser.add_argument("--target-scaling", choices=("none", "std"), default="none",
@@ -183,6 +183,13 @@ def _train(args, demo, seed, epochs, backbone, run_dir, command):
         )
     except (DatasetError, TrainingError, OSError) as error:
         return cli.fail(PROG, error)
+    if summary.get("finished_before"):
+        # nothing trained, no file changed
+        print(f"already {summary['status']}, left as it is: {summary_line(summary)}")
+        return 1 if summary["status"] == "failed" else 0
+    if summary["status"] == "failed":  # diverged: the best weights so far are kept
+        print(f"{PROG}: error: {summary_line(summary)}", file=sys.stderr)
+        return 1
     print(summary_line(summary))
     if demo:
         print(next_step(args.variant, data))

@@ -7,6 +7,8 @@
 * ``fail(prog, error)``: print that error line, return 2 (for ``main``);
 * ``command_line(prog, argv)``: the command as it was typed, quoted, for the
   files a command writes (config.json, tables, dataset metadata);
+* ``positive_int``, ``non_negative_int``, ``positive_float``: argparse types
+  whose errors name the flag (``argument --seed: must be ...``);
 * ``check_output_file(path)``, ``make_parent(path)``: an output file's path
   checked without writing anything (its missing folders may be created:
   their nearest existing ancestor is a writable folder), then its folders
@@ -57,6 +59,42 @@ def command_line(prog, argv=None):
     args = list(sys.argv[1:] if argv is None else argv)
     head = f"python {prog}" if prog.endswith(".py") else prog
     return " ".join([head] + [shlex.quote(str(a)) for a in args])
+
+
+# ---------------------------------------------------------------------------
+# Numeric arguments (checked when parsed, before anything is written)
+# ---------------------------------------------------------------------------
+def _integer(text, minimum, what):
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"must be {what}, got {text!r}") from None
+    if value < minimum:
+        raise argparse.ArgumentTypeError(f"must be {what}, got {value}")
+    return value
+
+
+def positive_int(text):
+    """argparse type: an integer >= 1."""
+    return _integer(text, 1, "a positive integer")
+
+
+def non_negative_int(text):
+    """argparse type: an integer >= 0."""
+    return _integer(text, 0, "a non-negative integer")
+
+
+def positive_float(text):
+    """argparse type: a finite number > 0."""
+    import math
+
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"must be a positive number, got {text!r}") from None
+    if not (math.isfinite(value) and value > 0):
+        raise argparse.ArgumentTypeError(f"must be a positive number, got {text}")
+    return value
 
 
 # ---------------------------------------------------------------------------

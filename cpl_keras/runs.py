@@ -222,7 +222,19 @@ def load_model(run, error=RunError):
     import cpl_keras.models  # noqa: F401  (registers the custom layers)
     from cpl_keras.cli import one_line
 
+    import zipfile
+
+    path = run["model_path"]
+    if os.path.isfile(path) and not zipfile.is_zipfile(path):
+        # (Keras reports a damaged archive as "File not found")
+        raise error(f"cannot load {path}: the file is truncated or corrupt (not a complete "
+                    ".keras archive)")
     try:
-        return keras.saving.load_model(run["model_path"], safe_mode=True)
+        return keras.saving.load_model(path, safe_mode=True)
     except Exception as problem:  # corrupt archives raise many kinds of errors
-        raise error(f"cannot load {run['model_path']}: {one_line(problem)}") from None
+        detail = one_line(problem)
+        if os.path.isfile(path) and (isinstance(problem, (zipfile.BadZipFile, EOFError))
+                                     or "not found" in detail.lower()):
+            # a member of the archive is damaged (Keras says "File not found")
+            detail = f"the file is truncated or corrupt ({detail})"
+        raise error(f"cannot load {path}: {detail}") from None

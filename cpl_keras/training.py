@@ -80,8 +80,9 @@ def plan_run(data, *, variant, run_dir, epochs=200, batch_size=16, learning_rate
     for name, value in (("epochs", epochs), ("batch size", batch_size), ("workers", workers)):
         if not (isinstance(value, (int, np.integer)) and value >= 1):
             raise TrainingError(f"{name} must be a positive integer, got {value!r}")
-    if not (isinstance(patience, (int, np.integer)) and patience >= 0):
-        raise TrainingError(f"patience must be a non-negative integer, got {patience!r}")
+    for name, value in (("patience", patience), ("seed", seed)):
+        if isinstance(value, bool) or not (isinstance(value, (int, np.integer)) and value >= 0):
+            raise TrainingError(f"{name} must be a non-negative integer, got {value!r}")
     if bn_recompute_batches is None:
         bn_recompute_batches = 0 if as_released else BN_RECOMPUTE_BATCHES
     if isinstance(bn_recompute_batches, bool) or not (
@@ -232,7 +233,14 @@ def train(data, *, variant, run_dir, epochs=200, batch_size=16, learning_rate=No
     The summary has ``best_epoch`` (1-based), ``best_val_loss``,
     ``epochs_run``, ``run_dir``, ``status``, ``stopped`` (why training
     ended early, or None) and ``model`` (the trained model, best weights).
+    A run that has already ended is left untouched (``finished_before``:
+    True in its summary; its model.keras keeps its optimizer state).
     """
+    if isinstance(steps_per_execution, bool) or not (
+        isinstance(steps_per_execution, (int, np.integer)) and steps_per_execution >= 1
+    ):
+        raise TrainingError(
+            f"steps per execution must be a positive integer, got {steps_per_execution!r}")
     plan = plan_run(
         data, variant=variant, run_dir=run_dir, epochs=epochs, batch_size=batch_size,
         learning_rate=learning_rate, image_size=image_size, backbone=backbone, split=split,
@@ -244,12 +252,38 @@ def train(data, *, variant, run_dir, epochs=200, batch_size=16, learning_rate=No
     )
     import keras
 
+    finished = _finished_run(plan["config"]["run_dir"])
+    if finished is not None:
+        return finished
     scope = contextlib.nullcontext()
     if data_parallel:
         devices = keras.distribution.list_devices()
         scope = keras.distribution.DataParallel(devices=devices).scope()
     with scope:
         return _run(plan, learning_rate, steps_per_execution, verbose)
+
+
+def _finished_run(run_dir):
+    """The summary of the run in ``run_dir`` if it has ended (finished, or
+    stopped by a non-finite loss), read without changing a file; else None.
+    ``finished_before`` is True in it; ``model`` is model.keras, loaded."""
+    config = runs.read_config(run_dir, {}) if os.path.isdir(run_dir) else {}
+    if config.get("status") not in ("finished", "failed"):
+        return None
+    path = os.path.join(run_dir, runs.MODEL)
+    model = None
+    if os.path.isfile(path):
+        import keras
+
+        import cpl_keras.models  # noqa: F401  (registers the custom layers)
+
+        model = keras.saving.load_model(path, safe_mode=True)
+    return {
+        "run_dir": run_dir, "status": config["status"], "stopped": config.get("stopped"),
+        "epochs_run": config.get("epochs_run"), "best_epoch": config.get("best_epoch"),
+        "best_val_loss": config.get("best_val_loss"), "has_model": model is not None,
+        "finished_before": True, "model": model,
+    }
 
 
 def _run(plan, learning_rate, steps_per_execution, verbose):
@@ -275,6 +309,10 @@ def _run(plan, learning_rate, steps_per_execution, verbose):
     run_dir = config["run_dir"]
     os.makedirs(os.path.join(run_dir, runs.BACKUP), exist_ok=True)
     lock = _lock_run_dir(run_dir)  # held until this process ends
+    finished = _finished_run(run_dir)  # (by the process this one waited for)
+    if finished is not None:
+        lock.close()
+        return finished
     previous = runs.read_config(run_dir, {})
     for key in ("epochs_run", "best_epoch", "best_val_loss", "wall_time_s", "status", "stopped"):
         config[key] = previous.get(key)

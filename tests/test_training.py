@@ -122,6 +122,8 @@ def test_every_variant_writes_the_run_directory(variant, dataset, tmp_path):
 # ---------------------------------------------------------------------------
 RESUME_ARGS = ["--variant", "baseline", "--backbone", "small", "--epochs", "4",
                "--batch-size", "5", "--patience", "10", "--quiet"]
+#: train.py's line on a run that has already finished.
+FINISHED = "already finished, left as it is: "
 #: config.json entries that differ between two runs of one command.
 PER_PROCESS = ("wall_time_s", "run_dir", "command")
 
@@ -213,7 +215,8 @@ def test_killed_run_resumes_and_ends_like_an_uninterrupted_run(
     # the same command once more: nothing left to train, the same ending
     process = cli(*args, cache=xla_cache)
     out, err = process.communicate(timeout=180)
-    _ends_like(run_dir, process.returncode, out, err, uninterrupted)
+    assert out.startswith(FINISHED), out
+    _ends_like(run_dir, process.returncode, out[len(FINISHED):], err, uninterrupted)
 
 
 @pytest.mark.slow
@@ -229,8 +232,8 @@ def test_second_process_waits_for_the_first_and_ends_like_it(
     first_out, first_err = first.communicate(timeout=180)
     out, err = second.communicate(timeout=180)
     _ends_like(run_dir, first.returncode, first_out, first_err, uninterrupted)
-    assert "Resuming" not in err  # it found the run finished
-    _ends_like(run_dir, second.returncode, out, err.replace("Waiting for the training process "
+    assert "Resuming" not in err and out.startswith(FINISHED)  # it found the run finished
+    _ends_like(run_dir, second.returncode, out[len(FINISHED):], err.replace("Waiting for the training process "
                                                             f"that is using {run_dir}", ""),
                uninterrupted)
 
@@ -331,3 +334,101 @@ def test_bad_arguments_from_the_shell(tmp_path, xla_cache):
         assert message in err and len(err.strip().splitlines()) == 1, err
         assert "Traceback" not in err
         assert not run_dir.exists()
+
+
+def test_finished_run_is_left_untouched(dataset, tmp_path, xla_cache):
+    """The same command on a finished run changes no file (model.keras keeps
+    its optimizer state) and says so in one line, exit 0."""
+    run_dir = str(tmp_path / "run")
+    args = ["--variant", "baseline", "--backbone", "small", "--epochs", "1", "--batch-size",
+            "5", "--quiet", "--data", dataset, "--run-dir", run_dir]
+    out, err = cli(*args, cache=xla_cache).communicate(timeout=300)
+    assert "best epoch 1 of 1" in out, err
+
+    def snapshot():
+        found = {}
+        for root, _, names in os.walk(run_dir):
+            for name in names:
+                path = os.path.join(root, name)
+                with open(path, "rb") as f:
+                    found[path] = (os.stat(path).st_mtime_ns, f.read())
+        return found
+
+    before = snapshot()
+    process = cli(*args, cache=xla_cache)
+    out, err = process.communicate(timeout=300)
+    assert process.returncode == 0, err
+    assert out.startswith(FINISHED) and len(out.strip().splitlines()) == 1, out
+    assert "Traceback" not in err
+    assert snapshot() == before
+
+
+def _train_script():
+    import importlib.util
+
+    spec = importlib.util.spec_from_file_location("train_script", os.path.join(REPO, "train.py"))
+    script = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(script)
+    return script
+
+
+@pytest.mark.parametrize("flag, value", [
+    ("--steps-per-execution", "0"), ("--steps-per-execution", "-1"), ("--seed", "-1"),
+    ("--epochs", "0"), ("--batch-size", "0"), ("--workers", "0"), ("--patience", "-1"),
+    ("--bn-recompute-batches", "-2"), ("--image-size", "0"), ("--lr", "0"), ("--lr", "nan"),
+])
+def test_numeric_arguments_are_checked_before_anything_is_written(
+        flag, value, dataset, tmp_path, capsys):
+    run_dir = tmp_path / "run"
+    with pytest.raises(SystemExit) as exit_info:
+        _train_script().main(["--variant", "baseline", "--backbone", "small", "--data", dataset,
+                              "--run-dir", str(run_dir), flag, value])
+    assert exit_info.value.code == 2
+    err = capsys.readouterr().err.strip()
+    assert err.startswith(f"train.py: error: argument {flag}: must be") and "\n" not in err
+    assert not run_dir.exists()
+
+
+def test_library_checks_steps_per_execution_and_seed(dataset, tmp_path):
+    from cpl_keras.training import TrainingError, train
+
+    for kwargs, needle in (({"steps_per_execution": 0}, "steps per execution"),
+                           ({"seed": -1}, "seed")):
+        with pytest.raises(TrainingError, match=needle):
+            train(dataset, variant="baseline", run_dir=tmp_path / "run", backbone="small",
+                  verbose=0, **kwargs)
+    assert not (tmp_path / "run").exists()
+
+
+def test_diverging_run_reports_on_stderr(dataset, tmp_path, capsys):
+    status = _train_script().main(["--variant", "baseline", "--backbone", "small", "--data",
+                                   dataset, "--run-dir", str(tmp_path / "run"), "--epochs", "6",
+                                   "--batch-size", "5", "--lr", "1e35", "--patience", "10",
+                                   "--quiet"])
+    captured = capsys.readouterr()
+    assert status == 1
+    assert captured.out == ""
+    lines = captured.err.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("train.py: error: "), captured.err
+    assert "non-finite training loss" in lines[0]
+
+
+def test_truncated_files_are_called_truncated(dataset, tmp_path, tiny_run):
+    from cpl_keras import runs
+    from cpl_keras.data.storage import DatasetError, StereoFile
+
+    data = tmp_path / "cut.h5"
+    with open(dataset, "rb") as f:
+        data.write_bytes(f.read()[: os.path.getsize(dataset) // 2])
+    with pytest.raises(DatasetError, match="truncated or corrupt"):
+        StereoFile(data)
+    (tmp_path / "text.h5").write_text("not hdf5")
+    with pytest.raises(DatasetError, match="not an HDF5 file"):
+        StereoFile(tmp_path / "text.h5")
+    model = os.path.join(tiny_run["run"], "model.keras")
+    for size in (os.path.getsize(model) // 2, os.path.getsize(model) - 100):
+        cut = tmp_path / f"cut{size}.keras"
+        with open(model, "rb") as f:
+            cut.write_bytes(f.read()[:size])
+        with pytest.raises(runs.RunError, match="truncated or corrupt"):
+            runs.load_model({"model_path": str(cut)})

@@ -149,6 +149,24 @@ class StereoWriter:
         return False
 
 
+def _has_hdf5_signature(path):
+    """Whether ``path`` starts like an HDF5 file (its signature at byte 0, or
+    at 512, 1024, ... after a user block)."""
+    signature = b"\x89HDF\r\n\x1a\n"
+    try:
+        size = os.path.getsize(path)
+        with open(path, "rb") as f:
+            offset = 0
+            while offset + len(signature) <= size:
+                f.seek(offset)
+                if f.read(len(signature)) == signature:
+                    return True
+                offset = 512 if offset == 0 else offset * 2
+    except OSError:
+        pass
+    return False
+
+
 GENERATOR = "cpl_keras.data.generate"
 
 
@@ -196,7 +214,11 @@ class StereoFile:
             raise DatasetError(f"dataset is not a file: {self.path}")
         try:
             self._file = h5py.File(self.path, "r")
-        except OSError:
+        except OSError as error:
+            if _has_hdf5_signature(self.path):
+                raise DatasetError(
+                    f"HDF5 file is truncated or corrupt: {self.path} "
+                    f"({' '.join(str(error).split())})") from None
             raise DatasetError(f"not an HDF5 file: {self.path}") from None
         try:
             self._validate(required_labels)
