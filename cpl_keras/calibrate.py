@@ -13,9 +13,13 @@ the release's StereoBM disparity; pitch is converted to radians and the
 disparity is scaled like the others, with a note that it is the release's
 quantity.
 
-Bad input (unreadable or non-image files, images of different sizes, a run
+Bad input (unreadable or non-image files, images of different sizes or
+smaller than the model's input, identical left and right images, a run
 directory without weights) prints one line and exits with status 2; no
-output file is written then.
+output file is written then. A grey image, and predictions outside the range
+of the run's training labels (train_stats.json), are warned about on stderr,
+one line each. The JSON says what the run was trained on (``training``: its
+protocol, split and training label ranges, in the model's input units).
 """
 
 from __future__ import annotations
@@ -66,24 +70,75 @@ def to_input_pixels(values, width, height, size_w, size_h):
     return out
 
 
-def calibrate_pair(left_path, right_path, run_dir):
-    """The calibration of one pair as a JSON-ready dict."""
+def is_grey(image):
+    """Whether the RGB ``image`` has no colour (its three channels equal)."""
+    return bool(np.array_equal(image[..., 0], image[..., 1])
+                and np.array_equal(image[..., 1], image[..., 2]))
+
+
+def training_protocol(run):
+    """The data generator's protocol of the run's training set (config.json,
+    else the dataset's metadata when the file is still there), or None."""
+    config = run["config"]
+    if config.get("protocol"):
+        return config["protocol"]
+    try:
+        from cpl_keras.data.storage import StereoFile
+
+        with StereoFile(config["data"]) as data:
+            return data.metadata.get("protocol")
+    except Exception:  # moved or unreadable: unknown
+        return None
+
+
+def label_ranges(stats):
+    """name -> [min, max] of the training labels (train_stats.json), or None
+    for a run whose statistics predate the ranges."""
+    if "min" not in stats or "max" not in stats:
+        return None
+    return {name: [stats["min"][name], stats["max"][name]] for name in stats["targets"]
+            if name in stats["min"] and name in stats["max"]}
+
+
+def calibrate_pair(left_path, right_path, run_dir, warn=None):
+    """The calibration of one pair as a JSON-ready dict; ``warn(line)`` is
+    called with each warning (a grey image, a prediction outside the
+    training labels' range)."""
     from cpl_keras import evaluation
     from cpl_keras.real import resize_image
 
+    warn = warn or (lambda line: None)
     left = read_image(left_path)
     right = read_image(right_path)
     if left.shape != right.shape:
         raise CalibrationError(
             f"left and right images differ in size: {left.shape[1]}x{left.shape[0]} "
             f"and {right.shape[1]}x{right.shape[0]}")
+    if np.array_equal(left, right):
+        raise CalibrationError("left and right images are identical: a stereo pair needs two "
+                               "views")
     run = runs.load_run(run_dir, error=CalibrationError)
     model = runs.load_model(run, error=CalibrationError)
     size_h, size_w = evaluation.model_image_shape(model)
     height, width = left.shape[:2]
+    if height < size_h or width < size_w:
+        raise CalibrationError(
+            f"images are {width}x{height}, smaller than the model's input {size_w}x{size_h}")
+    for side, path, image in (("left", left_path, left), ("right", right_path, right)):
+        if is_grey(image):
+            warn(f"warning: the {side} image {path} is grey; the model was trained on colour "
+                 "images")
     pred = evaluation.predict_images(
         model, resize_image(left, size_w, size_h)[None], resize_image(right, size_w, size_h)[None])
     values = {name: float(pred[name][0]) for name in pred}
+    ranges = label_ranges(run["stats"])
+    if ranges:
+        outside = [f"{name} {values[name]:.4g} (trained on {lo:.4g}..{hi:.4g})"
+                   for name, (lo, hi) in ranges.items()
+                   if name in values and not lo <= values[name] <= hi]
+        if outside:
+            warn("warning: predictions outside the training labels' range, in the model's "
+                 f"input units: {', '.join(outside)}")
     released = runs.as_released(run)
     notes = []
     if released:
@@ -103,6 +158,12 @@ def calibrate_pair(left_path, right_path, run_dir):
         "fov_horizontal_deg": float(np.degrees(fov_from_focal(values["fx"], width))),
         "fov_vertical_deg": float(np.degrees(fov_from_focal(values["fy"], height))),
         "units": {name: UNITS[name] for name in PARAMETERS},
+        "training": {
+            "protocol": training_protocol(run), "split": run["config"].get("split"),
+            "as_released": released,
+            "label_ranges": ranges,
+            "label_ranges_units": f"the model's input ({size_w}x{size_h} px), targets as trained",
+        },
     }
     if notes:
         result["notes"] = notes
@@ -123,7 +184,8 @@ def main(argv=None):
                 raise CalibrationError(f"output directory does not exist: {directory}")
             if os.path.isdir(args.json_out):
                 raise CalibrationError(f"--json-out is a directory: {args.json_out}")
-        result = calibrate_pair(args.left, args.right, args.run)
+        result = calibrate_pair(args.left, args.right, args.run,
+                                warn=lambda line: print(f"{PROG}: {line}", file=sys.stderr))
         text = json.dumps(result, indent=2, allow_nan=False)
         if args.json_out:
             runs.write_text(args.json_out, text + "\n")

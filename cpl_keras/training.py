@@ -116,6 +116,7 @@ def plan_run(data, *, variant, run_dir, epochs=200, batch_size=16, learning_rate
         labels = f.labels
         height, width, _ = f.image_shape
         num_pairs = f.num_pairs
+        protocol = f.metadata.get("protocol")
     if image_size is not None and (height, width) != (image_size, image_size):
         raise TrainingError(
             f"{data}: images are {height}x{width}, but --image-size is {image_size}"
@@ -154,6 +155,7 @@ def plan_run(data, *, variant, run_dir, epochs=200, batch_size=16, learning_rate
         "build": build,
         "data": data,
         "num_pairs": num_pairs,
+        "protocol": protocol,
         "split": split,
         "test_fraction": test_fraction,
         "val_fraction": val_fraction,

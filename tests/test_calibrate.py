@@ -93,3 +93,54 @@ def test_cli_exit_status_without_traceback(setup):
         cwd=os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
     assert result.returncode == 2
     assert result.stderr.strip().count("\n") == 0 and "Traceback" not in result.stderr
+
+
+def _one_line_2(capsys, status, needle):
+    err = capsys.readouterr().err.strip()
+    assert status == 2 and "\n" not in err and needle in err, err
+
+
+def test_refuses_images_smaller_than_the_model_input(setup, tmp_path, capsys):
+    small = cv2.imread(str(setup["root"] / "small.png"))
+    cv2.imwrite(str(tmp_path / "r.png"), np.roll(small, -2, axis=1))
+    out = tmp_path / "c.json"
+    status = calibrate.main([str(setup["root"] / "small.png"), str(tmp_path / "r.png"),
+                             "--run", setup["run"], "--json-out", str(out)])
+    _one_line_2(capsys, status, "smaller than the model's input 32x32")
+    assert not out.exists()
+
+
+def test_refuses_identical_left_and_right(setup, capsys):
+    left = str(setup["root"] / "left.png")
+    _one_line_2(capsys, calibrate.main([left, left, "--run", setup["run"]]), "identical")
+
+
+def test_warns_about_grey_images_and_says_what_the_run_was_trained_on(setup, tmp_path, capsys):
+    grey = cv2.cvtColor(cv2.imread(str(setup["root"] / "left.png")), cv2.COLOR_BGR2GRAY)
+    cv2.imwrite(str(tmp_path / "l.png"), grey)
+    cv2.imwrite(str(tmp_path / "r.png"), np.roll(grey, -3, axis=1))
+    assert calibrate.main([str(tmp_path / "l.png"), str(tmp_path / "r.png"),
+                           "--run", setup["run"]]) == 0
+    captured = capsys.readouterr()
+    grey_lines = [line for line in captured.err.splitlines() if "is grey" in line]
+    assert len(grey_lines) == 2, captured.err
+    training = json.loads(captured.out)["training"]
+    assert training["protocol"] == "cvgl" and training["split"] == "paper"
+    with open(os.path.join(setup["run"], "train_stats.json")) as f:
+        stats = json.load(f)
+    assert training["label_ranges"]["fx"] == [stats["min"]["fx"], stats["max"]["fx"]]
+
+
+def test_warns_about_predictions_outside_the_training_labels(setup, tmp_path, capsys):
+    run = tmp_path / "run"
+    shutil.copytree(setup["run"], run)
+    with open(run / "train_stats.json") as f:
+        stats = json.load(f)
+    stats["min"]["fx"], stats["max"]["fx"] = 1e6, 1e6 + 1   # no prediction can be in there
+    with open(run / "train_stats.json", "w") as f:
+        json.dump(stats, f)
+    root = setup["root"]
+    assert calibrate.main([str(root / "left.png"), str(root / "right.png"),
+                           "--run", str(run)]) == 0
+    lines = [line for line in capsys.readouterr().err.splitlines() if "outside" in line]
+    assert len(lines) == 1 and "fx" in lines[0] and "1e+06" in lines[0], lines

@@ -37,9 +37,9 @@ def training_statistics(targets, train_indices, release_targets=None):
             labels, as_released=True)``), which the release's buggy Average
             averaged; ``None`` uses ``targets``.
 
-    Returns a JSON-ready dict: ``targets`` (the names, in order), ``mean`` and
-    ``std`` (name -> float), ``num_train`` and ``release_average``
-    (name -> float, the release's buggy prediction).
+    Returns a JSON-ready dict: ``targets`` (the names, in order), ``mean``,
+    ``std``, ``min`` and ``max`` (name -> float), ``num_train`` and
+    ``release_average`` (name -> float, the release's buggy prediction).
     """
     train_indices = np.asarray(train_indices, dtype=np.int64)
     if len(train_indices) < len(TARGETS):
@@ -61,6 +61,8 @@ def training_statistics(targets, train_indices, release_targets=None):
         "targets": list(TARGETS),
         "mean": {name: float(m) for name, m in zip(TARGETS, mean)},
         "std": {name: float(s) for name, s in zip(TARGETS, std)},
+        "min": {name: float(v) for name, v in zip(TARGETS, table.min(axis=0))},
+        "max": {name: float(v) for name, v in zip(TARGETS, table.max(axis=0))},
         "num_train": int(len(train_indices)),
         "release_average": {name: float(r) for name, r in zip(TARGETS, release)},
     }
