@@ -212,6 +212,22 @@ def render_block(protocol, seed, pairs, image_size, start, stop):
     return np.stack(lefts), np.stack(rights), labels
 
 
+@contextlib.contextmanager
+def _sigint_ignored():
+    """SIGINT ignored within the block (in the main thread; elsewhere a no-op)."""
+    import signal
+    import threading
+
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    previous = signal.signal(signal.SIGINT, signal.SIG_IGN)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGINT, previous)
+
+
 def _ignore_sigint():
     """Workers leave Ctrl-C to the parent, which stops the pool (one line, no
     traceback per worker)."""
@@ -320,7 +336,9 @@ def _iter_blocks(protocol, seed, pairs, image_size, workers):
     task = module._render_block_task
     window = 2 * workers
     # spawn: safe even when the caller has started threads (e.g. JAX).
-    with _without_main_module():
+    with _without_main_module(), _sigint_ignored():
+        # (started with SIGINT ignored, which exec keeps: a Ctrl-C while a
+        # worker imports cannot print its traceback)
         pool = mp.get_context("spawn").Pool(min(workers, len(blocks)),
                                             initializer=module._ignore_sigint)
     with pool:
