@@ -97,8 +97,11 @@ def curves(run_dir, data=None):
                   for row in rows] for name in PARAMETERS}
     num_train = int(config.get("num_train", len(split["train"])))
     best_epoch = config.get("best_epoch")
+    if not best_epoch and rows:
+        # a run still going (or killed): the epoch early stopping keeps so far
+        best_epoch = 1 + int(np.nanargmin([row.get("val_loss", math.nan) for row in rows]))
     return {
-        "run_dir": run_dir, "config": config,
+        "run_dir": run_dir, "config": config, "rows": rows, "kept_epoch": best_epoch,
         "samples_seen": [int(row["epoch"] + 1) * num_train for row in rows],
         "nmae": out, "average": average,
         "best": {name: float(np.nanmin(v)) if v and not np.all(np.isnan(v)) else math.nan
@@ -125,7 +128,7 @@ def plot(curve, path):
 
     fig, axes = plt.subplots(2, 5, figsize=(16, 6.2), sharex=True)
     seen = np.asarray(curve["samples_seen"]) / 1000.0
-    best_epoch = curve["config"].get("best_epoch")
+    best_epoch = curve["kept_epoch"]
     for ax, name in zip(axes.ravel(), PARAMETERS):
         values = np.asarray(curve["nmae"][name], np.float64)
         ax.plot(seen, values, marker="o", markersize=2.5, label="network (validation)")
@@ -155,13 +158,19 @@ def plot(curve, path):
 
 
 def summary_rows(curve, load=None):
-    config = curve["config"]
+    config, rows = curve["config"], curve["rows"]
+    loads = [row["load_average"] for row in rows if "load_average" in row]
+    stopped = config.get("stopped")
+    if config.get("status") != "finished":
+        stopped = f"not finished ({config.get('status')}): {len(rows)} epochs so far"
     row = {
         "run": os.path.basename(curve["run_dir"]), "label": run_label(curve),
         "num_train": config.get("num_train"), "num_val": config.get("num_val"),
-        "epochs_run": config.get("epochs_run"), "best_epoch": config.get("best_epoch"),
-        "stopped": config.get("stopped"), "wall_time_s": config.get("wall_time_s"),
-        "load_average": load,
+        "epochs_run": len(rows), "best_epoch": curve["kept_epoch"],
+        "stopped": stopped,
+        "wall_time_s": rows[-1].get("wall_time_s", config.get("wall_time_s")) if rows
+        else config.get("wall_time_s"),
+        "load_average": float(np.mean(loads)) if loads else load,
         "best_epoch_nmae": curve["best_epoch_nmae"], "average_nmae": curve["average"],
     }
     return row
@@ -170,7 +179,7 @@ def summary_rows(curve, load=None):
 def markdown(rows):
     lines = ["# Does it learn? Validation NMAE (MAE / mean|y|) at the kept epoch, "
              "beside the Average baseline", ""]
-    header = "| run | pairs (train/val) | epochs (kept) | stopped | wall time | load |"
+    header = "| run | pairs (train/val) | epochs (kept) | stopped | wall time | mean load |"
     header += "".join(f" {p} | Avg {p} |" for p in KEY_PARAMETERS)
     lines += [header, "|" + "---|" * (6 + 2 * len(KEY_PARAMETERS))]
     for row in rows:
