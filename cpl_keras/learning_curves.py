@@ -147,10 +147,10 @@ def plot(curve, path):
     for ax in axes[:, 0]:
         ax.set_ylabel("validation NMAE")
     axes[0, 0].legend(fontsize=7)
-    config = curve["config"]
+    row = summary_rows(curve)
     fig.suptitle(
-        f"{run_label(curve)}: {config.get('num_train')} training pairs, "
-        f"{config.get('epochs_run')} epochs ({config.get('stopped') or 'epoch cap'})",
+        f"{run_label(curve)}: {row['num_train']} training pairs, {row['epochs_run']} epochs "
+        f"({row['stopped'] or 'epoch cap'})",
         fontsize=10,
     )
     fig.tight_layout()
