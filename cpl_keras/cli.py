@@ -164,12 +164,21 @@ def interruptible():
         # started with Ctrl-C ignored (nohup, a background job of a script)
         yield
         return
+    def unraisable(report, chain=sys.unraisablehook):
+        # A SIGINT that lands in a callback whose exceptions Python ignores
+        # (a garbage-collection callback of JAX, say) would print a
+        # traceback and be lost; it stays pending for check_interrupt().
+        if not isinstance(report.exc_value, Interrupted):
+            chain(report)
+
     _pending.clear()
     previous = signal.signal(signal.SIGINT, handler)
+    previous_hook, sys.unraisablehook = sys.unraisablehook, unraisable
     try:
         yield
     finally:
         signal.signal(signal.SIGINT, previous)
+        sys.unraisablehook = previous_hook
         _pending.clear()
 
 

@@ -117,3 +117,21 @@ def test_ctrl_c_stops_the_reproduction_resumably(tmp_path):
     line = _one_line_130(process, "evaluate.py")
     assert "run the same command again: python evaluate.py --reproduce --quick" in line
     assert not [n for n in os.listdir(data_dir) if n.endswith(".partial")]
+
+
+def test_a_ctrl_c_swallowed_by_a_callback_prints_nothing_and_stays_pending(capsys):
+    """A SIGINT inside a callback whose exceptions Python ignores (JAX's
+    garbage-collection callback) must not print a traceback; the next
+    check_interrupt() stops the command."""
+    import types
+
+    from cpl_keras import cli
+
+    with cli.interruptible():
+        cli._pending.set()
+        sys.unraisablehook(types.SimpleNamespace(
+            exc_type=cli.Interrupted, exc_value=cli.Interrupted(), exc_traceback=None,
+            err_msg="Exception ignored in", object=None))
+        assert capsys.readouterr().err == ""
+        with pytest.raises(cli.Interrupted):
+            cli.check_interrupt()
