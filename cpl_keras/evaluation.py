@@ -206,13 +206,27 @@ def geometric_predictions(reference, data, subset):
     return priors, pred, statuses
 
 
-def make_table(number, run_dirs, data_path=None, geometric=True, geometric_max=None,
-               batch_size=32, progress=None):
-    """Score the rows of the paper's Table ``number`` (1: synthetic, 2: real).
+def published(predictions):
+    """``predictions`` at the precision of the published predictions files
+    (float32, as a network outputs them), as float64 arrays: a table scored in
+    memory and one rebuilt from the files agree to the last digit."""
+    return {name: np.asarray(predictions[name], np.float32).astype(np.float64)
+            for name in TARGETS}
 
-    Table 1 evaluates on the runs' own dataset (their common test split)
-    unless ``data_path`` is given; Table 2 needs ``data_path`` (forward pass
-    only). Returns a JSON-ready dict with every figure.
+
+def table_rows(number, run_dirs, data_path=None, geometric=True, geometric_max=None,
+               batch_size=32, progress=None):
+    """The raw rows of the paper's Table ``number`` (1: synthetic, 2: real):
+    ``(context, rows)``, everything ``make_table`` scores.
+
+    ``rows`` maps a row name to ``source``, ``as_released``, ``indices`` (the
+    pairs of the dataset file), ``truth`` and ``pred`` (name -> array; the
+    Geometric row also ``priors`` and ``statuses``); ``context`` holds the
+    table's own fields (``table``, ``data``, ``data_description``,
+    ``data_source``, ``data_metadata``, ``num_pairs``, ``image_width``,
+    ``runs``). Table 1 evaluates on the runs' own dataset (their common test
+    split) unless ``data_path`` is given; Table 2 needs ``data_path``
+    (forward pass only).
     """
     if number not in (1, 2):
         raise EvaluationError(f"unknown table {number}; choose 1 or 2")
@@ -252,38 +266,175 @@ def make_table(number, run_dirs, data_path=None, geometric=True, geometric_max=N
         rows = {}
 
         for row, raw in average_rows(reference, labels, indices).items():
-            rows[row] = {"source": raw["source"], "as_released": raw["as_released"],
-                         "num_pairs": n, **score(raw["truth"], raw["pred"], width)}
+            rows[row] = dict(raw, indices=indices, pred=published(raw["pred"]))
         for run in loaded:
             if progress:
                 progress(f"forward pass: {run['config']['variant']} ({run['run_dir']})")
             model = load_model(run)
             pred = predict_run(model, data, indices, batch_size)
-            truth = truth_targets(labels, indices, as_released(run))
             rows[row_name(run)] = {
-                "source": run["run_dir"], "as_released": as_released(run), "num_pairs": n,
-                **score(truth, pred, width)}
+                "source": run["run_dir"], "as_released": as_released(run), "indices": indices,
+                "truth": truth_targets(labels, indices, as_released(run)),
+                "pred": published(pred)}
             del model
         if geometric:
-            from cpl_keras.baselines import geometric as geo
-
             subset = indices if geometric_max is None else indices[: int(geometric_max)]
             if progress:
                 progress(f"geometric baseline on {len(subset)} pairs")
             priors, pred, statuses = geometric_predictions(reference, data, subset)
-            truth = truth_targets(labels, subset, False)
             rows["Geometric"] = {"source": "cpl_keras.baselines.geometric", "as_released": False,
-                                 "num_pairs": int(len(subset)), "priors": priors,
-                                 "failures": geo.failure_report(statuses),
-                                 **score(truth, pred, width)}
-    table = {
+                                 "indices": subset, "truth": truth_targets(labels, subset, False),
+                                 "pred": published(pred), "priors": priors,
+                                 "statuses": statuses}
+    context = {
         "table": number, "data": os.path.abspath(data_path), "data_description": description,
         "data_source": metadata.get("source", metadata.get("protocol")),
         "data_metadata": {k: v for k, v in metadata.items() if k in (
             "source", "protocol", "seed", "image_size", "crops", "right", "labels", "split")},
         "num_pairs": int(n), "image_width": int(width),
         "runs": [r["run_dir"] for r in loaded],
-        "rows": {row: rows[row] for base in ROWS for row in (base, base + RELEASED) if row in rows},
-        "paper": read_paper_table(number), "paper_convention": PAPER_CONVENTION[number],
     }
+    return jsonable(context), rows
+
+
+def table_from_rows(context, rows):
+    """Score the raw ``rows`` of ``table_rows`` (or of published predictions
+    files) into the table: a JSON-ready dict with every figure."""
+    from cpl_keras.baselines import geometric as geo
+
+    width = context["image_width"]
+    scored = {}
+    for row, raw in rows.items():
+        entry = {"source": raw["source"], "as_released": bool(raw["as_released"]),
+                 "num_pairs": int(len(raw["indices"]))}
+        if row == "Geometric":
+            entry.update(priors=raw["priors"], failures=geo.failure_report(raw["statuses"]))
+        scored[row] = dict(entry, **score(raw["truth"], raw["pred"], width))
+    number = context["table"]
+    table = dict(context)
+    table["rows"] = {row: scored[row] for base in ROWS for row in (base, base + RELEASED)
+                     if row in scored}
+    table["paper"] = read_paper_table(number)
+    table["paper_convention"] = PAPER_CONVENTION[number]
+    return jsonable(table)
+
+
+def make_table(number, run_dirs, data_path=None, geometric=True, geometric_max=None,
+               batch_size=32, progress=None):
+    """Score the rows of the paper's Table ``number`` (1: synthetic, 2: real).
+
+    Table 1 evaluates on the runs' own dataset (their common test split)
+    unless ``data_path`` is given; Table 2 needs ``data_path`` (forward pass
+    only). Returns a JSON-ready dict with every figure.
+    """
+    return table_from_rows(*table_rows(number, run_dirs, data_path, geometric, geometric_max,
+                                       batch_size, progress))
+
+
+# ---------------------------------------------------------------------------
+# One table over several seeds: mean and spread of every cell
+# ---------------------------------------------------------------------------
+#: What the spread of a table over seeds is (the "± x" of its cells).
+SPREAD = "sample standard deviation over the seeds (n - 1 in the denominator)"
+#: The metrics of a target that get a spread.
+SPREAD_METRICS = ("mae", "nmae", "nmae_signed")
+
+
+def _mean_and_spread(values):
+    """Mean and sample standard deviation of ``values`` (None = undefined:
+    an undefined value in any seed leaves both undefined)."""
+    a = np.array([np.nan if v is None else v for v in values], np.float64)
+    if not np.all(np.isfinite(a)):
+        return None, None
+    return float(np.mean(a)), float(np.std(a, ddof=1)) if len(a) > 1 else 0.0
+
+
+def _aggregate_rows(tables, seeds):
+    names = list(tables[0]["rows"])
+    for seed, table in zip(seeds[1:], tables[1:]):
+        if list(table["rows"]) != names:
+            raise EvaluationError(f"seed {seed} has rows {list(table['rows'])}, seed {seeds[0]} "
+                                  f"has {names}: a table over seeds needs the same rows in each")
+    rows = {}
+    for row in names:
+        parts = [table["rows"][row] for table in tables]
+        first = parts[0]
+        entry = {"source": ", ".join(p["source"] for p in parts),
+                 "as_released": first["as_released"],
+                 "num_pairs": int(sum(p["num_pairs"] for p in parts))}
+        if "failures" in first:
+            from cpl_keras.baselines.geometric import FAILURE_FLAGS
+
+            total = entry["num_pairs"]
+            failures = {"num_pairs": total}
+            for flag in FAILURE_FLAGS + ("all_stages_ok",):
+                count = int(sum(p["failures"][flag]["count"] for p in parts))
+                failures[flag] = {"count": count, "rate": count / total if total else None}
+            entry["priors"] = {f"seed {s}": p["priors"] for s, p in zip(seeds, parts)}
+            entry["failures"] = failures
+        targets, target_spread = {}, {}
+        for name, first_metrics in first["targets"].items():
+            targets[name], target_spread[name] = {}, {}
+            for key in first_metrics:
+                values = [p["targets"][name][key] for p in parts]
+                if key == "num_defined":
+                    targets[name][key] = int(sum(values))
+                    continue
+                targets[name][key], spread = _mean_and_spread(values)
+                if key in SPREAD_METRICS:
+                    target_spread[name][key] = spread
+        fov, fov_spread = {}, {}
+        for k in first["fov_within_deg"]:
+            fov[k], fov_spread[k] = _mean_and_spread([p["fov_within_deg"][k] for p in parts])
+        entry.update(targets=targets, fov_within_deg=fov)
+        if "degenerate" in first:
+            entry["degenerate"] = first["degenerate"]
+        entry["spread"] = {"targets": target_spread, "fov_within_deg": fov_spread}
+        entry["per_seed"] = {str(s): {
+            "targets": {name: {key: p["targets"][name][key] for key in SPREAD_METRICS}
+                        for name in p["targets"]},
+            "fov_within_deg": p["fov_within_deg"]} for s, p in zip(seeds, parts)}
+        rows[row] = entry
+    return rows
+
+
+def _aggregate_table(tables, seeds):
+    table = dict(tables[0])
+    table["seeds"] = [int(s) for s in seeds]
+    table["spread"] = SPREAD
+    table["num_pairs"] = int(sum(t["num_pairs"] for t in tables))
+    descriptions = [t["data_description"] for t in tables]
+    table["data_description"] = (
+        f"{table['num_pairs']} pairs over {len(seeds)} seeds: "
+        + "; ".join(f"seed {s}: {d}" for s, d in zip(seeds, descriptions)))
+    table["runs"] = [r for t in tables for r in t["runs"]]
+    table["rows"] = _aggregate_rows(tables, seeds)
+    return table
+
+
+def aggregate_seeds(tables, seeds):
+    """One table from the same table made for several seeds (each seed its
+    own split and initial weights): every cell is the mean over the seeds,
+    with its spread (``SPREAD``) in the row's ``spread`` and each seed's value
+    in ``per_seed``; pair and failure counts are summed. Table 2's rigs are
+    aggregated one by one and its FOV points pooled. One seed: that table."""
+    tables, seeds = list(tables), [int(s) for s in seeds]
+    if len(tables) != len(seeds) or not tables:
+        raise EvaluationError("aggregate_seeds needs one table per seed")
+    if len(tables) == 1:
+        return tables[0]
+    table = _aggregate_table(tables, seeds)
+    if "rigs" in tables[0]:
+        rigs = list(tables[0]["rigs"])
+        for seed, other in zip(seeds[1:], tables[1:]):
+            if list(other["rigs"]) != rigs:
+                raise EvaluationError(f"seed {seed} has rigs {list(other['rigs'])}, seed "
+                                      f"{seeds[0]} has {rigs}")
+        table["rigs"] = {rig: _aggregate_table([t["rigs"][rig] for t in tables], seeds)
+                         for rig in rigs}
+        table["fov_points"] = {
+            rig: {row: {key: [x for t in tables for x in t["fov_points"][rig][row][key]]
+                        for key in ("true_deg", "pred_deg")}
+                  for row in points}
+            for rig, points in tables[0]["fov_points"].items()}
     return jsonable(table)

@@ -73,6 +73,31 @@ def _is_degenerate(row_metrics, column):
     return COLUMN_PARAMETER[column] in row_metrics.get("degenerate", ())
 
 
+def spread_cell(row_metrics, column, convention):
+    """The spread over seeds of a cell (``evaluation.aggregate_seeds``); nan
+    when undefined, None when the row is not a mean over seeds."""
+    spread = row_metrics.get("spread")
+    if spread is None:
+        return None
+    value = spread["targets"][COLUMN_PARAMETER[column]].get(convention)
+    return math.nan if value is None else value
+
+
+def _with_spread(text, spread, decimals=3):
+    """``text`` followed by `` ± spread`` for a mean over seeds."""
+    return text if spread is None else f"{text} ± {metrics.format_value(spread, decimals)}"
+
+
+def seeds_lines(table):
+    """Markdown lines saying that the cells are means over seeds (none for a
+    table of one seed)."""
+    if "seeds" not in table:
+        return []
+    seeds = ", ".join(str(s) for s in table["seeds"])
+    return [f"Cells: mean ± spread over {len(table['seeds'])} seeds ({seeds}; each seed its "
+            f"own split and initial weights); spread = {table['spread']}.", ""]
+
+
 def nmae_tables(table, level="##"):
     """Markdown lines: one NMAE table per convention (heading ``level``), the
     best value per column in bold, the paper's numbers beside ours in the
@@ -95,6 +120,7 @@ def nmae_tables(table, level="##"):
                 text = metrics.format_value(cell(row_metrics, column, convention))
                 if row in best.get(column, ()):
                     text = f"**{text}**"
+                text = _with_spread(text, spread_cell(row_metrics, column, convention))
                 if with_paper:
                     paper_row = row[: -len(RELEASED)] if row.endswith(RELEASED) else row
                     paper_row = "Average" if paper_row == "Average (release bug)" else paper_row
@@ -116,7 +142,11 @@ def fov_table(table, header="{k} deg"):
         if _is_degenerate(row_metrics, "fx"):
             cells = ["degenerate"] * len(ks)
         else:
-            cells = [metrics.format_value(row_metrics["fov_within_deg"][str(k)], 2) for k in ks]
+            spread = (row_metrics.get("spread") or {}).get("fov_within_deg")
+            cells = [_with_spread(metrics.format_value(row_metrics["fov_within_deg"][str(k)], 2),
+                                  None if spread is None else
+                                  (math.nan if spread[str(k)] is None else spread[str(k)]), 2)
+                     for k in ks]
         lines.append(f"| {row} | " + " | ".join(cells) + " |")
     return lines + [""]
 
@@ -130,8 +160,10 @@ def notes(table):
         report = geo["failures"]
         parts = [f"{flag} {report[flag]['count']}/{report['num_pairs']}" for flag in report
                  if isinstance(report[flag], dict)]
+        priors = (f"each seed's training-mean priors, {geo['priors']}" if "seeds" in table
+                  else f"priors {geo['priors']}")
         lines += [f"Geometric baseline on {geo['num_pairs']} pairs; stage failures (fallback "
-                  f"to priors {geo['priors']}): " + ", ".join(parts) + ".", ""]
+                  f"to {priors}): " + ", ".join(parts) + ".", ""]
         if geo.get("degenerate"):
             lines += ["Geometric fx, fy: degenerate on a rectified rig (Bougnoux's formula is "
                       "0/0 when the optical axes are coplanar); no number is reported.", ""]
@@ -155,6 +187,7 @@ def markdown(table, command=None):
         lines += ["Command:", "", "```", command, "```", ""]
     lines += [f"Data: `{table['data']}` ({table['data_description']}; source: "
               f"{table['data_source']}; image width {table['image_width']} px).", ""]
+    lines += seeds_lines(table)
     lines += nmae_tables(table, "##")
     lines += ["Best per column (smallest |NMAE|) in bold; `n/a` = undefined (zero mean).",
               "The paper's Average row is placed beside 'Average (release bug)': the",
@@ -165,14 +198,19 @@ def markdown(table, command=None):
 
 
 def csv_rows(table, prefix=""):
-    """CSV lines, one per (method, metric) (metric in mae, nmae, nmae_signed),
+    """CSV lines, one per (method, metric) (metric in mae, nmae, nmae_signed;
+    for a mean over seeds also mae_spread, nmae_spread, nmae_signed_spread),
     each starting with ``prefix``; ``n/a`` for undefined values."""
     lines = []
     for row, row_metrics in table["rows"].items():
-        for metric in ("mae",) + CONVENTIONS:
+        metrics_ = ("mae",) + CONVENTIONS
+        if "spread" in row_metrics:
+            metrics_ += tuple(f"{m}_spread" for m in metrics_)
+        for metric in metrics_:
             cells = []
             for column in COLUMNS:
-                value = cell(row_metrics, column, metric)
+                value = (spread_cell(row_metrics, column, metric[: -len("_spread")])
+                         if metric.endswith("_spread") else cell(row_metrics, column, metric))
                 cells.append("degenerate" if _is_degenerate(row_metrics, column) else
                              "n/a" if not math.isfinite(value) else f"{value:.6g}")
             lines.append(f"{prefix}{row},{metric}," + ",".join(cells))

@@ -111,7 +111,8 @@ def _rig_rows(loaded, data_path, geometric, geometric_max, progress):
                 "source": run["run_dir"], "as_released": runs.as_released(run),
                 "indices": indices, "truth": evaluation.truth_targets(
                     labels, indices, runs.as_released(run)),
-                "pred": evaluation.predict_run(model, data, indices), "defined": defined}
+                "pred": evaluation.published(evaluation.predict_run(model, data, indices)),
+                "defined": defined}
         if geometric:
             subset = indices if geometric_max is None else indices[: int(geometric_max)]
             if progress:
@@ -124,7 +125,7 @@ def _rig_rows(loaded, data_path, geometric, geometric_max, progress):
             rows["Geometric"] = {
                 "source": "cpl_keras.baselines.geometric", "as_released": False,
                 "indices": subset, "truth": evaluation.truth_targets(labels, subset, False),
-                "pred": pred, "defined": geo_defined, "priors": priors,
+                "pred": evaluation.published(pred), "defined": geo_defined, "priors": priors,
                 "statuses": statuses,
                 "degenerate": list(DEGENERATE_ON_RECTIFIED) if rectified else []}
     return {"rig": rig_name(metadata, data_path), "data": os.path.abspath(data_path),
@@ -160,10 +161,13 @@ def _fov_points(r, width):
     return {"true_deg": true.tolist(), "pred_deg": pred.tolist()}
 
 
-def make_table2(run_dirs, data_paths, geometric=True, geometric_max=None, progress=None):
-    """Table 2 per rig and pooled (see the module doc); a JSON-ready dict:
-    the pooled table's fields, ``rigs`` (one table per rig) and ``fov_points``
-    (true and predicted horizontal FOV per rig and row)."""
+def table2_rigs(run_dirs, data_paths, geometric=True, geometric_max=None, progress=None):
+    """The raw rows of Table 2 on every real set: ``(runs, rigs)``, the run
+    directories and one dict per rig (``rig``, ``data``,
+    ``data_description``, ``rectified``, ``width``, ``data_source``,
+    ``num_pairs`` and ``rows``: row name -> ``source``, ``as_released``,
+    ``indices``, ``truth``, ``pred``, ``defined``; Geometric also ``priors``,
+    ``statuses``, ``degenerate``), everything ``table2_from_rigs`` scores."""
     if not run_dirs:
         raise EvaluationError("no runs given (--runs RUN_DIR ...)")
     if not data_paths:
@@ -181,6 +185,15 @@ def make_table2(run_dirs, data_paths, geometric=True, geometric_max=None, progre
     finally:
         for run in loaded:
             run.pop("_model", None)
+    return [r["run_dir"] for r in loaded], rigs
+
+
+def table2_from_rigs(run_list, rigs):
+    """Table 2 per rig and pooled from the raw rows of ``table2_rigs`` (or of
+    published predictions files): a JSON-ready dict, the pooled table's
+    fields, ``rigs`` (one table per rig) and ``fov_points`` (true and
+    predicted horizontal FOV per rig and row)."""
+    rigs = [dict(rig) for rig in rigs]
     names = [r["rig"] for r in rigs]
     for i, rig in enumerate(rigs):                      # two files of one rig: tell apart
         if names.count(rig["rig"]) > 1:
@@ -190,7 +203,7 @@ def make_table2(run_dirs, data_paths, geometric=True, geometric_max=None, progre
         raise EvaluationError(f"real sets differ in image width ({sorted(widths)}); build them "
                               f"with one --image-size")
     width = widths.pop()
-    run_list = [r["run_dir"] for r in loaded]
+    run_list = list(run_list)
     tables = {}
     for rig in rigs:
         tables[rig["rig"]] = dict(_table(
@@ -225,6 +238,14 @@ def make_table2(run_dirs, data_paths, geometric=True, geometric_max=None, progre
     return report.jsonable(table)
 
 
+def make_table2(run_dirs, data_paths, geometric=True, geometric_max=None, progress=None):
+    """Table 2 per rig and pooled (see the module doc); a JSON-ready dict:
+    the pooled table's fields, ``rigs`` (one table per rig) and ``fov_points``
+    (true and predicted horizontal FOV per rig and row)."""
+    return table2_from_rigs(*table2_rigs(run_dirs, data_paths, geometric, geometric_max,
+                                         progress))
+
+
 def _nmae_tables(table, level):
     return (report.nmae_tables(table, level)
             + report.fov_table(table, header="within {k} deg FOV") + report.notes(table))
@@ -237,7 +258,8 @@ def markdown(table, command=None):
         lines += ["Command:", "", "```", command, "```", ""]
     lines += [f"Pooled: {table['data_description']}; image width {table['image_width']} px. "
               "Forward pass only (no fine-tuning). `n/a` = undefined (zero mean, or no "
-              "ground truth on that rig).", "", "## Pooled over all rigs", ""]
+              "ground truth on that rig).", ""] + report.seeds_lines(table) + [
+              "## Pooled over all rigs", ""]
     lines += _nmae_tables(table, "###")
     for name, rig in table["rigs"].items():
         kind = "rectified" if rig["rectified"] else "not rectified"
