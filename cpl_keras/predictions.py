@@ -1,0 +1,344 @@
+"""Published predictions: the results of Tables 1 and 2 that outlive the weights.
+
+Every row of a table (a trained run, or a baseline: Average, the release's
+buggy Average, Geometric) publishes what it predicted on the table's pairs
+as one small ``.npz`` file (``np.load(path, allow_pickle=False)``; no object
+arrays), and the tables are scored from those files alone: no weights, no
+dataset. ``python -m cpl_keras.reproduce`` writes them next to each run's log
+and curves (``<out>/runs/<protocol>_<name>[_on_<real set>]_predictions.npz``)
+and makes its tables from them; ``--from-predictions DIR`` rebuilds every
+table and REPORT.md from them.
+
+A file holds (n = pairs of the row, one line per pair):
+
+=====================  ==========================================================
+``outputs``            (13,) str: the output names, in the release's order
+                       (fx fy u0 v0 baseline disparity tx ty tz pitch X Y Z)
+``pred``               (n, 13) float32: the predictions
+``truth``              (n, 13) float64: the ground-truth targets the row is
+                       scored against (the release's for an as-released row)
+``defined``            (n, 13) bool: where the truth exists (real sets without
+                       ground-truth disparity leave disparity, X, Y, Z out)
+``indices``            (n,) int64: the pairs' indices in the dataset file
+``name``, ``row``,     str: the file's name stem (``cvgl_cpl-a``), the table
+``variant``            row (``MTL-CPL-A``), the variant (``cpl-a``, or
+                       ``average``, ``average-release``, ``geometric``)
+``source``             str: the run directory, relative to the tables' folder
+                       (a baseline: what it is computed from)
+``as_released``        bool
+``dataset``,           str: the dataset file's name, its generator version
+``generator_version``  (empty for real sets), ``dataset_path``: relative to
+``dataset_path``       the tables' folder
+``split``, ``subset``  str: the run's split (``paper``, ``held-out-config``)
+                       and the pairs used (``test``: its test split; ``all``:
+                       every pair of a real set)
+``seed``               int: the run's seed (a baseline: its reference run's)
+``table``,             str / int: the table's file stem (``table1_cvgl``,
+``table_number``,      ``table2``), its number, the real set's rig name and
+``rig``, ``rig_index`` position among the table's real sets (``""``, -1 for
+                       Table 1)
+``context``            str (JSON): the table's fields (dataset description,
+                       image width, the runs, ...), as the table records them
+``key``                str (JSON): what the file was computed from (runs,
+                       data, Geometric settings), to tell when it is stale
+Geometric only         ``failure_flags`` (k,) str and ``failures`` (n, k) bool
+                       (its stage failures), ``prior_names`` / ``prior_values``
+                       (its fallbacks), ``degenerate`` (columns undefined on a
+                       rectified rig)
+=====================  ==========================================================
+
+``tables_from_files(paths)`` groups the files by table and seed, scores each
+group with the same code that scores a table in memory
+(``evaluation.table_from_rows``, ``real.table2.table2_from_rigs``), and
+aggregates a table made over several seeds into mean and spread
+(``evaluation.aggregate_seeds``).
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import zipfile
+
+import numpy as np
+
+from cpl_keras import evaluation, report, runs
+from cpl_keras.camera import TARGETS
+from cpl_keras.evaluation import EvaluationError
+
+#: File name suffix of a predictions file.
+SUFFIX = "_predictions.npz"
+FORMAT = "cpl_keras.predictions"
+FORMAT_VERSION = 1
+#: File name slug and variant of the baseline rows.
+BASELINES = {"Average": "average", "Average (release bug)": "average-release",
+             "Geometric": "geometric"}
+#: Arrays every file has, and their dimensions (n = pairs, 13 = outputs).
+SHAPES = {"pred": ("n", 13), "truth": ("n", 13), "defined": ("n", 13), "indices": ("n",),
+          "outputs": (13,)}
+STRINGS = ("format", "name", "row", "variant", "source", "dataset", "generator_version",
+           "dataset_path", "split", "subset", "table", "rig", "context", "key")
+NUMBERS = ("format_version", "seed", "table_number", "rig_index", "as_released")
+
+
+class PredictionsError(EvaluationError):
+    """A predictions file is missing, unreadable or inconsistent (one line)."""
+
+
+def file_name(prefix, slug, data_stem=None):
+    """``<prefix>_<slug>[_on_<data_stem>]_predictions.npz``."""
+    return f"{prefix}_{slug}" + (f"_on_{data_stem}" if data_stem else "") + SUFFIX
+
+
+def row_slug(row, raw, suffix=""):
+    """A row's file-name slug: the run directory's name, or the baseline's
+    slug with ``suffix`` (the seed's suffix, for tables over several seeds)."""
+    if row in BASELINES:
+        return BASELINES[row] + suffix
+    return os.path.basename(os.path.normpath(raw["source"]))
+
+
+def _dataset_facts(path):
+    from cpl_keras.data.storage import StereoFile
+
+    with StereoFile(path) as f:
+        version = f.metadata.get("generator_version")
+    return os.path.basename(path), "" if version is None else str(version)
+
+
+def _arrays(row, raw, *, name, out_dir, run_configs, reference, data_path, subset, table,
+            table_number, context, key, rig="", rig_index=-1):
+    """The arrays of one row's file."""
+    n = len(raw["indices"])
+    defined = raw.get("defined") or {k: np.ones(n, bool) for k in TARGETS}
+    config = run_configs.get(os.path.abspath(raw["source"])) if row not in BASELINES else None
+    identity = config or run_configs[os.path.abspath(reference)]
+    dataset, version = _dataset_facts(data_path)
+    arrays = {
+        "format": np.array(FORMAT), "format_version": np.array(FORMAT_VERSION, np.int64),
+        "outputs": np.array(TARGETS),
+        "pred": np.stack([np.asarray(raw["pred"][k], np.float32) for k in TARGETS], axis=1)
+        .reshape(n, len(TARGETS)),
+        "truth": np.stack([np.asarray(raw["truth"][k], np.float64) for k in TARGETS], axis=1)
+        .reshape(n, len(TARGETS)),
+        "defined": np.stack([np.asarray(defined[k], bool) for k in TARGETS], axis=1)
+        .reshape(n, len(TARGETS)),
+        "indices": np.asarray(raw["indices"], np.int64),
+        "name": np.array(name), "row": np.array(row),
+        "variant": np.array(BASELINES.get(row) or config["variant"]),
+        "source": np.array(report.portable({"source": raw["source"]}, out_dir)["source"]),
+        "as_released": np.array(bool(raw["as_released"])),
+        "dataset": np.array(dataset), "generator_version": np.array(version),
+        "dataset_path": np.array(runs.relative(data_path, out_dir)),
+        "split": np.array(str(identity.get("split", ""))), "subset": np.array(subset),
+        "seed": np.array(int(identity.get("seed", 0)), np.int64),
+        "table": np.array(table), "table_number": np.array(int(table_number), np.int64),
+        "rig": np.array(rig), "rig_index": np.array(int(rig_index), np.int64),
+        "context": np.array(json.dumps(report.portable(context, out_dir), sort_keys=True)),
+        "key": np.array(key),
+    }
+    if row == "Geometric":
+        from cpl_keras.baselines.geometric import FAILURE_FLAGS
+
+        arrays["failure_flags"] = np.array(FAILURE_FLAGS)
+        arrays["failures"] = np.array([[bool(s[f]) for f in FAILURE_FLAGS]
+                                       for s in raw["statuses"]], bool).reshape(n, len(FAILURE_FLAGS))
+        arrays["prior_names"] = np.array(list(raw["priors"]), dtype=str)
+        arrays["prior_values"] = np.array(list(raw["priors"].values()), np.float64)
+        arrays["degenerate"] = np.array(list(raw.get("degenerate", [])), dtype=str)
+    return arrays
+
+
+def _run_configs(run_dirs):
+    return {os.path.abspath(r): runs.read_config(r, {}) for r in run_dirs}
+
+
+def table1_files(context, rows, *, out_dir, prefix, stem, key, suffix=""):
+    """``{file name: arrays}`` for the raw rows of ``evaluation.table_rows``."""
+    configs = _run_configs(context["runs"])
+    subset = "test" if context["data_description"].startswith("test split") else "all"
+    files = {}
+    for row, raw in rows.items():
+        name = file_name(prefix, row_slug(row, raw, suffix))
+        files[name] = _arrays(
+            row, raw, name=name[: -len(SUFFIX)], out_dir=out_dir, run_configs=configs,
+            reference=context["runs"][0], data_path=context["data"], subset=subset, table=stem,
+            table_number=context["table"], context=context, key=key)
+    return files
+
+
+def table2_files(run_list, rigs, *, out_dir, prefix, stem, key, suffix=""):
+    """``{file name: arrays}`` for the raw rigs of ``real.table2.table2_rigs``."""
+    configs = _run_configs(run_list)
+    files = {}
+    for index, rig in enumerate(rigs):
+        context = {k: rig[k] for k in ("rig", "data", "data_description", "rectified", "width",
+                                       "data_source", "num_pairs")}
+        context["runs"] = list(run_list)
+        data_stem = os.path.splitext(os.path.basename(rig["data"]))[0]
+        for row, raw in rig["rows"].items():
+            name = file_name(prefix, row_slug(row, raw, suffix), data_stem)
+            files[name] = _arrays(
+                row, raw, name=name[: -len(SUFFIX)], out_dir=out_dir, run_configs=configs,
+                reference=run_list[0], data_path=rig["data"], subset="all", table=stem,
+                table_number=2, context=context, key=key, rig=rig["rig"], rig_index=index)
+    return files
+
+
+def write_files(folder, files):
+    """Write ``{file name: arrays}`` into ``folder`` (created if missing), all
+    files or none (``runs.atomic_path``); returns their paths."""
+    os.makedirs(folder, exist_ok=True)
+    paths = [os.path.join(folder, name) for name in files]
+    if not paths:
+        return []
+    with runs.atomic_path(*paths) as tmps:
+        tmps = tmps if isinstance(tmps, list) else [tmps]
+        for tmp, arrays in zip(tmps, files.values()):
+            with open(tmp, "wb") as f:
+                np.savez(f, **arrays)
+    return paths
+
+
+# ---------------------------------------------------------------------------
+# Reading
+# ---------------------------------------------------------------------------
+def _scalar(arrays, key, path, kind):
+    value = arrays[key]
+    if value.shape != ():
+        raise PredictionsError(f"{path}: '{key}' is not a single value")
+    if kind is str:
+        if value.dtype.kind != "U":
+            raise PredictionsError(f"{path}: '{key}' is not a string")
+        return str(value)
+    if value.dtype.kind not in "biu":
+        raise PredictionsError(f"{path}: '{key}' is not an integer")
+    return int(value)
+
+
+def read_key(path):
+    """The ``key`` stored in a predictions file (None when it cannot be read)."""
+    try:
+        with np.load(path, allow_pickle=False) as f:
+            return str(f["key"])
+    except Exception:  # a stale or damaged file is recomputed, never trusted
+        return None
+
+
+def load(path):
+    """A predictions file as a dict: its identity (``name``, ``row``,
+    ``seed``, ``table``, ``table_number``, ``rig``, ``rig_index``, ...), its
+    ``context`` (dict) and ``raw``, the row as the table code scores it.
+    PredictionsError (one line, naming the file) if it is missing, unreadable
+    or inconsistent."""
+    path = os.fspath(path)
+    if not os.path.isfile(path):
+        raise PredictionsError(f"predictions file not found: {path}")
+    try:
+        with np.load(path, allow_pickle=False) as f:
+            arrays = {k: f[k] for k in f.files}
+    except (OSError, ValueError, EOFError, zipfile.BadZipFile, KeyError) as error:
+        from cpl_keras.cli import one_line
+
+        raise PredictionsError(f"{path}: not a readable predictions file "
+                               f"({type(error).__name__}: {one_line(error)})") from None
+    missing = [k for k in STRINGS + NUMBERS + tuple(SHAPES) if k not in arrays]
+    if missing:
+        raise PredictionsError(f"{path}: not a predictions file (no {', '.join(missing)})")
+    item = {k: _scalar(arrays, k, path, str) for k in STRINGS}
+    item.update({k: _scalar(arrays, k, path, int) for k in NUMBERS})
+    if item["format"] != FORMAT or item["format_version"] != FORMAT_VERSION:
+        raise PredictionsError(f"{path}: format {item['format']} {item['format_version']}, "
+                               f"expected {FORMAT} {FORMAT_VERSION}")
+    if [str(x) for x in arrays["outputs"]] != list(TARGETS):
+        raise PredictionsError(f"{path}: outputs {list(arrays['outputs'])} are not "
+                               f"{list(TARGETS)}")
+    n = len(arrays["indices"])
+    for key, shape in SHAPES.items():
+        expected = tuple(n if d == "n" else d for d in shape)
+        if arrays[key].shape != expected:
+            raise PredictionsError(f"{path}: '{key}' has shape {arrays[key].shape}, expected "
+                                   f"{expected}")
+    if arrays["pred"].dtype != np.float32 or arrays["truth"].dtype.kind != "f" \
+            or arrays["defined"].dtype != bool or arrays["indices"].dtype.kind not in "iu":
+        raise PredictionsError(f"{path}: wrong array types (pred float32, truth float, "
+                               f"defined bool, indices integer)")
+    try:
+        item["context"] = json.loads(item["context"])
+    except ValueError as error:
+        raise PredictionsError(f"{path}: 'context' is not JSON ({error})") from None
+    raw = {"source": item["source"], "as_released": bool(item["as_released"]),
+           "indices": arrays["indices"].astype(np.int64),
+           "truth": {k: arrays["truth"][:, i].astype(np.float64) for i, k in enumerate(TARGETS)},
+           "pred": {k: arrays["pred"][:, i].astype(np.float64) for i, k in enumerate(TARGETS)},
+           "defined": {k: arrays["defined"][:, i].copy() for i, k in enumerate(TARGETS)}}
+    if item["row"] == "Geometric":
+        for key in ("failure_flags", "failures", "prior_names", "prior_values", "degenerate"):
+            if key not in arrays:
+                raise PredictionsError(f"{path}: a Geometric row without '{key}'")
+        flags = [str(f) for f in arrays["failure_flags"]]
+        if arrays["failures"].shape != (n, len(flags)):
+            raise PredictionsError(f"{path}: 'failures' has shape {arrays['failures'].shape}")
+        raw["statuses"] = [dict(zip(flags, map(bool, line))) for line in arrays["failures"]]
+        raw["priors"] = {str(k): float(v) for k, v in zip(arrays["prior_names"],
+                                                          arrays["prior_values"])}
+        raw["degenerate"] = [str(k) for k in arrays["degenerate"]]
+    item["raw"] = raw
+    item["path"] = path
+    return item
+
+
+# ---------------------------------------------------------------------------
+# Tables from files
+# ---------------------------------------------------------------------------
+def _one_table(stem, items):
+    """The table ``stem`` of one seed from its files."""
+    rows_seen = {}
+    for item in items:
+        where = (item["rig_index"], item["row"])
+        if where in rows_seen:
+            raise PredictionsError(f"{item['path']} and {rows_seen[where]} are both row "
+                                   f"{item['row']} of {stem}" + (f" on {item['rig']}"
+                                                                 if item["rig"] else ""))
+        rows_seen[where] = item["path"]
+    if any(item["rig_index"] >= 0 for item in items):          # real.table2: per rig, pooled
+        from cpl_keras.real import table2
+
+        run_lists = {json.dumps(item["context"]["runs"]) for item in items}
+        if len(run_lists) > 1:
+            raise PredictionsError(f"the files of {stem} name different runs: {items[0]['path']}")
+        rigs = {}
+        for item in sorted(items, key=lambda i: i["rig_index"]):
+            context = item["context"]
+            rig = rigs.setdefault(item["rig_index"], dict(
+                {k: v for k, v in context.items() if k != "runs"}, rows={}))
+            if {k: v for k, v in context.items() if k != "runs"} != \
+                    {k: v for k, v in rig.items() if k != "rows"}:
+                raise PredictionsError(f"{item['path']}: its rig does not match the other "
+                                       f"files of {stem} on {item['rig']}")
+            rig["rows"][item["row"]] = item["raw"]
+        return table2.table2_from_rigs(items[0]["context"]["runs"], list(rigs.values()))
+    contexts = {json.dumps(item["context"], sort_keys=True) for item in items}
+    if len(contexts) > 1:
+        raise PredictionsError(f"the files of {stem} disagree on its data or runs "
+                               f"({items[0]['path']})")
+    return evaluation.table_from_rows(items[0]["context"],
+                                      {item["row"]: item["raw"] for item in items})
+
+
+def tables_from_files(paths):
+    """``{stem: table}`` from predictions files (every file is read and checked
+    first): each table scored per seed, and a table over several seeds
+    aggregated into mean and spread. PredictionsError on a bad file."""
+    items = [load(path) for path in paths]
+    if not items:
+        raise PredictionsError("no predictions files given")
+    groups = {}
+    for item in items:
+        groups.setdefault(item["table"], {}).setdefault(item["seed"], []).append(item)
+    tables = {}
+    for stem, by_seed in groups.items():
+        seeds = sorted(by_seed)
+        tables[stem] = evaluation.aggregate_seeds(
+            [_one_table(stem, by_seed[seed]) for seed in seeds], seeds)
+    return tables

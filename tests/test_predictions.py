@@ -1,0 +1,153 @@
+"""Published predictions: the files, tables scored from them alone, and a
+table over several seeds as mean ± spread."""
+
+import json
+import os
+import shutil
+
+import numpy as np
+import pytest
+
+from cpl_keras import evaluation, predictions, report
+from cpl_keras.camera import TARGETS
+from cpl_keras.real import table2
+
+SIZE = 32
+
+
+@pytest.fixture(scope="module")
+def published(tiny_run, tmp_path_factory):
+    """Table 1 and Table 2 of the shared tiny run, scored in memory and
+    published as predictions files into ``out/runs``."""
+    from cpl_keras.real.middlebury import build_middlebury
+
+    out = tmp_path_factory.mktemp("published")
+    real = build_middlebury(out / "middlebury.h5", crops=3, image_size=SIZE, seed=0)
+    context, rows = evaluation.table_rows(1, [tiny_run["run"]], geometric_max=3)
+    files = predictions.table1_files(context, rows, out_dir=out, prefix="cvgl",
+                                     stem="table1_cvgl", key="k1")
+    run_list, rigs = table2.table2_rigs([tiny_run["run"]], [real], geometric_max=2)
+    files.update(predictions.table2_files(run_list, rigs, out_dir=out, prefix="cvgl",
+                                          stem="table2", key="k2"))
+    paths = predictions.write_files(out / "runs", files)
+    return {"out": out, "paths": paths, "tiny": tiny_run,
+            "table1": report.portable(evaluation.table_from_rows(context, rows), out),
+            "table2": report.portable(table2.table2_from_rigs(run_list, rigs), out)}
+
+
+def test_files_are_plain_arrays(published):
+    names = sorted(os.path.basename(p) for p in published["paths"])
+    assert names == sorted(
+        [f"cvgl_{s}_predictions.npz" for s in ("average", "average-release", "run_baseline",
+                                               "geometric")]
+        + [f"cvgl_{s}_on_middlebury_predictions.npz" for s in ("average", "average-release",
+                                                               "run_baseline", "geometric")])
+    split = np.load(os.path.join(published["tiny"]["run"], "split.npz"))
+    with np.load(published["out"] / "runs" / "cvgl_run_baseline_predictions.npz",
+                 allow_pickle=False) as f:
+        assert all(f[k].dtype != object for k in f.files)
+        assert list(f["outputs"]) == list(TARGETS)
+        assert f["pred"].dtype == np.float32 and f["pred"].shape == (len(split["test"]), 13)
+        assert np.array_equal(f["indices"], split["test"])
+        assert (str(f["row"]), str(f["variant"]), str(f["split"]), str(f["subset"])) == (
+            "MTL-Baseline", "baseline", "paper", "test")
+        assert str(f["dataset"]) == "cvgl.h5" and str(f["generator_version"])
+        assert int(f["seed"]) == 0 and not bool(f["as_released"])
+        assert str(f["source"]) == os.path.relpath(published["tiny"]["run"], published["out"])
+        from cpl_keras.data.storage import StereoFile
+        from cpl_keras.datasets import targets_from_labels
+
+        with StereoFile(published["tiny"]["data"]) as data:
+            fx = np.asarray(targets_from_labels(data.labels)["fx"], np.float64)[split["test"]]
+        assert np.array_equal(f["truth"][:, 0], fx)
+
+
+def test_tables_from_files_equal_the_tables_in_memory(published):
+    tables = predictions.tables_from_files(published["paths"])
+    assert list(tables) == ["table1_cvgl", "table2"]
+    for stem in tables:
+        assert json.dumps(tables[stem], sort_keys=True) == \
+            json.dumps(published[stem.split("_")[0]], sort_keys=True), stem
+
+
+def _second_seed(published, tmp_path):
+    """The files again as seed 1, with other predictions of the run."""
+    paths = []
+    for path in published["paths"]:
+        with np.load(path, allow_pickle=False) as f:
+            arrays = {k: f[k] for k in f.files}
+        arrays["seed"] = np.array(1, np.int64)
+        if str(arrays["row"]) == "MTL-Baseline":
+            arrays["pred"] = (arrays["pred"] * np.float32(1.1)).astype(np.float32)
+        new = tmp_path / os.path.basename(path).replace("_predictions", "-s1_predictions")
+        with open(new, "wb") as f:
+            np.savez(f, **arrays)
+        paths.append(str(new))
+    return paths
+
+
+def test_a_table_over_seeds_is_mean_and_spread(published, tmp_path):
+    seed1 = _second_seed(published, tmp_path)
+    one = predictions.tables_from_files(seed1)
+    tables = predictions.tables_from_files(published["paths"] + seed1)
+    table = tables["table1_cvgl"]
+    assert table["seeds"] == [0, 1]
+    first, second = published["table1"], one["table1_cvgl"]
+    a = first["rows"]["MTL-Baseline"]["targets"]["fx"]["nmae"]
+    b = second["rows"]["MTL-Baseline"]["targets"]["fx"]["nmae"]
+    assert a != b
+    row = table["rows"]["MTL-Baseline"]
+    assert row["targets"]["fx"]["nmae"] == pytest.approx((a + b) / 2)
+    assert row["spread"]["targets"]["fx"]["nmae"] == pytest.approx(abs(a - b) / np.sqrt(2))
+    assert row["per_seed"]["1"]["targets"]["fx"]["nmae"] == b
+    assert row["num_pairs"] == 2 * first["rows"]["MTL-Baseline"]["num_pairs"]
+    geo = table["rows"]["Geometric"]
+    assert geo["failures"]["num_pairs"] == 6 and set(geo["priors"]) == {"seed 0", "seed 1"}
+    # same rows on both seeds: spread 0 where the predictions did not change
+    assert table["rows"]["Average"]["spread"]["targets"]["fx"]["nmae"] == 0
+    md = report.markdown(table)
+    assert "mean ± spread over 2 seeds" in md and " ± " in md.split("| MTL-Baseline |")[1]
+    csv = report.csv_text(table).splitlines()
+    assert any(line.startswith("MTL-Baseline,nmae_spread,") for line in csv)
+    assert len(csv) == 1 + 4 * 6
+    json.dumps(table, allow_nan=False)                               # strict JSON
+    # Table 2: per rig and pooled, each a mean over the seeds
+    t2 = tables["table2"]
+    assert t2["seeds"] == [0, 1] and t2["rigs"]["middlebury"]["seeds"] == [0, 1]
+    assert "spread" in t2["rigs"]["middlebury"]["rows"]["MTL-Baseline"]
+    assert len(t2["fov_points"]["middlebury"]["MTL-Baseline"]["true_deg"]) == 6
+    written = table2.write_table2(str(tmp_path / "t2"), "table2", t2, "cmd")
+    assert all(os.path.getsize(p) for p in written)
+    assert "± " in open(tmp_path / "t2" / "table2.md").read()
+
+
+def test_bad_files_are_one_line_errors(published, tmp_path):
+    good = published["paths"][0]
+
+    def fails(path, match):
+        with pytest.raises(predictions.PredictionsError) as info:
+            predictions.tables_from_files([path])
+        message = str(info.value)
+        assert "\n" not in message and match in message, message
+
+    fails(tmp_path / "none_predictions.npz", "predictions file not found")
+    truncated = tmp_path / "truncated_predictions.npz"
+    truncated.write_bytes(open(good, "rb").read()[:300])
+    fails(truncated, "not a readable predictions file")
+    with np.load(good, allow_pickle=False) as f:
+        arrays = {k: f[k] for k in f.files}
+    for name, change, match in (
+            ("pickled", {"source": np.array([{"a": 1}], dtype=object)}, "not a readable"),
+            ("short", {"pred": arrays["pred"][:, :12]}, "'pred' has shape"),
+            ("order", {"outputs": np.array(TARGETS[::-1])}, "outputs"),
+            ("missing", {"truth": None}, "no truth")):
+        bad = dict(arrays, **change)
+        bad = {k: v for k, v in bad.items() if v is not None}
+        path = tmp_path / f"{name}_predictions.npz"
+        with open(path, "wb") as f:
+            np.savez(f, **bad)
+        fails(path, match)
+    twice = tmp_path / "twice_predictions.npz"
+    shutil.copy(good, twice)
+    with pytest.raises(predictions.PredictionsError, match="are both row"):
+        predictions.tables_from_files([good, str(twice)])
