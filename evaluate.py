@@ -3,11 +3,14 @@
     python evaluate.py --run RUN_DIR --data DATA.h5
     python evaluate.py --table 1 --runs RUN_DIR [RUN_DIR ...] [--data DATA.h5]
     python evaluate.py --table 2 --runs RUN_DIR [RUN_DIR ...] --data data/real [MORE.h5 ...]
-    python evaluate.py --reproduce [--quick] [--pairs N --epochs E ...]
+    python evaluate.py --reproduce [--quick | --preset {paper-gpu,cpu}] [--pairs N --epochs E ...]
+    python evaluate.py --reproduce --from-predictions DIR
 
 ``--reproduce`` regenerates everything in paper_results/ (datasets, training
-runs, both tables, REPORT.md); ``--quick`` runs that pipeline on tiny
-settings in minutes (cpl_keras/reproduce.py).
+runs, published predictions, both tables, REPORT.md); ``--quick`` runs that
+pipeline on tiny settings in minutes, ``--preset`` at a named scale;
+``--from-predictions DIR`` rebuilds DIR's tables and REPORT.md from its
+published predictions alone (cpl_keras/reproduce.py).
 
 Writes Markdown, CSV and JSON tables and a FOV-threshold plot to
 paper_results/ (or --out DIR, created if missing), atomically; ``--run R``
@@ -42,9 +45,9 @@ def parse_args(argv=None):
     parser.add_argument("--out", help="output directory, created if missing (default: "
                         "paper_results/; with --run: the run's parent directory; with "
                         "--reproduce --quick: runs/quick/paper_results)")
-    parser.add_argument("--batch-size", type=int, default=32)
+    parser.add_argument("--batch-size", type=cli.positive_int, default=32)
     parser.add_argument("--no-geometric", action="store_true", help="leave out the Geometric row")
-    parser.add_argument("--geometric-max", type=int,
+    parser.add_argument("--geometric-max", type=cli.positive_int,
                         help="run the Geometric baseline on the first N evaluation pairs only")
     group = reproduce.add_arguments(parser)
     group.add_argument("--reproduce", action="store_true",
@@ -53,10 +56,10 @@ def parse_args(argv=None):
     if args.reproduce:
         if args.run is not None or args.table is not None:
             parser.error("--reproduce makes every table itself; drop --run/--table")
-        reproduce.resolve_defaults(args)
-        return args
-    if args.quick:
-        parser.error("--quick goes with --reproduce")
+        return reproduce.resolve_args(parser, args)
+    for flag in ("quick", "preset", "from_predictions"):
+        if getattr(args, flag) not in (None, False):
+            parser.error(f"--{flag.replace('_', '-')} goes with --reproduce")
     if (args.run is None) == (args.table is None):
         parser.error("give either --run RUN_DIR --data DATA.h5 or --table {1,2} --runs ...")
     if args.run is not None and args.data is None:
@@ -70,10 +73,6 @@ def parse_args(argv=None):
         if len(args.data) > 1:
             parser.error("several --data files go with --table 2 only")
         args.data = args.data[0]
-    if args.batch_size < 1:
-        parser.error(f"--batch-size must be positive, got {args.batch_size}")
-    if args.geometric_max is not None and args.geometric_max < 1:
-        parser.error(f"--geometric-max must be positive, got {args.geometric_max}")
     return args
 
 

@@ -1,30 +1,46 @@
 """Regenerate every result of ``paper_results/`` with one command.
 
-    python -m cpl_keras.reproduce            # the paper's scale (a GPU job)
-    python -m cpl_keras.reproduce --quick    # the same pipeline in minutes
+    python -m cpl_keras.reproduce                     # the paper's scale (a GPU job)
+    python -m cpl_keras.reproduce --preset paper-gpu  # the same, into paper_results/paper-gpu/
+    python -m cpl_keras.reproduce --preset cpu        # compact towers, 3 seeds, ~2 h on 2 cores
+    python -m cpl_keras.reproduce --quick             # the same pipeline in minutes
     python -m cpl_keras.reproduce --pairs 2000 --epochs 4   # a chosen scale
+    python -m cpl_keras.reproduce --from-predictions DIR    # tables again, from DIR alone
 
 (``python evaluate.py --reproduce ...`` is the same command.)
 
-The pipeline, every stage resumable (datasets, finished runs and tables
-newer than their runs are reused; killed training runs resume from their
-last epoch):
+The pipeline, every stage resumable (datasets, finished runs and published
+predictions newer than their runs are reused; killed training runs resume
+from their last epoch):
 
 1. data: a ``cvgl``-protocol dataset (the paper's 50 rigs), a ``random``-
-   protocol dataset (realistic rigs) and the real Middlebury crops set;
-2. training: Deep-Homo, MTL-CPL-U, MTL-Baseline and MTL-CPL-A on each
-   protocol (``cvgl`` with the paper's frame-level 70/30 split, ``random``
-   with whole configurations held out), plus MTL-CPL-A as released on cvgl;
-3. tables: Table 1 for each protocol (with the Average, the release's
-   Average and the Geometric rows), Table 2 (forward pass of the cvgl-trained
-   models on the real set);
-4. ``REPORT.md``: settings, dataset sizes, seeds, epochs actually run, wall
+   protocol dataset (realistic rigs) and every real rig
+   (``cpl_keras.real.build all``: the shipped OpenCV chessboard rig and
+   Middlebury, KITTI / Tsinghua-Daimler / Cityscapes where their roots are
+   given);
+2. training: the preset's variants on each protocol (``cvgl`` with the
+   paper's frame-level 70/30 split, ``random`` with whole configurations held
+   out), each for the preset's number of seeds (a seed changes the split and
+   the initial weights), plus MTL-CPL-A as released on cvgl where the preset
+   has it;
+3. predictions: every row of every table (each run, and the Average, the
+   release's Average and the Geometric baselines) on its pairs, published as
+   ``<out>/runs/*_predictions.npz`` (``cpl_keras.predictions``): Table 1 on
+   each protocol's test split, Table 2 as a forward pass of the cvgl-trained
+   models on every real rig;
+4. tables, made from those files alone: Table 1 per protocol, Table 2 per rig
+   and pooled (``cpl_keras.real.table2``); a table over several seeds gives
+   every cell as mean ± spread;
+5. ``REPORT.md``: settings, dataset sizes, seeds, epochs actually run, wall
    times, the machine, the tables, the plots and the comparison with the
-   paper.
+   paper; ``reproduce.json`` holds the same facts, so that
+   ``--from-predictions`` rebuilds the tables and REPORT.md without weights
+   or datasets.
 """
 
 from __future__ import annotations
 
+import json
 import os
 import platform
 import shutil
@@ -38,34 +54,96 @@ from cpl_keras.models.variants import TABLE_ORDER  # noqa: E402
 
 PROG = "python -m cpl_keras.reproduce"
 
-#: The paper's scale: CVGL's 123,017 pairs, 200 epochs, InceptionV3 at 112.
-PAPER_SCALE = {"pairs": 123017, "random_pairs": 123017, "epochs": 200, "image_size": 112,
-               "backbone": "inception_v3", "crops": 500, "geometric_max": None,
-               "batch_size": 16, "patience": 5}
-#: Tiny settings that run the same pipeline end to end in minutes (CI).
-QUICK = {"pairs": 150, "random_pairs": 150, "epochs": 1, "image_size": 32,
-         "backbone": "small", "crops": 24, "geometric_max": 20, "batch_size": 16, "patience": 5}
+#: The MTL variants (the paper's three networks with two towers).
+MTL_VARIANTS = ("cpl-u", "baseline", "cpl-a")
 
-#: (protocol, split, variants trained on it, with the as-released CPL-A where set)
+#: Named scales. ``pairs`` / ``random_pairs``: pairs of the cvgl / random
+#: datasets; ``seeds`` / ``random_seeds``: seeds per protocol (each its own
+#: split and initial weights); ``variants``: trained on each protocol;
+#: ``released``: also MTL-CPL-A as released on cvgl; ``crops``: Middlebury
+#: crops; ``chessboard_crops``: crops per chessboard pair; ``geometric_max``:
+#: pairs of each table (or real set) the Geometric baseline runs on (None:
+#: all); ``workers``: data generation processes (None: every core).
+PRESETS = {
+    # The paper's scale: CVGL's 123,017 pairs, up to 200 epochs, InceptionV3 at 112.
+    "paper-gpu": {"pairs": 123017, "random_pairs": 123017, "epochs": 200, "image_size": 112,
+                  "backbone": "inception_v3", "crops": 500, "chessboard_crops": 20,
+                  "geometric_max": None, "batch_size": 16, "patience": 5, "seeds": 1,
+                  "random_seeds": 1, "variants": TABLE_ORDER, "released": True, "workers": 16},
+    # Sized for a 2-core CPU, about 2 hours (the arithmetic: docs/evaluation.md).
+    "cpu": {"pairs": 2000, "random_pairs": 2000, "epochs": 60, "image_size": 112,
+            "backbone": "small_resnet", "crops": 500, "chessboard_crops": 20,
+            "geometric_max": 200, "batch_size": 16, "patience": 5, "seeds": 3,
+            "random_seeds": 1, "variants": MTL_VARIANTS, "released": False, "workers": None},
+    # Tiny settings that run the paper-gpu pipeline end to end in minutes (CI).
+    "quick": {"pairs": 150, "random_pairs": 150, "epochs": 1, "image_size": 32,
+              "backbone": "small", "crops": 24, "chessboard_crops": 1, "geometric_max": 20,
+              "batch_size": 16, "patience": 5, "seeds": 1, "random_seeds": 1,
+              "variants": TABLE_ORDER, "released": True, "workers": None},
+}
+#: The scale without --preset (the paper's; the old name).
+PAPER_SCALE = PRESETS["paper-gpu"]
+QUICK = PRESETS["quick"]
+#: Settings that are counts: positive integers (patience may be 0).
+POSITIVE = ("pairs", "random_pairs", "epochs", "image_size", "crops", "chessboard_crops",
+            "geometric_max", "batch_size", "seeds", "random_seeds", "workers")
+#: Smallest image side of the real sets (StereoBM's block of 15 and 16 disparities).
+MIN_REAL_IMAGE_SIZE = 32
+
+#: (protocol, split, the setting holding its number of seeds)
 PROTOCOLS = (
-    ("cvgl", "paper", TABLE_ORDER, True),
-    ("random", "held-out-config", TABLE_ORDER, False),
+    ("cvgl", "paper", "seeds"),
+    ("random", "held-out-config", "random_seeds"),
 )
+#: Real-data roots reproduce passes on to ``cpl_keras.real.build all``.
+REAL_ROOTS = ("kitti", "kitti_raw", "tsinghua", "cityscapes")
+#: The tables' titles in REPORT.md.
+TITLES = {"table1_cvgl": "Table 1, paper protocol (cvgl rigs, frame-level 70/30 split)",
+          "table1_random": "Table 1, unseen rigs (random protocol, whole configurations held out)",
+          "table2": "Table 2, real rigs (per rig and pooled; forward pass of the cvgl-trained "
+                    "models)"}
 
 
-def settings(quick=False, **overrides):
-    """The run settings: the paper's scale or QUICK, with ``overrides`` applied."""
-    chosen = dict(QUICK if quick else PAPER_SCALE)
+def settings(quick=False, preset=None, **overrides):
+    """The run settings: a preset (``PRESETS``; default the paper's scale,
+    ``quick=True`` is ``preset="quick"``) with ``overrides`` applied (None:
+    keep the preset's). ValueError (one line) on a bad value."""
+    if quick and preset not in (None, "quick"):
+        raise ValueError(f"--quick is --preset quick; it cannot go with --preset {preset}")
+    name = "quick" if quick else preset
+    if name is not None and name not in PRESETS:
+        raise ValueError(f"unknown preset {name!r}; choose one of {', '.join(PRESETS)}")
+    chosen = dict(PRESETS[name or "paper-gpu"])
     for key, value in overrides.items():
         if value is None:
             continue
         if key not in chosen:
             raise ValueError(f"unknown setting {key!r}")
-        if key in ("pairs", "random_pairs", "epochs", "crops", "batch_size", "patience",
-                   "geometric_max", "image_size") and int(value) < 1:
-            raise ValueError(f"{key.replace('_', '-')} must be positive, got {value}")
         chosen[key] = value
-    chosen["quick"] = bool(quick)
+    for key in POSITIVE + ("patience",):
+        value = chosen[key]
+        if value is None and key in ("geometric_max", "workers"):
+            continue
+        least = 0 if key == "patience" else 1
+        if isinstance(value, bool) or not isinstance(value, int) or value < least:
+            what = "non-negative" if least == 0 else "positive"
+            raise ValueError(f"{key.replace('_', '-')} must be {what}, got {value}")
+    from cpl_keras.models import variants as registry
+    from cpl_keras.models.backbones import BACKBONES, MIN_IMAGE_SIZE
+
+    if chosen["backbone"] not in BACKBONES:
+        raise ValueError(f"unknown backbone {chosen['backbone']!r}; choose one of "
+                         f"{', '.join(BACKBONES)}")
+    chosen["variants"] = tuple(chosen["variants"])
+    for variant in chosen["variants"]:
+        registry.get(variant)
+    least = max([MIN_REAL_IMAGE_SIZE, MIN_IMAGE_SIZE.get(chosen["backbone"], 1)]
+                + [registry.get(v).min_image_size or 1 for v in chosen["variants"]])
+    if chosen["image_size"] < least:
+        raise ValueError(f"image-size must be at least {least} (the {chosen['backbone']} "
+                         f"backbone and the real sets), got {chosen['image_size']}")
+    chosen["preset"] = name
+    chosen["quick"] = name == "quick"
     return chosen
 
 
@@ -73,10 +151,20 @@ def _log(message):
     print(f"[reproduce] {message}", file=sys.stderr, flush=True)
 
 
-def make_datasets(config, data_dir, seed):
-    """Stage 1: the synthetic datasets and the real set (reused when present)."""
+# ---------------------------------------------------------------------------
+# Stage 1: data
+# ---------------------------------------------------------------------------
+def real_set_folder(config, data_dir, seed):
+    """Where the real sets of these settings go (one file per rig)."""
+    return os.path.join(data_dir, f"real_{config['image_size']}px_mb{config['crops']}_"
+                                  f"cb{config['chessboard_crops']}_s{seed}")
+
+
+def make_datasets(config, data_dir, seed, real_roots=None):
+    """Stage 1: the synthetic datasets and every real set (reused when
+    present); ``{"cvgl": path, "random": path, "real": [paths]}``."""
     from cpl_keras.data.generate import GENERATOR_VERSION, generate_dataset
-    from cpl_keras.real.middlebury import build_middlebury
+    from cpl_keras.real import build
 
     size = config["image_size"]
     paths = {}
@@ -87,90 +175,146 @@ def make_datasets(config, data_dir, seed):
         if not os.path.exists(path):
             _log(f"generating {pairs} {protocol} pairs at {size}px -> {path}")
             generate_dataset(path, protocol=protocol, pairs=pairs, seed=seed, image_size=size,
-                             progress=True)
+                             workers=config["workers"], progress=True)
         paths[protocol] = path
-    path = os.path.join(data_dir, f"middlebury_{config['crops']}_{size}px_s{seed}.h5")
-    if not os.path.exists(path):
-        _log(f"building {config['crops']} Middlebury crops at {size}px -> {path}")
-        build_middlebury(path, crops=config["crops"], image_size=size, seed=seed)
-    paths["real"] = path
+    # every real rig, through the one builder of ``python -m cpl_keras.real.build all``
+    args = build.parse_args(["all", "--out-dir", real_set_folder(config, data_dir, seed),
+                             "--image-size", str(size), "--seed", str(seed)])
+    for name in REAL_ROOTS:
+        setattr(args, name, (real_roots or {}).get(name))
+    paths["real"] = build.build_all(
+        args, report=_log,
+        crops={"middlebury": config["crops"], "chessboard": config["chessboard_crops"]})
     return paths
 
 
+# ---------------------------------------------------------------------------
+# Stage 2: training
+# ---------------------------------------------------------------------------
+def run_jobs(config, seed):
+    """Every training run of the settings: ``(protocol, split, run seed,
+    variant, as released, run name)``; a protocol trained over several seeds
+    names its runs ``<variant>-s<seed>``."""
+    jobs = []
+    for protocol, split, seeds_key in PROTOCOLS:
+        count = config[seeds_key]
+        for run_seed in range(seed, seed + count):
+            variants = [(v, False) for v in config["variants"]]
+            if protocol == "cvgl" and config["released"]:
+                variants.append(("cpl-a", True))
+            for variant, released in variants:
+                name = variant + ("-released" if released else "") + (
+                    f"-s{run_seed}" if count > 1 else "")
+                jobs.append((protocol, split, run_seed, variant, released, name))
+    return jobs
+
+
 def train_all(config, paths, runs_dir, seed):
-    """Stage 2: every model of every protocol; returns {protocol: [run dirs]}."""
+    """Stage 2: every run; returns ``{protocol: {seed: [run dirs]}}``."""
     from cpl_keras import training
 
     trained = {}
-    for protocol, split, variants, with_released in PROTOCOLS:
-        jobs = [(v, False) for v in variants] + ([("cpl-a", True)] if with_released else [])
-        trained[protocol] = []
-        for variant, released in jobs:
-            name = variant + ("-released" if released else "")
-            run_dir = os.path.join(runs_dir, protocol, name)
-            plan = dict(
-                variant=variant, run_dir=run_dir, epochs=config["epochs"],
-                batch_size=config["batch_size"], backbone=config["backbone"], split=split,
-                as_released=released, seed=seed, patience=config["patience"],
-            )
-            # Refuses (TrainingError) a run directory that holds a run of other
-            # settings, so a run made at another scale is never reused.
-            training.plan_run(paths[protocol], **plan)
-            if (runs.read_config(run_dir) or {}).get("status") == "finished":
-                _log(f"{protocol}/{name}: finished run found, reused")
-                trained[protocol].append(run_dir)
-                continue
-            _log(f"training {protocol}/{name} ({config['backbone']}, up to {config['epochs']} epochs)")
-            summary = training.train(paths[protocol], verbose=2, **plan)
-            _log(training.summary_line(summary))
-            if summary["best_epoch"] is None:
-                raise training.TrainingError(f"{run_dir}: no epoch completed ({summary['stopped']})")
-            trained[protocol].append(run_dir)
+    for protocol, split, run_seed, variant, released, name in run_jobs(config, seed):
+        run_dir = os.path.join(runs_dir, protocol, name)
+        plan = dict(
+            variant=variant, run_dir=run_dir, epochs=config["epochs"],
+            batch_size=config["batch_size"], backbone=config["backbone"], split=split,
+            as_released=released, seed=run_seed, patience=config["patience"],
+        )
+        # Refuses (TrainingError) a run directory that holds a run of other
+        # settings, so a run made at another scale is never reused.
+        training.plan_run(paths[protocol], **plan)
+        trained.setdefault(protocol, {}).setdefault(run_seed, []).append(run_dir)
+        if (runs.read_config(run_dir) or {}).get("status") == "finished":
+            _log(f"{protocol}/{name}: finished run found, reused")
+            continue
+        _log(f"training {protocol}/{name} ({config['backbone']}, up to {config['epochs']} epochs)")
+        summary = training.train(paths[protocol], verbose=2, **plan)
+        _log(training.summary_line(summary))
+        if summary["best_epoch"] is None:
+            raise training.TrainingError(f"{run_dir}: no epoch completed ({summary['stopped']})")
     return trained
 
 
-def make_tables(config, paths, trained, out_dir, command):
-    """Stage 3: Table 1 per protocol and Table 2; returns {stem: table}, with
-    paths relative to ``out_dir``."""
-    from cpl_keras import evaluation, report
+# ---------------------------------------------------------------------------
+# Stage 3: published predictions
+# ---------------------------------------------------------------------------
+def _group_predictions(number, stem, prefix, run_dirs, data, config, out_dir, suffix):
+    """The predictions files of one table of one seed: reused when they were
+    made from the same runs, data and settings after the runs' models were
+    written, else computed and written (all files or none)."""
+    from cpl_keras import evaluation, predictions
 
-    tables = {}
-    jobs = [("table1_cvgl", 1, trained["cvgl"], None),
-            ("table1_random", 1, trained["random"], None),
-            ("table2_middlebury", 2, trained["cvgl"], paths["real"])]
-    for stem, number, run_dirs, data in jobs:
-        cached = _cached_table(os.path.join(out_dir, f"{stem}.json"), run_dirs, data)
-        if cached is not None:
-            _log(f"{stem}: up to date with its runs, reused")
-            tables[stem] = cached
-            continue
-        _log(f"evaluating {stem}")
-        table = evaluation.make_table(number, run_dirs, data, geometric=True,
-                                      geometric_max=config["geometric_max"], progress=_log)
-        report.write_outputs(out_dir, stem, table, command)
-        tables[stem] = report.portable(table, out_dir)
-    return tables
-
-
-def _cached_table(path, run_dirs, data):
-    """A table written earlier from the same runs and data, if none changed since."""
-    table = runs.read_json(path)
-    if table is None:
-        return None
-    # the table's paths are relative to its folder (older tables: absolute)
-    here = os.path.dirname(os.path.abspath(path))
-    recorded = [os.path.normpath(os.path.join(here, r)) for r in table.get("runs", [])]
-    if recorded != [os.path.abspath(r) for r in run_dirs]:
-        return None
-    if data is not None and os.path.normpath(os.path.join(here, table.get("data", ""))) != \
-            os.path.abspath(data):
-        return None
+    folder = os.path.join(out_dir, "runs")
+    key = json.dumps({"table": stem, "runs": [runs.relative(r, out_dir) for r in run_dirs],
+                      "data": [runs.relative(p, out_dir) for p in data] if data else None,
+                      "geometric_max": config["geometric_max"],
+                      "format": predictions.FORMAT_VERSION}, sort_keys=True)
+    rows = ["Average", "Average (release bug)"] + list(run_dirs) + ["Geometric"]
+    stems = [None] if number == 1 else [os.path.splitext(os.path.basename(p))[0] for p in data]
+    names = [predictions.file_name(prefix, predictions.row_slug(r, {"source": r}, suffix), s)
+             for s in stems for r in rows]
+    expected = [os.path.join(folder, name) for name in names]
     models = [os.path.join(r, runs.MODEL) for r in run_dirs]
-    if not all(os.path.exists(m) for m in models):
-        return None
-    if max(os.path.getmtime(m) for m in models) > os.path.getmtime(path):
-        return None
-    return table
+    if all(os.path.exists(p) for p in expected + models) and \
+            all(predictions.read_key(p) == key for p in expected) and \
+            min(os.path.getmtime(p) for p in expected) >= max(os.path.getmtime(m) for m in models):
+        _log(f"{stem} ({', '.join(os.path.basename(r) for r in run_dirs)}): published "
+             f"predictions up to date with their runs, reused")
+        return expected
+    _log(f"evaluating {stem}: {', '.join(os.path.basename(r) for r in run_dirs)}")
+    if number == 1:
+        context, raw = evaluation.table_rows(1, run_dirs, geometric=True,
+                                             geometric_max=config["geometric_max"], progress=_log)
+        files = predictions.table1_files(context, raw, out_dir=out_dir, prefix=prefix, stem=stem,
+                                         key=key, suffix=suffix)
+    else:
+        from cpl_keras.real import table2
+
+        run_list, rigs = table2.table2_rigs(run_dirs, data, geometric=True,
+                                            geometric_max=config["geometric_max"], progress=_log)
+        files = predictions.table2_files(run_list, rigs, out_dir=out_dir, prefix=prefix,
+                                         stem=stem, key=key, suffix=suffix)
+    if sorted(files) != sorted(names):
+        raise evaluation.EvaluationError(f"{stem}: predictions files {sorted(files)} are not "
+                                         f"the expected {sorted(names)}")
+    return predictions.write_files(folder, {name: files[name] for name in names})
+
+
+def make_predictions(config, paths, trained, out_dir):
+    """Stage 3: the predictions of every row of every table, for every seed;
+    returns their paths (Table 1 per protocol, then Table 2)."""
+    groups = []
+    for protocol, by_seed in trained.items():
+        for run_seed, run_dirs in by_seed.items():
+            groups.append((1, f"table1_{protocol}", protocol, run_dirs, None,
+                           f"-s{run_seed}" if len(by_seed) > 1 else ""))
+    cvgl = trained["cvgl"]
+    for run_seed, run_dirs in cvgl.items():
+        groups.append((2, "table2", "cvgl", run_dirs, paths["real"],
+                       f"-s{run_seed}" if len(cvgl) > 1 else ""))
+    files = []
+    for number, stem, prefix, run_dirs, data, suffix in groups:
+        files += _group_predictions(number, stem, prefix, run_dirs, data, config, out_dir, suffix)
+    return files
+
+
+# ---------------------------------------------------------------------------
+# Stage 4: tables (from the published predictions alone)
+# ---------------------------------------------------------------------------
+def make_tables(prediction_files, out_dir, command):
+    """Every table from the predictions files; each written as Markdown, CSV,
+    JSON and plots into ``out_dir``. Returns ``{stem: table}``."""
+    from cpl_keras import predictions, report
+    from cpl_keras.real import table2
+
+    tables = predictions.tables_from_files(prediction_files)
+    for stem, table in tables.items():
+        if "rigs" in table:
+            table2.write_table2(out_dir, stem, table, command)
+        else:
+            report.write_outputs(out_dir, stem, table, command)
+    return tables
 
 
 def collect_run_files(trained, out_dir):
@@ -179,20 +323,22 @@ def collect_run_files(trained, out_dir):
     target = os.path.join(out_dir, "runs")
     os.makedirs(target, exist_ok=True)
     summaries = []
-    for protocol, run_dirs in trained.items():
-        for run_dir in run_dirs:
-            name = f"{protocol}_{os.path.basename(run_dir)}"
-            for source, suffix in ((runs.LOG, "_log.csv"), (runs.CURVES, "_curves.png")):
-                path = os.path.join(run_dir, source)
-                if os.path.exists(path):
-                    shutil.copyfile(path, os.path.join(target, name + suffix))
-            run_config = runs.read_config(run_dir, {})
-            summaries.append({"protocol": protocol, "name": name,
-                              "run_dir": runs.relative(run_dir, out_dir),
-                              "as_released": runs.config_as_released(run_config),
-                              **{k: run_config.get(k) for k in (
-                                  "variant", "split", "epochs", "epochs_run",
-                                  "best_epoch", "best_val_loss", "wall_time_s", "stopped")}})
+    for protocol, by_seed in trained.items():
+        for run_dirs in by_seed.values():
+            for run_dir in run_dirs:
+                name = f"{protocol}_{os.path.basename(run_dir)}"
+                for source, suffix in ((runs.LOG, "_log.csv"), (runs.CURVES, "_curves.png")):
+                    path = os.path.join(run_dir, source)
+                    if os.path.exists(path):
+                        with runs.atomic_path(os.path.join(target, name + suffix)) as tmp:
+                            shutil.copyfile(path, tmp)
+                run_config = runs.read_config(run_dir, {})
+                summaries.append({"protocol": protocol, "name": name,
+                                  "run_dir": runs.relative(run_dir, out_dir),
+                                  "as_released": runs.config_as_released(run_config),
+                                  **{k: run_config.get(k) for k in (
+                                      "variant", "split", "seed", "epochs", "epochs_run",
+                                      "best_epoch", "best_val_loss", "wall_time_s", "stopped")}})
     return summaries
 
 
@@ -216,51 +362,90 @@ def _dataset_line(path):
                 f"source {meta.get('source', meta.get('protocol'))}, seed {meta.get('seed')}")
 
 
-def write_report(out_dir, config, paths, summaries, tables, info, command, discussion=None):
-    """Stage 4: REPORT.md from the measured figures (and an optional discussion)."""
-    from cpl_keras import report
+def dataset_lines(paths):
+    """``{kind: line}`` describing every dataset (real sets: ``real``, one per file)."""
+    lines = {"cvgl": _dataset_line(paths["cvgl"]), "random": _dataset_line(paths["random"])}
+    for path in paths["real"]:
+        lines[f"real ({os.path.splitext(os.path.basename(path))[0]})"] = _dataset_line(path)
+    return lines
 
+
+# ---------------------------------------------------------------------------
+# Stage 5: REPORT.md (from reproduce.json and the tables)
+# ---------------------------------------------------------------------------
+def _scale_text(config):
+    preset = config.get("preset")
+    if config.get("quick"):
+        scale = "quick (tiny settings, a smoke test of the pipeline)"
+    elif preset:
+        scale = f"preset `{preset}`, as set below"
+    else:
+        scale = "as set below"
+    seeds = (f" Seeds per protocol: cvgl {config['seeds']}, random {config['random_seeds']} "
+             f"(each seed its own split and initial weights; a table over several seeds gives "
+             f"mean ± spread)." if max(config["seeds"], config["random_seeds"]) > 1 else "")
+    return (f"Scale: {scale}. Backbone `{config['backbone']}`, {config['image_size']}x"
+            f"{config['image_size']} images, batch {config['batch_size']}, Adam (lr 1e-3, "
+            f"Deep-Homo 1.5e-3), up to {config['epochs']} epochs with early stopping "
+            f"(patience {config['patience']}, best weights restored).{seeds} The paper trained "
+            f"up to 200 epochs on 123,017 pairs from ImageNet weights; here the towers start "
+            f"from random weights (none can be downloaded).")
+
+
+def write_report(out_dir, summary, tables, rebuilt_by=None):
+    """Stage 5: REPORT.md from the reproduction's summary (``reproduce.json``)
+    and its tables; ``rebuilt_by``: the command that rebuilt them from the
+    published predictions."""
+    from cpl_keras import report
+    from cpl_keras.real import table2
+
+    config, info = summary["settings"], summary["machine"]
     lines = ["# Reproducing Tables 1 and 2", ""]
-    scale = "quick (tiny settings, a smoke test of the pipeline)" if config["quick"] else "as set below"
-    lines += ["Everything on this page was produced by one command:", "", "```", command, "```", "",
-              f"Scale: {scale}. Backbone `{config['backbone']}`, {config['image_size']}x"
-              f"{config['image_size']} images, batch {config['batch_size']}, Adam (lr 1e-3, "
-              f"Deep-Homo 1.5e-3), up to {config['epochs']} epochs with early stopping "
-              f"(patience {config['patience']}, best weights restored). The paper trained up to "
-              f"200 epochs on 123,017 pairs from ImageNet weights; here the towers start from "
-              f"random weights (none can be downloaded).", "",
+    lines += ["Everything on this page was produced by one command:", "", "```",
+              summary["command"], "```", ""]
+    if rebuilt_by:
+        lines += ["The tables and this page were rebuilt from the published predictions "
+                  "(`runs/*_predictions.npz`), without weights or datasets, by:", "", "```",
+                  rebuilt_by, "```", ""]
+    runs_list = summary["runs"]
+    lines += [_scale_text(config), "",
               f"Machine: {info['platform']}, Python {info['python']}, {info['cpus']} CPUs, "
               f"Keras {info['keras']}, JAX {info['jax']}, devices {', '.join(info['devices'])}. "
               f"Training wall time, summed over the runs: "
-              f"{sum(s['wall_time_s'] or 0 for s in summaries) / 60:.1f} min; this invocation "
+              f"{sum(s['wall_time_s'] or 0 for s in runs_list) / 60:.1f} min; this invocation "
               f"(stages not reused from earlier ones): {info['wall_time_s'] / 60:.1f} min.", "",
               "## Data", ""]
-    lines += [f"- {kind}: {_dataset_line(path)}" for kind, path in paths.items()]
+    lines += [f"- {kind}: {line}" for kind, line in summary["datasets"].items()]
     lines += ["", "## Training runs", "",
-              "| protocol | run | split | epochs run | best epoch | best val loss | wall time (min) | stopped |",
-              "|---|---|---|---|---|---|---|---|"]
-    for s in summaries:
+              "| protocol | run | split | seed | epochs run | best epoch | best val loss | "
+              "wall time (min) | stopped |",
+              "|---|---|---|---|---|---|---|---|---|"]
+    for s in runs_list:
         wall = "" if s["wall_time_s"] is None else f"{s['wall_time_s'] / 60:.1f}"
         loss = "" if s["best_val_loss"] is None else f"{s['best_val_loss']:.4g}"
         lines.append(f"| {s['protocol']} | {s['name'].split('_', 1)[1]} | {s['split']} | "
-                     f"{s['epochs_run']} | {s['best_epoch']} | {loss} | {wall} | {s['stopped'] or ''} |")
-    lines += ["", "Training curves and per-epoch logs: [`runs/`](runs/).", ""]
-    titles = {"table1_cvgl": "Table 1, paper protocol (cvgl rigs, frame-level 70/30 split)",
-              "table1_random": "Table 1, unseen rigs (random protocol, whole configurations held out)",
-              "table2_middlebury": "Table 2, real data (Middlebury crops, forward pass only)"}
+                     f"{s.get('seed', '')} | {s['epochs_run']} | {s['best_epoch']} | {loss} | "
+                     f"{wall} | {s['stopped'] or ''} |")
+    lines += ["", "Training curves, per-epoch logs and each table row's published predictions "
+              "(`*_predictions.npz`): [`runs/`](runs/).", ""]
     for stem, table in tables.items():
-        body = report.markdown(table).split("\n")
-        body = ["###" + line[2:] if line.startswith("## ") else line for line in body[1:]]
-        lines += [f"## {titles[stem]}", ""] + body
-        lines += [f"![FOV-threshold curves, {stem}]({stem}_fov.png)", "",
-                  f"Files: [`{stem}.md`]({stem}.md), [`{stem}.csv`]({stem}.csv), "
-                  f"[`{stem}.json`]({stem}.json).", ""]
-    if discussion:
-        lines += ["## Comparison with the paper", "", discussion.strip(), ""]
+        render = table2.markdown if "rigs" in table else report.markdown
+        body = render(table).split("\n")[1:]
+        body = ["#" + line if line.startswith("#") else line for line in body]
+        lines += [f"## {TITLES.get(stem, stem)}", ""] + body
+        plots = [f"![FOV-threshold curves, {stem}]({stem}_fov.png)"]
+        if "rigs" in table:
+            plots.append(f"![Predicted against true field of view per rig, {stem}]"
+                         f"({stem}_fov_scatter.png)")
+        lines += plots + ["", f"Files: [`{stem}.md`]({stem}.md), [`{stem}.csv`]({stem}.csv), "
+                              f"[`{stem}.json`]({stem}.json).", ""]
+    if summary.get("discussion"):
+        lines += ["## Comparison with the paper", "", summary["discussion"].strip(), ""]
     runs.write_text(os.path.join(out_dir, "REPORT.md"), "\n".join(lines) + "\n")
 
 
-def reproduce(*, out_dir, data_dir, runs_dir, config, seed=0, command="", discussion_file=None):
+def reproduce(*, out_dir, data_dir, runs_dir, config, seed=0, command="", discussion_file=None,
+              real_roots=None):
     """Run the whole pipeline; returns the path of REPORT.md."""
     for directory in (out_dir, data_dir, runs_dir):
         os.makedirs(directory, exist_ok=True)
@@ -268,77 +453,196 @@ def reproduce(*, out_dir, data_dir, runs_dir, config, seed=0, command="", discus
     from cpl_keras.cache import enable_compile_cache
 
     enable_compile_cache()
-    paths = make_datasets(config, data_dir, seed)
+    paths = make_datasets(config, data_dir, seed, real_roots)
     trained = train_all(config, paths, runs_dir, seed)
-    tables = make_tables(config, paths, trained, out_dir, command)
+    files = make_predictions(config, paths, trained, out_dir)
+    tables = make_tables(files, out_dir, command)
     summaries = collect_run_files(trained, out_dir)
     info = dict(machine(), wall_time_s=time.time() - start)
     discussion = None
     if discussion_file and os.path.exists(discussion_file):
         with open(discussion_file) as f:
             discussion = f.read()
-    runs.write_json(os.path.join(out_dir, "reproduce.json"), {
-        "command": command, "settings": config, "seed": seed,
-        "data": {kind: runs.relative(path, out_dir) for kind, path in paths.items()},
-        "runs": summaries, "machine": info})
-    write_report(out_dir, config, paths, summaries, tables, info, command, discussion)
+    roots = {k: runs.relative(v, out_dir) for k, v in (real_roots or {}).items() if v}
+    summary = {
+        "command": command, "settings": dict(config, variants=list(config["variants"])),
+        "seed": seed, "real_roots": roots,
+        "data": {"cvgl": runs.relative(paths["cvgl"], out_dir),
+                 "random": runs.relative(paths["random"], out_dir),
+                 "real": [runs.relative(p, out_dir) for p in paths["real"]]},
+        "datasets": dataset_lines(paths), "runs": summaries, "machine": info,
+        "predictions": [runs.relative(p, out_dir) for p in files], "tables": list(tables),
+        "discussion": discussion}
+    runs.write_json(os.path.join(out_dir, SUMMARY), summary)
+    write_report(out_dir, summary, tables)
+    return os.path.join(out_dir, "REPORT.md")
+
+
+# ---------------------------------------------------------------------------
+# Rebuilding the tables and REPORT.md from the published predictions
+# ---------------------------------------------------------------------------
+#: The reproduction's summary, beside REPORT.md.
+SUMMARY = "reproduce.json"
+#: The keys of the summary a rebuild needs.
+SUMMARY_KEYS = ("command", "settings", "datasets", "runs", "machine", "predictions", "tables")
+
+
+def read_summary(out_dir):
+    """``out_dir/reproduce.json``, checked; ValueError (one line) otherwise."""
+    path = os.path.join(out_dir, SUMMARY)
+    if not os.path.isdir(out_dir):
+        raise ValueError(f"not a folder: {out_dir}")
+    try:
+        summary = runs.read_json(path)
+    except (OSError, ValueError) as error:
+        raise ValueError(f"cannot read {path}: {cli.one_line(error)}") from None
+    if summary is None:
+        raise ValueError(f"{path} not found: not the output folder of a reproduction")
+    missing = [k for k in SUMMARY_KEYS if not isinstance(summary, dict) or k not in summary]
+    if missing:
+        raise ValueError(f"{path} has no {', '.join(missing)} (written before predictions "
+                         f"were published? run the reproduction again)")
+    return summary
+
+
+def rebuild(out_dir, command=""):
+    """Every table and REPORT.md of the reproduction in ``out_dir`` again, from
+    its published predictions and ``reproduce.json`` alone (no weights, no
+    datasets). Every file is read and checked before anything is written.
+    Returns the path of REPORT.md."""
+    from cpl_keras import predictions
+
+    summary = read_summary(out_dir)
+    files = [os.path.join(out_dir, p) for p in summary["predictions"]]
+    tables = predictions.tables_from_files(files)
+    if list(tables) != list(summary["tables"]):
+        raise predictions.PredictionsError(
+            f"the predictions make tables {list(tables)}, {SUMMARY} lists {summary['tables']}")
+    make_tables(files, out_dir, summary["command"])
+    write_report(out_dir, summary, tables, rebuilt_by=command)
     return os.path.join(out_dir, "REPORT.md")
 
 
 # ---------------------------------------------------------------------------
 # Command line (also evaluate.py --reproduce)
 # ---------------------------------------------------------------------------
+#: Options that set the scale (not allowed with --from-predictions).
+SCALE_OPTIONS = ("quick", "preset", "pairs", "random_pairs", "epochs", "patience", "backbone",
+                 "image_size", "crops", "chessboard_crops", "seeds", "random_seeds", "workers",
+                 "data_dir", "runs_dir", "geometric_max") + REAL_ROOTS
+
+
 def add_arguments(parser):
-    """The reproduction's options, as an argument group of ``parser``."""
+    """The reproduction's options, as an argument group of ``parser``; every
+    number is checked when parsed (``cli.positive_int``)."""
     from cpl_keras.models.backbones import BACKBONES
 
+    positive, non_negative = cli.positive_int, cli.non_negative_int
     group = parser.add_argument_group("reproduce (cpl_keras/reproduce.py)")
+    group.add_argument("--preset", choices=tuple(PRESETS), help="a named scale: paper-gpu (the "
+                       "paper's, the default), cpu (compact towers, 3 seeds, ~2 h on 2 cores), "
+                       "quick (= --quick); the flags below override its values")
     group.add_argument("--quick", action="store_true", help="tiny settings (minutes)")
-    group.add_argument("--pairs", type=int, help="cvgl-protocol pairs (paper: 123017)")
-    group.add_argument("--random-pairs", type=int, help="random-protocol pairs")
-    group.add_argument("--epochs", type=int, help="maximum epochs per run (paper: 200)")
-    group.add_argument("--patience", type=int, help="early stopping patience (paper: 5)")
+    group.add_argument("--pairs", type=positive, help="cvgl-protocol pairs (paper: 123017)")
+    group.add_argument("--random-pairs", type=positive, help="random-protocol pairs")
+    group.add_argument("--epochs", type=positive, help="maximum epochs per run (paper: 200)")
+    group.add_argument("--patience", type=non_negative, help="early stopping patience (paper: 5)")
     group.add_argument("--backbone", choices=BACKBONES)
-    group.add_argument("--image-size", type=int)
-    group.add_argument("--crops", type=int, help="Middlebury crops for Table 2")
-    group.add_argument("--seed", type=int, default=0)
-    group.add_argument("--data-dir", help="where the datasets go (default data/reproduce)")
-    group.add_argument("--runs-dir", help="where the runs go (default runs/reproduce)")
+    group.add_argument("--image-size", type=positive)
+    group.add_argument("--crops", type=positive, help="Middlebury crops for Table 2")
+    group.add_argument("--chessboard-crops", type=positive,
+                       help="crops per OpenCV chessboard pair for Table 2")
+    group.add_argument("--seeds", type=positive, help="cvgl runs per variant, seeds "
+                       "SEED, SEED+1, ... (each its own split and initial weights)")
+    group.add_argument("--random-seeds", type=positive, help="random-protocol runs per variant")
+    group.add_argument("--workers", type=positive, help="data generation processes "
+                       "(default: every core; paper-gpu: 16)")
+    group.add_argument("--seed", type=non_negative, default=0,
+                       help="seed of the datasets and the first run seed")
+    group.add_argument("--kitti", help="Table 2: KITTI stereo 2015 root")
+    group.add_argument("--kitti-raw", help="Table 2: KITTI raw root")
+    group.add_argument("--tsinghua", help="Table 2: Tsinghua-Daimler Cyclist root")
+    group.add_argument("--cityscapes", help="Table 2: Cityscapes root")
+    group.add_argument("--data-dir", help="where the datasets go (default data/reproduce, "
+                       "data/quick with --quick, data/reproduce-<preset> with --preset)")
+    group.add_argument("--runs-dir", help="where the runs go (default runs/reproduce, "
+                       "runs/quick, runs/reproduce-<preset>)")
     group.add_argument("--discussion", help="Markdown file appended to REPORT.md as the "
                        "comparison with the paper (default paper_results/discussion.md "
                        "when writing to paper_results/)")
+    group.add_argument("--from-predictions", metavar="DIR",
+                       help="rebuild every table and REPORT.md in DIR (a reproduction's output "
+                       "folder) from its published predictions alone: no weights, no datasets")
     return group
 
 
-def resolve_defaults(args):
-    """Fill in the output, data and runs folders (and the discussion file)."""
+def default_folders(preset):
+    """``(out, data_dir, runs_dir)`` of a preset (None: the paper's scale into
+    paper_results/)."""
     from cpl_keras.evaluation import PAPER_DIR
 
-    quick = "quick" if args.quick else "reproduce"
-    args.out = args.out or (os.path.join("runs", "quick", "paper_results") if args.quick
-                            else PAPER_DIR)
-    args.data_dir = args.data_dir or os.path.join("data", quick)
-    args.runs_dir = args.runs_dir or os.path.join("runs", quick)
+    if preset == "quick":
+        return os.path.join("runs", "quick", "paper_results"), os.path.join("data", "quick"), \
+            os.path.join("runs", "quick")
+    if preset is None:
+        return PAPER_DIR, os.path.join("data", "reproduce"), os.path.join("runs", "reproduce")
+    return (os.path.join(PAPER_DIR, preset), os.path.join("data", f"reproduce-{preset}"),
+            os.path.join("runs", f"reproduce-{preset}"))
+
+
+def resolve_args(parser, args):
+    """Check the reproduction's options (``parser.error``: one line, exit 2,
+    before anything is written) and fill in the folders and the settings
+    (``args.config``)."""
+    from cpl_keras.evaluation import PAPER_DIR
+
+    if args.from_predictions is not None:
+        given = [name for name in SCALE_OPTIONS if getattr(args, name, None) not in (None, False)]
+        if given:
+            parser.error(f"--from-predictions rebuilds the tables of DIR as they were made; "
+                         f"drop --{given[0].replace('_', '-')}")
+        if args.out is not None and os.path.abspath(args.out) != \
+                os.path.abspath(args.from_predictions):
+            parser.error("--from-predictions DIR writes into DIR; drop --out")
+        args.out = args.from_predictions
+        args.config = None
+        return args
+    try:
+        args.config = settings(
+            args.quick, args.preset, pairs=args.pairs, random_pairs=args.random_pairs,
+            epochs=args.epochs, patience=args.patience, backbone=args.backbone,
+            image_size=args.image_size, crops=args.crops, chessboard_crops=args.chessboard_crops,
+            geometric_max=args.geometric_max, seeds=args.seeds, random_seeds=args.random_seeds,
+            workers=args.workers)
+    except ValueError as error:
+        parser.error(str(error))
+    out, data_dir, runs_dir = default_folders(args.config["preset"])
+    args.out = args.out or out
+    args.data_dir = args.data_dir or data_dir
+    args.runs_dir = args.runs_dir or runs_dir
     if args.discussion is None and os.path.abspath(args.out) == os.path.abspath(PAPER_DIR):
         args.discussion = os.path.join(PAPER_DIR, "discussion.md")
+    for name in REAL_ROOTS:
+        root = getattr(args, name)
+        if root is not None and not os.path.isdir(root):
+            parser.error(f"--{name.replace('_', '-')}: dataset root not found: {root}")
     return args
 
 
 def run(args, command, prog=PROG):
-    """Run the reproduction for parsed ``args``; the exit status."""
+    """Run the reproduction (or the rebuild) for resolved ``args``; the exit status."""
     from cpl_keras.data.storage import DatasetError
 
     try:
-        config = settings(
-            args.quick, pairs=args.pairs, random_pairs=args.random_pairs, epochs=args.epochs,
-            patience=args.patience, backbone=args.backbone, image_size=args.image_size,
-            crops=args.crops, geometric_max=args.geometric_max,
-        )
-        with cli.interruptible():
-            report = reproduce(
-                out_dir=args.out, data_dir=args.data_dir, runs_dir=args.runs_dir, config=config,
-                seed=args.seed, command=command, discussion_file=args.discussion,
-            )
+        if args.from_predictions is not None:
+            report = rebuild(args.out, command)
+        else:
+            with cli.interruptible():
+                report = reproduce(
+                    out_dir=args.out, data_dir=args.data_dir, runs_dir=args.runs_dir,
+                    config=args.config, seed=args.seed, command=command,
+                    discussion_file=args.discussion,
+                    real_roots={name: getattr(args, name) for name in REAL_ROOTS})
     except KeyboardInterrupt:  # every stage is resumable: the same command goes on
         return cli.interrupted(prog, resume=command)
     except (ValueError, DatasetError, OSError) as error:  # EvaluationError is a ValueError
@@ -350,13 +654,12 @@ def run(args, command, prog=PROG):
 def main(argv=None):
     parser = cli.Parser(prog=PROG, description=__doc__.split("\n")[0])
     parser.add_argument("--out", help="output directory (default: paper_results/; with "
-                        "--quick: runs/quick/paper_results)")
-    parser.add_argument("--geometric-max", type=int,
+                        "--quick: runs/quick/paper_results; with --preset P: "
+                        "paper_results/P)")
+    parser.add_argument("--geometric-max", type=cli.positive_int,
                         help="run the Geometric baseline on the first N evaluation pairs only")
     add_arguments(parser)
-    args = resolve_defaults(parser.parse_args(argv))
-    if args.geometric_max is not None and args.geometric_max < 1:
-        parser.error(f"--geometric-max must be positive, got {args.geometric_max}")
+    args = resolve_args(parser, parser.parse_args(argv))
     return run(args, cli.command_line(PROG, argv), PROG)
 
 

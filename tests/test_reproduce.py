@@ -1,11 +1,19 @@
-"""The one-command reproduction pipeline, in its quick mode (as CI runs it)."""
+"""The one-command reproduction pipeline: its quick mode (as CI runs it), the
+published predictions and the tables rebuilt from them alone, the presets,
+and the checks of its arguments."""
 
 import json
 import os
+import shutil
 import subprocess
 import sys
 
+import numpy as np
 import pytest
+
+import evaluate
+from cpl_keras import reproduce
+from cpl_keras.camera import TARGETS
 
 
 def run(*args, cwd=None):
@@ -13,26 +21,70 @@ def run(*args, cwd=None):
                           cwd=cwd)
 
 
-@pytest.mark.slow
-def test_quick_reproduction_end_to_end(tmp_path):
-    out, data, runs = tmp_path / "out", tmp_path / "data", tmp_path / "runs"
-    result = run("--reproduce", "--quick", "--out", str(out), "--data-dir", str(data),
-                 "--runs-dir", str(runs))
+def rebuild(directory):
+    return subprocess.run([sys.executable, "-m", "cpl_keras.reproduce", "--from-predictions",
+                           str(directory)], capture_output=True, text=True)
+
+
+@pytest.fixture(scope="module")
+def quick(tmp_path_factory):
+    """One quick reproduction, shared by the tests of this module (read it;
+    a test that moves its folders puts them back)."""
+    root = tmp_path_factory.mktemp("quick")
+    args = ["--reproduce", "--quick", "--out", str(root / "out"), "--data-dir",
+            str(root / "data"), "--runs-dir", str(root / "runs")]
+    result = run(*args)
     assert result.returncode == 0, result.stderr[-3000:]
+    return {"root": root, "out": root / "out", "data": root / "data", "runs": root / "runs",
+            "args": args}
+
+
+def _contents(directory):
+    """{relative path: bytes} of every file under ``directory``."""
+    found = {}
+    for folder, _, names in os.walk(directory):
+        for name in names:
+            path = os.path.join(folder, name)
+            with open(path, "rb") as f:
+                found[os.path.relpath(path, directory)] = f.read()
+    return found
+
+
+@pytest.mark.slow
+def test_quick_reproduction_end_to_end(quick):
+    out, tmp_path = quick["out"], quick["root"]
     report = (out / "REPORT.md").read_text()
-    for heading in ("Table 1, paper protocol", "Table 1, unseen rigs", "Table 2, real data",
+    for heading in ("Table 1, paper protocol", "Table 1, unseen rigs", "Table 2, real rigs",
+                    "Rig: chessboard (not rectified)", "Rig: middlebury (rectified)",
                     "Training runs", "MTL-CPL-A (as released)", "Geometric"):
         assert heading in report
-    for stem in ("table1_cvgl", "table1_random", "table2_middlebury"):
+    for stem in ("table1_cvgl", "table1_random", "table2"):
         table = json.loads((out / f"{stem}.json").read_text())
         assert {"Average", "Deep-Homo", "MTL-CPL-U", "MTL-Baseline", "MTL-CPL-A"} <= set(table["rows"])
         assert (out / f"{stem}_fov.png").read_bytes()[:4] == b"\x89PNG"
+    # Table 2 on every real rig that needs no download, per rig and pooled
+    table2 = json.loads((out / "table2.json").read_text())
+    assert set(table2["rigs"]) == {"chessboard", "middlebury"}
+    assert table2["num_pairs"] == sum(r["num_pairs"] for r in table2["rigs"].values())
+    assert (out / "table2_fov_scatter.png").read_bytes()[:4] == b"\x89PNG"
     cvgl = json.loads((out / "table1_cvgl.json").read_text())
     assert cvgl["rows"]["MTL-CPL-A (as released)"]["as_released"] is True
     summary = json.loads((out / "reproduce.json").read_text())
     assert len(summary["runs"]) == 9
     assert all(r["epochs_run"] == 1 and r["split"] in ("paper", "held-out-config") for r in summary["runs"])
     assert (out / "runs" / "random_cpl-a_log.csv").exists()
+    # every row of every table published its predictions: 13 outputs per test pair
+    assert len(summary["predictions"]) == 9 + 3 * 2 + 8 * 2   # runs, baselines, per real rig
+    with np.load(out / "runs" / "cvgl_cpl-a_predictions.npz", allow_pickle=False) as f:
+        assert list(f["outputs"]) == list(TARGETS) and f["pred"].dtype == np.float32
+        assert f["pred"].shape == (cvgl["num_pairs"], 13) == f["truth"].shape
+        assert str(f["row"]) == "MTL-CPL-A" and str(f["split"]) == "paper"
+        assert str(f["subset"]) == "test" and str(f["dataset"]).startswith("cvgl_150_32px")
+        assert all(f[k].dtype != object for k in f.files)
+    with np.load(out / "runs" / "cvgl_geometric_on_chessboard_predictions.npz",
+                 allow_pickle=False) as f:
+        assert str(f["table"]) == "table2" and str(f["rig"]) == "chessboard"
+        assert f["failures"].shape == (len(f["indices"]), len(f["failure_flags"]))
     # no machine's absolute paths in the results (but in the command as typed):
     # paths are relative to out/
     command = summary["command"]
@@ -40,15 +92,78 @@ def test_quick_reproduction_end_to_end(tmp_path):
         if name.endswith((".md", ".json", ".csv")):
             text = (out / name).read_text().replace(json.dumps(command)[1:-1], "")
             assert str(tmp_path) not in text.replace(command, ""), name
+            assert os.path.dirname(os.path.dirname(reproduce.__file__)) not in text, name
     assert (out / cvgl["runs"][0] / "config.json").exists()
-    # run again: every stage is reused (the tables too, despite relative paths)
-    again = run("--reproduce", "--quick", "--out", str(out), "--data-dir", str(data),
-                "--runs-dir", str(runs))
+
+
+@pytest.mark.slow
+def test_quick_reproduction_reuses_every_stage(quick):
+    """The same command again: datasets, runs and predictions are reused."""
+    again = run(*quick["args"])
     assert again.returncode == 0 and "evaluating" not in again.stderr, again.stderr[-3000:]
+    assert "published predictions up to date" in again.stderr
+
+
+@pytest.mark.slow
+def test_tables_rebuilt_from_predictions_alone(quick, tmp_path):
+    """Weights and datasets moved away, --from-predictions rebuilds every table
+    and REPORT.md exactly as the reproduction made them."""
+    original = _contents(quick["out"])
+    copy = tmp_path / "results"
+    shutil.copytree(quick["out"], copy)
+    away = {quick["data"]: tmp_path / "data_away", quick["runs"]: tmp_path / "runs_away"}
+    for path, moved in away.items():
+        shutil.move(str(path), str(moved))
+    try:
+        for name in list(original):
+            if name.endswith((".md", ".csv", ".json", ".png")) and not name.startswith("runs") \
+                    and name != "reproduce.json":
+                os.remove(copy / name)          # every table is written anew
+        result = rebuild(copy)
+    finally:
+        for path, moved in away.items():
+            shutil.move(str(moved), str(path))
+    assert result.returncode == 0, result.stderr[-3000:]
+    rebuilt = _contents(copy)
+    assert set(rebuilt) == set(original)
+    note = ("The tables and this page were rebuilt from the published predictions "
+            "(`runs/*_predictions.npz`), without weights or datasets, by:\n\n```\n"
+            f"python -m cpl_keras.reproduce --from-predictions {copy}\n```\n\n")
+    report = rebuilt.pop("REPORT.md").decode()
+    assert note in report and report.replace(note, "") == original.pop("REPORT.md").decode()
+    for name, data in original.items():
+        assert rebuilt[name] == data, name
+
+
+@pytest.mark.slow
+def test_rebuild_refuses_bad_predictions(quick, tmp_path):
+    """A corrupt or missing predictions file, or a folder that is not a
+    reproduction's: one line, exit 2, nothing written."""
+    copy = tmp_path / "results"
+    shutil.copytree(quick["out"], copy)
+    target = copy / "runs" / "cvgl_cpl-u_predictions.npz"
+    data = target.read_bytes()
+    for damage, expected in ((lambda: target.write_bytes(data[: len(data) // 2]),
+                              "cvgl_cpl-u_predictions.npz: not a readable predictions file"),
+                             (lambda: target.unlink(), "predictions file not found")):
+        damage()
+        before = _contents(copy)
+        result = rebuild(copy)
+        assert result.returncode == 2, result.stderr
+        err = result.stderr.strip()
+        assert err.startswith("python -m cpl_keras.reproduce: error: ") and "\n" not in err, err
+        assert expected in err, err
+        assert _contents(copy) == before                    # no partial output
+    (tmp_path / "empty").mkdir()
+    result = rebuild(tmp_path / "empty")
+    assert result.returncode == 2 and "reproduce.json not found" in result.stderr
+    assert os.listdir(tmp_path / "empty") == []
 
 
 def test_reproduce_bad_arguments_exit_2(tmp_path):
-    for args in (["--reproduce", "--pairs", "0"], ["--reproduce", "--table", "1"], ["--quick"]):
+    for args in (["--reproduce", "--pairs", "0"], ["--reproduce", "--table", "1"], ["--quick"],
+                 ["--reproduce", "--quick", "--preset", "cpu"],
+                 ["--reproduce", "--from-predictions", str(tmp_path), "--epochs", "3"]):
         result = run(*args, "--out", str(tmp_path / "out"), "--data-dir", str(tmp_path / "d"))
         assert result.returncode == 2, args
         assert result.stderr.startswith("evaluate.py: error: ") and "Traceback" not in result.stderr
@@ -56,5 +171,97 @@ def test_reproduce_bad_arguments_exit_2(tmp_path):
     result = subprocess.run([sys.executable, "-m", "cpl_keras.reproduce", "--pairs", "0",
                              "--out", str(tmp_path / "out")], capture_output=True, text=True)
     assert result.returncode == 2
-    assert result.stderr.startswith("python -m cpl_keras.reproduce: error: pairs must be positive")
-    assert not (tmp_path / "out" / "REPORT.md").exists()
+    assert result.stderr == ("python -m cpl_keras.reproduce: error: argument --pairs: must be "
+                             "a positive integer, got 0\n")
+    assert not (tmp_path / "out").exists()
+
+
+#: Numeric flags of evaluate.py --reproduce, a bad value and what the line says.
+BAD_NUMBERS = [
+    ("--pairs", "0", "argument --pairs: must be a positive integer, got 0"),
+    ("--random-pairs", "-5", "argument --random-pairs: must be a positive integer, got -5"),
+    ("--epochs", "two", "argument --epochs: must be a positive integer, got 'two'"),
+    ("--patience", "-1", "argument --patience: must be a non-negative integer, got -1"),
+    ("--image-size", "0", "argument --image-size: must be a positive integer, got 0"),
+    ("--image-size", "24", "image-size must be at least 75"),
+    ("--crops", "0", "argument --crops: must be a positive integer, got 0"),
+    ("--chessboard-crops", "0", "argument --chessboard-crops: must be a positive integer"),
+    ("--seeds", "0", "argument --seeds: must be a positive integer, got 0"),
+    ("--random-seeds", "1.5", "argument --random-seeds: must be a positive integer, got '1.5'"),
+    ("--workers", "0", "argument --workers: must be a positive integer, got 0"),
+    ("--seed", "-1", "argument --seed: must be a non-negative integer, got -1"),
+    ("--geometric-max", "0", "argument --geometric-max: must be a positive integer, got 0"),
+    ("--batch-size", "0", "argument --batch-size: must be a positive integer, got 0"),
+]
+
+
+def test_reproduce_numbers_checked_when_parsed(tmp_path, capsys):
+    """Every numeric flag of evaluate.py --reproduce is checked by the parser:
+    one line naming it, exit 2, before any folder is made."""
+    folders = ["--out", str(tmp_path / "out"), "--data-dir", str(tmp_path / "data"),
+               "--runs-dir", str(tmp_path / "runs")]
+    for flag, value, message in BAD_NUMBERS:
+        with pytest.raises(SystemExit) as exit_info:
+            evaluate.parse_args(["--reproduce", flag, value] + folders)
+        assert exit_info.value.code == 2, flag
+        err = capsys.readouterr().err
+        assert err.startswith("evaluate.py: error: ") and err.count("\n") == 1, err
+        assert message in err, (flag, err)
+    # the same through the command line, in a fresh process
+    for flag, value, message in (BAD_NUMBERS[2], BAD_NUMBERS[5], BAD_NUMBERS[10]):
+        result = run("--reproduce", flag, value, *folders)
+        assert result.returncode == 2 and result.stdout == ""
+        assert result.stderr.startswith("evaluate.py: error: ") and message in result.stderr
+        assert result.stderr.count("\n") == 1, result.stderr
+    assert os.listdir(tmp_path) == []
+
+
+def _parsed(*argv):
+    return reproduce.resolve_args(*_parser_and_args(argv))
+
+
+def _parser_and_args(argv):
+    from cpl_keras import cli
+
+    parser = cli.Parser(prog=reproduce.PROG)
+    parser.add_argument("--out")
+    parser.add_argument("--geometric-max", type=cli.positive_int)
+    reproduce.add_arguments(parser)
+    return parser, parser.parse_args(list(argv))
+
+
+def test_presets_resolve():
+    cpu = _parsed("--preset", "cpu").config
+    assert cpu["backbone"] == "small_resnet" and cpu["image_size"] == 112
+    assert cpu["variants"] == ("cpl-u", "baseline", "cpl-a") and not cpu["released"]
+    assert (cpu["pairs"], cpu["random_pairs"], cpu["epochs"], cpu["patience"]) == (2000, 2000, 60, 5)
+    assert (cpu["seeds"], cpu["random_seeds"], cpu["geometric_max"]) == (3, 1, 200)
+    jobs = reproduce.run_jobs(cpu, seed=0)
+    assert [j[-1] for j in jobs if j[0] == "cvgl"] == [
+        f"{v}-s{s}" for s in range(3) for v in ("cpl-u", "baseline", "cpl-a")]
+    assert {j[2] for j in jobs if j[0] == "cvgl"} == {0, 1, 2}   # seeds: split and weights
+    assert [j[-1] for j in jobs if j[0] == "random"] == ["cpl-u", "baseline", "cpl-a"]
+    gpu = _parsed("--preset", "paper-gpu")
+    config = gpu.config
+    assert (config["pairs"], config["random_pairs"], config["epochs"]) == (123017, 123017, 200)
+    assert config["backbone"] == "inception_v3" and config["workers"] == 16
+    assert config["variants"] == ("deep-homo", "cpl-u", "baseline", "cpl-a") and config["released"]
+    assert config["geometric_max"] is None and config["seeds"] == 1
+    assert gpu.out.endswith(os.path.join("paper_results", "paper-gpu"))
+    assert gpu.runs_dir == os.path.join("runs", "reproduce-paper-gpu")
+    # without a preset: the paper's scale into paper_results/, as before
+    default = _parsed()
+    assert {k: v for k, v in default.config.items() if k != "preset"} == \
+        {k: v for k, v in config.items() if k != "preset"}
+    assert os.path.basename(default.out) == "paper_results" and default.discussion
+    # explicit flags override the preset's values
+    mine = _parsed("--preset", "cpu", "--epochs", "7", "--seeds", "2", "--out", "x").config
+    assert (mine["epochs"], mine["seeds"], mine["pairs"]) == (7, 2, 2000)
+    # the paper-gpu recipe at --quick's values is --quick's pipeline (what CI runs)
+    quick = reproduce.settings(quick=True)
+    scaled = reproduce.settings(preset="paper-gpu", **{
+        k: quick[k] for k in ("pairs", "random_pairs", "epochs", "image_size", "backbone",
+                              "crops", "chessboard_crops", "geometric_max")}, workers=1)
+    assert reproduce.run_jobs(scaled, 0) == reproduce.run_jobs(quick, 0)
+    assert {k: v for k, v in scaled.items() if k not in ("preset", "quick", "workers")} == \
+        {k: v for k, v in quick.items() if k not in ("preset", "quick", "workers")}

@@ -117,8 +117,9 @@ def build_one(source, out, *, root=None, args=None, command=None, report=None):
         right=args.right, labels=args.labels, seed=args.seed, limit=args.limit, command=command)
 
 
-def build_all(args, command=None, report=print):
-    """``all``: every set that needs no download, and each one given a root."""
+def build_all(args, command=None, report=print, crops=None):
+    """``all``: every set that needs no download, and each one given a root;
+    ``crops`` ({source: crops}) overrides ``args.crops`` per source."""
     if os.path.exists(args.out_dir) and not os.path.isdir(args.out_dir):
         raise ValueError(f"output directory is a file: {args.out_dir}")
     cli.check_output_file(os.path.join(args.out_dir, "x.h5"))
@@ -134,6 +135,8 @@ def build_all(args, command=None, report=print):
             paths.append(out)
             continue
         one = argparse.Namespace(**{**vars(args), **extra})
+        if crops and source in crops:
+            one.crops = crops[source]
         paths.append(build_one(source, out, root=root, args=one, command=command, report=report))
         report(f"{out}: built ({stem})")
     return paths

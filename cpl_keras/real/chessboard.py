@@ -335,7 +335,10 @@ def build_chessboard(out, *, root=DATA_DIR, crops=20, image_size=112, seed=0, co
         report(f"skipped {len(cal['skipped'])} of {cal['num_found']} pairs: "
                + "; ".join(f"{n}: {r}" for n, r in cal["skipped"]))
     metadata = {
-        "source": f"OpenCV sample stereo chessboard pairs ({os.path.abspath(os.fspath(root))})",
+        # the shipped pairs by their place in the package: no machine's folder in the file
+        "source": "OpenCV sample stereo chessboard pairs (" + (
+            "cpl_keras/real/opencv_chessboard" if os.path.abspath(os.fspath(root)) == DATA_DIR
+            else os.path.abspath(os.fspath(root))) + ")",
         "rig": "chessboard", "rectified": False, "crops_per_pair": crops,
         "image_size": image_size, "seed": int(seed), "calibration": metadata_of(cal),
         "labels": "rig: right camera pose in the left camera frame; (u, v) in the right image",
