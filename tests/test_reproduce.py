@@ -250,9 +250,11 @@ def test_presets_resolve():
     assert gpu.out.endswith(os.path.join("paper_results", "paper-gpu"))
     assert gpu.runs_dir == os.path.join("runs", "reproduce-paper-gpu")
     # without a preset: the paper's scale into paper_results/, as before
+    # (data generated on every core)
     default = _parsed()
-    assert {k: v for k, v in default.config.items() if k != "preset"} == \
-        {k: v for k, v in config.items() if k != "preset"}
+    assert default.config["workers"] is None
+    assert {k: v for k, v in default.config.items() if k not in ("preset", "workers")} == \
+        {k: v for k, v in config.items() if k not in ("preset", "workers")}
     assert os.path.basename(default.out) == "paper_results" and default.discussion
     # explicit flags override the preset's values
     mine = _parsed("--preset", "cpu", "--epochs", "7", "--seeds", "2", "--out", "x").config
