@@ -65,7 +65,8 @@ def build_parser():
     parser.add_argument("--target-scaling", choices=("none", "std"), default="none",
                         help="MTL-Baseline: divide each output's MAE by the target's training "
                         "standard deviation (std; not the paper's) or not (none, default)")
-    parser.add_argument("--quiet", action="store_true", help="no progress bars")
+    parser.add_argument("--quiet", action="store_true",
+                        help="no per-epoch lines or progress bar (the summary line stays)")
     return parser
 
 

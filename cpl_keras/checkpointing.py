@@ -29,7 +29,10 @@ class RunState(keras.callbacks.Callback):
     counters, the per-epoch logs and the names of the checkpoint files.
     Checkpoint files are written under fresh names and only then named
     by a new ``state.json`` (``os.replace``), so a kill at any moment
-    leaves the previous epoch's state intact.
+    leaves the previous epoch's state intact. Inside the state, epochs are
+    Keras's indices (0 = the first; ``best_epoch`` and each row's
+    ``epoch`` too); log.csv, curves.png, config.json and the console
+    number them from 1.
     """
 
     def __init__(self, run_dir, patience, sequence, bn_recompute_batches=0):
@@ -58,6 +61,9 @@ class RunState(keras.callbacks.Callback):
         if not model.optimizer.built:
             model.optimizer.build(model.trainable_variables)
         model.load_weights(os.path.join(self.backup, ckpt + ".weights.h5"))
+        # log.csv again from the state (atomically): a run begun by older code
+        # has a 0-based log, renumbered from 1 here, before training goes on
+        write_log(os.path.join(self.run_dir, runs.LOG), self.state.get("rows", []))
         return int(self.state["epoch"])
 
     # -- keras hooks ---------------------------------------------------
@@ -163,26 +169,50 @@ def publish_run_files(run_dir, state):
             shutil.copyfile(source, tmp)
     write_log(os.path.join(run_dir, runs.LOG), state.get("rows", []))
     if state.get("rows"):
-        plot_curves(os.path.join(run_dir, runs.CURVES), state["rows"], state.get("best_epoch"))
+        config = runs.read_config(run_dir, {})
+        plot_curves(os.path.join(run_dir, runs.CURVES), state["rows"], state.get("best_epoch"),
+                    title=curves_title(config, state) if config else None)
 
 
 def write_log(path, rows):
-    """One CSV row per epoch (columns: epoch, then the sorted log keys)."""
+    """One CSV row per epoch (columns: epoch, then the sorted log keys).
+    ``rows`` are the state's (``epoch``: Keras's 0-based index); the file
+    numbers the epochs from 1, as the console and config.json do."""
     keys = sorted({k for row in rows for k in row if k != "epoch"})
     with runs.atomic_path(path) as tmp, open(tmp, "w", newline="") as f:
         writer = csv.writer(f)
         writer.writerow(["epoch"] + keys)
         for row in rows:
-            writer.writerow([row["epoch"]] + [repr(row[k]) if k in row else "" for k in keys])
+            writer.writerow([row["epoch"] + 1] + [repr(row[k]) if k in row else "" for k in keys])
 
 
-def plot_curves(path, rows, best_epoch=None):
+def curves_title(config, state):
+    """curves.png's title: the run (variant, backbone, dataset file, split),
+    then its epochs so far, or how it ended."""
+    done = len(state.get("rows", []))
+    stopped, cap = state.get("stopped"), config.get("epochs")
+    if stopped:
+        how = f"{'failed' if stopped.startswith('non-finite') else 'finished'}: {stopped}"
+        status = f"{done} epoch{'s' * (done != 1)}, {how}"
+    elif cap and done >= cap:
+        status = f"{done} of {cap} epochs, finished"
+    else:
+        status = f"{done} of at most {cap} epochs so far"
+    return f"{runs.run_label(config)}\n{status}"
+
+
+def plot_curves(path, rows, best_epoch=None, title=None):
     """Training and validation loss per epoch (log scale when positive), and
-    the adaptive weights alpha_i of Eq. 9 beside them when the run has them."""
+    the adaptive weights alpha_i of Eq. 9 beside them when the run has them.
+    ``rows`` and ``best_epoch`` are the state's (0-based); the axis numbers
+    epochs from 1."""
+    import textwrap
+
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
+    from matplotlib.ticker import MaxNLocator
 
     epochs = [row["epoch"] + 1 for row in rows]
     alpha_keys = sorted({k for row in rows for k in row if k.startswith("alpha_")})
@@ -198,6 +228,7 @@ def plot_curves(path, rows, best_epoch=None):
     if best_epoch is not None:
         ax.axvline(best_epoch + 1, color="grey", linestyle="--", label=f"best (epoch {best_epoch + 1})")
     ax.set_xlabel("epoch")
+    ax.xaxis.set_major_locator(MaxNLocator(integer=True))
     ax.set_ylabel("loss")
     ax.legend()
     ax.grid(True, alpha=0.3)
@@ -207,9 +238,14 @@ def plot_curves(path, rows, best_epoch=None):
             ax.plot(epochs, [row.get(key, np.nan) for row in rows], label=key[len("alpha_"):])
         ax.set_yscale("log")
         ax.set_xlabel("epoch")
+        ax.xaxis.set_major_locator(MaxNLocator(integer=True))
         ax.set_ylabel("alpha_i (Eq. 9)")
         ax.legend(fontsize=7, ncol=2)
         ax.grid(True, alpha=0.3)
+    if title:
+        columns = 120 if alpha_keys else 64  # (characters that fit the figure's width)
+        lines = [wrapped for line in title.split("\n") for wrapped in textwrap.wrap(line, columns)]
+        fig.suptitle("\n".join(lines), fontsize=9)
     fig.tight_layout()
     runs.save_figure(fig, path, dpi=100)
 

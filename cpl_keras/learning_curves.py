@@ -19,7 +19,6 @@ datasets and trains the runs of docs/training.md's "Does it learn?" section
 
 from __future__ import annotations
 
-import csv
 import json
 import math
 import os
@@ -41,13 +40,12 @@ class CurveError(ValueError):
 
 
 def read_log(run_dir):
-    """log.csv as a list of dicts of floats (one per epoch)."""
+    """log.csv as a list of dicts of floats (one per epoch, ``epoch``
+    1-based; older 0-based logs are renumbered: ``runs.read_log``)."""
     path = os.path.join(run_dir, runs.LOG)
     if not os.path.isfile(path):
         raise CurveError(f"{run_dir} has no log.csv")
-    with open(path) as f:
-        rows = list(csv.DictReader(f))
-    return [{k: float(v) for k, v in row.items() if v not in ("", None)} for row in rows]
+    return runs.read_log(path)
 
 
 def _val_mae(row, name):
@@ -102,7 +100,7 @@ def curves(run_dir, data=None):
         best_epoch = 1 + int(np.nanargmin([row.get("val_loss", math.nan) for row in rows]))
     return {
         "run_dir": run_dir, "config": config, "rows": rows, "kept_epoch": best_epoch,
-        "samples_seen": [int(row["epoch"] + 1) * num_train for row in rows],
+        "samples_seen": [int(row["epoch"]) * num_train for row in rows],
         "nmae": out, "average": average,
         "best": {name: float(np.nanmin(v)) if v and not np.all(np.isnan(v)) else math.nan
                  for name, v in out.items()},
@@ -112,10 +110,7 @@ def curves(run_dir, data=None):
 
 
 def run_label(curve):
-    config = curve["config"]
-    released = runs.RELEASED if runs.config_as_released(config) else ""
-    return (f"{config['variant']}{released}, {config['build']['backbone']}, "
-            f"{os.path.basename(config['data'])}, split {config['split']}")
+    return runs.run_label(curve["config"])
 
 
 def plot(curve, path):

@@ -5,7 +5,7 @@ A run directory (written by ``cpl_keras.training``)::
     config.json        everything needed to rebuild and reproduce the run
     model.keras        the best model (loads with safe_mode=True)
     best.weights.h5    its weights
-    log.csv            one row per epoch, continuous across resumes
+    log.csv            one row per epoch, continuous across resumes; epoch 1 is the first
     curves.png         training curves
     train_stats.json   training-set statistics (the Average baseline)
     split.npz          train, val, test index arrays
@@ -167,12 +167,42 @@ def as_released(run):
     return config_as_released(run["config"])
 
 
+def run_label(config):
+    """The run in words: variant, backbone, dataset file, split."""
+    released = RELEASED if config_as_released(config) else ""
+    return (f"{config['variant']}{released}, {config['build']['backbone']}, "
+            f"{os.path.basename(config['data'])}, split {config['split']}")
+
+
 def row_name(run):
     """The table row of a run: its variant's row, marked when trained as released."""
     from cpl_keras.models.variants import VARIANT_ROWS
 
     row = VARIANT_ROWS[run["config"]["variant"]]
     return row + RELEASED if as_released(run) else row
+
+
+# ---------------------------------------------------------------------------
+# log.csv
+# ---------------------------------------------------------------------------
+def read_log(path):
+    """log.csv (the file, or a run directory holding it) as a list of dicts
+    of floats, one per epoch, ``epoch`` 1-based (1 = the first epoch).
+
+    Logs written before the epochs were numbered from 1 (Keras's CSVLogger
+    convention: the first row is epoch 0) are recognised by their first row
+    and renumbered, so both read alike."""
+    import csv
+
+    if os.path.isdir(path):
+        path = os.path.join(path, LOG)
+    with open(path, newline="") as f:
+        rows = [{k: float(v) for k, v in row.items() if v not in ("", None)}
+                for row in csv.DictReader(f)]
+    if rows and rows[0].get("epoch") == 0:  # the older, 0-based log
+        for row in rows:
+            row["epoch"] += 1
+    return rows
 
 
 # ---------------------------------------------------------------------------

@@ -237,6 +237,10 @@ def train(data, *, variant, run_dir, epochs=200, batch_size=16, learning_rate=No
     ended early, or None) and ``model`` (the trained model, best weights).
     A run that has already ended is left untouched (``finished_before``:
     True in its summary; its model.keras keeps its optimizer state).
+    ``verbose``: 0 prints nothing, 1 one short line per epoch (the loss, the
+    validation loss and key validation MAEs; every metric is in log.csv)
+    and a progress bar during the epoch when stdout is a terminal, 2 the
+    epoch lines only.
     """
     if isinstance(steps_per_execution, bool) or not (
         isinstance(steps_per_execution, (int, np.integer)) and steps_per_execution >= 1
@@ -291,7 +295,6 @@ def _finished_run(run_dir):
 def _run(plan, learning_rate, steps_per_execution, verbose):
     import keras
 
-    from cpl_keras.datasets import StereoSequence
     from cpl_keras.models import build_model, compile_model
 
     config = plan["config"]
@@ -310,10 +313,18 @@ def _run(plan, learning_rate, steps_per_execution, verbose):
     # Nothing has been written so far; from here on the run directory exists.
     run_dir = config["run_dir"]
     os.makedirs(os.path.join(run_dir, runs.BACKUP), exist_ok=True)
-    lock = _lock_run_dir(run_dir)  # held until this process ends
+    lock = _lock_run_dir(run_dir)
+    try:  # (released however training ends: a Ctrl-C in a notebook, then train() again)
+        return _run_locked(plan, model, config, run_dir, verbose)
+    finally:
+        lock.close()
+
+
+def _run_locked(plan, model, config, run_dir, verbose):
+    from cpl_keras.datasets import StereoSequence
+
     finished = _finished_run(run_dir)  # (by the process this one waited for)
     if finished is not None:
-        lock.close()
         return finished
     previous = runs.read_config(run_dir, {})
     for key in ("epochs_run", "best_epoch", "best_val_loss", "wall_time_s", "status", "stopped"):
@@ -345,6 +356,7 @@ def _run(plan, learning_rate, steps_per_execution, verbose):
     val_seq = StereoSequence(config["data"], plan["split"]["val"], shuffle=False, **common)
 
     from cpl_keras.checkpointing import RunState
+    from cpl_keras.progress import EpochLines
 
     run_state = RunState(run_dir, config["patience"], train_seq, config["bn_recompute_batches"])
     state = run_state.state
@@ -357,15 +369,18 @@ def _run(plan, learning_rate, steps_per_execution, verbose):
             train_seq.set_epoch(initial_epoch)
             # shuffle=False: the sequence shuffles itself, seeded per epoch; Keras's
             # own shuffle of the batch order uses Python's unseeded global RNG.
+            callbacks = [run_state]
+            if verbose:  # (Keras's bar would print all 14-30 metrics on every line)
+                callbacks.append(EpochLines(config["epochs"], run_state,
+                                            live=None if verbose == 1 else False))
             model.fit(train_seq, validation_data=val_seq, epochs=config["epochs"],
-                      initial_epoch=initial_epoch, callbacks=[run_state], shuffle=False,
-                      verbose=verbose)
+                      initial_epoch=initial_epoch, callbacks=callbacks, shuffle=False,
+                      verbose=0)
     finally:  # (also on Ctrl-C: no reading threads left behind)
         train_seq.close()
         val_seq.close()
     summary = _finish(model, run_dir, config, run_state.state)
     summary["model"] = model
-    lock.close()
     return summary
 
 
@@ -374,7 +389,8 @@ def _lock_run_dir(run_dir):
     time trains into a run directory. A second process (say, the same command
     run again after a kill that missed the first) waits until the first ends
     and then carries on from the state it left: the run ends as an
-    uninterrupted one would. The lock ends with the process, however it ends."""
+    uninterrupted one would. The lock ends with the run, however it ends (the
+    caller closes the handle), or with the process."""
     import fcntl
 
     handle = open(os.path.join(run_dir, runs.LOCK), "a+")

@@ -83,7 +83,7 @@ def test_every_variant_writes_the_run_directory(variant, dataset, tmp_path):
     assert config["build"]["as_released"] is False and "as_released" not in config
 
     rows = read_log(run_dir)
-    assert [int(r["epoch"]) for r in rows] == [0, 1]
+    assert [int(r["epoch"]) for r in rows] == [1, 2]  # numbered from 1
     best_row = rows[summary["best_epoch"] - 1]
     assert float(best_row["val_loss"]) == pytest.approx(summary["best_val_loss"], rel=1e-6)
 
@@ -164,7 +164,7 @@ def _ends_like(run_dir, returncode, out, err, uninterrupted):
     straight_line, straight_loss = summary(uninterrupted["out"], uninterrupted["run_dir"])
     assert line == straight_line and loss == pytest.approx(straight_loss, rel=1e-5)
     rows, straight = read_log(run_dir), read_log(uninterrupted["run_dir"])
-    assert [int(r["epoch"]) for r in rows] == [0, 1, 2, 3]
+    assert [int(r["epoch"]) for r in rows] == [1, 2, 3, 4]
     for resumed_row, straight_row in zip(rows, straight):
         assert float(resumed_row["loss"]) == pytest.approx(float(straight_row["loss"]), rel=1e-5)
         assert float(resumed_row["val_loss"]) == pytest.approx(
@@ -431,3 +431,124 @@ def test_truncated_files_are_called_truncated(dataset, tmp_path, tiny_run):
             cut.write_bytes(f.read()[:size])
         with pytest.raises(runs.RunError, match="truncated or corrupt"):
             runs.load_model({"model_path": str(cut)})
+
+
+# ---------------------------------------------------------------------------
+# Readable output: short epoch lines, every metric in log.csv, curves titled
+# ---------------------------------------------------------------------------
+def test_epoch_lines_are_short_and_log_csv_keeps_every_metric(dataset, tmp_path, capsys):
+    from cpl_keras import checkpointing, progress, runs
+    from cpl_keras.camera import PARAMETERS, TARGETS
+
+    run_dir = str(tmp_path / "run")
+    status = _train_script().main(["--variant", "cpl-a", "--backbone", "small", "--data", dataset,
+                                   "--run-dir", run_dir, "--epochs", "2", "--batch-size", "5"])
+    out = capsys.readouterr().out
+    assert status == 0
+    lines = out.splitlines()
+    assert "\r" not in out  # not a terminal: no bar, one line per epoch
+    assert [line.split("  ")[0] for line in lines[:2]] == ["epoch 1/2", "epoch 2/2"]
+    assert lines[2].startswith("best epoch ") and len(lines) == 3
+    assert all(len(line) <= progress.WIDTH for line in lines[:2]), lines
+    assert all(key in lines[0] for key in ("loss ", "val_loss ", "val MAE fx ", " b ", " pitch "))
+    # log.csv: every metric of every epoch, epochs numbered from 1
+    with open(os.path.join(run_dir, "log.csv")) as f:
+        header = next(csv.reader(f))
+    expected = {"epoch", "loss", "val_loss", "wall_time_s", "load_average"}
+    expected |= {f"{prefix}{name}_mae" for prefix in ("", "val_") for name in TARGETS}
+    expected |= {f"alpha_{name}" for name in TARGETS}
+    assert set(header) == expected and len(header) > 40
+    rows = read_log(run_dir)
+    assert [int(row["epoch"]) for row in rows] == [1, 2]
+    assert float(rows[1]["val_loss"]) == pytest.approx(
+        float(lines[1].split("val_loss ")[1].split()[0]), rel=1e-3)
+    # curves.png names the run and how far it got
+    config = runs.read_config(run_dir)
+    state = runs.read_json(os.path.join(run_dir, runs.STATE))
+    title = checkpointing.curves_title(config, state)
+    assert title == "cpl-a, small, tiny.h5, split paper\n2 of 2 epochs, finished"
+    assert checkpointing.curves_title(config, dict(state, rows=state["rows"][:1])).endswith(
+        "\n1 of at most 2 epochs so far")
+    stopped = dict(state, stopped="early stopping: no improvement of val_loss for 5 epochs")
+    assert checkpointing.curves_title(config, stopped).endswith(
+        "\n2 epochs, finished: early stopping: no improvement of val_loss for 5 epochs")
+    assert PARAMETERS[0] == "fx"
+
+
+def test_progress_bar_on_a_terminal_stays_within_the_width():
+    import io
+
+    from cpl_keras import progress
+
+    class Terminal(io.StringIO):
+        def isatty(self):
+            return True
+
+    screen = Terminal()
+    lines = progress.EpochLines(200, stream=screen)
+    assert lines.live
+    lines.set_params({"steps": 315, "epochs": 200})
+    huge = {"loss": -1.234567e12, "val_loss": 9.87654e-9, "val_fx_mae": 123456.7,
+            "val_baseline_mae": -0.000123456, "val_pitch_mae": float("nan"),
+            **{f"val_{name}_mae": 1e9 for name in ("X", "Y", "Z", "fy", "tx", "ty", "tz")}}
+    lines.on_epoch_begin(199)
+    lines.on_train_batch_end(99, {"loss": 1.5e33})
+    lines.on_test_begin()
+    lines.on_epoch_end(199, huge)
+    text = screen.getvalue()
+    assert text.count("\n") == 1 and text.count("\r") == 3
+    shown = [part for line in text.split("\n") for part in line.split("\r")]
+    assert all(len(part) <= progress.WIDTH for part in shown), shown
+    assert "[======" in shown[1] and "100/315" in shown[1] and "validating" in shown[2]
+    assert shown[3].startswith("epoch 200/200  ") and "val MAE fx 1.23e+05 b -0.000123 pitch nan" in shown[3]
+    # written to a file: the epoch line alone
+    log = io.StringIO()
+    lines = progress.EpochLines(200, stream=log)
+    lines.set_params({"steps": 315})
+    lines.on_epoch_begin(0)
+    lines.on_train_batch_end(0, {"loss": 3.0})
+    lines.on_test_begin()
+    lines.on_epoch_end(0, {"loss": 3.0, "val_loss": 2.0})
+    assert log.getvalue() == "epoch 1/200  0s  loss 3.000  val_loss 2.000\n"
+
+
+def test_old_zero_based_log_is_read_alike_and_renumbered_on_resume(dataset, tmp_path, monkeypatch):
+    """A run begun by the code that numbered log.csv's epochs from 0 (Keras's
+    CSVLogger convention) and resumed by this code: both logs read alike, and
+    the resumed run's log.csv is numbered from 1 throughout."""
+    from cpl_keras import checkpointing, learning_curves, runs
+    from cpl_keras.training import train
+
+    run_dir = str(tmp_path / "run")
+    original = checkpointing.RunState.on_epoch_end
+
+    def killed_after_epoch_2(self, epoch, logs=None):
+        original(self, epoch, logs)
+        if epoch == 1:
+            raise KeyboardInterrupt  # as a kill right after epoch 2's commit
+
+    monkeypatch.setattr(checkpointing.RunState, "on_epoch_end", killed_after_epoch_2)
+    with pytest.raises(KeyboardInterrupt):
+        train(dataset, variant="baseline", run_dir=run_dir, **dict(TINY, epochs=3))
+    monkeypatch.undo()
+    log = os.path.join(run_dir, "log.csv")
+    with open(log) as f:
+        new_text = f.read()
+    # the older code's file: the same rows, the epoch column from 0
+    lines = new_text.splitlines(keepends=True)
+    old_text = lines[0] + "".join(f"{k}{line[line.index(','):]}" for k, line in enumerate(lines[1:]))
+    assert old_text != new_text and old_text.splitlines()[1].startswith("0,")
+    with open(log, "w") as f:
+        f.write(old_text)
+    assert runs.read_log(log) == runs.read_log(run_dir) == learning_curves.read_log(run_dir)
+    assert [row["epoch"] for row in runs.read_log(log)] == [1.0, 2.0]
+    with open(os.path.join(tmp_path, "new.csv"), "w") as f:
+        f.write(new_text)
+    assert runs.read_log(os.path.join(tmp_path, "new.csv")) == runs.read_log(log)
+
+    summary = train(dataset, variant="baseline", run_dir=run_dir, **dict(TINY, epochs=3))
+    assert summary["status"] == "finished" and summary["epochs_run"] == 3
+    with open(log) as f:
+        resumed = f.read()
+    assert resumed.startswith(new_text)  # the first two rows as before, renumbered
+    assert [int(row["epoch"]) for row in read_log(run_dir)] == [1, 2, 3]
