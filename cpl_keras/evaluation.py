@@ -349,15 +349,25 @@ def _mean_and_spread(values):
     return float(np.mean(a)), float(np.std(a, ddof=1)) if len(a) > 1 else 0.0
 
 
+def _row_order(tables):
+    """Every row of ``tables`` (a row may be missing from some), in the
+    tables' order (``ROWS``, each followed by its as-released row)."""
+    names = []
+    for table in tables:
+        names += [row for row in table["rows"] if row not in names]
+    order = [row for base in ROWS for row in (base, base + RELEASED)]
+    return sorted(names, key=lambda r: (order.index(r) if r in order else len(order),
+                                        names.index(r)))
+
+
 def _aggregate_rows(tables, seeds):
-    names = list(tables[0]["rows"])
-    for seed, table in zip(seeds[1:], tables[1:]):
-        if list(table["rows"]) != names:
-            raise EvaluationError(f"seed {seed} has rows {list(table['rows'])}, seed {seeds[0]} "
-                                  f"has {names}: a table over seeds needs the same rows in each")
+    """Each row over the seeds that have it: means, its ``seeds``, its
+    ``per_seed`` values and (2+ seeds) its ``spread``."""
     rows = {}
-    for row in names:
-        parts = [table["rows"][row] for table in tables]
+    for row in _row_order(tables):
+        present = [(s, t["rows"][row]) for s, t in zip(seeds, tables) if row in t["rows"]]
+        row_seeds = [s for s, _ in present]
+        parts = [p for _, p in present]
         first = parts[0]
         entry = {"source": ", ".join(p["source"] for p in parts),
                  "as_released": first["as_released"],
@@ -370,7 +380,7 @@ def _aggregate_rows(tables, seeds):
             for flag in FAILURE_FLAGS + ("all_stages_ok",):
                 count = int(sum(p["failures"][flag]["count"] for p in parts))
                 failures[flag] = {"count": count, "rate": count / total if total else None}
-            entry["priors"] = {f"seed {s}": p["priors"] for s, p in zip(seeds, parts)}
+            entry["priors"] = {f"seed {s}": p["priors"] for s, p in present}
             entry["failures"] = failures
         targets, target_spread = {}, {}
         for name, first_metrics in first["targets"].items():
@@ -389,11 +399,13 @@ def _aggregate_rows(tables, seeds):
         entry.update(targets=targets, fov_within_deg=fov)
         if "degenerate" in first:
             entry["degenerate"] = first["degenerate"]
-        entry["spread"] = {"targets": target_spread, "fov_within_deg": fov_spread}
+        entry["seeds"] = row_seeds
+        if len(parts) > 1:              # one seed: its values, no spread
+            entry["spread"] = {"targets": target_spread, "fov_within_deg": fov_spread}
         entry["per_seed"] = {str(s): {
             "targets": {name: {key: p["targets"][name][key] for key in SPREAD_METRICS}
                         for name in p["targets"]},
-            "fov_within_deg": p["fov_within_deg"]} for s, p in zip(seeds, parts)}
+            "fov_within_deg": p["fov_within_deg"]} for s, p in present}
         rows[row] = entry
     return rows
 
@@ -414,10 +426,13 @@ def _aggregate_table(tables, seeds):
 
 def aggregate_seeds(tables, seeds):
     """One table from the same table made for several seeds (each seed its
-    own split and initial weights): every cell is the mean over the seeds,
-    with its spread (``SPREAD``) in the row's ``spread`` and each seed's value
-    in ``per_seed``; pair and failure counts are summed. Table 2's rigs are
-    aggregated one by one and its FOV points pooled. One seed: that table."""
+    own split and initial weights): every cell is the mean over the seeds
+    that have the row (a run trained on the first seed only is a row of that
+    seed's table alone), the row's ``seeds`` lists them, its spread
+    (``SPREAD``, only over 2+ seeds) is in the row's ``spread`` and each
+    seed's value in ``per_seed``; pair and failure counts are summed. Table
+    2's rigs are aggregated one by one and its FOV points pooled. One seed:
+    that table."""
     tables, seeds = list(tables), [int(s) for s in seeds]
     if len(tables) != len(seeds) or not tables:
         raise EvaluationError("aggregate_seeds needs one table per seed")
@@ -433,8 +448,9 @@ def aggregate_seeds(tables, seeds):
         table["rigs"] = {rig: _aggregate_table([t["rigs"][rig] for t in tables], seeds)
                          for rig in rigs}
         table["fov_points"] = {
-            rig: {row: {key: [x for t in tables for x in t["fov_points"][rig][row][key]]
+            rig: {row: {key: [x for t in tables if row in t["fov_points"][rig]
+                              for x in t["fov_points"][rig][row][key]]
                         for key in ("true_deg", "pred_deg")}
-                  for row in points}
-            for rig, points in tables[0]["fov_points"].items()}
+                  for row in _row_order([{"rows": t["fov_points"][rig]} for t in tables])}
+            for rig in tables[0]["fov_points"]}
     return jsonable(table)

@@ -88,14 +88,44 @@ def _with_spread(text, spread, decimals=3):
     return text if spread is None else f"{text} ± {metrics.format_value(spread, decimals)}"
 
 
+def row_seeds(table, row):
+    """The seeds a row of a table over seeds is a mean over (all the table's
+    unless the row says otherwise); None for a table of one seed."""
+    if "seeds" not in table:
+        return None
+    return table["rows"][row].get("seeds", table["seeds"])
+
+
+def row_label(table, row):
+    """The row's name as the Markdown tables and plots show it: marked
+    ``(1 seed)`` (``(k seeds)``) when it is a mean over fewer seeds than the
+    table's."""
+    seeds = row_seeds(table, row)
+    if seeds is None or len(seeds) == len(table["seeds"]):
+        return row
+    mark = f"{len(seeds)} seed{'s' if len(seeds) > 1 else ''}"
+    # "MTL-CPL-A (as released)" -> "MTL-CPL-A (as released, 1 seed)"
+    return f"{row[:-1]}, {mark})" if row.endswith(")") else f"{row} ({mark})"
+
+
+def _seed_list(seeds):
+    return ("seed " if len(seeds) == 1 else "seeds ") + ", ".join(str(s) for s in seeds)
+
+
 def seeds_lines(table):
-    """Markdown lines saying that the cells are means over seeds (none for a
-    table of one seed)."""
+    """Markdown lines saying that the cells are means over seeds, and which
+    rows have fewer seeds (none for a table of one seed)."""
     if "seeds" not in table:
         return []
     seeds = ", ".join(str(s) for s in table["seeds"])
-    return [f"Cells: mean ± spread over {len(table['seeds'])} seeds ({seeds}; each seed its "
-            f"own split and initial weights); spread = {table['spread']}.", ""]
+    lines = [f"Cells: mean ± spread over {len(table['seeds'])} seeds ({seeds}; each seed its "
+             f"own split and initial weights); spread = {table['spread']}."]
+    fewer = [row for row in table["rows"] if row_label(table, row) != row]
+    if fewer:
+        lines.append("Rows marked \"1 seed\" (\"k seeds\") were trained on those seeds only: "
+                     + "; ".join(f"{row}: {_seed_list(row_seeds(table, row))}" for row in fewer)
+                     + ". A row of one seed gives that run's values, without spread.")
+    return [" ".join(lines), ""]
 
 
 def nmae_tables(table, level="##"):
@@ -128,7 +158,7 @@ def nmae_tables(table, level="##"):
                     if paper is not None and row != "Average":
                         text += f" ({paper:.3f})"
                 cells.append(text)
-            lines.append(f"| {row} | " + " | ".join(cells) + " |")
+            lines.append(f"| {row_label(table, row)} | " + " | ".join(cells) + " |")
         lines.append("")
     return lines
 
@@ -147,7 +177,7 @@ def fov_table(table, header="{k} deg"):
                                   None if spread is None else
                                   (math.nan if spread[str(k)] is None else spread[str(k)]), 2)
                      for k in ks]
-        lines.append(f"| {row} | " + " | ".join(cells) + " |")
+        lines.append(f"| {row_label(table, row)} | " + " | ".join(cells) + " |")
     return lines + [""]
 
 
@@ -197,12 +227,22 @@ def markdown(table, command=None):
     return "\n".join(lines + notes(table))
 
 
+def csv_header(table, lead="method,metric"):
+    """The CSV header: ``lead``, the columns and, for a table over seeds,
+    ``seeds``."""
+    return f"{lead}," + ",".join(COLUMNS) + (",seeds" if "seeds" in table else "")
+
+
 def csv_rows(table, prefix=""):
     """CSV lines, one per (method, metric) (metric in mae, nmae, nmae_signed;
-    for a mean over seeds also mae_spread, nmae_spread, nmae_signed_spread),
-    each starting with ``prefix``; ``n/a`` for undefined values."""
+    for a mean over 2+ seeds also mae_spread, nmae_spread,
+    nmae_signed_spread), each starting with ``prefix``; ``n/a`` for undefined
+    values. A table over seeds ends each line with the row's seeds
+    (space-separated)."""
     lines = []
     for row, row_metrics in table["rows"].items():
+        seeds = row_seeds(table, row)
+        tail = "" if seeds is None else "," + " ".join(str(s) for s in seeds)
         metrics_ = ("mae",) + CONVENTIONS
         if "spread" in row_metrics:
             metrics_ += tuple(f"{m}_spread" for m in metrics_)
@@ -213,13 +253,14 @@ def csv_rows(table, prefix=""):
                          if metric.endswith("_spread") else cell(row_metrics, column, metric))
                 cells.append("degenerate" if _is_degenerate(row_metrics, column) else
                              "n/a" if not math.isfinite(value) else f"{value:.6g}")
-            lines.append(f"{prefix}{row},{metric}," + ",".join(cells))
+            lines.append(f"{prefix}{row},{metric}," + ",".join(cells) + tail)
     return lines
 
 
 def csv_text(table):
-    """One CSV row per (method, metric): metric in mae, nmae, nmae_signed."""
-    return "\n".join(["method,metric," + ",".join(COLUMNS)] + csv_rows(table)) + "\n"
+    """One CSV row per (method, metric): metric in mae, nmae, nmae_signed
+    (``csv_rows``)."""
+    return "\n".join([csv_header(table)] + csv_rows(table)) + "\n"
 
 
 def fov_plot(table, path):
@@ -234,7 +275,7 @@ def fov_plot(table, path):
     for row, row_metrics in table["rows"].items():
         values = [row_metrics["fov_within_deg"][str(k)] for k in ks]
         values = [math.nan if v is None else v for v in values]
-        ax.plot(ks, values, marker="o", label=row)
+        ax.plot(ks, values, marker="o", label=row_label(table, row))
     ax.set_xlabel("field-of-view error threshold (degrees)")
     ax.set_ylabel("samples within threshold (%)")
     ax.set_title(f"Table {table['table']}: FOV-threshold curves" if table["table"]

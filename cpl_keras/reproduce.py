@@ -20,9 +20,11 @@ from their last epoch):
    given);
 2. training: the preset's variants on each protocol (``cvgl`` with the
    paper's frame-level 70/30 split, ``random`` with whole configurations held
-   out), each for the preset's number of seeds (a seed changes the split and
-   the initial weights), plus MTL-CPL-A as released on cvgl where the preset
-   has it;
+   out), plus MTL-CPL-A as released on cvgl where the preset has it; the
+   preset's ``seeded_variants`` are trained for each of its seeds (a seed
+   changes the split and the initial weights), the other runs once, on the
+   first seed (``cpu``: the three MTL variants on 3 seeds, Deep-Homo and
+   MTL-CPL-A as released on one);
 3. predictions: every row of every table (each run, and the Average, the
    release's Average and the Geometric baselines) on its pairs, published as
    ``<out>/runs/*_predictions.npz`` (``cpl_keras.predictions``): Table 1 on
@@ -30,7 +32,7 @@ from their last epoch):
    models on every real rig;
 4. tables, made from those files alone: Table 1 per protocol, Table 2 per rig
    and pooled (``cpl_keras.real.table2``); a table over several seeds gives
-   every cell as mean ± spread;
+   every cell as mean ± spread, a row trained on one seed only its value;
 5. ``REPORT.md``: settings, dataset sizes, seeds, epochs actually run, wall
    times, the machine, the tables, the plots and the comparison with the
    paper; ``reproduce.json`` holds the same facts, so that
@@ -57,29 +59,41 @@ PROG = "python -m cpl_keras.reproduce"
 #: The MTL variants (the paper's three networks with two towers).
 MTL_VARIANTS = ("cpl-u", "baseline", "cpl-a")
 
+#: The run name stem of MTL-CPL-A as released (a ``seeded_variants`` entry).
+RELEASED_RUN = "cpl-a-released"
+
 #: Named scales. ``pairs`` / ``random_pairs``: pairs of the cvgl / random
 #: datasets; ``seeds`` / ``random_seeds``: seeds per protocol (each its own
 #: split and initial weights); ``variants``: trained on each protocol;
-#: ``released``: also MTL-CPL-A as released on cvgl; ``crops``: Middlebury
-#: crops; ``chessboard_crops``: crops per chessboard pair; ``geometric_max``:
-#: pairs of each table (or real set) the Geometric baseline runs on (None:
-#: all); ``workers``: data generation processes (None: every core).
+#: ``released``: also MTL-CPL-A as released on cvgl; ``seeded_variants``: the
+#: runs trained on every seed (variants, and ``RELEASED_RUN``; None: all of
+#: them), the others are trained once, on the first seed; ``crops``:
+#: Middlebury crops; ``chessboard_crops``: crops per chessboard pair;
+#: ``geometric_max``: pairs of each table (or real set) the Geometric
+#: baseline runs on (None: all); ``workers``: data generation processes
+#: (None: every core).
 PRESETS = {
     # The paper's scale: CVGL's 123,017 pairs, up to 200 epochs, InceptionV3 at 112.
     "paper-gpu": {"pairs": 123017, "random_pairs": 123017, "epochs": 200, "image_size": 112,
                   "backbone": "inception_v3", "crops": 500, "chessboard_crops": 20,
                   "geometric_max": None, "batch_size": 16, "patience": 5, "seeds": 1,
-                  "random_seeds": 1, "variants": TABLE_ORDER, "released": True, "workers": 16},
-    # Sized for a 2-core CPU, about 2 hours (the arithmetic: docs/evaluation.md).
-    "cpu": {"pairs": 2000, "random_pairs": 2000, "epochs": 60, "image_size": 112,
+                  "random_seeds": 1, "variants": TABLE_ORDER, "released": True,
+                  "seeded_variants": None, "workers": 16},
+    # Sized for a 2-core CPU, about 2 hours (the arithmetic: docs/evaluation.md):
+    # every row of the tables, the MTL variants on cvgl over 3 seeds, Deep-Homo
+    # and MTL-CPL-A as released on the first seed only; 1,000 pairs per
+    # protocol, since a Deep-Homo training step costs 15-18 small_resnet ones.
+    "cpu": {"pairs": 1000, "random_pairs": 1000, "epochs": 60, "image_size": 112,
             "backbone": "small_resnet", "crops": 500, "chessboard_crops": 20,
             "geometric_max": 200, "batch_size": 16, "patience": 5, "seeds": 3,
-            "random_seeds": 1, "variants": MTL_VARIANTS, "released": False, "workers": None},
+            "random_seeds": 1, "variants": TABLE_ORDER, "released": True,
+            "seeded_variants": MTL_VARIANTS, "workers": None},
     # Tiny settings that run the paper-gpu pipeline end to end in minutes (CI).
     "quick": {"pairs": 150, "random_pairs": 150, "epochs": 1, "image_size": 32,
               "backbone": "small", "crops": 24, "chessboard_crops": 1, "geometric_max": 20,
               "batch_size": 16, "patience": 5, "seeds": 1, "random_seeds": 1,
-              "variants": TABLE_ORDER, "released": True, "workers": None},
+              "variants": TABLE_ORDER, "released": True, "seeded_variants": None,
+              "workers": None},
 }
 #: The scale without --preset: the paper's, generating data on every core.
 PAPER_SCALE = dict(PRESETS["paper-gpu"], workers=None)
@@ -137,6 +151,13 @@ def settings(quick=False, preset=None, **overrides):
     chosen["variants"] = tuple(chosen["variants"])
     for variant in chosen["variants"]:
         registry.get(variant)
+    if chosen["seeded_variants"] is not None:
+        chosen["seeded_variants"] = tuple(chosen["seeded_variants"])
+        trained = run_stems(chosen)
+        for stem in chosen["seeded_variants"]:
+            if stem not in trained:
+                raise ValueError(f"seeded variant {stem!r} is not trained by these settings "
+                                 f"({', '.join(trained)})")
     least = max([MIN_REAL_IMAGE_SIZE, MIN_IMAGE_SIZE.get(chosen["backbone"], 1)]
                 + [registry.get(v).min_image_size or 1 for v in chosen["variants"]])
     if chosen["image_size"] < least:
@@ -191,20 +212,32 @@ def make_datasets(config, data_dir, seed, real_roots=None):
 # ---------------------------------------------------------------------------
 # Stage 2: training
 # ---------------------------------------------------------------------------
+def run_stems(config, protocol="cvgl"):
+    """The runs of the settings on ``protocol``, by name stem (the variant, or
+    ``RELEASED_RUN``)."""
+    stems = list(config["variants"])
+    if protocol == "cvgl" and config["released"]:
+        stems.append(RELEASED_RUN)
+    return tuple(stems)
+
+
 def run_jobs(config, seed):
     """Every training run of the settings: ``(protocol, split, run seed,
-    variant, as released, run name)``; a protocol trained over several seeds
-    names its runs ``<variant>-s<seed>``."""
+    variant, as released, run name)``. The runs of ``seeded_variants`` (None:
+    all) are trained on every seed of a protocol, the others on its first seed
+    only; a protocol trained over several seeds names its runs
+    ``<stem>-s<seed>`` (``cpl-u-s1``, ``deep-homo-s0``, ``cpl-a-released-s0``)."""
+    seeded = config.get("seeded_variants")
     jobs = []
     for protocol, split, seeds_key in PROTOCOLS:
         count = config[seeds_key]
         for run_seed in range(seed, seed + count):
-            variants = [(v, False) for v in config["variants"]]
-            if protocol == "cvgl" and config["released"]:
-                variants.append(("cpl-a", True))
-            for variant, released in variants:
-                name = variant + ("-released" if released else "") + (
-                    f"-s{run_seed}" if count > 1 else "")
+            for stem in run_stems(config, protocol):
+                if run_seed != seed and seeded is not None and stem not in seeded:
+                    continue
+                released = stem == RELEASED_RUN
+                variant = "cpl-a" if released else stem
+                name = stem + (f"-s{run_seed}" if count > 1 else "")
                 jobs.append((protocol, split, run_seed, variant, released, name))
     return jobs
 
@@ -373,6 +406,16 @@ def dataset_lines(paths):
 # ---------------------------------------------------------------------------
 # Stage 5: REPORT.md (from reproduce.json and the tables)
 # ---------------------------------------------------------------------------
+def _stem_row(stem):
+    """The table row of a run name stem (``cpl-a-released``: MTL-CPL-A (as released))."""
+    from cpl_keras.models.variants import VARIANT_ROWS
+    from cpl_keras.runs import RELEASED
+
+    if stem == RELEASED_RUN:
+        return VARIANT_ROWS["cpl-a"] + RELEASED
+    return VARIANT_ROWS.get(stem, stem)
+
+
 def _scale_text(config):
     preset = config.get("preset")
     if config.get("quick"):
@@ -384,6 +427,13 @@ def _scale_text(config):
     seeds = (f" Seeds per protocol: cvgl {config['seeds']}, random {config['random_seeds']} "
              f"(each seed its own split and initial weights; a table over several seeds gives "
              f"mean ± spread)." if max(config["seeds"], config["random_seeds"]) > 1 else "")
+    seeded = config.get("seeded_variants")
+    if seeds and seeded is not None:
+        once = [stem for stem in run_stems(config) if stem not in seeded]
+        if once:
+            seeds += (f" Trained on every seed: {', '.join(_stem_row(s) for s in seeded)}; "
+                      f"on the first seed only: {', '.join(_stem_row(s) for s in once)} (their "
+                      f"rows are one run's values, without spread).")
     return (f"Scale: {scale}. Backbone `{config['backbone']}`, {config['image_size']}x"
             f"{config['image_size']} images, batch {config['batch_size']}, Adam (lr 1e-3, "
             f"Deep-Homo 1.5e-3), up to {config['epochs']} epochs with early stopping "

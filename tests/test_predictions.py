@@ -4,6 +4,7 @@ table over several seeds as mean ± spread."""
 import json
 import os
 import shutil
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -30,7 +31,8 @@ def published(tiny_run, tmp_path_factory):
     files.update(predictions.table2_files(run_list, rigs, out_dir=out, prefix="cvgl",
                                           stem="table2", key="k2"))
     paths = predictions.write_files(out / "runs", files)
-    return {"out": out, "paths": paths, "tiny": tiny_run,
+    return {"out": out, "paths": paths, "tiny": tiny_run, "raw1": (context, rows),
+            "raw2": (run_list, rigs),
             "table1": report.portable(evaluation.table_from_rows(context, rows), out),
             "table2": report.portable(table2.table2_from_rigs(run_list, rigs), out)}
 
@@ -151,3 +153,90 @@ def test_bad_files_are_one_line_errors(published, tmp_path):
     shutil.copy(good, twice)
     with pytest.raises(predictions.PredictionsError, match="are both row"):
         predictions.tables_from_files([good, str(twice)])
+
+
+def _with_deep_homo(published, tmp_path):
+    """Seed 0's rows and a Deep-Homo run trained on seed 0 only (the tiny
+    run's predictions, changed): ``(table1, table2, paths)``, the tables
+    scored in memory and the predictions files."""
+    (context, rows), (run_list, rigs) = published["raw1"], published["raw2"]
+    run = tmp_path / "runs" / "deep-homo-s0"
+    run.mkdir(parents=True)
+    config = json.loads((Path(published["tiny"]["run"]) / "config.json").read_text())
+    (run / "config.json").write_text(json.dumps(dict(config, variant="deep-homo")))
+
+    def deep_homo(raw):
+        pred = evaluation.published({k: raw["pred"][k] * 0.9 for k in TARGETS})
+        return dict(raw, source=str(run), pred=pred)
+
+    context = dict(context, runs=context["runs"] + [str(run)])
+    rows = dict(rows, **{"Deep-Homo": deep_homo(rows["MTL-Baseline"])})
+    run_list = list(run_list) + [str(run)]
+    rigs = [dict(rig, rows=dict(rig["rows"], **{"Deep-Homo": deep_homo(rig["rows"]["MTL-Baseline"])}))
+            for rig in rigs]
+    out = published["out"]
+    files = predictions.table1_files(context, rows, out_dir=out, prefix="cvgl",
+                                     stem="table1_cvgl", key="k1", suffix="-s0")
+    files.update(predictions.table2_files(run_list, rigs, out_dir=out, prefix="cvgl",
+                                          stem="table2", key="k2", suffix="-s0"))
+    paths = predictions.write_files(tmp_path / "seed0", files)
+    return (report.portable(evaluation.table_from_rows(context, rows), out),
+            report.portable(table2.table2_from_rigs(run_list, rigs), out), paths)
+
+
+def test_a_row_of_one_seed_in_a_table_over_seeds(published, tmp_path):
+    """A run trained on the first seed only (the cpu preset's Deep-Homo and
+    MTL-CPL-A as released) is a row of seed 0's tables alone: in the table
+    over seeds it is that seed's values, with its seeds and no spread; the
+    tables from the files equal the tables scored in memory."""
+    table1_s0, table2_s0, seed0 = _with_deep_homo(published, tmp_path)
+    seed1 = _second_seed(published, tmp_path)
+    tables = predictions.tables_from_files(seed0 + seed1)
+    one = predictions.tables_from_files(seed1)
+    # exact: the files give what the rows scored in memory give
+    for stem, in_memory in (("table1_cvgl", table1_s0), ("table2", table2_s0)):
+        expected = evaluation.aggregate_seeds([in_memory, one[stem]], [0, 1])
+        assert json.dumps(tables[stem], sort_keys=True) == json.dumps(expected, sort_keys=True)
+    table = tables["table1_cvgl"]
+    assert table["seeds"] == [0, 1]
+    assert list(table["rows"]) == ["Average", "Average (release bug)", "Deep-Homo",
+                                   "MTL-Baseline", "Geometric"]
+    deep = table["rows"]["Deep-Homo"]
+    assert deep["seeds"] == [0] and "spread" not in deep and list(deep["per_seed"]) == ["0"]
+    alone = table1_s0["rows"]["Deep-Homo"]
+    assert deep["targets"] == alone["targets"] and deep["fov_within_deg"] == alone["fov_within_deg"]
+    assert deep["num_pairs"] == alone["num_pairs"]
+    both = table["rows"]["MTL-Baseline"]
+    assert both["seeds"] == [0, 1] and "spread" in both
+    assert both["num_pairs"] == 2 * alone["num_pairs"]
+    # Markdown: x ± s for the rows of both seeds, a plain x marked (1 seed)
+    md = report.markdown(table)
+    line = md.split("| Deep-Homo (1 seed) |")[1].split("\n")[0]
+    assert " ± " not in line and line.count(" | ") == len(report.COLUMNS) - 1
+    assert " ± " in md.split("| MTL-Baseline |")[1].split("\n")[0]
+    assert "Deep-Homo: seed 0" in md and "without spread" in md
+    released = {"seeds": [0, 1, 2], "rows": {"MTL-CPL-A (as released)": {"seeds": [0]},
+                                            "MTL-CPL-U": {"seeds": [0, 2]}}}
+    assert report.row_label(released, "MTL-CPL-A (as released)") == \
+        "MTL-CPL-A (as released, 1 seed)"
+    assert report.row_label(released, "MTL-CPL-U") == "MTL-CPL-U (2 seeds)"
+    # CSV: spread lines only over 2+ seeds, every line ends with its row's seeds
+    csv = report.csv_text(table).splitlines()
+    assert csv[0].endswith(",theta_p,seeds")
+    deep_lines = [c for c in csv if c.startswith("Deep-Homo,")]
+    assert [c.split(",")[1] for c in deep_lines] == ["mae", "nmae", "nmae_signed"]
+    assert all(c.endswith(",0") for c in deep_lines)
+    assert all(c.endswith(",0 1") for c in csv if c.startswith("MTL-Baseline,"))
+    assert len(csv) == 1 + 4 * 6 + 3
+    json.dumps(table, allow_nan=False)
+    # Table 2: per rig and pooled, and its FOV points of the one seed
+    t2 = tables["table2"]
+    for sub in [t2] + list(t2["rigs"].values()):
+        assert sub["rows"]["Deep-Homo"]["seeds"] == [0]
+        assert "spread" not in sub["rows"]["Deep-Homo"] and "spread" in sub["rows"]["MTL-Baseline"]
+    points = t2["fov_points"]["middlebury"]
+    assert len(points["Deep-Homo"]["true_deg"]) == 3 and len(points["MTL-Baseline"]["true_deg"]) == 6
+    written = table2.write_table2(str(tmp_path / "t2"), "table2", t2, "cmd")
+    assert all(os.path.getsize(p) for p in written)
+    text = open(tmp_path / "t2" / "table2.md").read()
+    assert text.count("| Deep-Homo (1 seed) |") == 2 * 3    # pooled and rig: 2 NMAE, 1 FOV

@@ -233,20 +233,44 @@ def _parser_and_args(argv):
 def test_presets_resolve():
     cpu = _parsed("--preset", "cpu").config
     assert cpu["backbone"] == "small_resnet" and cpu["image_size"] == 112
-    assert cpu["variants"] == ("cpl-u", "baseline", "cpl-a") and not cpu["released"]
-    assert (cpu["pairs"], cpu["random_pairs"], cpu["epochs"], cpu["patience"]) == (2000, 2000, 60, 5)
+    assert cpu["variants"] == ("deep-homo", "cpl-u", "baseline", "cpl-a") and cpu["released"]
+    assert cpu["seeded_variants"] == ("cpl-u", "baseline", "cpl-a")
+    assert (cpu["pairs"], cpu["random_pairs"], cpu["epochs"], cpu["patience"]) == (1000, 1000, 60, 5)
     assert (cpu["seeds"], cpu["random_seeds"], cpu["geometric_max"]) == (3, 1, 200)
+    # every row of both tables: the MTL variants on every cvgl seed (split and
+    # initial weights), Deep-Homo and MTL-CPL-A as released once, on seed 0
     jobs = reproduce.run_jobs(cpu, seed=0)
-    assert [j[-1] for j in jobs if j[0] == "cvgl"] == [
-        f"{v}-s{s}" for s in range(3) for v in ("cpl-u", "baseline", "cpl-a")]
-    assert {j[2] for j in jobs if j[0] == "cvgl"} == {0, 1, 2}   # seeds: split and weights
-    assert [j[-1] for j in jobs if j[0] == "random"] == ["cpl-u", "baseline", "cpl-a"]
+    assert len(jobs) == 15
+    cvgl = [(j[2], j[3], j[4], j[5]) for j in jobs if j[0] == "cvgl"]
+    assert cvgl == [(0, "deep-homo", False, "deep-homo-s0"), (0, "cpl-u", False, "cpl-u-s0"),
+                    (0, "baseline", False, "baseline-s0"), (0, "cpl-a", False, "cpl-a-s0"),
+                    (0, "cpl-a", True, "cpl-a-released-s0")] + [
+        (s, v, False, f"{v}-s{s}") for s in (1, 2) for v in ("cpl-u", "baseline", "cpl-a")]
+    assert all(j[1] == "paper" for j in jobs if j[0] == "cvgl")
+    assert [(j[2], j[3], j[4], j[5]) for j in jobs if j[0] == "random"] == [
+        (0, v, False, v) for v in ("deep-homo", "cpl-u", "baseline", "cpl-a")]
+    assert all(j[1] == "held-out-config" for j in jobs if j[0] == "random")
+    # --seed S shifts every run seed; more random seeds: the MTL variants on each
+    shifted = reproduce.run_jobs(reproduce.settings(preset="cpu", random_seeds=2), seed=5)
+    assert [j[-1] for j in shifted if j[0] == "random"] == [
+        "deep-homo-s5", "cpl-u-s5", "baseline-s5", "cpl-a-s5", "cpl-u-s6", "baseline-s6",
+        "cpl-a-s6"]
+    assert {j[2] for j in shifted if j[0] == "cvgl"} == {5, 6, 7}
+    with pytest.raises(ValueError, match="seeded variant 'baseline' is not trained"):
+        reproduce.settings(preset="cpu", variants=("deep-homo", "cpl-u", "cpl-a"))
+    # the report says which rows are of one seed
+    assert "on the first seed only: Deep-Homo, MTL-CPL-A (as released)" in \
+        reproduce._scale_text(cpu)
     gpu = _parsed("--preset", "paper-gpu")
     config = gpu.config
     assert (config["pairs"], config["random_pairs"], config["epochs"]) == (123017, 123017, 200)
     assert config["backbone"] == "inception_v3" and config["workers"] == 16
     assert config["variants"] == ("deep-homo", "cpl-u", "baseline", "cpl-a") and config["released"]
     assert config["geometric_max"] is None and config["seeds"] == 1
+    assert config["seeded_variants"] is None                     # everything on every seed
+    assert [j[-1] for j in reproduce.run_jobs(config, 0)] == [
+        "deep-homo", "cpl-u", "baseline", "cpl-a", "cpl-a-released"] + [
+        "deep-homo", "cpl-u", "baseline", "cpl-a"]
     assert gpu.out.endswith(os.path.join("paper_results", "paper-gpu"))
     assert gpu.runs_dir == os.path.join("runs", "reproduce-paper-gpu")
     # without a preset: the paper's scale into paper_results/, as before
@@ -258,7 +282,7 @@ def test_presets_resolve():
     assert os.path.basename(default.out) == "paper_results" and default.discussion
     # explicit flags override the preset's values
     mine = _parsed("--preset", "cpu", "--epochs", "7", "--seeds", "2", "--out", "x").config
-    assert (mine["epochs"], mine["seeds"], mine["pairs"]) == (7, 2, 2000)
+    assert (mine["epochs"], mine["seeds"], mine["pairs"]) == (7, 2, 1000)
     # the paper-gpu recipe at --quick's values is --quick's pipeline (what CI runs)
     quick = reproduce.settings(quick=True)
     scaled = reproduce.settings(preset="paper-gpu", **{

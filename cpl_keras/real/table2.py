@@ -32,7 +32,6 @@ import numpy as np
 from cpl_keras import evaluation, metrics, report, runs
 from cpl_keras.camera import TARGETS, fov_from_focal
 from cpl_keras.evaluation import ROWS, EvaluationError
-from cpl_keras.report import COLUMNS
 from cpl_keras.runs import RELEASED
 
 #: Targets that need the ground-truth disparity.
@@ -274,8 +273,8 @@ def markdown(table, command=None):
 
 
 def csv_text(table):
-    """``rig,method,metric,<columns>``; rig ``pooled`` for the pooled table."""
-    lines = ["rig,method,metric," + ",".join(COLUMNS)]
+    """``rig,method,metric,<columns>[,seeds]``; rig ``pooled`` for the pooled table."""
+    lines = [report.csv_header(table, "rig,method,metric")]
     for rig, sub in [("pooled", table)] + list(table["rigs"].items()):
         lines += report.csv_rows(sub, prefix=f"{rig},")
     return "\n".join(lines) + "\n"
