@@ -3,6 +3,7 @@
     python bench/bench_train.py                       # JAX, 2 InceptionV3 towers, 112x112, batch 16
     python bench/bench_train.py --compare-tensorflow  # also the TensorFlow backend, if installed
     python bench/bench_train.py --data d.h5 --workers 2   # through the HDF5 input pipeline
+    python bench/bench_backends.py                    # JAX, TensorFlow and PyTorch side by side
 
 Reports training samples/s, the FLOPs of one training step (XLA's cost
 analysis of the compiled step, JAX backend) and so the achieved GFLOP/s, and
@@ -28,7 +29,7 @@ sys.path.insert(0, REPO)
 def parse_args(argv=None):
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--backend", default=os.environ.get("KERAS_BACKEND", "jax"),
-                        choices=("jax", "tensorflow"))
+                        choices=("jax", "tensorflow", "torch"))
     parser.add_argument("--variant", default="baseline")
     parser.add_argument("--backbone", default="inception_v3")
     parser.add_argument("--image-size", type=int, default=112)
@@ -42,6 +43,10 @@ def parse_args(argv=None):
     parser.add_argument("--matmul-size", type=int, default=4096)
     parser.add_argument("--compare-tensorflow", action="store_true",
                         help="also run this benchmark under the TensorFlow backend, if installed")
+    parser.add_argument("--flops-per-step", type=float,
+                        help="FLOPs of one training step, for backends that cannot count them")
+    parser.add_argument("--predict-repeats", type=int, default=2,
+                        help="timed predict passes over the same samples; the best is kept")
     parser.add_argument("--json", help="append the result lines to this file")
     return parser.parse_args(argv)
 
@@ -122,6 +127,14 @@ def run(args):
         best = min(best, time.perf_counter() - start)
     samples_per_s = n / best
 
+    model.predict(x, batch_size=batch, verbose=0)  # compiles the predict function
+    predict_best = float("inf")
+    for _ in range(args.predict_repeats):
+        start = time.perf_counter()
+        model.predict(x, batch_size=batch, verbose=0)
+        predict_best = min(predict_best, time.perf_counter() - start)
+    predict_n = len(next(iter(x.values())))
+
     result = {
         "backend": keras.backend.backend(), "variant": args.variant, "backbone": args.backbone,
         "image_size": args.image_size, "batch_size": batch, "timed_samples": n,
@@ -130,15 +143,19 @@ def run(args):
         "num_parameters": int(model.count_params()),
         "first_epoch_s": round(compile_s, 2),
         "samples_per_s": round(samples_per_s, 2),
+        "predict_pairs_per_s": round(predict_n / predict_best, 2),
+        "load_average": [round(v, 2) for v in os.getloadavg()],
         "matmul_size": args.matmul_size,
         "matmul_gflops": round(matmul_gflops(args.matmul_size), 1),
         "cpu_count": os.cpu_count(),
         "xla_flags": os.environ.get("XLA_FLAGS", ""),
     }
+    flops = args.flops_per_step
     if keras.backend.backend() == "jax":
         xb = {k: v[:batch] for k, v in x.items()}
         yb = {k: v[:batch] for k, v in y.items()}
         flops = train_step_flops(model, xb, yb)
+    if flops:
         result["gflop_per_step"] = round(flops / 1e9, 2)
         result["achieved_gflops"] = round(flops / 1e9 * samples_per_s / batch, 1)
         result["fraction_of_matmul"] = round(result["achieved_gflops"] / result["matmul_gflops"], 3)
