@@ -186,6 +186,11 @@ def markdown(rows):
             cells += [f"{row['best_epoch_nmae'][p]:.3f}", f"{row['average_nmae'][p]:.3f}"]
         lines.append("| " + " | ".join(cells) + " |")
     lines.append("")
+    kept = [row["run"] for row in rows if row.get("kept_from_earlier")]
+    if kept:
+        lines.append(f"Kept from an earlier drawing (run directory not given this time): "
+                     f"{', '.join(kept)}.")
+        lines.append("")
     lines.append("All ten parameters of each run are in the JSON file and the figures.")
     return "\n".join(lines) + "\n"
 
@@ -206,10 +211,34 @@ def _finite(value):
     return value
 
 
-def write_outputs(run_dirs, out_dir, loads=None):
-    """Figures and the summary table of ``run_dirs`` into ``out_dir``."""
+def earlier_rows(out_dir):
+    """The rows of ``out_dir/learning_curves.json`` (an earlier drawing), or []."""
+    path = os.path.join(out_dir, "learning_curves.json")
+    if not os.path.isfile(path):
+        return []
+    try:
+        with open(path) as f:
+            payload = json.load(f)
+        if not isinstance(payload, list) or not all("run" in row for row in payload):
+            raise ValueError("not a list of runs")
+    except (OSError, ValueError) as error:
+        raise CurveError(f"{path} cannot be read: {error}") from None
+    return payload
+
+
+def write_outputs(run_dirs, out_dir, loads=None, keep_earlier=False):
+    """Figures and the summary table of ``run_dirs`` into ``out_dir``.
+
+    ``keep_earlier``: the rows of runs drawn into ``out_dir`` before (its
+    ``learning_curves.json``) that are not among ``run_dirs`` stay in the
+    table, marked ``kept_from_earlier`` (their figures stay too), so a run
+    whose directory is gone keeps its published row."""
     os.makedirs(out_dir, exist_ok=True)
-    rows, payload = [], []
+    names = {os.path.basename(os.path.abspath(r)) for r in run_dirs}
+    kept = [dict(row, kept_from_earlier=True) for row in earlier_rows(out_dir)
+            if row["run"] not in names] if keep_earlier else []
+    rows = [{k: v for k, v in row.items() if k not in ("samples_seen", "nmae")} for row in kept]
+    payload = list(kept)
     for run_dir in run_dirs:
         curve = curves(run_dir)
         name = os.path.basename(os.path.abspath(run_dir))
@@ -275,6 +304,9 @@ def main(argv=None):
     parser.add_argument("--only", action="append",
                         help="with --experiment: train only this run (repeatable; e.g. "
                         "cvgl-cpl-a-small_resnet), so runs can share the machine in parallel")
+    parser.add_argument("--keep-earlier", action="store_true",
+                        help="keep the rows of runs drawn into --out before that are not "
+                        "given now")
     parser.add_argument("--data-dir", default="data")
     parser.add_argument("--runs-dir", default="runs/learning")
     args = parser.parse_args(argv)
@@ -284,7 +316,7 @@ def main(argv=None):
                                   out_dir=args.out, pairs=args.pairs, backbone=args.backbone,
                                   only=args.only)
         elif args.runs:
-            rows = write_outputs(args.runs, args.out)
+            rows = write_outputs(args.runs, args.out, keep_earlier=args.keep_earlier)
         else:
             parser.error("give run directories or --experiment")
     except (CurveError, OSError, ValueError) as error:

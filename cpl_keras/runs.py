@@ -168,10 +168,17 @@ def as_released(run):
 
 
 def run_label(config):
-    """The run in words: variant, backbone, dataset file, split."""
+    """The run in words: variant, backbone, dataset file, split, and the
+    training options that differ from the defaults (learning rate, target
+    scaling)."""
     released = RELEASED if config_as_released(config) else ""
+    options = ""
+    if config.get("learning_rate") is not None:
+        options += f", lr {config['learning_rate']:g}"
+    if config.get("target_scaling", "none") != "none":
+        options += f", targets scaled by {config['target_scaling']}"
     return (f"{config['variant']}{released}, {config['build']['backbone']}, "
-            f"{os.path.basename(config['data'])}, split {config['split']}")
+            f"{os.path.basename(config['data'])}, split {config['split']}{options}")
 
 
 def row_name(run):

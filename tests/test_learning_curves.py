@@ -57,6 +57,32 @@ def test_outputs_figures_and_tables(tiny_run, tmp_path):
         assert "| cpl-a, small" in f.read()
 
 
+def test_keep_earlier_keeps_rows_of_runs_not_given(tiny_run, tmp_path):
+    out = str(tmp_path / "out")
+    earlier = [{"run": "gone-run", "label": "baseline, small, old.h5, split paper",
+                "num_train": 10, "num_val": 2, "epochs_run": 7, "best_epoch": 4,
+                "stopped": "early stopping", "wall_time_s": 120.0, "load_average": 2.0,
+                "best_epoch_nmae": {p: 0.5 for p in PARAMETERS},
+                "average_nmae": {p: 1.0 for p in PARAMETERS},
+                "samples_seen": [10, 20], "nmae": {p: [0.6, 0.5] for p in PARAMETERS}}]
+    os.makedirs(out)
+    with open(os.path.join(out, "learning_curves.json"), "w") as f:
+        json.dump(earlier, f)
+    assert learning_curves.main([tiny_run, "--out", out, "--keep-earlier"]) == 0
+    with open(os.path.join(out, "learning_curves.json")) as f:
+        payload = json.load(f)
+    assert [row["run"] for row in payload] == ["gone-run", os.path.basename(tiny_run)]
+    assert payload[0]["kept_from_earlier"] and payload[0]["nmae"]["fx"] == [0.6, 0.5]
+    with open(os.path.join(out, "learning_curves.md")) as f:
+        text = f.read()
+    assert "| baseline, small, old.h5, split paper | 10/2 | 7 (4) |" in text
+    assert "Kept from an earlier drawing (run directory not given this time): gone-run." in text
+    # without the flag the table holds only the runs given
+    assert learning_curves.main([tiny_run, "--out", out]) == 0
+    with open(os.path.join(out, "learning_curves.json")) as f:
+        assert [row["run"] for row in json.load(f)] == [os.path.basename(tiny_run)]
+
+
 def test_a_missing_run_is_one_line_and_exit_2(tmp_path, capsys):
     assert learning_curves.main([str(tmp_path / "nothing"), "--out", str(tmp_path / "o")]) == 2
     err = capsys.readouterr().err.strip().splitlines()
