@@ -226,7 +226,29 @@ def earlier_rows(out_dir):
     return payload
 
 
-def write_outputs(run_dirs, out_dir, loads=None, keep_earlier=False):
+def budget_table(payload, epoch):
+    """Markdown: every run's validation NMAE after ``epoch`` epochs (the same
+    training budget in samples for runs on the same data), with the mean over
+    the ten parameters and the wall time the run had taken by then."""
+    lines = [f"## Validation NMAE after {epoch} epochs (equal budget)", "",
+             "| run | mean of 10 | " + " | ".join(KEY_PARAMETERS) + " | wall time |",
+             "|" + "---|" * (3 + len(KEY_PARAMETERS))]
+    for row in payload:
+        values = {p: v[epoch - 1] if len(v) >= epoch else None for p, v in row["nmae"].items()}
+        if any(v is None for v in values.values()):
+            lines.append(f"| {row['label']} | fewer than {epoch} epochs |" + " |" *
+                         (1 + len(KEY_PARAMETERS)))
+            continue
+        finite = [v for v in values.values() if v is not None and math.isfinite(v)]
+        wall = (row.get("wall_times") or [])[epoch - 1:epoch]
+        cells = [row["label"], f"{np.mean(finite):.3f}"]
+        cells += [f"{values[p]:.3f}" for p in KEY_PARAMETERS]
+        cells.append(f"{wall[0] / 60:.1f} min" if wall and wall[0] is not None else "n/a")
+        lines.append("| " + " | ".join(cells) + " |")
+    return "\n".join(lines) + "\n"
+
+
+def write_outputs(run_dirs, out_dir, loads=None, keep_earlier=False, at_epoch=None):
     """Figures and the summary table of ``run_dirs`` into ``out_dir``.
 
     ``keep_earlier``: the rows of runs drawn into ``out_dir`` before (its
@@ -237,7 +259,8 @@ def write_outputs(run_dirs, out_dir, loads=None, keep_earlier=False):
     names = {os.path.basename(os.path.abspath(r)) for r in run_dirs}
     kept = [dict(row, kept_from_earlier=True) for row in earlier_rows(out_dir)
             if row["run"] not in names] if keep_earlier else []
-    rows = [{k: v for k, v in row.items() if k not in ("samples_seen", "nmae")} for row in kept]
+    rows = [{k: v for k, v in row.items() if k not in ("samples_seen", "nmae", "wall_times")}
+            for row in kept]
     payload = list(kept)
     for run_dir in run_dirs:
         curve = curves(run_dir)
@@ -245,8 +268,12 @@ def write_outputs(run_dirs, out_dir, loads=None, keep_earlier=False):
         plot(curve, os.path.join(out_dir, f"{name}.png"))
         row = summary_rows(curve, (loads or {}).get(name))
         rows.append(row)
-        payload.append(dict(row, samples_seen=curve["samples_seen"], nmae=curve["nmae"]))
-    for filename, text in (("learning_curves.md", markdown(rows)),
+        payload.append(dict(row, samples_seen=curve["samples_seen"], nmae=curve["nmae"],
+                            wall_times=[r.get("wall_time_s") for r in curve["rows"]]))
+    table = markdown(rows)
+    if at_epoch:
+        table += "\n" + budget_table(_finite(payload), at_epoch)
+    for filename, text in (("learning_curves.md", table),
                            ("learning_curves.json", json.dumps(_finite(payload), indent=1))):
         runs.write_text(os.path.join(out_dir, filename), text)
     return rows
@@ -307,6 +334,8 @@ def main(argv=None):
     parser.add_argument("--keep-earlier", action="store_true",
                         help="keep the rows of runs drawn into --out before that are not "
                         "given now")
+    parser.add_argument("--at-epoch", type=cli.positive_int,
+                        help="also tabulate every run's validation NMAE after this many epochs")
     parser.add_argument("--data-dir", default="data")
     parser.add_argument("--runs-dir", default="runs/learning")
     args = parser.parse_args(argv)
@@ -316,7 +345,8 @@ def main(argv=None):
                                   out_dir=args.out, pairs=args.pairs, backbone=args.backbone,
                                   only=args.only)
         elif args.runs:
-            rows = write_outputs(args.runs, args.out, keep_earlier=args.keep_earlier)
+            rows = write_outputs(args.runs, args.out, keep_earlier=args.keep_earlier,
+                                 at_epoch=args.at_epoch)
         else:
             parser.error("give run directories or --experiment")
     except (CurveError, OSError, ValueError) as error:

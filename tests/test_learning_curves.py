@@ -77,6 +77,20 @@ def test_keep_earlier_keeps_rows_of_runs_not_given(tiny_run, tmp_path):
         text = f.read()
     assert "| baseline, small, old.h5, split paper | 10/2 | 7 (4) |" in text
     assert "Kept from an earlier drawing (run directory not given this time): gone-run." in text
+    # the equal-budget table: NMAE after 2 epochs, a run with fewer epochs said so
+    assert learning_curves.main([tiny_run, "--out", out, "--keep-earlier", "--at-epoch", "2"]) == 0
+    with open(os.path.join(out, "learning_curves.json")) as f:
+        mine = json.load(f)[1]
+    with open(os.path.join(out, "learning_curves.md")) as f:
+        text = f.read()
+    cells = [f"{mine['nmae'][p][1]:.3f}" for p in learning_curves.KEY_PARAMETERS]
+    mean = np.mean([mine["nmae"][p][1] for p in PARAMETERS])
+    assert "## Validation NMAE after 2 epochs" in text
+    assert f"| {mine['label']} | {mean:.3f} | " + " | ".join(cells) in text
+    assert "| baseline, small, old.h5, split paper | 0.500 | 0.500 |" in text
+    assert learning_curves.main([tiny_run, "--out", out, "--keep-earlier", "--at-epoch", "9"]) == 0
+    with open(os.path.join(out, "learning_curves.md")) as f:
+        assert "| fewer than 9 epochs |" in f.read()
     # without the flag the table holds only the runs given
     assert learning_curves.main([tiny_run, "--out", out]) == 0
     with open(os.path.join(out, "learning_curves.json")) as f:
