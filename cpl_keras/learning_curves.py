@@ -249,7 +249,8 @@ def budget_table(payload, epoch):
 
 
 def write_outputs(run_dirs, out_dir, loads=None, keep_earlier=False, at_epoch=None):
-    """Figures and the summary table of ``run_dirs`` into ``out_dir``.
+    """Figures and the summary table of ``run_dirs`` into ``out_dir``, and
+    each run's log.csv and curves.png into ``out_dir/runs/``.
 
     ``keep_earlier``: the rows of runs drawn into ``out_dir`` before (its
     ``learning_curves.json``) that are not among ``run_dirs`` stay in the
@@ -266,6 +267,7 @@ def write_outputs(run_dirs, out_dir, loads=None, keep_earlier=False, at_epoch=No
         curve = curves(run_dir)
         name = os.path.basename(os.path.abspath(run_dir))
         plot(curve, os.path.join(out_dir, f"{name}.png"))
+        runs.publish_files(run_dir, os.path.join(out_dir, "runs"), name)
         row = summary_rows(curve, (loads or {}).get(name))
         rows.append(row)
         payload.append(dict(row, samples_seen=curve["samples_seen"], nmae=curve["nmae"],

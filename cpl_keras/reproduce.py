@@ -45,7 +45,6 @@ from __future__ import annotations
 import json
 import os
 import platform
-import shutil
 import sys
 import time
 
@@ -360,11 +359,7 @@ def collect_run_files(trained, out_dir):
         for run_dirs in by_seed.values():
             for run_dir in run_dirs:
                 name = f"{protocol}_{os.path.basename(run_dir)}"
-                for source, suffix in ((runs.LOG, "_log.csv"), (runs.CURVES, "_curves.png")):
-                    path = os.path.join(run_dir, source)
-                    if os.path.exists(path):
-                        with runs.atomic_path(os.path.join(target, name + suffix)) as tmp:
-                            shutil.copyfile(path, tmp)
+                runs.publish_files(run_dir, target, name)
                 run_config = runs.read_config(run_dir, {})
                 summaries.append({"protocol": protocol, "name": name,
                                   "run_dir": runs.relative(run_dir, out_dir),

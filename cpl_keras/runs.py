@@ -167,6 +167,20 @@ def as_released(run):
     return config_as_released(run["config"])
 
 
+def publish_files(run_dir, target_dir, name):
+    """Copy a run's log.csv and curves.png to ``target_dir/<name>_log.csv``
+    and ``<name>_curves.png`` (atomically; a missing file is skipped): the
+    small results that are published, unlike the weights."""
+    import shutil
+
+    os.makedirs(target_dir, exist_ok=True)
+    for source, suffix in ((LOG, "_log.csv"), (CURVES, "_curves.png")):
+        path = os.path.join(run_dir, source)
+        if os.path.exists(path):
+            with atomic_path(os.path.join(target_dir, name + suffix)) as tmp:
+                shutil.copyfile(path, tmp)
+
+
 def run_label(config):
     """The run in words: variant, backbone, dataset file, split, and the
     training options that differ from the defaults (learning rate, target

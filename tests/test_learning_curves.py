@@ -50,6 +50,11 @@ def test_outputs_figures_and_tables(tiny_run, tmp_path):
     assert learning_curves.main([tiny_run, "--out", out]) == 0
     name = os.path.basename(tiny_run)
     assert os.path.getsize(os.path.join(out, f"{name}.png")) > 10_000
+    # the run's own log and curves are published beside the figures
+    with open(os.path.join(tiny_run, "log.csv"), "rb") as f, \
+            open(os.path.join(out, "runs", f"{name}_log.csv"), "rb") as g:
+        assert f.read() == g.read()
+    assert os.path.getsize(os.path.join(out, "runs", f"{name}_curves.png")) > 10_000
     with open(os.path.join(out, "learning_curves.json")) as f:
         payload = json.load(f)
     assert payload[0]["run"] == name and set(payload[0]["nmae"]) == set(PARAMETERS)
