@@ -20,14 +20,12 @@ REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 def ctrl_c_not_ignored():
     """A test run started in the background (nohup, ``&`` in a script)
     inherits SIGINT ignored, and so would every command started here; these
-    tests are about a terminal's Ctrl-C, so they restore Python's default."""
+    tests are about a terminal's Ctrl-C, so they restore Python's default
+    (a handled signal is reset to its default in a started command, an
+    ignored one would stay ignored)."""
     previous = signal.signal(signal.SIGINT, signal.default_int_handler)
     yield
     signal.signal(signal.SIGINT, previous)
-
-
-def _default_sigint():
-    signal.signal(signal.SIGINT, signal.SIG_DFL)  # (Python then installs its own handler)
 
 
 def _start(args, cache=None):
@@ -37,7 +35,7 @@ def _start(args, cache=None):
         env["JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS"] = "0"
     return subprocess.Popen([sys.executable, *args], cwd=REPO, env=env, text=True,
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE,
-                            start_new_session=True, preexec_fn=_default_sigint)
+                            start_new_session=True)
 
 
 def _ctrl_c(process):
