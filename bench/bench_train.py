@@ -40,6 +40,9 @@ def parse_args(argv=None):
     parser.add_argument("--no-jit", action="store_true", help="compile with jit_compile=False")
     parser.add_argument("--data", help="read batches from this HDF5 file (StereoSequence)")
     parser.add_argument("--workers", type=int, default=1, help="StereoSequence threads")
+    parser.add_argument("--in-memory", default="auto", choices=("auto", "on", "off"),
+                        help="with --data: StereoSequence keeps the images in memory "
+                             "(auto: when they fit its limit) or streams every batch (off)")
     parser.add_argument("--matmul-size", type=int, default=4096)
     parser.add_argument("--compare-tensorflow", action="store_true",
                         help="also run this benchmark under the TensorFlow backend, if installed")
@@ -106,7 +109,8 @@ def run(args):
             targets = targets_from_labels(f.labels)
             count = f.num_pairs
         data = StereoSequence(args.data, np.arange(min(n, count)), targets, batch_size=batch,
-                              shuffle=True, workers=args.workers)
+                              shuffle=True, workers=args.workers,
+                              in_memory={"auto": "auto", "on": True, "off": False}[args.in_memory])
         fit_kwargs = {}
         n = min(n, count)
         x, y = data[0]
@@ -139,7 +143,8 @@ def run(args):
         "backend": keras.backend.backend(), "variant": args.variant, "backbone": args.backbone,
         "image_size": args.image_size, "batch_size": batch, "timed_samples": n,
         "steps_per_execution": args.steps_per_execution, "jit": not args.no_jit,
-        "input": f"hdf5, workers={args.workers}" if args.data else "in-memory arrays",
+        "input": f"hdf5, workers={args.workers}, in_memory={data.in_memory}" if args.data
+        else "in-memory arrays",
         "num_parameters": int(model.count_params()),
         "first_epoch_s": round(compile_s, 2),
         "samples_per_s": round(samples_per_s, 2),

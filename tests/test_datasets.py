@@ -330,7 +330,8 @@ def test_sequence_memory_does_not_grow_with_the_dataset(tmp_path):
     for n in (40, 400):
         path = write_stereo_fixture(tmp_path / f"d{n}.h5", n=n, image_size=32)
         targets = targets_from_labels(fixture_labels(n, 32))
-        seq = StereoSequence(path, np.arange(n), targets, batch_size=8, shuffle=True)
+        seq = StereoSequence(path, np.arange(n), targets, batch_size=8, shuffle=True,
+                             in_memory=False)
         seq[0]
         tracemalloc.start()
         for i in range(len(seq)):
@@ -370,3 +371,36 @@ def test_malformed_hdf5_objects_are_named_in_one_line(tmp_path):
         f.create_group("labels").create_dataset("fx", data=np.array([b"a", b"b"]))
     with pytest.raises(DatasetError, match="label 'fx' is not a numeric array"):
         StereoFile(path)
+
+
+def test_sequence_in_memory_serves_the_same_batches(tmp_path, monkeypatch):
+    from cpl_keras import datasets
+    from cpl_keras.datasets import StereoSequence
+
+    n = 60
+    path = write_stereo_fixture(tmp_path / "d.h5", n=n, image_size=32)
+    targets = targets_from_labels(fixture_labels(n, 32))
+    indices = np.random.default_rng(3).permutation(n)[:37]
+    streamed = StereoSequence(path, indices, targets, batch_size=8, shuffle=True, seed=5,
+                              multiple_of=3, in_memory=False)
+    cached = StereoSequence(path, indices, targets, batch_size=8, shuffle=True, seed=5,
+                            multiple_of=3, in_memory=True)
+    assert not streamed.in_memory and cached.in_memory
+    for epoch in (0, 1):
+        streamed.set_epoch(epoch)
+        cached.set_epoch(epoch)
+        for i in range(len(streamed)):
+            (xs, ys), (xc, yc) = streamed[i], cached[i]
+            for key in xs:
+                np.testing.assert_array_equal(xs[key], xc[key])
+                assert xc[key].dtype == np.float32
+            for key in ys:
+                np.testing.assert_array_equal(ys[key], yc[key])
+    # "auto" keeps the images when they fit under the limit, streams otherwise
+    pair_bytes = 2 * 32 * 32 * 3
+    monkeypatch.setattr(datasets, "IN_MEMORY_LIMIT", 37 * pair_bytes)
+    assert StereoSequence(path, indices, targets).in_memory
+    monkeypatch.setattr(datasets, "IN_MEMORY_LIMIT", 37 * pair_bytes - 1)
+    assert not StereoSequence(path, indices, targets).in_memory
+    with pytest.raises(ValueError, match="in_memory"):
+        StereoSequence(path, indices, targets, in_memory="yes")
