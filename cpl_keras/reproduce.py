@@ -241,11 +241,13 @@ def run_jobs(config, seed):
     return jobs
 
 
-def train_all(config, paths, runs_dir, seed):
-    """Stage 2: every run; returns ``{protocol: {seed: [run dirs]}}``."""
+def train_all(config, paths, runs_dir, seed, jobs=1):
+    """Stage 2: every run; returns ``{protocol: {seed: [run dirs]}}``.
+    ``jobs`` > 1 trains that many runs at a time, each in its own process
+    (``train_parallel``); the runs are the same either way."""
     from cpl_keras import training
 
-    trained = {}
+    trained, pending = {}, []
     for protocol, split, run_seed, variant, released, name in run_jobs(config, seed):
         run_dir = os.path.join(runs_dir, protocol, name)
         plan = dict(
@@ -260,12 +262,108 @@ def train_all(config, paths, runs_dir, seed):
         if (runs.read_config(run_dir) or {}).get("status") == "finished":
             _log(f"{protocol}/{name}: finished run found, reused")
             continue
-        _log(f"training {protocol}/{name} ({config['backbone']}, up to {config['epochs']} epochs)")
-        summary = training.train(paths[protocol], verbose=2, **plan)
+        pending.append((f"{protocol}/{name}", paths[protocol], plan))
+    if jobs > 1 and len(pending) > 1:
+        train_parallel(pending, jobs, config["backbone"], config["epochs"])
+        return trained
+    for label, data, plan in pending:
+        _log(f"training {label} ({config['backbone']}, up to {config['epochs']} epochs)")
+        summary = training.train(data, verbose=2, **plan)
         _log(training.summary_line(summary))
         if summary["best_epoch"] is None:
-            raise training.TrainingError(f"{run_dir}: no epoch completed ({summary['stopped']})")
+            raise training.TrainingError(f"{plan['run_dir']}: no epoch completed "
+                                         f"({summary['stopped']})")
     return trained
+
+
+#: Variants whose training step costs many MTL steps (Deep-Homo: 15-18x a
+#: small_resnet step, bench/bench_variants.py); ``train_parallel`` starts them
+#: first, so that the short runs fill the other process meanwhile.
+SLOW_VARIANTS = ("deep-homo",)
+
+
+def _exit_with_parent(parent, every=2.0):
+    """End this process (status 143, as by SIGTERM) once ``parent`` is gone:
+    a reproduction killed outright leaves no training behind."""
+    import threading
+
+    def watch():
+        while os.getppid() == parent:
+            time.sleep(every)
+        os._exit(143)
+
+    threading.Thread(target=watch, daemon=True, name="exit-with-parent").start()
+
+
+def _train_job(data, plan, parent):
+    """A training run in a process of its own (``train_parallel``): quiet; the
+    exit status says how it ended (0 trained, 1 no epoch completed, 2 an
+    error, printed on one line, 130 interrupted, 143 its parent gone; a
+    killed run resumes from its last completed epoch)."""
+    from cpl_keras import training
+    from cpl_keras.cache import enable_compile_cache
+    from cpl_keras.data.storage import DatasetError
+
+    _exit_with_parent(parent)
+    enable_compile_cache()
+    try:
+        with cli.interruptible():
+            summary = training.train(data, verbose=0, **plan)
+    except KeyboardInterrupt:  # the last completed epoch is checkpointed
+        sys.exit(130)
+    except (training.TrainingError, DatasetError, OSError) as error:
+        print(f"{PROG}: error: {plan['run_dir']}: {error}", file=sys.stderr)
+        sys.exit(2)
+    _log(training.summary_line(summary))
+    sys.exit(0 if summary["best_epoch"] is not None else 1)
+
+
+def train_parallel(pending, jobs, backbone, epochs):
+    """Train ``pending`` runs (``(label, data, plan)``) ``jobs`` at a time,
+    each in a fresh process (spawned: JAX does not survive a fork); the slow
+    variants first. Ctrl-C (or SIGINT to this process) interrupts every
+    running run, which resumes from its last epoch next time; a run that
+    fails stops the others and raises ``TrainingError``."""
+    import multiprocessing
+    import multiprocessing.connection
+    import signal
+
+    from cpl_keras import training
+
+    context = multiprocessing.get_context("spawn")
+    queue = sorted(pending, key=lambda job: job[2]["variant"] not in SLOW_VARIANTS)
+    running = {}
+    failure = None
+    try:
+        while (queue and failure is None) or running:
+            while queue and failure is None and len(running) < jobs:
+                label, data, plan = queue.pop(0)
+                _log(f"training {label} ({backbone}, up to {epochs} epochs; "
+                     f"{jobs} runs at a time)")
+                process = context.Process(target=_train_job, args=(data, plan, os.getpid()),
+                                          name=label)
+                process.start()
+                running[process.sentinel] = (label, plan, process)
+            ready = multiprocessing.connection.wait(list(running), timeout=5)
+            for sentinel in ready:
+                label, plan, process = running.pop(sentinel)
+                process.join()
+                if process.exitcode != 0 and failure is None:
+                    failure = (f"{plan['run_dir']}: training ended with exit status "
+                               f"{process.exitcode}")
+                    for _, _, other in running.values():
+                        other.terminate()  # SIGTERM: resumes from its last epoch
+    except KeyboardInterrupt:
+        for _, _, process in running.values():
+            if process.is_alive():
+                os.kill(process.pid, signal.SIGINT)
+        for _, _, process in running.values():
+            process.join(timeout=60)
+            if process.is_alive():
+                process.terminate()
+        raise
+    if failure is not None:
+        raise training.TrainingError(failure)
 
 
 # ---------------------------------------------------------------------------
@@ -437,6 +535,67 @@ def _scale_text(config):
             f"from random weights (none can be downloaded).")
 
 
+#: The parameters of the learning-curve figures (validation MAE per epoch).
+CURVE_PARAMETERS = ("fx", "baseline", "disparity", "pitch")
+
+
+def plot_protocol_curves(out_dir, runs_list):
+    """``curves_<protocol>.png`` in ``out_dir``: the validation MAE of
+    ``CURVE_PARAMETERS`` per epoch, every run of the protocol, from the
+    published logs (``runs/<name>_log.csv``; so a rebuild draws them alike).
+    Returns ``[(protocol, file name)]``."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from cpl_keras.learning_curves import _val_mae
+
+    figures = []
+    for protocol in dict.fromkeys(s["protocol"] for s in runs_list):
+        logged = []
+        for s in runs_list:
+            path = os.path.join(out_dir, "runs", f"{s['name']}_log.csv")
+            if s["protocol"] == protocol and os.path.isfile(path):
+                logged.append((s, runs.read_log(path)))
+        if not logged:
+            continue
+        stems = list(dict.fromkeys(_run_stem(s) for s, _ in logged))
+        seeds = sorted({s.get("seed") or 0 for s, _ in logged})
+        fig, axes = plt.subplots(1, len(CURVE_PARAMETERS), figsize=(16, 4.2))
+        for ax, parameter in zip(axes, CURVE_PARAMETERS):
+            for s, rows in logged:
+                epochs = [row["epoch"] for row in rows]
+                values = [_val_mae(row, parameter) for row in rows]
+                colour = plt.cm.tab10(stems.index(_run_stem(s)) % 10)
+                style = ("-", "--", ":", "-.")[seeds.index(s.get("seed") or 0) % 4]
+                label = _stem_row(_run_stem(s)) + (f", seed {s['seed']}" if len(seeds) > 1
+                                                    else "")
+                ax.plot(epochs, values, style, color=colour, linewidth=1.2, label=label)
+                best = s.get("best_epoch")
+                if best and best <= len(values):
+                    ax.plot([best], [values[best - 1]], "o", color=colour, markersize=3.5)
+            ax.set_yscale("log")
+            ax.set_title(f"validation MAE of {parameter}", fontsize=10)
+            ax.set_xlabel("epoch")
+            ax.grid(True, alpha=0.3)
+        axes[0].legend(fontsize=6.5)
+        fig.suptitle(TITLES.get(f"table1_{protocol}", protocol), fontsize=10)
+        fig.tight_layout()
+        name = f"curves_{protocol}.png"
+        runs.save_figure(fig, os.path.join(out_dir, name), dpi=80)
+        figures.append((protocol, name))
+    return figures
+
+
+def _run_stem(run_summary):
+    """The name stem of a run's summary (``cvgl_cpl-u-s1``: ``cpl-u``)."""
+    name = run_summary["name"].split("_", 1)[1]
+    seed = run_summary.get("seed")
+    return name[: -len(f"-s{seed}")] if seed is not None and name.endswith(f"-s{seed}") \
+        else name
+
+
 def write_report(out_dir, summary, tables, rebuilt_by=None):
     """Stage 5: REPORT.md from the reproduction's summary (``reproduce.json``)
     and its tables; ``rebuilt_by``: the command that rebuilt them from the
@@ -466,13 +625,23 @@ def write_report(out_dir, summary, tables, rebuilt_by=None):
               "wall time (min) | stopped |",
               "|---|---|---|---|---|---|---|---|---|"]
     for s in runs_list:
+        stopped = s["stopped"] or (f"epoch cap ({config['epochs']})"
+                                   if s["epochs_run"] == config["epochs"] else "")
         wall = "" if s["wall_time_s"] is None else f"{s['wall_time_s'] / 60:.1f}"
         loss = "" if s["best_val_loss"] is None else f"{s['best_val_loss']:.4g}"
         lines.append(f"| {s['protocol']} | {s['name'].split('_', 1)[1]} | {s['split']} | "
                      f"{s.get('seed', '')} | {s['epochs_run']} | {s['best_epoch']} | {loss} | "
-                     f"{wall} | {s['stopped'] or ''} |")
+                     f"{wall} | {stopped} |")
     lines += ["", "Training curves, per-epoch logs and each table row's published predictions "
               "(`*_predictions.npz`): [`runs/`](runs/).", ""]
+    figures = plot_protocol_curves(out_dir, runs_list)
+    if figures:
+        lines += ["## Learning curves", "",
+                  "Validation MAE per epoch of every run (from the published logs; one "
+                  "colour per table row, one line style per seed; a dot marks the kept "
+                  "epoch).", ""]
+        lines += [f"![Learning curves, {protocol}]({name})" for protocol, name in figures]
+        lines += [""]
     for stem, table in tables.items():
         render = table2.markdown if "rigs" in table else report.markdown
         body = render(table).split("\n")[1:]
@@ -490,8 +659,9 @@ def write_report(out_dir, summary, tables, rebuilt_by=None):
 
 
 def reproduce(*, out_dir, data_dir, runs_dir, config, seed=0, command="", discussion_file=None,
-              real_roots=None):
-    """Run the whole pipeline; returns the path of REPORT.md."""
+              real_roots=None, jobs=1):
+    """Run the whole pipeline; returns the path of REPORT.md. ``jobs``:
+    training runs at a time (``train_all``)."""
     for directory in (out_dir, data_dir, runs_dir):
         os.makedirs(directory, exist_ok=True)
     start = time.time()
@@ -499,7 +669,7 @@ def reproduce(*, out_dir, data_dir, runs_dir, config, seed=0, command="", discus
 
     enable_compile_cache()
     paths = make_datasets(config, data_dir, seed, real_roots)
-    trained = train_all(config, paths, runs_dir, seed)
+    trained = train_all(config, paths, runs_dir, seed, jobs)
     files = make_predictions(config, paths, trained, out_dir)
     tables = make_tables(files, out_dir, command)
     summaries = collect_run_files(trained, out_dir)
@@ -550,20 +720,27 @@ def read_summary(out_dir):
     return summary
 
 
-def rebuild(out_dir, command=""):
+def rebuild(out_dir, command="", discussion_file=None):
     """Every table and REPORT.md of the reproduction in ``out_dir`` again, from
     its published predictions and ``reproduce.json`` alone (no weights, no
     datasets). Every file is read and checked before anything is written.
-    Returns the path of REPORT.md."""
+    ``discussion_file``: a new comparison with the paper (Markdown), stored
+    in ``reproduce.json`` in place of the old one (written after the tables
+    were seen). Returns the path of REPORT.md."""
     from cpl_keras import predictions
 
     summary = read_summary(out_dir)
+    if discussion_file is not None:
+        with open(discussion_file) as f:
+            summary["discussion"] = f.read()
     files = [os.path.join(out_dir, p) for p in summary["predictions"]]
     tables = predictions.tables_from_files(files)
     if list(tables) != list(summary["tables"]):
         raise predictions.PredictionsError(
             f"the predictions make tables {list(tables)}, {SUMMARY} lists {summary['tables']}")
     make_tables(files, out_dir, summary["command"])
+    if discussion_file is not None:
+        runs.write_json(os.path.join(out_dir, SUMMARY), summary)
     write_report(out_dir, summary, tables, rebuilt_by=command)
     return os.path.join(out_dir, "REPORT.md")
 
@@ -574,7 +751,7 @@ def rebuild(out_dir, command=""):
 #: Options that set the scale (not allowed with --from-predictions).
 SCALE_OPTIONS = ("quick", "preset", "pairs", "random_pairs", "epochs", "patience", "backbone",
                  "image_size", "crops", "chessboard_crops", "seeds", "random_seeds", "workers",
-                 "data_dir", "runs_dir", "geometric_max") + REAL_ROOTS
+                 "data_dir", "runs_dir", "geometric_max", "jobs") + REAL_ROOTS
 
 
 def add_arguments(parser):
@@ -602,6 +779,9 @@ def add_arguments(parser):
     group.add_argument("--random-seeds", type=positive, help="random-protocol runs per variant")
     group.add_argument("--workers", type=positive, help="data generation processes "
                        "(default: every core; paper-gpu: 16)")
+    group.add_argument("--jobs", type=positive, help="training runs at a time, each in its own "
+                       "process (default 1; on a small CPU 2 uses the cores better for the "
+                       "compact backbone); the runs and the tables are the same")
     group.add_argument("--seed", type=non_negative, default=0,
                        help="seed of the datasets and the first run seed")
     group.add_argument("--kitti", help="Table 2: KITTI stereo 2015 root")
@@ -613,8 +793,9 @@ def add_arguments(parser):
     group.add_argument("--runs-dir", help="where the runs go (default runs/reproduce, "
                        "runs/quick, runs/reproduce-<preset>)")
     group.add_argument("--discussion", help="Markdown file appended to REPORT.md as the "
-                       "comparison with the paper (default paper_results/discussion.md "
-                       "when writing to paper_results/)")
+                       "comparison with the paper (default: discussion.md in the output "
+                       "folder, if there is one); with --from-predictions it replaces the "
+                       "stored one")
     group.add_argument("--from-predictions", metavar="DIR",
                        help="rebuild every table and REPORT.md in DIR (a reproduction's output "
                        "folder) from its published predictions alone: no weights, no datasets")
@@ -639,8 +820,6 @@ def resolve_args(parser, args):
     """Check the reproduction's options (``parser.error``: one line, exit 2,
     before anything is written) and fill in the folders and the settings
     (``args.config``)."""
-    from cpl_keras.evaluation import PAPER_DIR
-
     if args.from_predictions is not None:
         given = [name for name in SCALE_OPTIONS if getattr(args, name, None) not in (None, False)]
         if given:
@@ -649,6 +828,8 @@ def resolve_args(parser, args):
         if args.out is not None and os.path.abspath(args.out) != \
                 os.path.abspath(args.from_predictions):
             parser.error("--from-predictions DIR writes into DIR; drop --out")
+        if args.discussion is not None and not os.path.isfile(args.discussion):
+            parser.error(f"--discussion: file not found: {args.discussion}")
         args.out = args.from_predictions
         args.config = None
         return args
@@ -665,8 +846,8 @@ def resolve_args(parser, args):
     args.out = args.out or out
     args.data_dir = args.data_dir or data_dir
     args.runs_dir = args.runs_dir or runs_dir
-    if args.discussion is None and os.path.abspath(args.out) == os.path.abspath(PAPER_DIR):
-        args.discussion = os.path.join(PAPER_DIR, "discussion.md")
+    if args.discussion is None:
+        args.discussion = os.path.join(args.out, "discussion.md")
     for name in REAL_ROOTS:
         root = getattr(args, name)
         if root is not None and not os.path.isdir(root):
@@ -680,14 +861,15 @@ def run(args, command, prog=PROG):
 
     try:
         if args.from_predictions is not None:
-            report = rebuild(args.out, command)
+            report = rebuild(args.out, command, args.discussion)
         else:
             with cli.interruptible():
                 report = reproduce(
                     out_dir=args.out, data_dir=args.data_dir, runs_dir=args.runs_dir,
                     config=args.config, seed=args.seed, command=command,
                     discussion_file=args.discussion,
-                    real_roots={name: getattr(args, name) for name in REAL_ROOTS})
+                    real_roots={name: getattr(args, name) for name in REAL_ROOTS},
+                    jobs=args.jobs or 1)
     except KeyboardInterrupt:  # every stage is resumable: the same command goes on
         return cli.interrupted(prog, resume=command)
     except (ValueError, DatasetError, OSError) as error:  # EvaluationError is a ValueError

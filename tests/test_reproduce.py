@@ -136,6 +136,34 @@ def test_tables_rebuilt_from_predictions_alone(quick, tmp_path):
 
 
 @pytest.mark.slow
+def test_rebuild_with_a_new_discussion(quick, tmp_path):
+    """--from-predictions DIR --discussion FILE: the comparison with the paper,
+    written after the tables were seen, replaces the stored one (REPORT.md and
+    reproduce.json); the tables are untouched. A missing FILE: exit 2."""
+    copy = tmp_path / "results"
+    shutil.copytree(quick["out"], copy)
+    tables = {k: v for k, v in _contents(copy).items() if k.startswith("table")}
+    (tmp_path / "comparison.md").write_text("MTL-CPL-A beats MTL-Baseline on fx.\n")
+    result = subprocess.run([sys.executable, "-m", "cpl_keras.reproduce", "--from-predictions",
+                             str(copy), "--discussion", str(tmp_path / "comparison.md")],
+                            capture_output=True, text=True)
+    assert result.returncode == 0, result.stderr[-3000:]
+    report = (copy / "REPORT.md").read_text()
+    assert report.rstrip().endswith("## Comparison with the paper\n\nMTL-CPL-A beats "
+                                    "MTL-Baseline on fx.")
+    assert json.loads((copy / "reproduce.json").read_text())["discussion"].startswith("MTL-CPL-A")
+    assert {k: v for k, v in _contents(copy).items() if k.startswith("table")} == tables
+    assert rebuild(copy).returncode == 0                   # kept for later rebuilds
+    assert (copy / "REPORT.md").read_text().rstrip().endswith("on fx.")
+    before = _contents(copy)
+    result = subprocess.run([sys.executable, "-m", "cpl_keras.reproduce", "--from-predictions",
+                             str(copy), "--discussion", str(tmp_path / "missing.md")],
+                            capture_output=True, text=True)
+    assert result.returncode == 2 and result.stderr.count("\n") == 1
+    assert "--discussion: file not found" in result.stderr and _contents(copy) == before
+
+
+@pytest.mark.slow
 def test_rebuild_refuses_bad_predictions(quick, tmp_path):
     """A corrupt or missing predictions file, or a folder that is not a
     reproduction's: one line, exit 2, nothing written."""
@@ -291,3 +319,35 @@ def test_presets_resolve():
     assert reproduce.run_jobs(scaled, 0) == reproduce.run_jobs(quick, 0)
     assert {k: v for k, v in scaled.items() if k not in ("preset", "quick", "workers")} == \
         {k: v for k, v in quick.items() if k not in ("preset", "quick", "workers")}
+
+
+def _tiny_plan(run_dir, seed=0, variant="baseline"):
+    return dict(variant=variant, run_dir=str(run_dir), epochs=1, batch_size=8, backbone="small",
+                split="paper", as_released=False, seed=seed, patience=5)
+
+
+def test_parallel_training_makes_the_same_runs(tiny_run, tmp_path):
+    """``--jobs 2``: runs trained two at a time, each in a spawned process,
+    end as the same run trained here; a run that fails stops the rest with
+    one error naming its directory."""
+    from cpl_keras import runs, training
+
+    data = tiny_run["data"]
+    pending = [(f"cvgl/{name}", data, _tiny_plan(tmp_path / name, seed))
+               for name, seed in (("a", 0), ("b", 1))]
+    reproduce.train_parallel(pending, jobs=2, backbone="small", epochs=1)
+    training.train(data, verbose=0, **_tiny_plan(tmp_path / "here", seed=1))
+    for name in ("a", "b"):
+        assert runs.read_config(str(tmp_path / name))["status"] == "finished"
+    def val_loss(name):
+        return [row["val_loss"] for row in runs.read_log(str(tmp_path / name))]
+
+    np.testing.assert_allclose(val_loss("b"), val_loss("here"), rtol=1e-5)
+    assert not np.allclose(val_loss("a"), val_loss("here"))  # another seed, another run
+
+    missing = str(tmp_path / "missing.h5")
+    bad = [("cvgl/bad", missing, _tiny_plan(tmp_path / "bad")),
+           ("cvgl/c", data, _tiny_plan(tmp_path / "c"))]
+    with pytest.raises(training.TrainingError, match="bad: training ended with exit status 2"):
+        reproduce.train_parallel(bad, jobs=1, backbone="small", epochs=1)
+    assert not (tmp_path / "c").exists()  # nothing started after the failure
