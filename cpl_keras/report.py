@@ -333,3 +333,45 @@ def write_outputs(out_dir, stem, table, command, *, render_markdown=markdown,
         for tmp, (_, draw) in zip(tmps[len(texts):], drawn):
             draw(table, tmp)
     return finals
+
+
+def differences_beyond_spread(table):
+    """Markdown: for every two rows with a spread over seeds, which has the
+    lower NMAE (MAE / mean|y|) per column where the difference of their means
+    exceeds the sum of their spreads (``<``: the first row is lower, ``>``:
+    the second), and ``=`` where it does not; empty (``[]``) for a table
+    without spreads. The report claims an ordering only where this says so."""
+    rows = [(name, row) for name, row in table["rows"].items() if row.get("spread")]
+    if len(rows) < 2:
+        return []
+    lines = ["| rows compared | " + " | ".join(COLUMNS) + " | first lower / second lower / "
+             "within the spreads |",
+             "|---|" + "---|" * (len(COLUMNS) + 1)]
+    for i, (first, a) in enumerate(rows):
+        for second, b in rows[i + 1:]:
+            cells, counts = [], [0, 0, 0]
+            for parameter in PARAMETERS:
+                mean_a = _number(a["targets"][parameter]["nmae"])
+                mean_b = _number(b["targets"][parameter]["nmae"])
+                spread = (_number(a["spread"]["targets"][parameter]["nmae"])
+                          + _number(b["spread"]["targets"][parameter]["nmae"]))
+                if not (np.isfinite(mean_a) and np.isfinite(mean_b) and np.isfinite(spread)):
+                    cells.append("n/a")
+                    continue
+                if abs(mean_a - mean_b) <= spread:
+                    cells.append("=")
+                    counts[2] += 1
+                elif mean_a < mean_b:
+                    cells.append("<")
+                    counts[0] += 1
+                else:
+                    cells.append(">")
+                    counts[1] += 1
+            lines.append(f"| {first} vs {second} | " + " | ".join(cells)
+                         + f" | {counts[0]} / {counts[1]} / {counts[2]} |")
+    return lines
+
+
+def _number(value):
+    """A JSON cell as a float (None, an undefined cell: NaN)."""
+    return math.nan if value is None else float(value)

@@ -653,6 +653,14 @@ def write_report(out_dir, summary, tables, rebuilt_by=None):
                          f"({stem}_fov_scatter.png)")
         lines += plots + ["", f"Files: [`{stem}.md`]({stem}.md), [`{stem}.csv`]({stem}.csv), "
                               f"[`{stem}.json`]({stem}.json).", ""]
+        differences = report.differences_beyond_spread(table)
+        if differences:
+            lines += ["### Differences beyond the spread" + (" (pooled)" if "rigs" in table
+                                                            else ""), "",
+                      "NMAE = MAE / mean(|y|) of the rows trained on several seeds: `<` where "
+                      "the first row's mean is lower by more than the two spreads added, "
+                      "`>` where the second's is, `=` where the difference is within them.",
+                      ""] + differences + [""]
     if summary.get("discussion"):
         lines += ["## Comparison with the paper", "", summary["discussion"].strip(), ""]
     runs.write_text(os.path.join(out_dir, "REPORT.md"), "\n".join(lines) + "\n")
