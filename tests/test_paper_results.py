@@ -1,0 +1,96 @@
+"""The committed results: every reproduction folder under paper_results/ has
+tables that are what its published predictions give (rebuilt here, without
+weights or datasets), and every decimal figure a report quotes is a cell of
+the tables (or of the run table) it speaks about."""
+
+import os
+import re
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+RESULTS = Path(__file__).resolve().parent.parent / "paper_results"
+#: Every committed reproduction: a folder with its reproduce.json.
+REPRODUCTIONS = sorted(p.parent for p in RESULTS.glob("**/reproduce.json"))
+#: A decimal figure as the reports write it: 0.012, -1.849, 4.6 (not 2 or 1,000).
+DECIMAL = re.compile(r"(?<![\w.])-?\d+\.\d+(?![\w.])")
+
+
+def _files(folder):
+    return {str(p.relative_to(folder)): p.read_bytes() for p in folder.rglob("*") if p.is_file()}
+
+
+@pytest.mark.parametrize("folder", REPRODUCTIONS, ids=lambda p: str(p.relative_to(RESULTS)))
+def test_committed_tables_are_what_their_predictions_give(folder, tmp_path):
+    copy = tmp_path / "results"
+    shutil.copytree(folder, copy)
+    result = subprocess.run([sys.executable, "-m", "cpl_keras.reproduce", "--from-predictions",
+                             str(copy)], capture_output=True, text=True)
+    assert result.returncode == 0, result.stderr[-3000:]
+    committed, rebuilt = _files(folder), _files(copy)
+    assert set(rebuilt) == set(committed)
+    for name, data in committed.items():
+        if name != "REPORT.md":
+            assert rebuilt[name] == data, name
+    # REPORT.md: the same, but for the note saying how it was rebuilt
+    note = re.compile(r"The tables and this page were rebuilt from the published predictions "
+                      r"[^\n]*\n\n```\n[^\n]*\n```\n\n")
+    assert note.sub("", rebuilt["REPORT.md"].decode()) == \
+        note.sub("", committed["REPORT.md"].decode())
+
+
+def _quoted(text):
+    """The decimal figures of ``text`` outside code (blocks and inline) and
+    link targets."""
+    text = re.sub(r"```.*?```", "", text, flags=re.S)
+    text = re.sub(r"`[^`\n]*`", "", text)
+    text = re.sub(r"\]\([^)]*\)", "]", text)
+    return DECIMAL.findall(text)
+
+
+def _cells(folder, document=None):
+    """Every decimal figure of the tables and the run tables under ``folder``
+    (Markdown files; not the comparisons with the paper, nor ``document``)."""
+    found = set()
+    for path in folder.rglob("*.md"):
+        if path.name == "discussion.md" or path == document:
+            continue
+        text = path.read_text()
+        if path.name == "REPORT.md":
+            text = text.split("## Comparison with the paper")[0]
+        found.update(DECIMAL.findall(text))
+    return found
+
+
+def _discussions():
+    """(document, its text, the folder whose tables back it): each
+    reproduction's comparison with the paper, and paper_results/REPORT.md."""
+    import json
+
+    found = []
+    for folder in REPRODUCTIONS:
+        text = json.loads((folder / "reproduce.json").read_text()).get("discussion") or ""
+        if text:
+            found.append((str(folder.relative_to(RESULTS)) + "/reproduce.json", text, folder))
+    found.append(("REPORT.md", (RESULTS / "REPORT.md").read_text(), RESULTS))
+    return found
+
+
+@pytest.mark.parametrize("name, text, folder", _discussions(), ids=lambda v: v
+                         if isinstance(v, str) and v.endswith(("json", "md")) else "")
+def test_every_quoted_figure_is_in_a_table(name, text, folder):
+    cells = _cells(folder, document=RESULTS / name)
+    missing = [figure for figure in _quoted(text) if figure not in cells]
+    assert not missing, f"{name} quotes figures found in no table: {missing}"
+
+
+def test_the_figure_check_catches_a_figure_not_in_the_tables(tmp_path):
+    (tmp_path / "table1_cvgl.md").write_text("| MTL-CPL-A | 0.012 ± 0.003 | -1.849 |\n")
+    cells = _cells(tmp_path)
+    assert {"0.012", "0.003", "-1.849"} <= cells
+    quoted = _quoted("CPL-A gets 0.012 (spread 0.003) against 0.013; `x 9.99` [a](v1.5.md)")
+    assert quoted == ["0.012", "0.003", "0.013"]
+    assert [f for f in quoted if f not in cells] == ["0.013"]
