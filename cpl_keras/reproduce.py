@@ -2,7 +2,7 @@
 
     python -m cpl_keras.reproduce                     # the paper's scale (a GPU job)
     python -m cpl_keras.reproduce --preset paper-gpu  # the same, into paper_results/paper-gpu/
-    python -m cpl_keras.reproduce --preset cpu        # compact towers, 3 seeds, ~2 h on 2 cores
+    python -m cpl_keras.reproduce --preset cpu --jobs 2   # compact towers, 3 seeds, ~1.5 h on 2 cores
     python -m cpl_keras.reproduce --quick             # the same pipeline in minutes
     python -m cpl_keras.reproduce --pairs 2000 --epochs 4   # a chosen scale
     python -m cpl_keras.reproduce --from-predictions DIR    # tables again, from DIR alone
@@ -78,7 +78,7 @@ PRESETS = {
                   "geometric_max": None, "batch_size": 16, "patience": 5, "seeds": 1,
                   "random_seeds": 1, "variants": TABLE_ORDER, "released": True,
                   "seeded_variants": None, "workers": 16},
-    # Sized for a 2-core CPU, about 2 hours (the arithmetic: docs/evaluation.md):
+    # Sized for a 2-core CPU: 1 h 24 min measured with --jobs 2 (docs/evaluation.md):
     # every row of the tables, the MTL variants on cvgl over 3 seeds, Deep-Homo
     # and MTL-CPL-A as released on the first seed only; 1,000 pairs per
     # protocol, since a Deep-Homo training step costs 15-18 small_resnet ones.
@@ -770,7 +770,8 @@ def add_arguments(parser):
     positive, non_negative = cli.positive_int, cli.non_negative_int
     group = parser.add_argument_group("reproduce (cpl_keras/reproduce.py)")
     group.add_argument("--preset", choices=tuple(PRESETS), help="a named scale: paper-gpu (the "
-                       "paper's, the default), cpu (compact towers, 3 seeds, ~2 h on 2 cores), "
+                       "paper's, the default), cpu (compact towers, 3 seeds, ~1.5 h on 2 cores "
+                       "with --jobs 2), "
                        "quick (= --quick); the flags below override its values")
     group.add_argument("--quick", action="store_true", help="tiny settings (minutes)")
     group.add_argument("--pairs", type=positive, help="cvgl-protocol pairs (paper: 123017)")
@@ -788,8 +789,8 @@ def add_arguments(parser):
     group.add_argument("--workers", type=positive, help="data generation processes "
                        "(default: every core; paper-gpu: 16)")
     group.add_argument("--jobs", type=positive, help="training runs at a time, each in its own "
-                       "process (default 1; on a small CPU 2 uses the cores better for the "
-                       "compact backbone); the runs and the tables are the same")
+                       "process (default 1; 2 did about 1.4x the work per unit time on a "
+                       "2-core CPU); the runs and the tables are the same")
     group.add_argument("--seed", type=non_negative, default=0,
                        help="seed of the datasets and the first run seed")
     group.add_argument("--kitti", help="Table 2: KITTI stereo 2015 root")
