@@ -3,7 +3,8 @@
     python bench/bench_backends.py                                  # faithful model, all three
     python bench/bench_backends.py --python /path/to/venv/bin/python --rounds 3
     python bench/bench_backends.py --backbone small_resnet --steps 20
-    python bench/bench_backends.py --backends jax --jax-flags thunk=--xla_cpu_use_thunk_runtime=false
+    python bench/bench_backends.py --backends jax --jax-flags onednn=--xla_cpu_use_onednn=true
+    python bench/bench_backends.py --plain-conv-row --bf16 tensorflow --bf16 torch
 
 Every measurement is one ``bench/bench_train.py`` process (same model, batch,
 image size and random in-memory data), so the backends never share a
@@ -56,6 +57,13 @@ def parse_args(argv=None):
     parser.add_argument("--jax-flags", action="append", default=[], metavar="NAME=XLA_FLAGS",
                         help="also time JAX with these XLA_FLAGS, as a row named jax+NAME "
                              "(repeatable)")
+    parser.add_argument("--bf16", action="append", default=[], metavar="BACKEND",
+                        choices=("jax", "tensorflow", "torch"),
+                        help="also time BACKEND under the mixed_bfloat16 dtype policy, as a row "
+                             "named BACKEND+bf16 (repeatable)")
+    parser.add_argument("--plain-conv-row", action="store_true",
+                        help="also time JAX with plain Conv2D everywhere (no PatchConv2D), "
+                             "as a row named jax+plain-conv")
     parser.add_argument("--rounds", type=int, default=2)
     parser.add_argument("--variant", default="baseline")
     parser.add_argument("--backbone", default="inception_v3")
@@ -75,20 +83,26 @@ def parse_args(argv=None):
 
 
 def configurations(args):
-    """(row name, backend, extra environment) of every measured configuration."""
-    rows = [(backend, backend, {}) for backend in args.backends]
+    """(row name, backend, extra environment, extra bench_train.py arguments)
+    of every measured configuration."""
+    rows = [(backend, backend, {}, []) for backend in args.backends]
     for spec in args.jax_flags:
         name, flags = spec.split("=", 1)
-        rows.append((f"jax+{name}", "jax", {"XLA_FLAGS": flags}))
+        rows.append((f"jax+{name}", "jax", {"XLA_FLAGS": flags}, []))
+    if args.plain_conv_row:
+        rows.append(("jax+plain-conv", "jax", {}, ["--plain-conv"]))
+    for backend in args.bf16:
+        rows.append((f"{backend}+bf16", backend, {}, ["--dtype-policy", "mixed_bfloat16"]))
     return rows
 
 
-def measure(args, backend, extra_env, flops=None):
+def measure(args, backend, extra_env, extra_args=(), flops=None):
     """One bench_train.py process; returns its result dict."""
     command = [args.python, BENCH_TRAIN, "--backend", backend, "--variant", args.variant,
                "--backbone", args.backbone, "--image-size", str(args.image_size),
                "--batch-size", str(args.batch_size), "--steps", str(args.steps),
                "--repeats", str(args.repeats), "--matmul-size", str(args.matmul_size)]
+    command += list(extra_args)
     if flops:
         command += ["--flops-per-step", repr(flops)]
     env = dict(os.environ, KERAS_BACKEND=backend, TF_CPP_MIN_LOG_LEVEL="3", **extra_env)
@@ -136,18 +150,18 @@ def table(results, names):
 def main(argv=None):
     args = parse_args(argv)
     rows = configurations(args)
-    names = [name for name, _, _ in rows]
+    names = [name for name, *_ in rows]
     results = {name: [] for name in names}
     flops = None
     for round_index in range(args.rounds):
         shift = round_index % len(rows)
         order = rows[shift:] + rows[:shift]
-        # the FLOP count comes from a JAX run; measure one first if this round starts elsewhere
+        # the FLOP count comes from the default JAX run; measure it first in round 1
         if flops is None and "jax" in args.backends:
-            order = sorted(order, key=lambda row: row[1] != "jax")
-        for name, backend, extra_env in order:
-            result = measure(args, backend, extra_env, flops)
-            if backend == "jax" and result.get("gflop_per_step"):
+            order = sorted(order, key=lambda row: row[0] != "jax")
+        for name, backend, extra_env, extra_args in order:
+            result = measure(args, backend, extra_env, extra_args, flops)
+            if name == "jax" and result.get("gflop_per_step"):
                 flops = result["gflop_per_step"] * 1e9
             results[name].append(result)
             print(f"round {round_index + 1}, {name}: {result['samples_per_s']} samples/s "

@@ -37,6 +37,11 @@ def parse_args(argv=None):
     parser.add_argument("--steps", type=int, default=12, help="timed training steps")
     parser.add_argument("--repeats", type=int, default=2, help="timed runs; the best is kept")
     parser.add_argument("--steps-per-execution", type=int, default=1)
+    parser.add_argument("--dtype-policy", default="float32",
+                        help="Keras dtype policy for the model, e.g. mixed_bfloat16")
+    parser.add_argument("--plain-conv", action="store_true",
+                        help="keep every convolution a plain Conv2D (no PatchConv2D), "
+                             "to measure what the patches gain")
     parser.add_argument("--no-jit", action="store_true", help="compile with jit_compile=False")
     parser.add_argument("--data", help="read batches from this HDF5 file (StereoSequence)")
     parser.add_argument("--workers", type=int, default=1, help="StereoSequence threads")
@@ -94,6 +99,11 @@ def run(args):
     from cpl_keras import build_model, compile_model
     from cpl_keras.camera import TARGETS
 
+    keras.config.set_dtype_policy(args.dtype_policy)
+    if args.plain_conv:
+        from cpl_keras.models import backbones
+
+        backbones.with_patch_convolutions = lambda tower: tower
     model = build_model(args.variant, backbone=args.backbone, image_size=args.image_size, seed=0)
     compile_model(model, jit_compile=not args.no_jit and "auto",
                   steps_per_execution=args.steps_per_execution)
@@ -143,6 +153,7 @@ def run(args):
         "backend": keras.backend.backend(), "variant": args.variant, "backbone": args.backbone,
         "image_size": args.image_size, "batch_size": batch, "timed_samples": n,
         "steps_per_execution": args.steps_per_execution, "jit": not args.no_jit,
+        "dtype_policy": args.dtype_policy, "plain_conv": args.plain_conv,
         "input": f"hdf5, workers={args.workers}, in_memory={data.in_memory}" if args.data
         else "in-memory arrays",
         "num_parameters": int(model.count_params()),

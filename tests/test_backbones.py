@@ -47,7 +47,8 @@ def test_small_resnet_has_batch_norm_residual_stages_and_no_input_scaling():
     kinds = [type(layer).__name__ for layer in tower.layers]
     assert not set(kinds) & {"Rescaling", "Normalization"}
     assert kinds.count("Add") == len(backbones.SMALL_RESNET_WIDTHS)
-    assert kinds.count("BatchNormalization") == kinds.count("Conv2D") == 1 + 3 * len(
+    convolutions = [layer for layer in tower.layers if isinstance(layer, keras.layers.Conv2D)]
+    assert kinds.count("BatchNormalization") == len(convolutions) == 1 + 3 * len(
         backbones.SMALL_RESNET_WIDTHS)
 
 
@@ -75,3 +76,83 @@ def test_compact_backbone_model_saves_and_loads_with_identical_predictions(tmp_p
     assert loaded.count_params() == model.count_params()
     for b, a in zip(before, after):
         np.testing.assert_array_equal(b, a)
+
+
+# ---------------------------------------------------------------------------
+# PatchConv2D: a "same" convolution larger than its input, as one matmul
+# ---------------------------------------------------------------------------
+
+def _conv_pair(kernel_size, input_shape, **kwargs):
+    """A built Conv2D and a PatchConv2D with the same config and weights."""
+    conv = keras.layers.Conv2D(5, kernel_size, padding="same", **kwargs)
+    conv.build(input_shape)
+    patch = backbones.PatchConv2D.from_config(conv.get_config())
+    patch.build(input_shape)
+    patch.set_weights(conv.get_weights())
+    return conv, patch
+
+
+@pytest.mark.parametrize("kernel_size,spatial,patched", [
+    ((3, 3), (2, 2), True), ((3, 3), (1, 1), True), ((5, 5), (2, 4), True),
+    ((3, 2), (2, 1), True), ((1, 3), (2, 2), False), ((3, 3), (3, 3), False),
+    ((3, 3), (2, 5), False)])
+def test_patch_conv2d_matches_conv2d_values_and_gradients(kernel_size, spatial, patched):
+    import jax
+
+    shape = (3,) + spatial + (4,)
+    conv, patch = _conv_pair(kernel_size, shape, activation="relu")
+    assert patch.uses_patches(shape) is patched
+    x = np.random.default_rng(0).standard_normal(shape).astype("float32")
+    np.testing.assert_allclose(np.asarray(patch(x)), np.asarray(conv(x)), atol=1e-5)
+
+    def gradients(layer):
+        def loss(kernel, bias, inputs):
+            layer.kernel.assign(kernel)
+            layer.bias.assign(bias)
+            return keras.ops.sum(layer(inputs) ** 2)
+        return jax.grad(lambda k, b, i: loss(k, b, i), argnums=(0, 1, 2))(
+            conv.kernel.value, conv.bias.value, x)
+
+    for got, expected in zip(gradients(patch), gradients(conv)):
+        np.testing.assert_allclose(np.asarray(got), np.asarray(expected), rtol=1e-4, atol=1e-4)
+
+
+def test_patch_conv2d_keeps_conv2d_for_strides_dilation_and_valid_padding():
+    shape = (1, 2, 2, 4)
+    for kwargs in ({"strides": 2}, {"dilation_rate": 2}):
+        assert not backbones.PatchConv2D(5, 3, padding="same", **kwargs).uses_patches(shape)
+    assert not backbones.PatchConv2D(5, 1, padding="valid").uses_patches(shape)
+
+
+def test_patch_convolutions_change_neither_weights_nor_outputs(monkeypatch):
+    """The clone draws no random numbers: a seeded model is the one the plain
+    Conv2D towers give, weight for weight, and computes the same outputs."""
+    size = 64  # small_resnet's last stage runs a 3x3 convolution on 2 x 2 maps
+    patched = build_model("cpl-a", backbone="small_resnet", image_size=size, seed=3)
+    tower = patched.get_layer("left_small_resnet")
+    assert [layer.name for layer in tower.layers
+            if isinstance(layer, backbones.PatchConv2D)] == ["stage4_b_conv"]
+    monkeypatch.setattr(backbones, "with_patch_convolutions", lambda tower: tower)
+    plain = build_model("cpl-a", backbone="small_resnet", image_size=size, seed=3)
+    assert not any(isinstance(layer, backbones.PatchConv2D)
+                   for layer in plain.get_layer("left_small_resnet").layers)
+    assert [w.path for w in patched.weights] == [w.path for w in plain.weights]
+    for a, b in zip(patched.get_weights(), plain.get_weights()):
+        np.testing.assert_array_equal(a, b)
+    rng = np.random.default_rng(0)
+    x = {k: rng.uniform(0, 255, (2, size, size, 3)).astype("float32")
+         for k in ("left_image", "right_image")}
+    for a, b in zip(patched.predict(x, verbose=0), plain.predict(x, verbose=0)):
+        np.testing.assert_allclose(a, b, rtol=1e-4, atol=1e-4)
+
+
+@pytest.mark.slow
+def test_inception_v3_at_112_runs_its_3x3_convolutions_on_2x2_maps_as_patches():
+    """mixed9 and mixed10 each have one 3x3 convolution on 2 x 2 maps at 112 x 112;
+    the 1x3, 3x1 and 1x7 kernels fit their maps in one dimension and stay Conv2D."""
+    tower = backbones.with_patch_convolutions(
+        backbones.TOWERS["inception_v3"](112, 112, "tower"))
+    patched = [layer for layer in tower.layers if isinstance(layer, backbones.PatchConv2D)]
+    assert len(patched) == 2
+    for layer in patched:
+        assert layer.kernel_size == (3, 3) and tuple(layer.input.shape[1:]) == (2, 2, 448)

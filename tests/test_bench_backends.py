@@ -34,8 +34,19 @@ def test_table_takes_medians_and_compares_with_tensorflow():
 def test_jax_flag_rows_and_bad_flags():
     args = bench.parse_args(["--backends", "jax", "--jax-flags", "x=--xla_cpu_use_xnnpack=true"])
     assert bench.configurations(args) == [
-        ("jax", "jax", {}), ("jax+x", "jax", {"XLA_FLAGS": "--xla_cpu_use_xnnpack=true"})]
+        ("jax", "jax", {}, []), ("jax+x", "jax", {"XLA_FLAGS": "--xla_cpu_use_xnnpack=true"}, [])]
     with pytest.raises(SystemExit):
         bench.parse_args(["--jax-flags", "no-equals-sign"])
     with pytest.raises(SystemExit):
         bench.parse_args(["--rounds", "0"])
+
+
+def test_plain_conv_and_bf16_rows():
+    args = bench.parse_args(["--backends", "jax", "tensorflow", "--plain-conv-row",
+                             "--bf16", "tensorflow"])
+    assert bench.configurations(args) == [
+        ("jax", "jax", {}, []), ("tensorflow", "tensorflow", {}, []),
+        ("jax+plain-conv", "jax", {}, ["--plain-conv"]),
+        ("tensorflow+bf16", "tensorflow", {}, ["--dtype-policy", "mixed_bfloat16"])]
+    with pytest.raises(SystemExit):
+        bench.parse_args(["--bf16", "mxnet"])
