@@ -59,6 +59,8 @@ def parse_args(argv=None):
     parser.add_argument("--steps", type=int, default=4, help="timed and profiled training steps")
     parser.add_argument("--top", type=int, default=12, help="single ops listed")
     parser.add_argument("--dtype-policy", default="float32")
+    parser.add_argument("--plain-conv", action="store_true",
+                        help="keep every convolution a plain Conv2D (no PatchConv2D)")
     return parser.parse_args(argv)
 
 
@@ -162,6 +164,10 @@ def run(args):
     if keras.backend.backend() != "jax":
         raise SystemExit("profile_step.py profiles the JAX backend only")
     keras.config.set_dtype_policy(args.dtype_policy)
+    if args.plain_conv:
+        from cpl_keras.models import backbones
+
+        backbones.with_patch_convolutions = lambda tower: tower
     model = build_model(args.variant, backbone=args.backbone, image_size=args.image_size, seed=0)
     compile_model(model)
     rng = np.random.default_rng(0)
@@ -223,6 +229,7 @@ def report(args, result):
     lines = [
         f"{args.variant}, {args.backbone} towers, {args.image_size}x{args.image_size}, "
         f"batch {args.batch_size}, dtype policy {args.dtype_policy}, "
+        f"{'plain Conv2D only, ' if args.plain_conv else ''}"
         f"XLA_FLAGS={result['xla_flags'] or '(none)'}",
         f"step {result['step_s'] * 1e3:.0f} ms wall ({result['samples_per_s']:.2f} samples/s); "
         f"op time {result['busy_s'] * 1e3:.0f} ms per step on {result['cores']} cores: "

@@ -84,7 +84,7 @@ def test_compact_backbone_model_saves_and_loads_with_identical_predictions(tmp_p
 
 def _conv_pair(kernel_size, input_shape, **kwargs):
     """A built Conv2D and a PatchConv2D with the same config and weights."""
-    conv = keras.layers.Conv2D(5, kernel_size, padding="same", **kwargs)
+    conv = keras.layers.Conv2D(5, kernel_size, **kwargs)
     conv.build(input_shape)
     patch = backbones.PatchConv2D.from_config(conv.get_config())
     patch.build(input_shape)
@@ -92,16 +92,19 @@ def _conv_pair(kernel_size, input_shape, **kwargs):
     return conv, patch
 
 
-@pytest.mark.parametrize("kernel_size,spatial,patched", [
-    ((3, 3), (2, 2), True), ((3, 3), (1, 1), True), ((5, 5), (2, 4), True),
-    ((3, 2), (2, 1), True), ((1, 3), (2, 2), False), ((3, 3), (3, 3), False),
-    ((3, 3), (2, 5), False)])
-def test_patch_conv2d_matches_conv2d_values_and_gradients(kernel_size, spatial, patched):
+@pytest.mark.parametrize("kernel_size,spatial,padding,path", [
+    ((3, 3), (2, 2), "same", "patches"), ((3, 3), (1, 1), "same", "patches"),
+    ((5, 5), (2, 4), "same", "patches"), ((3, 2), (2, 1), "same", "patches"),
+    ((1, 3), (2, 2), "same", "conv"), ((3, 3), (3, 3), "same", "conv"),
+    ((3, 3), (2, 5), "same", "conv"), ((3, 3), (26, 24), "same", "tap-gradient"),
+    ((3, 3), (26, 26), "valid", "tap-gradient"), ((3, 5), (26, 30), "valid", "tap-gradient"),
+    ((3, 3), (25, 25), "valid", "conv"), ((2, 2), (26, 26), "same", "conv")])
+def test_patch_conv2d_matches_conv2d_values_and_gradients(kernel_size, spatial, padding, path):
     import jax
 
-    shape = (3,) + spatial + (4,)
-    conv, patch = _conv_pair(kernel_size, shape, activation="relu")
-    assert patch.uses_patches(shape) is patched
+    shape = (2,) + spatial + (backbones.TAP_GRADIENT_MIN_CHANNELS if path == "tap-gradient" else 3,)
+    conv, patch = _conv_pair(kernel_size, shape, padding=padding, activation="relu")
+    assert patch.path(shape) == path
     x = np.random.default_rng(0).standard_normal(shape).astype("float32")
     np.testing.assert_allclose(np.asarray(patch(x)), np.asarray(conv(x)), atol=1e-5)
 
@@ -110,18 +113,20 @@ def test_patch_conv2d_matches_conv2d_values_and_gradients(kernel_size, spatial, 
             layer.kernel.assign(kernel)
             layer.bias.assign(bias)
             return keras.ops.sum(layer(inputs) ** 2)
-        return jax.grad(lambda k, b, i: loss(k, b, i), argnums=(0, 1, 2))(
-            conv.kernel.value, conv.bias.value, x)
+        return jax.grad(loss, argnums=(0, 1, 2))(conv.kernel.value, conv.bias.value, x)
 
     for got, expected in zip(gradients(patch), gradients(conv)):
         np.testing.assert_allclose(np.asarray(got), np.asarray(expected), rtol=1e-4, atol=1e-4)
 
 
-def test_patch_conv2d_keeps_conv2d_for_strides_dilation_and_valid_padding():
-    shape = (1, 2, 2, 4)
-    for kwargs in ({"strides": 2}, {"dilation_rate": 2}):
-        assert not backbones.PatchConv2D(5, 3, padding="same", **kwargs).uses_patches(shape)
-    assert not backbones.PatchConv2D(5, 1, padding="valid").uses_patches(shape)
+def test_patch_conv2d_keeps_conv2d_for_strides_dilation_1x1_kernels_and_few_channels():
+    channels = backbones.TAP_GRADIENT_MIN_CHANNELS
+    assert backbones.PatchConv2D(5, 3, padding="same").path((1, 30, 30, channels)) == "tap-gradient"
+    assert backbones.PatchConv2D(5, 3, padding="same").path((1, 30, 30, channels - 1)) == "conv"
+    for shape in ((1, 2, 2, 4), (1, 30, 30, channels)):
+        for kwargs in ({"strides": 2}, {"dilation_rate": 2}):
+            assert backbones.PatchConv2D(5, 3, padding="same", **kwargs).path(shape) == "conv"
+        assert backbones.PatchConv2D(5, 1, padding="same").path(shape) == "conv"
 
 
 def test_patch_convolutions_change_neither_weights_nor_outputs(monkeypatch):
@@ -130,8 +135,8 @@ def test_patch_convolutions_change_neither_weights_nor_outputs(monkeypatch):
     size = 64  # small_resnet's last stage runs a 3x3 convolution on 2 x 2 maps
     patched = build_model("cpl-a", backbone="small_resnet", image_size=size, seed=3)
     tower = patched.get_layer("left_small_resnet")
-    assert [layer.name for layer in tower.layers
-            if isinstance(layer, backbones.PatchConv2D)] == ["stage4_b_conv"]
+    assert {layer.name: layer.path(layer.input.shape) for layer in tower.layers
+            if isinstance(layer, backbones.PatchConv2D)} == {"stage4_b_conv": "patches"}
     monkeypatch.setattr(backbones, "with_patch_convolutions", lambda tower: tower)
     plain = build_model("cpl-a", backbone="small_resnet", image_size=size, seed=3)
     assert not any(isinstance(layer, backbones.PatchConv2D)
@@ -147,12 +152,16 @@ def test_patch_convolutions_change_neither_weights_nor_outputs(monkeypatch):
 
 
 @pytest.mark.slow
-def test_inception_v3_at_112_runs_its_3x3_convolutions_on_2x2_maps_as_patches():
-    """mixed9 and mixed10 each have one 3x3 convolution on 2 x 2 maps at 112 x 112;
-    the 1x3, 3x1 and 1x7 kernels fit their maps in one dimension and stay Conv2D."""
+def test_inception_v3_at_112_takes_the_patch_paths_where_expected():
+    """mixed9 and mixed10 each have one 3x3 convolution on 2 x 2 maps at 112 x 112
+    (patches); the stem's three stride-1 3x3 convolutions on 53 x 53 and 24 x 24 maps
+    get tap gradients; the 1x3, 3x1 and 1x7 kernels fit their maps in one dimension
+    and stay Conv2D."""
     tower = backbones.with_patch_convolutions(
         backbones.TOWERS["inception_v3"](112, 112, "tower"))
-    patched = [layer for layer in tower.layers if isinstance(layer, backbones.PatchConv2D)]
-    assert len(patched) == 2
-    for layer in patched:
-        assert layer.kernel_size == (3, 3) and tuple(layer.input.shape[1:]) == (2, 2, 448)
+    paths = {layer.name: (layer.path(layer.input.shape), tuple(layer.input.shape[1:]))
+             for layer in tower.layers if isinstance(layer, backbones.PatchConv2D)}
+    assert sorted(path for path, _ in paths.values()) == ["patches"] * 2 + ["tap-gradient"] * 3
+    assert {shape for path, shape in paths.values() if path == "patches"} == {(2, 2, 448)}
+    assert {shape for path, shape in paths.values() if path == "tap-gradient"} == {
+        (55, 55, 32), (53, 53, 32), (26, 26, 80)}

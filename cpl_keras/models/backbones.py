@@ -21,11 +21,11 @@ Deviations, documented in the README:
 Inputs arrive already scaled to [-1, 1] (or raw pixels as released): no
 tower adds input scaling of its own.
 
-Speed, not arithmetic: a "same" convolution whose kernel is larger than its
-feature map (InceptionV3's 3x3 convolutions on the 2 x 2 maps of its last two
-blocks at 112 x 112) runs as one matrix product over image patches
-(``PatchConv2D``): the same weights and the same function, about 20x faster
-than XLA:CPU's convolution for that shape (docs/performance.md).
+Speed, not arithmetic: where XLA:CPU's convolution kernels are slow for a
+shape, the towers' convolutions are ``PatchConv2D`` layers that compute the
+same function with the same weights through matrix products over image
+patches: a 3x3 convolution on InceptionV3's 2 x 2 maps (about 20x faster) and
+the kernel gradients of its stem (docs/performance.md).
 """
 
 from __future__ import annotations
@@ -95,54 +95,129 @@ TOWERS = {
 }
 
 
+#: PatchConv2D computes the kernel gradient tap by tap on output maps at least
+#: this large with at least this many input channels (measured at 112 x 112:
+#: faster for InceptionV3's stem, 32-80 channels; slower for its 11 x 11 maps
+#: and for small_resnet's 16-channel 28 x 28 maps).
+TAP_GRADIENT_MIN_SIDE = 24
+TAP_GRADIENT_MIN_CHANNELS = 32
+
+
 @keras.saving.register_keras_serializable(package="cpl_keras")
 class PatchConv2D(keras.layers.Conv2D):
-    """``Conv2D`` that computes a "same" convolution whose kernel is larger
-    than its input in both dimensions as one matrix product over image patches.
+    """``Conv2D`` computed through matrix products over image patches where
+    XLA:CPU's convolution kernels are slow for the shape.
 
     The layer, its weights and its outputs are those of ``Conv2D`` (to
-    float32 round-off): the input is zero-padded as "same" padding does, the
-    kernel_h x kernel_w shifted views are stacked along the channels
-    (kernel order: row, column, input channel) and multiplied by the kernel
-    reshaped to (kernel_h * kernel_w * in_channels, filters). Any other
-    configuration (strides, dilation, groups, channels_first, "valid", or a
-    kernel that fits the input in either dimension) is plain ``Conv2D``:
-    patches were slower for InceptionV3's 1x7 kernels on 5 x 5 maps.
+    float32 round-off). Two shapes take another path (``path``):
+
+    * ``"patches"``: a "same" convolution whose kernel is larger than its
+      input in both dimensions (InceptionV3's 3x3 convolutions on 2 x 2
+      maps). The input is zero-padded as "same" padding does, the
+      kernel_h x kernel_w shifted views are stacked along the channels
+      (kernel order: row, column, input channel) and multiplied by the kernel
+      reshaped to (kernel_h * kernel_w * in_channels, filters); the gradients
+      are those of that product.
+    * ``"tap-gradient"``: a stride-1 convolution (odd kernel if "same") with
+      an output map of at least ``TAP_GRADIENT_MIN_SIDE`` on both sides and
+      at least ``TAP_GRADIENT_MIN_CHANNELS`` input channels (InceptionV3's
+      stem). The forward pass and the input gradient are
+      XLA's convolutions; the kernel gradient, which XLA:CPU computes as one
+      convolution with a window the size of the map, is one matrix product
+      per kernel tap: shifted view^T @ output gradient.
+
+    Anything else (strides, dilation, groups, channels_first, or a kernel
+    that fits a small map in either dimension) is plain ``Conv2D``: patches
+    were slower for InceptionV3's 1x7 kernels on 5 x 5 maps, and tap
+    gradients for its 11 x 11 maps and for small_resnet's 16-channel maps
+    (``bench/bench_conv_shapes.py``, ``bench/bench_train.py``).
     """
 
-    def uses_patches(self, input_shape):
+    def path(self, input_shape):
+        """``"patches"``, ``"tap-gradient"`` or ``"conv"`` for inputs of this shape."""
         height, width = input_shape[1], input_shape[2]
         kernel_h, kernel_w = self.kernel_size
-        return (self.data_format == "channels_last" and self.padding == "same"
-                and tuple(self.strides) == (1, 1) and tuple(self.dilation_rate) == (1, 1)
-                and self.groups == 1 and height is not None and width is not None
-                and kernel_h > height and kernel_w > width)
+        if (self.data_format != "channels_last" or tuple(self.strides) != (1, 1)
+                or tuple(self.dilation_rate) != (1, 1) or self.groups != 1
+                or height is None or width is None or self.kernel_size == (1, 1)):
+            return "conv"
+        if self.padding == "same" and kernel_h > height and kernel_w > width:
+            return "patches"
+        out_h, out_w = ((height, width) if self.padding == "same"
+                        else (height - kernel_h + 1, width - kernel_w + 1))
+        odd = kernel_h % 2 == 1 and kernel_w % 2 == 1
+        if (min(out_h, out_w) >= TAP_GRADIENT_MIN_SIDE and (self.padding == "valid" or odd)
+                and input_shape[-1] is not None and input_shape[-1] >= TAP_GRADIENT_MIN_CHANNELS):
+            return "tap-gradient"
+        return "conv"
 
     def convolution_op(self, inputs, kernel):
-        if not self.uses_patches(inputs.shape):
-            return super().convolution_op(inputs, kernel)
-        height, width = inputs.shape[1], inputs.shape[2]
+        path = self.path(inputs.shape)
+        if path == "patches":
+            return self._patches(inputs, kernel)
+        if path == "tap-gradient":
+            return self._tap_gradient(inputs, kernel)
+        return super().convolution_op(inputs, kernel)
+
+    def _padded(self, inputs):
+        """``inputs`` zero-padded as this layer's "same" padding does (as is for "valid")."""
+        if self.padding != "same":
+            return inputs
         kernel_h, kernel_w = self.kernel_size
         top, left = (kernel_h - 1) // 2, (kernel_w - 1) // 2
-        padded = ops.pad(inputs, [[0, 0], [top, kernel_h - 1 - top],
-                                  [left, kernel_w - 1 - left], [0, 0]])
+        return ops.pad(inputs, [[0, 0], [top, kernel_h - 1 - top],
+                                [left, kernel_w - 1 - left], [0, 0]])
+
+    def _views(self, padded, height, width):
+        """The kernel_h x kernel_w shifted (height, width) views of ``padded``, row-major."""
+        kernel_h, kernel_w = self.kernel_size
+        return [padded[:, i:i + height, j:j + width, :]
+                for i in range(kernel_h) for j in range(kernel_w)]
+
+    def _patches(self, inputs, kernel):
         patches = ops.concatenate(
-            [padded[:, i:i + height, j:j + width, :]
-             for i in range(kernel_h) for j in range(kernel_w)], axis=-1)
+            self._views(self._padded(inputs), inputs.shape[1], inputs.shape[2]), axis=-1)
         return ops.matmul(patches, ops.reshape(kernel, (-1, self.filters)))
+
+    def _tap_gradient(self, inputs, kernel):
+        kernel_h, kernel_w = self.kernel_size
+        padding = self.padding
+        kernel = ops.copy(kernel)  # a tensor, not a variable (torch, tensorflow)
+
+        @ops.custom_gradient
+        def convolution(x, k):
+            def gradient(*args, upstream=None):
+                upstream = args[0] if upstream is None else upstream
+                height, width = upstream.shape[1], upstream.shape[2]
+                flat_upstream = ops.reshape(upstream, (-1, self.filters))
+                kernel_gradient = ops.reshape(ops.stack([
+                    ops.matmul(ops.transpose(ops.reshape(view, (-1, x.shape[-1]))), flat_upstream)
+                    for view in self._views(self._padded(x), height, width)]), ops.shape(k))
+                # the input gradient: a correlation with the flipped kernel, in and out swapped
+                flipped = ops.transpose(ops.flip(ops.flip(k, 0), 1), (0, 1, 3, 2))
+                if padding == "valid":
+                    upstream = ops.pad(upstream, [[0, 0], [kernel_h - 1, kernel_h - 1],
+                                                  [kernel_w - 1, kernel_w - 1], [0, 0]])
+                input_gradient = ops.conv(upstream, flipped, strides=1,
+                                          padding="same" if padding == "same" else "valid")
+                return input_gradient, kernel_gradient
+
+            return ops.conv(x, k, strides=1, padding=padding), gradient
+
+        return convolution(inputs, kernel)
 
 
 def with_patch_convolutions(tower):
-    """``tower`` with each Conv2D whose kernel is larger than its input (both
-    dimensions) as a
-    ``PatchConv2D`` (same names, same weights; ``tower`` itself when none is).
+    """``tower`` with each Conv2D for which ``PatchConv2D`` takes another path
+    as a ``PatchConv2D`` (same names, same weights; ``tower`` itself when none
+    does).
 
     The clone is made without drawing from any random generator, so the
     layers built after it initialise as they would without it.
     """
     def needs_patches(layer):
         return (type(layer) is keras.layers.Conv2D
-                and PatchConv2D.from_config(layer.get_config()).uses_patches(layer.input.shape))
+                and PatchConv2D.from_config(layer.get_config()).path(layer.input.shape) != "conv")
 
     def clone(layer):
         config = layer.get_config()
