@@ -121,10 +121,11 @@ class PatchConv2D(keras.layers.Conv2D):
     * ``"tap-gradient"``: a stride-1 convolution (odd kernel if "same") with
       an output map of at least ``TAP_GRADIENT_MIN_SIDE`` on both sides and
       at least ``TAP_GRADIENT_MIN_CHANNELS`` input channels (InceptionV3's
-      stem). The forward pass and the input gradient are
-      XLA's convolutions; the kernel gradient, which XLA:CPU computes as one
-      convolution with a window the size of the map, is one matrix product
-      per kernel tap: shifted view^T @ output gradient.
+      stem). The forward pass and the input gradient are XLA's convolutions
+      (a "valid" one computed as "same" and cropped); the kernel gradient,
+      which XLA:CPU computes as one convolution with a window the size of
+      the map, is one matrix product per kernel tap: shifted view^T @ output
+      gradient.
 
     Anything else (strides, dilation, groups, channels_first, or a kernel
     that fits a small map in either dimension) is plain ``Conv2D``: patches
@@ -202,7 +203,14 @@ class PatchConv2D(keras.layers.Conv2D):
                                           padding="same" if padding == "same" else "valid")
                 return input_gradient, kernel_gradient
 
-            return ops.conv(x, k, strides=1, padding=padding), gradient
+            if padding == "same":
+                return ops.conv(x, k, strides=1, padding="same"), gradient
+            # "valid" as "same" cropped: XLA:CPU's valid 3x3 kernel on the stem's
+            # 55 x 55 x 32 maps took 4-5x as long as its same kernel
+            top, left = (kernel_h - 1) // 2, (kernel_w - 1) // 2
+            out_h, out_w = x.shape[1] - kernel_h + 1, x.shape[2] - kernel_w + 1
+            same = ops.conv(x, k, strides=1, padding="same")
+            return same[:, top:top + out_h, left:left + out_w, :], gradient
 
         return convolution(inputs, kernel)
 
