@@ -37,7 +37,8 @@ sys.path.insert(0, REPO)
 
 #: Keras layer class -> the kind the tables report.
 LAYER_KINDS = {
-    "Conv2D": "convolution", "BatchNormalization": "BatchNorm",
+    "Conv2D": "convolution", "PatchConv2D": "convolution (PatchConv2D layers)",
+    "BatchNormalization": "BatchNorm",
     "BatchNormalizationLagFree": "BatchNorm", "Dense": "dense",
     "MaxPooling2D": "pooling", "AveragePooling2D": "pooling",
     "GlobalAveragePooling2D": "pooling", "Activation": "activation", "ReLU": "activation",

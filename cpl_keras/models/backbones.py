@@ -13,7 +13,8 @@ Deviations, documented in the README:
 * ``backbone="small_resnet"``: a small ResNet (a strided stem and four
   residual stages with BatchNormalization, 16, 32, 64, 128 channels) for
   CPU-scale experiments; it trained about 20x faster than InceptionV3 on a
-  2-core CPU at 112 x 112 (``bench/bench_backbones.py``, docs/training.md).
+  2-core CPU at 112 x 112 (``bench/bench_backbones.py``, docs/training.md;
+  about 14x since ``PatchConv2D`` sped InceptionV3 up).
   Not the paper's. keras.applications' MobileNetV3Small, MobileNetV2 and
   EfficientNetB0 were measured too and were only 0.5-3x faster than
   InceptionV3 here (XLA:CPU's depthwise convolutions are slow).
