@@ -59,6 +59,12 @@ def build_parser():
                         "(exact, default) or every head the camera graph reads (partial)")
     parser.add_argument("--linear-pitch-head", action="store_true",
                         help="an unbounded pitch head (the release's; default: clipped to +-pi/2)")
+    parser.add_argument("--linear-focal-head", action="store_true",
+                        help="CPL: linear fx, fy heads (the release's; default exp(z), positive, "
+                        "since the camera graph divides by them)")
+    parser.add_argument("--alpha-rate", type=cli.positive_float,
+                        help="MTL-CPL-A: how many times an ordinary weight's pace the adaptive "
+                        "weights move (default 10; 1 = Eq. 9 as the paper trains it)")
     parser.add_argument("--bn-recompute-batches", type=cli.non_negative_int,
                         help="training batches for recomputing BatchNorm statistics before "
                         "each validation (default 16; 0 = Keras's moving averages, as released)")
@@ -178,6 +184,8 @@ def _train(args, demo, seed, epochs, backbone, run_dir, command):
             data_parallel=args.data_parallel, patience=args.patience, workers=args.workers,
             steps_per_execution=args.steps_per_execution, disentangle=args.disentangle,
             bounded_pitch_head=False if args.linear_pitch_head else None,
+            positive_focal_head=False if args.linear_focal_head else None,
+            alpha_rate=args.alpha_rate,
             bn_recompute_batches=args.bn_recompute_batches, target_scaling=args.target_scaling,
             verbose=0 if args.quiet else 1,
             command=command,

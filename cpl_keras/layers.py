@@ -103,6 +103,42 @@ def positive_disparity(x, floor=camera.FLOORS["disparity"]):
     right camera's centre is ahead of or beside the left one in every rig
     and real set here).
     """
+    return _positive(x, floor)
+
+
+@keras.saving.register_keras_serializable(package=PACKAGE)
+def positive_focal(x, floor=camera.FLOORS["focal"]):
+    """The CPL focal-length heads' output: ``f = clip(z, floor, 1e5)`` with
+    the gradient of z (a straight-through clip, as the pitch head's).
+
+    The camera graph divides by fy (Eq. 4c: zCam = xCam (v0 - v) / fy), so
+    fy's disentangled term has a pole at fy = 0, as the disparity's has at
+    d = 0. A linear head that starts below 0 is trapped there: the
+    projection part of the gradient, xCam |v0 - v| / fy'^2 per pair, pushes
+    it away from the pole (towards -infinity, where |zCam| -> 0) and
+    outweighs the direct part (1 per pair) near it. Measured with
+    ``bench/diagnose_heads.py`` on InceptionV3 MTL-CPL-A (cvgl, seed 0): all
+    16 fy outputs of the first batch at -1.1 px, the projection part 370
+    times the direct one, fy at -30 px after 10 steps and still below 0
+    after 80; the full run ended with fy NMAE 1.22 (paper_results/faithful).
+
+    Clipped at the focal floor, the head's output is never negative and
+    its gradient below the floor points up (the projected point of a 1 px
+    focal length is far too high or low). Above the floor the head is the
+    release's linear one: an ``exp(z)`` head, like the disparity's, swung
+    fy between 4 and 593 px within 80 InceptionV3 steps and left fx at its
+    floor (its ReLU layers dead); a focal length's labels (15-160 px at 112
+    px) are far from the floor, unlike the disparity's (0.09-40 px). fx gets
+    the same head (every focal length is positive, and the graph divides by
+    it in Eq. 4b), though its own term has no pole (xCam is linear in fx).
+    The release's heads were linear (``as_released``).
+    """
+    z = ops.stop_gradient(ops.clip(x, floor, 1e5))
+    return z + (x - ops.stop_gradient(x))
+
+
+def _positive(x, floor):
+    """``exp(z)``, z clipped to [log floor, log 1e5], straight-through."""
     low, high = math.log(floor), math.log(1e5)
     z = ops.stop_gradient(ops.clip(x, low, high)) + (x - ops.stop_gradient(x))
     return ops.exp(z)

@@ -61,6 +61,7 @@ def plan_run(data, *, variant, run_dir, epochs=200, batch_size=16, learning_rate
              image_size=None, backbone="inception_v3", split="paper", as_released=False,
              seed=0, data_parallel=False, patience=5, test_fraction=0.3, val_fraction=0.1,
              workers=1, disentangle="exact", bounded_pitch_head=None,
+             positive_focal_head=None, alpha_rate=None,
              bn_recompute_batches=None, target_scaling="none", command=None):
     """Check the dataset and the arguments; return the run's plan (a dict).
 
@@ -110,6 +111,10 @@ def plan_run(data, *, variant, run_dir, epochs=200, batch_size=16, learning_rate
         isinstance(learning_rate, (int, float)) and math.isfinite(learning_rate) and learning_rate > 0
     ):
         raise TrainingError(f"learning rate must be a positive number, got {learning_rate!r}")
+    if alpha_rate is not None and (isinstance(alpha_rate, bool) or not (
+        isinstance(alpha_rate, (int, float)) and math.isfinite(alpha_rate) and alpha_rate > 0
+    )):
+        raise TrainingError(f"alpha rate must be a positive number, got {alpha_rate!r}")
 
     data = os.path.abspath(os.fspath(data))
     with StereoFile(data) as f:
@@ -147,8 +152,14 @@ def plan_run(data, *, variant, run_dir, epochs=200, batch_size=16, learning_rate
         "floors": dict(RELEASED_FLOORS if as_released else FLOORS),
         "bounded_pitch_head": (not as_released) if bounded_pitch_head is None
         else bool(bounded_pitch_head),
+        "positive_focal_head": (not as_released) if positive_focal_head is None
+        else bool(positive_focal_head),
         "disentangle": disentangle, "seed": int(seed),
     }
+    if spec.loss_mode(as_released) == "projection-adaptive":
+        from cpl_keras.losses import ALPHA_RATE
+
+        build["alpha_rate"] = float(ALPHA_RATE if alpha_rate is None else alpha_rate)
     run_dir = os.path.abspath(os.fspath(run_dir))
     config = {
         "variant": variant,
@@ -227,6 +238,7 @@ def train(data, *, variant, run_dir, epochs=200, batch_size=16, learning_rate=No
           image_size=None, backbone="inception_v3", split="paper", as_released=False, seed=0,
           data_parallel=False, patience=5, test_fraction=0.3, val_fraction=0.1, workers=1,
           steps_per_execution=1, disentangle="exact", bounded_pitch_head=None,
+          positive_focal_head=None, alpha_rate=None,
           bn_recompute_batches=None, target_scaling="none", verbose=1, command=None):
     """Train ``variant`` on the dataset file ``data``; returns the summary dict.
 
@@ -253,6 +265,7 @@ def train(data, *, variant, run_dir, epochs=200, batch_size=16, learning_rate=No
         as_released=as_released, seed=seed, data_parallel=data_parallel, patience=patience,
         test_fraction=test_fraction, val_fraction=val_fraction, workers=workers,
         disentangle=disentangle, bounded_pitch_head=bounded_pitch_head,
+        positive_focal_head=positive_focal_head, alpha_rate=alpha_rate,
         bn_recompute_batches=bn_recompute_batches, target_scaling=target_scaling,
         command=command,
     )

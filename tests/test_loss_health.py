@@ -128,7 +128,7 @@ def test_adaptive_weights_start_balanced_on_the_first_batch_and_are_floored():
     # u0 and v0 are constant in this batch: Average's term is 0, the 1% term
     # keeps a finite scale
     assert max(alphas.values()) < 1e4
-    s = ops.convert_to_numpy(model.log_variances)
+    s = ops.convert_to_numpy(model.log_variance_values())
     floor = ops.convert_to_numpy(model.log_variance_floor)
     assert np.allclose(s - floor, math.log(losses.ADAPTIVE_WEIGHT_RANGE), atol=1e-4)
     # A term at 0 can no longer drive the objective to minus infinity.
@@ -343,3 +343,106 @@ def test_cpl_disparity_head_is_positive_in_log_space_and_linear_as_released():
     from cpl_keras.layers import positive_disparity
 
     assert float(jax.grad(lambda z: positive_disparity(z))(np.float32(-50.0))) > 0
+
+
+# ---------------------------------------------------------------------------
+# Focal lengths: positive heads (the pole of Eq. 4c)
+# ---------------------------------------------------------------------------
+def _fy_term_gradient(fy_pred, xCam=20.0, v0=56.0, v=70.0, fy=60.0, pitch=0.2):
+    """d L_fy / d fy' of one pair by hand (Eq. 7, every other parameter true):
+    zCam' = xCam (v0 - v) / fy', X' and Z' move with it through Eqs. 5a, 5c."""
+    z_true = xCam * (v0 - v) / fy
+    z_pred = xCam * (v0 - v) / fy_pred
+    dz = -xCam * (v0 - v) / fy_pred ** 2
+    direct = math.copysign(1.0, fy_pred - fy)
+    projection = (math.copysign(1.0, (z_pred - z_true) * math.sin(pitch)) * math.sin(pitch)
+                  + math.copysign(1.0, (z_pred - z_true) * math.cos(pitch)) * math.cos(pitch)) * dz
+    return direct / 13.0, projection / 13.0
+
+
+def test_fy_term_has_a_pole_that_traps_a_negative_linear_head():
+    """The code's gradient of L_fy matches the hand derivation, and below 0
+    the projection part pushes fy' further down, outweighing the direct part
+    near the pole: the InceptionV3 MTL-CPL-A failure (all fy outputs < 0)."""
+    fx = 60.0
+    truth = {"fx": fx, "fy": 60.0, "u0": 56.0, "v0": 56.0, "baseline": 0.5, "pitch": 0.2,
+             "tx": 0.5, "ty": 0.1, "tz": 0.2}
+    truth["disparity"] = fx * truth["baseline"] / 20.0                     # xCam = 20 m
+    truth["X"], truth["Y"], truth["Z"] = camera.image_to_world(**truth, u=40.0, v=70.0)
+    y = {k: ops.convert_to_tensor(np.full((1, 1), v, "float32")) for k, v in truth.items()}
+    index = TARGETS.index("fy")
+    for fy_pred in (-1.1, -5.0, -30.0, 30.0):
+        grad = jax.grad(lambda p: losses.projection_terms(y, dict(y, fy=p))[index])(
+            np.full((1, 1), fy_pred, "float32"))
+        direct, projection = _fy_term_gradient(fy_pred)
+        assert float(grad[0, 0]) == pytest.approx(direct + projection, rel=1e-4)
+        if fy_pred < 0:
+            assert projection > 0          # gradient descent moves fy' down, away from 0
+    assert _fy_term_gradient(-1.1)[1] > 100 * abs(_fy_term_gradient(-1.1)[0])
+
+
+def test_positive_focal_head_escapes_the_trap_a_linear_head_falls_into():
+    """Adam on one head output z, from just below 0 (where the InceptionV3
+    heads started): fy' = z stays below 0, fy' = positive_focal(z) reaches
+    the label."""
+    from cpl_keras.layers import positive_focal
+
+    truth = {"fx": 60.0, "fy": 60.0, "u0": 56.0, "v0": 56.0, "baseline": 0.5, "pitch": 0.2,
+             "tx": 0.5, "ty": 0.1, "tz": 0.2, "disparity": 1.5}
+    truth["X"], truth["Y"], truth["Z"] = camera.image_to_world(**truth, u=40.0, v=70.0)
+    y = {k: ops.convert_to_tensor(np.full((1, 1), v, "float32")) for k, v in truth.items()}
+    index = TARGETS.index("fy")
+
+    def train(head, z):
+        term = jax.jit(jax.grad(lambda z: losses.projection_terms(y, dict(y, fy=head(z)))[index]))
+        optimizer = keras.optimizers.Adam(learning_rate=0.5)
+        variable = keras.Variable(np.full((1, 1), z, "float32"))
+        optimizer.build([variable])
+        for _ in range(2000):
+            optimizer.apply([term(variable.value)], [variable])
+        return float(head(variable.value)[0, 0])
+
+    assert train(lambda z: z, -1.1) < 0
+    assert train(positive_focal, -1.1) == pytest.approx(60.0, rel=0.05)
+
+
+@pytest.mark.parametrize("variant", ["cpl-u", "cpl-a"])
+def test_focal_heads_are_positive_by_default_and_linear_as_released(variant):
+    x, _ = batch(2)
+    for kwargs, positive in (({}, True), ({"as_released": True}, False),
+                             ({"positive_focal_head": False}, False)):
+        model = build_model(variant, backbone="small", image_size=SIZE, seed=0, **kwargs)
+        for name in ("fx", "fy"):
+            head = model.get_layer(name)
+            head.kernel.assign(np.zeros(head.kernel.shape, "float32"))
+            head.bias.assign(np.full(head.bias.shape, -3.0, "float32"))
+        out = model.predict(x, verbose=0)
+        for name in ("fx", "fy"):
+            value = out[TARGETS.index(name)]
+            # -3 is below the 1 px floor: clipped there
+            assert np.allclose(value, camera.FLOORS["focal"] if positive else -3.0)
+        assert model.calibration["positive_focal_head"] is positive
+    baseline = build_model("baseline", backbone="small", image_size=SIZE, seed=0)
+    assert baseline.calibration["positive_focal_head"] is False   # regresses fy directly
+
+
+# ---------------------------------------------------------------------------
+# Eq. 9: how fast the adaptive weights move
+# ---------------------------------------------------------------------------
+@pytest.mark.parametrize("rate", [1.0, 10.0])
+def test_alpha_rate_scales_the_step_of_the_adaptive_weights(rate):
+    """Adam's first step moves every weight by the learning rate (m / sqrt(v)
+    is +-1 after one step), so log alpha_i moves by rate x lr."""
+    model = compile_model(build_model("cpl-a", backbone="small", image_size=SIZE, seed=0,
+                                      alpha_rate=rate), learning_rate=1e-3)
+    x, y = batch(8)
+    model.initialise_adaptive_weights(y)
+    before = ops.convert_to_numpy(model.log_variance_values())
+    model.train_on_batch(x, y)
+    step = np.abs(ops.convert_to_numpy(model.log_variance_values()) - before)
+    moved = step[step > 0]
+    assert len(moved) >= 10
+    assert np.allclose(moved, rate * 1e-3, rtol=1e-2)
+    assert model.calibration["alpha_rate"] == rate
+    with pytest.raises(ValueError, match="alpha rate"):
+        build_model("cpl-a", backbone="small", image_size=SIZE, alpha_rate=0.0)

@@ -46,7 +46,8 @@ class CalibrationModel(keras.Model):
             raise ValueError(f"unknown loss mode {self.calibration['loss']!r}")
         if self.calibration["loss"] == "projection-adaptive":
             # s_i of Eq. 9 (alpha_i = exp(-s_i)), one per disentangled term,
-            # and their floors (set with the starting values, see
+            # stored divided by the alpha rate (``log_variance_values``), and
+            # their floors (set with the starting values, see
             # ``initialise_adaptive_weights``; until then no floor).
             self.log_variances = self.add_weight(
                 shape=(len(camera.TARGETS),), initializer="zeros",
@@ -62,11 +63,25 @@ class CalibrationModel(keras.Model):
     def loss_mode(self):
         return self.calibration["loss"]
 
+    @property
+    def alpha_rate(self):
+        """How fast Eq. 9's weights move: ``s_i = alpha_rate * w_i`` with
+        ``w_i`` the trained variable, so Adam, whose step is about the
+        learning rate whatever the gradient's scale, moves ``log alpha_i``
+        ``alpha_rate`` times as fast as an ordinary weight. 1 is Eq. 9
+        trained like every other weight (models saved before the rate
+        existed); see ``losses.ALPHA_RATE``."""
+        return float(self.calibration.get("alpha_rate", 1.0))
+
+    def log_variance_values(self):
+        """The tensor of Eq. 9's s_i (alpha_i = exp(-s_i)), in TARGETS order."""
+        return self.alpha_rate * self.log_variances.value
+
     def adaptive_weights(self):
         """The learned alpha_i of Eq. 9 by target name (None for other modes)."""
         if self.loss_mode != "projection-adaptive":
             return None
-        alphas = ops.convert_to_numpy(ops.exp(-self.log_variances.value))
+        alphas = ops.convert_to_numpy(ops.exp(-self.log_variance_values()))
         return {name: float(a) for name, a in zip(camera.TARGETS, alphas)}
 
     @property
@@ -111,7 +126,7 @@ class CalibrationModel(keras.Model):
         start, floor = losses.initial_log_variances(
             [float(ops.convert_to_numpy(t)) for t in terms]
         )
-        self.log_variances.assign(start)
+        self.log_variances.assign(start / self.alpha_rate)
         self.log_variance_floor.assign(floor)
         return self.adaptive_weights()
 
@@ -138,7 +153,7 @@ class CalibrationModel(keras.Model):
                 loss = losses.uniform_projection_loss(terms)
             else:
                 loss = losses.adaptive_projection_loss(
-                    terms, self.log_variances, self.log_variance_floor
+                    terms, self.log_variance_values(), self.log_variance_floor
                 )
         if self.losses:
             loss = loss + ops.sum(self.losses)

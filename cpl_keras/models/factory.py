@@ -27,6 +27,7 @@ CPL-A adaptive weights        per-term alpha_i (loss)      per-sample sigmoid ga
                                                            multiplying X, Y, Z
 Deep-Homo input               grey level of each image     one channel of each image
 pitch head                    clipped to +-pi/2            linear (a minimum every 2 pi)
+CPL disparity, fx, fy heads   exp(z), positive             linear (fy trapped below 0)
 X, Y, Z terms of Eq. 7        reach only the pixel heads   (MAE: every head)
 divisor floors                ``camera.FLOORS``            ``camera.RELEASED_FLOORS``
 ============================  ===========================  ============================
@@ -49,9 +50,10 @@ import random
 import keras
 import numpy as np
 
-from cpl_keras import camera
+from cpl_keras import camera, losses
 from cpl_keras.layers import (
-    LambdaOps, bounded_pitch, multiply, positive_disparity, regression_head, stop_gradient,
+    LambdaOps, bounded_pitch, multiply, positive_disparity, positive_focal, regression_head,
+    stop_gradient,
 )
 from cpl_keras.models import backbones, deep_homo, variants
 from cpl_keras.models.calibration_model import CalibrationModel
@@ -62,8 +64,8 @@ DISENTANGLE = ("exact", "partial")
 
 
 def build_model(variant, *, backbone="inception_v3", image_size=112, as_released=False,
-                floors=None, bounded_pitch_head=None, disentangle="exact", seed=None,
-                name=None):
+                floors=None, bounded_pitch_head=None, positive_focal_head=None,
+                disentangle="exact", alpha_rate=None, seed=None, name=None):
     """Build one of the paper's networks.
 
     Args:
@@ -78,9 +80,14 @@ def build_model(variant, *, backbone="inception_v3", image_size=112, as_released
             ``camera.FLOORS``; as released ``camera.RELEASED_FLOORS``).
         bounded_pitch_head: pitch = clip(z, -pi/2, pi/2), straight-through, for the MTL variants
             (default: True, as released False).
+        positive_focal_head: fx = exp(z), fy = exp(z) for the CPL variants
+            (default: True, as released False; see ``layers.positive_focal``).
         disentangle: ``"exact"`` (the X, Y, Z terms of Eq. 7 reach only the
             pixel heads u, v) or ``"partial"`` (they reach every head the
             camera graph reads). CPL variants as the paper writes them only.
+        alpha_rate: how fast MTL-CPL-A's adaptive weights move (default
+            ``losses.ALPHA_RATE``; 1 is Eq. 9 trained like every other weight,
+            see ``CalibrationModel``).
         seed: seeds Keras's initialisers when given. Python's and NumPy's
             global random generators are left as they were.
         name: the model's name (default: the variant).
@@ -95,6 +102,13 @@ def build_model(variant, *, backbone="inception_v3", image_size=112, as_released
     )
     if bounded_pitch_head is None:
         bounded_pitch_head = not as_released
+    if positive_focal_head is None:
+        positive_focal_head = not as_released
+    if alpha_rate is None:
+        alpha_rate = losses.ALPHA_RATE
+    if isinstance(alpha_rate, bool) or not (isinstance(alpha_rate, numbers.Real)
+                                            and math.isfinite(alpha_rate) and alpha_rate > 0):
+        raise ValueError(f"alpha rate must be a positive number, got {alpha_rate!r}")
     if disentangle not in DISENTANGLE:
         raise ValueError(
             f"unknown disentangle {disentangle!r}; choose one of {', '.join(DISENTANGLE)}"
@@ -103,7 +117,8 @@ def build_model(variant, *, backbone="inception_v3", image_size=112, as_released
     height, width = _image_shape(image_size, minimum, backbone)
     with _seeded(seed):
         return _build(spec, backbone, height, width, bool(as_released), floors,
-                      bool(bounded_pitch_head), disentangle, name)
+                      bool(bounded_pitch_head), bool(positive_focal_head), disentangle,
+                      float(alpha_rate), name)
 
 
 @contextlib.contextmanager
@@ -123,7 +138,7 @@ def _seeded(seed):
 
 
 def _build(spec, backbone, height, width, as_released, floors, bounded_pitch_head,
-           disentangle, name):
+           positive_focal_head, disentangle, alpha_rate, name):
     left = keras.Input((height, width, 3), name="left_image")
     right = keras.Input((height, width, 3), name="right_image")
     scaled_left, scaled_right = _scale_inputs(left, right, as_released)
@@ -131,6 +146,7 @@ def _build(spec, backbone, height, width, as_released, floors, bounded_pitch_hea
     outputs = BUILDERS[spec.builder](
         spec, scaled_left, scaled_right, backbone=backbone, as_released=as_released,
         floors=floors, pitch_activation=bounded_pitch if bounded_pitch_head else None,
+        positive_focal_head=positive_focal_head,
         detach=loss.startswith("projection") and disentangle == "exact",
     )
     calibration = {
@@ -138,8 +154,12 @@ def _build(spec, backbone, height, width, as_released, floors, bounded_pitch_hea
         "as_released": as_released, "floors": floors, "loss": loss,
         "bounded_pitch_head": bounded_pitch_head and spec.builder != "deep_homo",
         "positive_disparity_head": loss.startswith("projection"),
+        "positive_focal_head": (positive_focal_head and loss.startswith("projection")
+                                and spec.camera_graph),
         "disentangle": disentangle if loss.startswith("projection") else None,
     }
+    if loss == "projection-adaptive":
+        calibration["alpha_rate"] = alpha_rate
     return CalibrationModel(
         inputs={"left_image": left, "right_image": right}, outputs=outputs,
         name=name or spec.name.replace("-", "_"), calibration=calibration,
@@ -159,10 +179,10 @@ def _direct_outputs(spec, left, right, *, backbone, pitch_activation, **_):
 
 
 def _camera_graph_outputs(spec, left, right, *, backbone, as_released, floors,
-                          pitch_activation, detach):
+                          pitch_activation, positive_focal_head, detach):
     features = backbones.stereo_features(left, right, backbone)
     return camera_projection_outputs(features, spec.name, as_released, floors, pitch_activation,
-                                     detach=detach)
+                                     detach=detach, positive_focal_head=positive_focal_head)
 
 
 #: How each variant's outputs are made (``variants.Variant.builder``).
@@ -171,9 +191,10 @@ BUILDERS = {"deep_homo": _deep_homo_outputs, "direct": _direct_outputs,
 
 
 def camera_projection_outputs(features, variant, as_released, floors, pitch_activation=None,
-                              detach=False):
+                              detach=False, positive_focal_head=None):
     # (the disparity head is positive where the projection loss trains it:
-    # as the paper writes it; see ``layers.positive_disparity``)
+    # as the paper writes it; see ``layers.positive_disparity``; likewise the
+    # focal heads unless ``positive_focal_head`` is False, ``layers.positive_focal``)
     """The CPL heads and the Lambda camera graph (Eqs. 4a-5c).
 
     12 heads predict the 10 parameters and a pixel (u, v) (unsupervised: no
@@ -184,8 +205,12 @@ def camera_projection_outputs(features, variant, as_released, floors, pitch_acti
     it. The released CPL-A multiplies X, Y, Z by per-sample sigmoid gates,
     each its own Dense(120) -> Dense(84) -> Dense(1, sigmoid) branch.
     """
+    if positive_focal_head is None:
+        positive_focal_head = not as_released
+    focal = positive_focal if positive_focal_head else None
     activations = {"pitch": pitch_activation,
-                   "disparity": None if as_released else positive_disparity}
+                   "disparity": None if as_released else positive_disparity,
+                   "fx": focal, "fy": focal}
     params = {name: regression_head(features, name, activation=activations.get(name))
               for name in camera.PARAMETERS}
     pixel = {name: regression_head(features, name) for name in PIXEL_HEADS}
