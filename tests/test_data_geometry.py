@@ -264,26 +264,60 @@ def test_every_pixel_has_finite_positive_depth():
 
 
 @pytest.mark.parametrize("protocol", ["cvgl", "random"])
-def test_projection_pixel_is_the_release_pixel_or_the_first_geometry_below_it(protocol):
+def test_projection_pixel_is_the_first_geometry_down_the_off_centre_column(protocol):
     """The pixel depends on the image only (a network can see which point the
-    labels describe): (W/2, H/2) when it is on near geometry, else the first
-    such pixel below it in the same column."""
-    from cpl_keras.data.generate import render_pair
-
+    labels describe): (W/2 + W/8, H/2 + H/16) when it is on near geometry,
+    else the first such pixel below it in the same column."""
+    column, first = SIZE // 2 + SIZE // 8, SIZE // 2 + SIZE // 16   # 30, 27 at 48 px
     below = 0
     for index in range(12):
         s = protocols.pair_setup(protocol, 3, 12, SIZE, index)
         _, _, lab = render_pair(protocol, 3, 12, SIZE, index)
         if lab["projection_fallback"]:
             continue
-        assert lab["u"] == SIZE // 2 and lab["v"] >= SIZE // 2
+        assert lab["u"] == column and lab["v"] >= first
         cfg = s["config"]
-        for v in range(SIZE // 2, int(lab["v"]) + 1):
+        for v in range(first, int(lab["v"]) + 1):
+            if abs(v - cfg["v0"]) < protocols.PRINCIPAL_CLEARANCE:
+                continue
             ray = camera.camera_point(1.0, cfg["fx"], cfg["fy"], cfg["u0"], cfg["v0"],
-                                      SIZE // 2, v)
-            depth = render.depth_at(s["town"], s["right"], SIZE // 2, v)[0]
+                                      column, v)
+            depth = render.depth_at(s["town"], s["right"], column, v)[0]
             near = depth * math.hypot(1.0, *ray) < protocols.MAX_LABEL_DISTANCE
             assert near == (v == lab["v"]), (index, v)
-        below += lab["v"] > SIZE // 2
+        below += lab["v"] > first
     if protocol == "cvgl":
-        assert below > 0          # the centre often sees the sky: the rule walks down
+        assert below > 0          # the first pixel can see the sky: the rule walks down
+
+
+@pytest.mark.parametrize("protocol", ["cvgl", "random"])
+def test_projection_pixels_avoid_the_principal_row_and_column(protocol):
+    """On the principal row zCam = 0 (fy's term has no gradient from the
+    point), on the principal column yCam = 0. The former rule put 45 % of
+    the cvgl labels on v = v0 and 92 % on u = u0."""
+    us, vs = [], []
+    for index in range(0, 60, 3):
+        _, _, lab = render_pair(protocol, 0, 60, SIZE, index)
+        us.append(lab["u"] - lab["u0"])
+        vs.append(lab["v"] - lab["v0"])
+    assert min(np.abs(us)) >= protocols.PRINCIPAL_CLEARANCE
+    assert min(np.abs(vs)) >= protocols.PRINCIPAL_CLEARANCE
+    # the candidates themselves, for any principal point
+    for u0, v0 in ((24.0, 24.0), (30.0, 27.0), (30.4, 33.0)):
+        c = protocols.projection_candidates(SIZE, SIZE, u0, v0)
+        assert len(c) > 0
+        assert np.all(np.abs(c[:, 0] - u0) >= 1.0) and np.all(np.abs(c[:, 1] - v0) >= 1.0)
+    assert len(protocols.projection_candidates(SIZE, SIZE, 30.0, 0.0)) == 0  # the column itself
+
+
+def test_projection_fallback_avoids_the_principal_row_and_column():
+    from cpl_keras.data.generate import choose_projection_pixel
+
+    cfg = {"fx": 30.0, "fy": 30.0, "u0": 16.0, "v0": 16.0}
+    depth = np.full((32, 32), scenes.SKY_DISTANCE)
+    depth[16, 9] = 10.0                     # nearest, but on the principal row
+    depth[20, 16] = 20.0                    # next, on the principal column
+    depth[21, 9] = 50.0
+    candidates = np.zeros((0, 2))
+    assert choose_projection_pixel(cfg, depth, candidates, 4) == ((9.0, 16.0), 1)
+    assert choose_projection_pixel(cfg, depth, candidates, 4, (16.0, 16.0)) == ((9.0, 21.0), 1)

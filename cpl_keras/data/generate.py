@@ -47,7 +47,7 @@ from cpl_keras.data import protocols
 from cpl_keras.data.protocols import PROTOCOLS
 from cpl_keras.data.scenes import SKY_DISTANCE
 
-GENERATOR_VERSION = "2.1"
+GENERATOR_VERSION = "3.0"
 MIN_IMAGE_SIZE = 16
 MAX_IMAGE_SIZE = 1024
 BLOCK = 32
@@ -146,7 +146,8 @@ def render_pair(protocol, seed, pairs, image_size, index):
     town, cfg, right = s["town"], s["config"], s["right"]
     left_img, _ = render.render(town, s["left"])
     right_img, right_depth = render.render(town, right)
-    (u, v), fallback = choose_projection_pixel(cfg, right_depth, s["uv_candidates"], s["margin"])
+    (u, v), fallback = choose_projection_pixel(cfg, right_depth, s["uv_candidates"], s["margin"],
+                                               s["principal_point"])
     # the depth of exactly (u, v), cast on its own (also for non-integer pixels)
     xCam = float(render.depth_at(town, right, u, v)[0])
     # the release's fixed pixel: does it see the sky dome?
@@ -177,14 +178,15 @@ def _ray_distance(cfg, xCam, u, v):
     return np.asarray(xCam) * np.sqrt(1.0 + np.square(ray_y) + np.square(ray_z))
 
 
-def choose_projection_pixel(cfg, depth, candidates, margin):
+def choose_projection_pixel(cfg, depth, candidates, margin, principal_point=None):
     """The projection pixel of a pair: ``((u, v), fallback)``.
 
     The first candidate (integer pixels) whose point is nearer than
     ``protocols.MAX_LABEL_DISTANCE`` along the ray (so never the sky) is taken,
     ``fallback = 0``. If none is, the nearest pixel at least ``margin`` from
-    the border is taken (first in row-major order among equals),
-    ``fallback = 1``.
+    the border (and, given ``principal_point``, off its row and column,
+    ``protocols.off_principal``) is taken (first in row-major order among
+    equals), ``fallback = 1``.
     """
     cu = np.asarray(candidates)[:, 0].astype(np.intp)
     cv = np.asarray(candidates)[:, 1].astype(np.intp)
@@ -195,6 +197,8 @@ def choose_projection_pixel(cfg, depth, candidates, margin):
     H, W = depth.shape
     v, u = np.mgrid[margin:H - margin, margin:W - margin]
     inner = _ray_distance(cfg, depth[v, u], u, v)
+    if principal_point is not None:
+        inner = np.where(protocols.off_principal(u, v, *principal_point), inner, np.inf)
     k = int(np.argmin(inner))
     return (float(u.flat[k]), float(v.flat[k])), 1
 

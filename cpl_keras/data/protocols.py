@@ -25,13 +25,16 @@ Projection pixel
 ----------------
 Both protocols choose the projection pixel (u, v) on scene geometry, by a
 rule that depends on the image only, so that a network can tell from the
-pair which point its disparity and X, Y, Z labels describe: the release's
-pixel (W/2, H/2) when its point is nearer than ``MAX_LABEL_DISTANCE`` along
-the ray, otherwise the first pixel below it in the same column that is
+pair which point its disparity and X, Y, Z labels describe: the pixel
+(W/2 + W/8, H/2 + H/16) when its point is nearer than ``MAX_LABEL_DISTANCE``
+along the ray, otherwise the first pixel below it in the same column that is
 (never the sky dome, whose 1000 m depth gave X, Y, Z labels of hundreds of
-metres), down to 1/8 of the image from the bottom. If none is, the nearest
-pixel at least 1/8 of the image from the border is taken and the pair is
-flagged (``projection_fallback``). (A pixel drawn at random per pair, as an
+metres), down to 1/8 of the image from the bottom. The start is off the image
+centre because the centre is the principal point of every cvgl rig, where
+yCam = zCam = 0 (``projection_candidates``); pixels on the principal row or
+column are skipped in both protocols. If no candidate is near enough, the
+nearest pixel at least 1/8 of the image from the border (and off the principal
+row and column) is taken and the pair is flagged (``projection_fallback``). (A pixel drawn at random per pair, as an
 earlier version did, makes those labels unpredictable from the images: the
 network is not told the pixel.) The release's fixed pixel is kept as such
 only for the as-released labels.
@@ -99,8 +102,17 @@ RANDOM_RANGES = {
 #: Projection pixels lie at least this fraction of the image from the border.
 PROJECTION_MARGIN_FRACTION = 0.125
 #: How the projection pixel is chosen (see the module docstring).
-PROJECTION_RULE = ("the release's pixel (W/2, H/2), else the first pixel below it in its "
-                   "column whose point is nearer than max_label_distance_m")
+PROJECTION_RULE = ("the pixel (W/2 + W/8, H/2 + H/16) when its point is nearer than "
+                   "max_label_distance_m, else the first pixel below it in its column that "
+                   "is; pixels within principal_clearance_px of the principal row or column "
+                   "are skipped")
+#: The projection column and first row, as offsets from the image centre in
+#: fractions of the image side (see ``projection_candidates``).
+PROJECTION_OFFSET = (1 / 8, 1 / 16)
+#: A candidate is at least this far (pixels) from the principal row v0 and
+#: column u0: on them zCam = 0 (v = v0) or yCam = 0 (u = u0), and the
+#: disentangled term of fy (or fx's Y part) gets no gradient from the point.
+PRINCIPAL_CLEARANCE = 1.0
 #: A candidate is taken only if its point is nearer than this along the ray
 #: (metres; the sky dome is at ``scenes.SKY_DISTANCE`` = 1000 m).
 MAX_LABEL_DISTANCE = 200.0
@@ -115,6 +127,8 @@ def ranges(protocol):
     out.update({f"drive_{k}": list(v) if isinstance(v, tuple) else v for k, v in DRIVE.items()})
     out["projection_margin_fraction"] = PROJECTION_MARGIN_FRACTION
     out["projection_rule"] = PROJECTION_RULE
+    out["projection_offset"] = list(PROJECTION_OFFSET)
+    out["principal_clearance_px"] = PRINCIPAL_CLEARANCE
     out["max_label_distance_m"] = MAX_LABEL_DISTANCE
     if protocol == "cvgl":
         out["left_camera"] = dict(CVGL_LEFT)
@@ -285,14 +299,45 @@ def pair_setup(protocol, seed, pairs, image_size, index):
     intr = (cfg["fx"], cfg["fy"], cfg["u0"], cfg["v0"], W, H)
     left = View(*intr, vehicle + np.asarray(cfg["left_pose"]["position"]), left_rot)
     right = View(*intr, vehicle + np.asarray(cfg["right_pose"]["position"]), right_rot)
-    # the release's pixel, then the pixels below it in its column (both
-    # protocols); the generator takes the first one whose point is nearer
-    # than MAX_LABEL_DISTANCE (never the sky)
+    # candidate pixels drawn for this pair (both protocols); the generator
+    # takes the first one whose point is nearer than MAX_LABEL_DISTANCE
+    # (never the sky)
     margin = projection_margin(W)
-    u0, v0 = (int(c) for c in release_pixel(W, H))
-    candidates = np.array([(u0, v) for v in range(v0, H - margin)], dtype=float)
+    candidates = projection_candidates(W, H, cfg["u0"], cfg["v0"])
     return {"config": cfg, "frame_index": frame, "town": town, "left": left, "right": right,
-            "uv_candidates": candidates, "margin": margin, "release_uv": release_pixel(W, H)}
+            "uv_candidates": candidates, "margin": margin, "release_uv": release_pixel(W, H),
+            "principal_point": (cfg["u0"], cfg["v0"])}
+
+
+def projection_candidates(width, height, u0, v0):
+    """The candidate projection pixels (u, v) of an image, in the order they
+    are tried: the column ``W/2 + W/8`` from row ``H/2 + H/16`` down to the
+    margin, less any pixel on the principal row or column (``off_principal``).
+
+    The release projected the image centre, which is the principal point of
+    every cvgl rig: there yCam = zCam = 0 and the point says nothing of fx,
+    fy or pitch. This generator's former rule (the centre, then down its
+    column) still left v = v0 in 45 % of the cvgl labels and u = u0 in 92 %,
+    so the disentangled term of fy had no gradient from the point in half of
+    every batch. The rule depends on the image size only, so a network can
+    tell from the pair which point its disparity and X, Y, Z labels describe
+    (a pixel drawn at random per pair would make those labels unpredictable:
+    the network is not told the pixel).
+    """
+    margin = projection_margin(width)
+    u = int(round(width / 2 + PROJECTION_OFFSET[0] * width))
+    u = min(max(u, margin), width - margin - 1)
+    first = int(round(height / 2 + PROJECTION_OFFSET[1] * height))
+    rows = np.arange(min(first, height - margin - 1), height - margin)
+    keep = off_principal(u, rows, u0, v0)
+    return np.stack([np.full(int(keep.sum()), u), rows[keep]], axis=1).astype(float)
+
+
+def off_principal(u, v, u0, v0):
+    """True where pixel (u, v) is at least ``PRINCIPAL_CLEARANCE`` from the
+    principal row v0 and column u0."""
+    return (np.abs(np.asarray(u) - u0) >= PRINCIPAL_CLEARANCE) & \
+        (np.abs(np.asarray(v) - v0) >= PRINCIPAL_CLEARANCE)
 
 
 def projection_margin(size):
