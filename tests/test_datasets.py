@@ -12,7 +12,9 @@ from cpl_keras.baselines import average_predictions, training_statistics
 from cpl_keras.baselines.average import load_statistics, save_statistics
 from cpl_keras.camera import TARGETS
 from cpl_keras.data.storage import DatasetError, StereoWriter
-from cpl_keras.datasets import load_split, make_split, save_split, targets_from_labels
+from cpl_keras.datasets import (
+    adjacent_fraction, load_split, make_split, save_split, targets_from_labels,
+)
 
 
 def fixture_labels(n, image_size, configs=4, seed=0):
@@ -163,6 +165,36 @@ def test_held_out_config_split_keeps_whole_configurations_out():
     assert not train_c & test_c and not val_c & test_c and not train_c & val_c
     assert train_c | val_c | test_c == set(range(10))
     assert 0.2 <= len(split["test"]) / 300 <= 0.45
+
+
+def test_drive_split_holds_out_the_end_of_every_rigs_drive():
+    labels = fixture_labels(200, 32, configs=5)
+    labels["frame_index"] = (np.arange(200) // 5).astype(np.int32)   # 40 frames per rig
+    split = make_split(labels, "drive", seed=0)
+    config, frame = labels["config_id"], labels["frame_index"]
+    for c in range(5):
+        # by hand: 40 frames, the last 12 (30 %) test, 3 (10 % of 28) before them val
+        assert sorted(frame[split["test"]][config[split["test"]] == c]) == list(range(28, 40))
+        assert sorted(frame[split["val"]][config[split["val"]] == c]) == list(range(25, 28))
+        assert sorted(frame[split["train"]][config[split["train"]] == c]) == list(range(25))
+    # every rig seen in training, no test frame next to a training frame
+    assert set(config[split["train"]]) == set(config[split["test"]]) == set(range(5))
+    assert adjacent_fraction(labels, split) == 0.0
+    assert adjacent_fraction(labels, split, near="val") == pytest.approx(5 / 60)
+    # the paper's frame-level split: most test frames have a training neighbour
+    paper = make_split(labels, "paper", seed=0)
+    assert adjacent_fraction(labels, paper) > 0.7
+    # as released, validation is the test set
+    released = make_split(labels, "drive", as_released=True)
+    np.testing.assert_array_equal(released["val"], released["test"])
+    assert len(released["train"]) == 5 * 28
+
+
+def test_drive_split_needs_the_frame_index():
+    labels = fixture_labels(40, 32)
+    del labels["frame_index"]
+    with pytest.raises(DatasetError, match="frame_index"):
+        make_split(labels, "drive")
 
 
 def test_held_out_config_needs_configurations():
