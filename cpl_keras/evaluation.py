@@ -91,6 +91,45 @@ def predict_run(model, stereo_file, indices, batch_size=32):
             for name in TARGETS}
 
 
+def run_predictions(run, stereo_file, indices, batch_size=32):
+    """The run's outputs on pairs ``indices`` of an open ``StereoFile``: its
+    stored predictions for that file when it has them (a published run has
+    nothing else), else a forward pass of its model (loaded once, kept on
+    ``run["_model"]``; ``forget_model`` drops it)."""
+    stored = runs.read_predictions(run["run_dir"], stereo_file.path, indices, TARGETS,
+                                   error=EvaluationError)
+    if stored is not None:
+        return stored
+    if run.get("_model") is None:
+        run["_model"] = load_model(run)
+    return predict_run(run["_model"], stereo_file, indices, batch_size)
+
+
+def forget_model(run):
+    """Drop the model ``run_predictions`` kept on ``run``."""
+    run.pop("_model", None)
+
+
+def store_predictions(run_dir, data_paths, batch_size=32):
+    """Store the run's outputs (``runs.write_predictions``): on its own
+    dataset's test split, and on every pair of each other file of
+    ``data_paths`` (real sets, folders of them). The forward passes are the
+    ones the tables make. Returns the paths written."""
+    run = load_run(run_dir)
+    paths = [run["config"]["data"]] + [p for p in data_paths
+                                       if not _same_file(p, run["config"]["data"])]
+    written = []
+    try:
+        for path in paths:
+            with open_dataset(path) as data:
+                indices, _ = evaluation_indices(run, path, data.num_pairs)
+                pred = run_predictions(run, data, indices, batch_size)
+            written.append(runs.write_predictions(run_dir, path, indices, pred, TARGETS))
+    finally:
+        forget_model(run)
+    return written
+
+
 def _same_file(a, b):
     try:
         return os.path.samefile(a, b)
@@ -141,8 +180,8 @@ def evaluate_run(run_dir, data_path, batch_size=32):
     with open_dataset(data_path) as data:
         indices, description = evaluation_indices(run, data_path, data.num_pairs)
         truth = truth_targets(data.labels, indices, as_released(run))
-        model = load_model(run)
-        predictions = predict_run(model, data, indices, batch_size)
+        predictions = run_predictions(run, data, indices, batch_size)
+        forget_model(run)
         width = data.image_shape[1]
         metadata = data.metadata
     row = VARIANT_ROWS[run["config"]["variant"]]
@@ -270,13 +309,12 @@ def table_rows(number, run_dirs, data_path=None, geometric=True, geometric_max=N
         for run in loaded:
             if progress:
                 progress(f"forward pass: {run['config']['variant']} ({run['run_dir']})")
-            model = load_model(run)
-            pred = predict_run(model, data, indices, batch_size)
+            pred = run_predictions(run, data, indices, batch_size)
+            forget_model(run)
             rows[row_name(run)] = {
                 "source": run["run_dir"], "as_released": as_released(run), "indices": indices,
                 "truth": truth_targets(labels, indices, as_released(run)),
                 "pred": published(pred)}
-            del model
         if geometric:
             subset = indices if geometric_max is None else indices[: int(geometric_max)]
             if progress:

@@ -93,7 +93,29 @@ PRESETS = {
               "batch_size": 16, "patience": 5, "seeds": 1, "random_seeds": 1,
               "variants": TABLE_ORDER, "released": True, "seeded_variants": None,
               "workers": None},
+    # Does MTL-CPL-A beat MTL-Baseline? The three MTL variants on 8,000 cvgl
+    # pairs, 3 seeds each, on the paper's frame-level split and on the drive
+    # split (no test frame next to a training frame), every run to early
+    # stopping; Table 2 from the paper-split runs. Many hours on 2 cores:
+    # each finished run is published at once and a rerun skips it
+    # (docs/evaluation.md#presets).
+    "cpu-8000": {"pairs": 8000, "random_pairs": 1000, "epochs": 100, "image_size": 112,
+                 "backbone": "small_resnet", "crops": 500, "chessboard_crops": 20,
+                 "geometric_max": 200, "batch_size": 16, "patience": 5, "seeds": 3,
+                 "random_seeds": 1, "variants": ("cpl-u", "baseline", "cpl-a"),
+                 "released": False, "seeded_variants": None, "workers": None,
+                 "tables": ("cvgl", "cvgl_drive")},
 }
+#: The Table 1 versions a reproduction can make, by key: (protocol, split,
+#: the setting holding its number of seeds). A preset's ``tables`` lists
+#: those it makes (default: ``DEFAULT_TABLES``); Table 2 comes from the
+#: ``cvgl`` runs.
+TABLE1 = {
+    "cvgl": ("cvgl", "paper", "seeds"),
+    "cvgl_drive": ("cvgl", "drive", "seeds"),
+    "random": ("random", "held-out-config", "random_seeds"),
+}
+DEFAULT_TABLES = ("cvgl", "random")
 #: The scale without --preset: the paper's, generating data on every core.
 PAPER_SCALE = dict(PRESETS["paper-gpu"], workers=None)
 QUICK = PRESETS["quick"]
@@ -103,15 +125,12 @@ POSITIVE = ("pairs", "random_pairs", "epochs", "image_size", "crops", "chessboar
 #: Smallest image side of the real sets (StereoBM's block of 15 and 16 disparities).
 MIN_REAL_IMAGE_SIZE = 32
 
-#: (protocol, split, the setting holding its number of seeds)
-PROTOCOLS = (
-    ("cvgl", "paper", "seeds"),
-    ("random", "held-out-config", "random_seeds"),
-)
 #: Real-data roots reproduce passes on to ``cpl_keras.real.build all``.
 REAL_ROOTS = ("kitti", "kitti_raw", "tsinghua", "cityscapes")
 #: The tables' titles in REPORT.md.
 TITLES = {"table1_cvgl": "Table 1, paper protocol (cvgl rigs, frame-level 70/30 split)",
+          "table1_cvgl_drive": "Table 1, paper protocol, drive split (cvgl rigs, the end of "
+                               "every rig's drive held out)",
           "table1_random": "Table 1, unseen rigs (random protocol, whole configurations held out)",
           "table2": "Table 2, real rigs (per rig and pooled; forward pass of the cvgl-trained "
                     "models)"}
@@ -127,6 +146,7 @@ def settings(quick=False, preset=None, **overrides):
     if name is not None and name not in PRESETS:
         raise ValueError(f"unknown preset {name!r}; choose one of {', '.join(PRESETS)}")
     chosen = dict(PRESETS[name] if name else PAPER_SCALE)
+    chosen.setdefault("tables", DEFAULT_TABLES)
     for key, value in overrides.items():
         if value is None:
             continue
@@ -148,6 +168,11 @@ def settings(quick=False, preset=None, **overrides):
         raise ValueError(f"unknown backbone {chosen['backbone']!r}; choose one of "
                          f"{', '.join(BACKBONES)}")
     chosen["variants"] = tuple(chosen["variants"])
+    chosen["tables"] = tuple(chosen["tables"])
+    unknown = [t for t in chosen["tables"] if t not in TABLE1]
+    if unknown or not chosen["tables"]:
+        raise ValueError(f"unknown table {unknown[0] if unknown else '(none)'!r}; choose from "
+                         f"{', '.join(TABLE1)}")
     for variant in chosen["variants"]:
         registry.get(variant)
     if chosen["seeded_variants"] is not None:
@@ -188,7 +213,10 @@ def make_datasets(config, data_dir, seed, real_roots=None):
 
     size = config["image_size"]
     paths = {}
+    needed = {TABLE1[t][0] for t in config.get("tables", DEFAULT_TABLES)}
     for protocol, pairs in (("cvgl", config["pairs"]), ("random", config["random_pairs"])):
+        if protocol not in needed:
+            continue
         # the format version in the name: a file of an older generator is
         # never reused (it would be refused), a new one is made beside it
         path = os.path.join(data_dir, f"{protocol}_{pairs}_{size}px_s{seed}_v{GENERATOR_VERSION}.h5")
@@ -221,14 +249,15 @@ def run_stems(config, protocol="cvgl"):
 
 
 def run_jobs(config, seed):
-    """Every training run of the settings: ``(protocol, split, run seed,
-    variant, as released, run name)``. The runs of ``seeded_variants`` (None:
-    all) are trained on every seed of a protocol, the others on its first seed
-    only; a protocol trained over several seeds names its runs
+    """Every training run of the settings: ``(table key, protocol, split, run
+    seed, variant, as released, run name)``. The runs of ``seeded_variants``
+    (None: all) are trained on every seed of a table, the others on its first
+    seed only; a table trained over several seeds names its runs
     ``<stem>-s<seed>`` (``cpl-u-s1``, ``deep-homo-s0``, ``cpl-a-released-s0``)."""
     seeded = config.get("seeded_variants")
     jobs = []
-    for protocol, split, seeds_key in PROTOCOLS:
+    for key in config.get("tables", DEFAULT_TABLES):
+        protocol, split, seeds_key = TABLE1[key]
         count = config[seeds_key]
         for run_seed in range(seed, seed + count):
             for stem in run_stems(config, protocol):
@@ -237,43 +266,85 @@ def run_jobs(config, seed):
                 released = stem == RELEASED_RUN
                 variant = "cpl-a" if released else stem
                 name = stem + (f"-s{run_seed}" if count > 1 else "")
-                jobs.append((protocol, split, run_seed, variant, released, name))
+                jobs.append((key, protocol, split, run_seed, variant, released, name))
     return jobs
 
 
-def train_all(config, paths, runs_dir, seed, jobs=1):
-    """Stage 2: every run; returns ``{protocol: {seed: [run dirs]}}``.
+def train_all(config, paths, runs_dir, seed, jobs=1, out_dir=None):
+    """Stage 2: every run; returns ``{table key: {seed: [run dirs]}}``.
     ``jobs`` > 1 trains that many runs at a time, each in its own process
-    (``train_parallel``); the runs are the same either way."""
+    (``train_parallel``); the runs are the same either way.
+
+    With ``out_dir``, each run is published the moment it ends
+    (``publish_run``: its stored predictions, log, curves, config and split
+    in ``out_dir/runs/<key>_<name>/``, no weights), and a run whose
+    published record is there but whose run directory is not (another
+    machine, a later session) is restored from it instead of trained again.
+    """
     from cpl_keras import training
 
     trained, pending = {}, []
-    for protocol, split, run_seed, variant, released, name in run_jobs(config, seed):
-        run_dir = os.path.join(runs_dir, protocol, name)
+    for key, protocol, split, run_seed, variant, released, name in run_jobs(config, seed):
+        run_dir = os.path.join(runs_dir, key, name)
         plan = dict(
             variant=variant, run_dir=run_dir, epochs=config["epochs"],
             batch_size=config["batch_size"], backbone=config["backbone"], split=split,
             as_released=released, seed=run_seed, patience=config["patience"],
         )
+        record = published_record(out_dir, key, name) if out_dir else None
+        finished = (runs.read_config(run_dir) or {}).get("status") == "finished"
+        if not finished and record and runs.is_published(record) and \
+                not (os.path.isdir(run_dir) and os.listdir(run_dir)):
+            runs.restore_run_dir(record, run_dir, paths[protocol])
+            _log(f"{key}/{name}: restored from its published record {record} (no weights)")
+            finished = True
         # Refuses (TrainingError) a run directory that holds a run of other
         # settings, so a run made at another scale is never reused.
         training.plan_run(paths[protocol], **plan)
-        trained.setdefault(protocol, {}).setdefault(run_seed, []).append(run_dir)
-        if (runs.read_config(run_dir) or {}).get("status") == "finished":
-            _log(f"{protocol}/{name}: finished run found, reused")
+        trained.setdefault(key, {}).setdefault(run_seed, []).append(run_dir)
+        if finished:
+            _log(f"{key}/{name}: finished run found, reused")
+            if record and not runs.is_published(record):
+                publish_run(run_dir, record, _real_paths(key, paths))
             continue
-        pending.append((f"{protocol}/{name}", paths[protocol], plan))
+        pending.append((f"{key}/{name}", paths[protocol], plan,
+                        (record, _real_paths(key, paths)) if record else None))
     if jobs > 1 and len(pending) > 1:
         train_parallel(pending, jobs, config["backbone"], config["epochs"])
         return trained
-    for label, data, plan in pending:
+    for label, data, plan, publish in pending:
         _log(f"training {label} ({config['backbone']}, up to {config['epochs']} epochs)")
         summary = training.train(data, verbose=2, **plan)
         _log(training.summary_line(summary))
         if summary["best_epoch"] is None:
             raise training.TrainingError(f"{plan['run_dir']}: no epoch completed "
                                          f"({summary['stopped']})")
+        if publish:
+            publish_run(plan["run_dir"], *publish)
     return trained
+
+
+def published_record(out_dir, key, name):
+    """Where run ``name`` of table ``key`` is published: ``out_dir/runs/<key>_<name>``."""
+    return os.path.join(out_dir, "runs", f"{key}_{name}")
+
+
+def _real_paths(key, paths):
+    """The real sets a run of table ``key`` is evaluated on (Table 2: the cvgl runs)."""
+    return list(paths.get("real") or []) if key == "cvgl" else []
+
+
+def publish_run(run_dir, record, real_paths):
+    """Publish a finished run at once: its outputs on its test split and on
+    ``real_paths`` stored in the run directory (``evaluation.store_predictions``),
+    then its published part copied to ``record`` (``runs.publish_run_dir``)
+    and its log and curves beside it (``runs.publish_files``)."""
+    from cpl_keras import evaluation
+
+    evaluation.store_predictions(run_dir, real_paths)
+    runs.publish_run_dir(run_dir, record)
+    runs.publish_files(run_dir, os.path.dirname(record), os.path.basename(record))
+    _log(f"published {record}")
 
 
 #: Variants whose training step costs many MTL steps (Deep-Homo: 15-18x a
@@ -319,7 +390,9 @@ def _train_job(data, plan, parent):
 
 
 def train_parallel(pending, jobs, backbone, epochs):
-    """Train ``pending`` runs (``(label, data, plan)``) ``jobs`` at a time,
+    """Train ``pending`` runs (``(label, data, plan[, publish])``: ``publish``
+    is None or ``publish_run``'s record and real sets, used when the run
+    ends) ``jobs`` at a time,
     each in a fresh process (spawned: JAX does not survive a fork); the slow
     variants first. Ctrl-C (or SIGINT to this process) interrupts every
     running run, which resumes from its last epoch next time; a run that
@@ -331,33 +404,36 @@ def train_parallel(pending, jobs, backbone, epochs):
     from cpl_keras import training
 
     context = multiprocessing.get_context("spawn")
+    pending = [tuple(job) + (None,) * (4 - len(job)) for job in pending]
     queue = sorted(pending, key=lambda job: job[2]["variant"] not in SLOW_VARIANTS)
     running = {}
     failure = None
     try:
         while (queue and failure is None) or running:
             while queue and failure is None and len(running) < jobs:
-                label, data, plan = queue.pop(0)
+                label, data, plan, publish = queue.pop(0)
                 _log(f"training {label} ({backbone}, up to {epochs} epochs; "
                      f"{jobs} runs at a time)")
                 process = context.Process(target=_train_job, args=(data, plan, os.getpid()),
                                           name=label)
                 process.start()
-                running[process.sentinel] = (label, plan, process)
+                running[process.sentinel] = (label, plan, process, publish)
             ready = multiprocessing.connection.wait(list(running), timeout=5)
             for sentinel in ready:
-                label, plan, process = running.pop(sentinel)
+                label, plan, process, publish = running.pop(sentinel)
                 process.join()
+                if process.exitcode == 0 and publish:
+                    publish_run(plan["run_dir"], *publish)
                 if process.exitcode != 0 and failure is None:
                     failure = (f"{plan['run_dir']}: training ended with exit status "
                                f"{process.exitcode}")
-                    for _, _, other in running.values():
+                    for _, _, other, _ in running.values():
                         other.terminate()  # SIGTERM: resumes from its last epoch
     except KeyboardInterrupt:
-        for _, _, process in running.values():
+        for _, _, process, _ in running.values():
             if process.is_alive():
                 os.kill(process.pid, signal.SIGINT)
-        for _, _, process in running.values():
+        for _, _, process, _ in running.values():
             process.join(timeout=60)
             if process.is_alive():
                 process.terminate()
@@ -413,13 +489,13 @@ def _group_predictions(number, stem, prefix, run_dirs, data, config, out_dir, su
 
 def make_predictions(config, paths, trained, out_dir):
     """Stage 3: the predictions of every row of every table, for every seed;
-    returns their paths (Table 1 per protocol, then Table 2)."""
+    returns their paths (Table 1 per table key, then Table 2)."""
     groups = []
-    for protocol, by_seed in trained.items():
+    for key, by_seed in trained.items():
         for run_seed, run_dirs in by_seed.items():
-            groups.append((1, f"table1_{protocol}", protocol, run_dirs, None,
+            groups.append((1, f"table1_{key}", key, run_dirs, None,
                            f"-s{run_seed}" if len(by_seed) > 1 else ""))
-    cvgl = trained["cvgl"]
+    cvgl = trained.get("cvgl", {})
     for run_seed, run_dirs in cvgl.items():
         groups.append((2, "table2", "cvgl", run_dirs, paths["real"],
                        f"-s{run_seed}" if len(cvgl) > 1 else ""))
@@ -490,7 +566,7 @@ def _dataset_line(path):
 
 def dataset_lines(paths):
     """``{kind: line}`` describing every dataset (real sets: ``real``, one per file)."""
-    lines = {"cvgl": _dataset_line(paths["cvgl"]), "random": _dataset_line(paths["random"])}
+    lines = {k: _dataset_line(paths[k]) for k in ("cvgl", "random") if k in paths}
     for path in paths["real"]:
         lines[f"real ({os.path.splitext(os.path.basename(path))[0]})"] = _dataset_line(path)
     return lines
@@ -517,9 +593,17 @@ def _scale_text(config):
         scale = f"preset `{preset}`, as set below"
     else:
         scale = "as set below"
-    seeds = (f" Seeds per protocol: cvgl {config['seeds']}, random {config['random_seeds']} "
-             f"(each seed its own split and initial weights; a table over several seeds gives "
-             f"mean ± spread)." if max(config["seeds"], config["random_seeds"]) > 1 else "")
+    counts = {TABLE1[t][2]: config[TABLE1[t][2]] for t in config.get("tables", DEFAULT_TABLES)}
+    if tuple(config.get("tables", DEFAULT_TABLES)) != DEFAULT_TABLES:
+        seeds = (f" Seeds per table: {', '.join(f'{t} {config[TABLE1[t][2]]}' for t in config['tables'])} "
+                 f"(each seed its own initial weights and, on the paper split, its own split; "
+                 f"a table over several seeds gives mean ± spread)."
+                 if max(counts.values()) > 1 else "")
+    else:
+        seeds = (f" Seeds per protocol: cvgl {config['seeds']}, random {config['random_seeds']} "
+                 f"(each seed its own split and initial weights; a table over several seeds "
+                 f"gives mean ± spread)." if max(config["seeds"], config["random_seeds"]) > 1
+                 else "")
     seeded = config.get("seeded_variants")
     if seeds and seeded is not None:
         once = [stem for stem in run_stems(config) if stem not in seeded]
@@ -588,9 +672,15 @@ def plot_protocol_curves(out_dir, runs_list):
     return figures
 
 
+def _run_name(run_summary):
+    """The run's name without its table key (``cvgl_drive_cpl-u-s1``: ``cpl-u-s1``)."""
+    name, key = run_summary["name"], run_summary["protocol"]
+    return name[len(key) + 1:] if name.startswith(key + "_") else name.split("_", 1)[1]
+
+
 def _run_stem(run_summary):
     """The name stem of a run's summary (``cvgl_cpl-u-s1``: ``cpl-u``)."""
-    name = run_summary["name"].split("_", 1)[1]
+    name = _run_name(run_summary)
     seed = run_summary.get("seed")
     return name[: -len(f"-s{seed}")] if seed is not None and name.endswith(f"-s{seed}") \
         else name
@@ -629,7 +719,7 @@ def write_report(out_dir, summary, tables, rebuilt_by=None):
                                    if s["epochs_run"] == config["epochs"] else "")
         wall = "" if s["wall_time_s"] is None else f"{s['wall_time_s'] / 60:.1f}"
         loss = "" if s["best_val_loss"] is None else f"{s['best_val_loss']:.4g}"
-        lines.append(f"| {s['protocol']} | {s['name'].split('_', 1)[1]} | {s['split']} | "
+        lines.append(f"| {s['protocol']} | {_run_name(s)} | {s['split']} | "
                      f"{s.get('seed', '')} | {s['epochs_run']} | {s['best_epoch']} | {loss} | "
                      f"{wall} | {stopped} |")
     lines += ["", "Training curves, per-epoch logs and each table row's published predictions "
@@ -677,7 +767,7 @@ def reproduce(*, out_dir, data_dir, runs_dir, config, seed=0, command="", discus
 
     enable_compile_cache()
     paths = make_datasets(config, data_dir, seed, real_roots)
-    trained = train_all(config, paths, runs_dir, seed, jobs)
+    trained = train_all(config, paths, runs_dir, seed, jobs, out_dir=out_dir)
     files = make_predictions(config, paths, trained, out_dir)
     tables = make_tables(files, out_dir, command)
     summaries = collect_run_files(trained, out_dir)
@@ -690,9 +780,9 @@ def reproduce(*, out_dir, data_dir, runs_dir, config, seed=0, command="", discus
     summary = {
         "command": command, "settings": dict(config, variants=list(config["variants"])),
         "seed": seed, "real_roots": roots,
-        "data": {"cvgl": runs.relative(paths["cvgl"], out_dir),
-                 "random": runs.relative(paths["random"], out_dir),
-                 "real": [runs.relative(p, out_dir) for p in paths["real"]]},
+        "data": dict({k: runs.relative(paths[k], out_dir) for k in ("cvgl", "random")
+                      if k in paths},
+                     real=[runs.relative(p, out_dir) for p in paths["real"]]),
         "datasets": dataset_lines(paths), "runs": summaries, "machine": info,
         "predictions": [runs.relative(p, out_dir) for p in files], "tables": list(tables),
         "discussion": discussion}

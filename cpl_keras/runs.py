@@ -9,7 +9,13 @@ A run directory (written by ``cpl_keras.training``)::
     curves.png         training curves
     train_stats.json   training-set statistics (the Average baseline)
     split.npz          train, val, test index arrays
+    predictions/       the best model's outputs on datasets, one .npz each
+                       (``store_predictions``): they outlive the weights
     backup/            resume state: state.json, checkpoints, the lock
+
+A *published* run directory is the same less the weights (model.keras,
+best.weights.h5, backup/): what the reproduction commits and restores on
+another machine. It evaluates from ``predictions/`` alone.
 
 Training writes it through this module; evaluation, calibration, the
 reproduction and the learning curves read it only through ``load_run``,
@@ -39,7 +45,12 @@ BACKUP = "backup"
 STATE = os.path.join(BACKUP, "state.json")
 LOCK = os.path.join(BACKUP, "lock")
 #: The files a finished run must have to be evaluated.
-REQUIRED = (CONFIG, MODEL, STATS, SPLIT)
+PREDICTIONS = "predictions"
+#: The files every run directory has (a published one has no model.keras
+#: but stored predictions instead).
+REQUIRED = (CONFIG, STATS, SPLIT)
+#: What a published run directory keeps (no weights).
+PUBLISHED = (CONFIG, STATS, SPLIT, LOG, CURVES, PREDICTIONS)
 #: Suffix of a table row of a run trained with ``as_released``.
 RELEASED = " (as released)"
 
@@ -181,6 +192,74 @@ def publish_files(run_dir, target_dir, name):
                 shutil.copyfile(path, tmp)
 
 
+def publish_run_dir(run_dir, target):
+    """Copy the published part of a finished run directory (``PUBLISHED``:
+    no weights) to the folder ``target``, replacing what it held; its
+    config.json names the dataset file and the run directory without a
+    machine's paths. File times are kept (a table made from the stored
+    predictions is newer than them). Returns ``target``."""
+    import shutil
+
+    config = read_config(run_dir)
+    if config is None or config.get("status") != "finished":
+        raise RunError(f"{run_dir} holds no finished run to publish")
+    if not stored_predictions(run_dir):
+        raise RunError(f"{run_dir} has no stored predictions to publish")
+    staging = target.rstrip(os.sep) + ".partial"
+    shutil.rmtree(staging, ignore_errors=True)
+    os.makedirs(staging)
+    for name in PUBLISHED:
+        source = os.path.join(run_dir, name)
+        if os.path.isdir(source):
+            shutil.copytree(source, os.path.join(staging, name), copy_function=shutil.copy2)
+        elif os.path.isfile(source) and name != CONFIG:
+            shutil.copy2(source, os.path.join(staging, name))
+    portable = dict(config, data=os.path.basename(config["data"]),
+                    run_dir=os.path.basename(os.path.normpath(run_dir)))
+    write_config(staging, portable)
+    shutil.copystat(os.path.join(run_dir, CONFIG), os.path.join(staging, CONFIG))
+    if os.path.isdir(target):
+        shutil.rmtree(target)
+    os.replace(staging, target)
+    return target
+
+
+def is_published(folder):
+    """True when ``folder`` holds a published run (``publish_run_dir``)."""
+    try:
+        config = read_config(folder) if os.path.isdir(folder) else None
+    except RunError:
+        return False
+    return bool(config) and config.get("status") == "finished" and bool(stored_predictions(folder))
+
+
+def restore_run_dir(folder, run_dir, data_path):
+    """Make ``run_dir`` (absent or empty) a published run again from
+    ``folder``: the files of ``publish_run_dir``, its config.json pointing at
+    ``data_path`` (the same dataset file name, RunError otherwise) and at
+    ``run_dir``. It evaluates from its stored predictions; it cannot resume
+    (no weights, and it is finished)."""
+    import shutil
+
+    config = read_config(folder)
+    if os.path.basename(os.fspath(data_path)) != config.get("data"):
+        raise RunError(f"{folder} was trained on {config.get('data')}, not on "
+                       f"{os.path.basename(os.fspath(data_path))}")
+    if os.path.exists(run_dir) and os.listdir(run_dir):
+        raise RunError(f"cannot restore into {run_dir}: it is not empty")
+    staging = run_dir.rstrip(os.sep) + ".partial"
+    shutil.rmtree(staging, ignore_errors=True)
+    shutil.copytree(folder, staging, copy_function=shutil.copy2)
+    write_config(staging, dict(config, data=os.path.abspath(os.fspath(data_path)),
+                               run_dir=os.path.abspath(run_dir), restored_from=folder))
+    shutil.copystat(os.path.join(folder, CONFIG), os.path.join(staging, CONFIG))
+    if os.path.isdir(run_dir):
+        os.rmdir(run_dir)
+    os.makedirs(os.path.dirname(os.path.abspath(run_dir)), exist_ok=True)
+    os.replace(staging, run_dir)
+    return run_dir
+
+
 def run_label(config):
     """The run in words: variant, backbone, dataset file, split, and the
     training options that differ from the defaults (learning rate, target
@@ -240,8 +319,10 @@ def load_run(run_dir, error=RunError):
     run_dir = os.path.abspath(os.fspath(run_dir))
     if not os.path.isdir(run_dir):
         raise error(f"run directory not found: {run_dir}")
-    paths = {name: os.path.join(run_dir, name) for name in REQUIRED}
+    paths = {name: os.path.join(run_dir, name) for name in REQUIRED + (MODEL,)}
     for name, path in paths.items():
+        if name == MODEL and stored_predictions(run_dir):
+            continue  # a published run: its outputs are stored, not its weights
         if not os.path.isfile(path):
             what = "weights (model.keras)" if name == MODEL else name
             raise error(f"run directory {run_dir} has no {what}")
@@ -266,6 +347,66 @@ def load_run(run_dir, error=RunError):
     return run
 
 
+# ---------------------------------------------------------------------------
+# Stored predictions: a run's outputs that outlive its weights
+# ---------------------------------------------------------------------------
+def predictions_path(run_dir, data_path):
+    """``<run_dir>/predictions/<dataset file name>.npz``."""
+    name = os.path.splitext(os.path.basename(os.fspath(data_path)))[0]
+    return os.path.join(run_dir, PREDICTIONS, name + ".npz")
+
+
+def stored_predictions(run_dir):
+    """The stored predictions files of a run directory (sorted paths)."""
+    folder = os.path.join(run_dir, PREDICTIONS)
+    if not os.path.isdir(folder):
+        return []
+    return sorted(os.path.join(folder, f) for f in os.listdir(folder) if f.endswith(".npz"))
+
+
+def write_predictions(run_dir, data_path, indices, outputs, names):
+    """Store a run's ``outputs`` (name -> (n,) array) on pairs ``indices`` of
+    ``data_path``: ``indices`` (int64), ``pred`` (n, 13 float32), ``outputs``
+    (the names), ``dataset`` (the file's name). Atomic; no pickle."""
+    import numpy as np
+
+    path = predictions_path(run_dir, data_path)
+    os.makedirs(os.path.dirname(path), exist_ok=True)
+    pred = np.stack([np.asarray(outputs[n], np.float32).reshape(-1) for n in names], axis=1)
+    with atomic_path(path) as tmp:
+        with open(tmp, "wb") as f:
+            np.savez(f, indices=np.asarray(indices, np.int64), pred=pred,
+                     outputs=np.array(list(names)),
+                     dataset=np.array(os.path.basename(os.fspath(data_path))))
+    return path
+
+
+def read_predictions(run_dir, data_path, indices, names, error=RunError):
+    """The stored outputs of the run on pairs ``indices`` of ``data_path``
+    (name -> float64 array), or None when none are stored for that file.
+    ``error`` when the file is unreadable or lacks some of the pairs."""
+    import numpy as np
+
+    path = predictions_path(run_dir, data_path)
+    if not os.path.isfile(path):
+        return None
+    try:
+        with np.load(path, allow_pickle=False) as data:
+            stored, pred = data["indices"], data["pred"]
+            outputs = [str(n) for n in data["outputs"]]
+    except (OSError, ValueError, KeyError) as problem:
+        raise error(f"cannot read {path}: {problem}") from None
+    if outputs != list(names) or pred.shape != (len(stored), len(names)):
+        raise error(f"{path}: outputs {outputs} are not {list(names)}")
+    where = {int(i): k for k, i in enumerate(stored)}
+    missing = [int(i) for i in indices if int(i) not in where]
+    if missing:
+        raise error(f"{path} has no predictions for {len(missing)} of the pairs asked "
+                    f"(first: {missing[0]})")
+    rows = np.array([where[int(i)] for i in indices], np.int64)
+    return {name: pred[rows, k].astype(np.float64) for k, name in enumerate(names)}
+
+
 def load_model(run, error=RunError):
     """The run's best model (``keras.saving.load_model(..., safe_mode=True)``)."""
     import keras
@@ -276,6 +417,9 @@ def load_model(run, error=RunError):
     import zipfile
 
     path = run["model_path"]
+    if not os.path.exists(path):
+        raise error(f"run directory {run['run_dir']} has no weights (model.keras): a "
+                    f"published run holds only its stored predictions")
     if os.path.isfile(path) and not zipfile.is_zipfile(path):
         # (Keras reports a damaged archive as "File not found")
         raise error(f"cannot load {path}: the file is truncated or corrupt (not a complete "

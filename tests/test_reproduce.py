@@ -105,6 +105,41 @@ def test_quick_reproduction_reuses_every_stage(quick):
 
 
 @pytest.mark.slow
+def test_published_runs_are_restored_not_trained_again(quick, tmp_path):
+    """Each run was published the moment it ended (stored predictions, log,
+    config and split; no weights). On a machine with the published results
+    but no run directories (a later session), the same command restores
+    every run from its record, trains none, and scores the same tables."""
+    out = tmp_path / "out"
+    shutil.copytree(quick["out"], out)
+    records = sorted(p for p in (out / "runs").iterdir() if p.is_dir())
+    assert len(records) == 9
+    for record in records:
+        assert json.loads((record / "config.json").read_text())["status"] == "finished"
+        assert list((record / "predictions").glob("*.npz"))
+        assert not (record / "model.keras").exists() and not (record / "backup").exists()
+    # the cvgl runs also stored their outputs on every real set (Table 2)
+    assert len(list((out / "runs" / "cvgl_cpl-a" / "predictions").glob("*.npz"))) == 3
+    args = ["--reproduce", "--quick", "--out", str(out), "--data-dir", str(quick["data"]),
+            "--runs-dir", str(tmp_path / "runs")]
+    result = run(*args)
+    assert result.returncode == 0, result.stderr[-3000:]
+    assert "training " not in result.stderr
+    assert result.stderr.count("restored from its published record") == 9
+    for stem in ("table1_cvgl", "table1_random", "table2"):
+        again = json.loads((out / f"{stem}.json").read_text())
+        first = json.loads((quick["out"] / f"{stem}.json").read_text())
+        assert set(again["rows"]) == set(first["rows"])
+        for row in first["rows"]:
+            assert again["rows"][row]["targets"] == first["rows"][row]["targets"], (stem, row)
+    # a restored run has no weights: asking for its model says so in one line
+    from cpl_keras import evaluation
+    run_dir = tmp_path / "runs" / "cvgl" / "cpl-a"
+    with pytest.raises(evaluation.EvaluationError, match="no weights"):
+        evaluation.load_model(evaluation.load_run(run_dir))
+
+
+@pytest.mark.slow
 def test_tables_rebuilt_from_predictions_alone(quick, tmp_path):
     """Weights and datasets moved away, --from-predictions rebuilds every table
     and REPORT.md exactly as the reproduction made them."""
@@ -269,21 +304,34 @@ def test_presets_resolve():
     # initial weights), Deep-Homo and MTL-CPL-A as released once, on seed 0
     jobs = reproduce.run_jobs(cpu, seed=0)
     assert len(jobs) == 15
-    cvgl = [(j[2], j[3], j[4], j[5]) for j in jobs if j[0] == "cvgl"]
+    cvgl = [(j[3], j[4], j[5], j[6]) for j in jobs if j[0] == "cvgl"]
     assert cvgl == [(0, "deep-homo", False, "deep-homo-s0"), (0, "cpl-u", False, "cpl-u-s0"),
                     (0, "baseline", False, "baseline-s0"), (0, "cpl-a", False, "cpl-a-s0"),
                     (0, "cpl-a", True, "cpl-a-released-s0")] + [
         (s, v, False, f"{v}-s{s}") for s in (1, 2) for v in ("cpl-u", "baseline", "cpl-a")]
-    assert all(j[1] == "paper" for j in jobs if j[0] == "cvgl")
-    assert [(j[2], j[3], j[4], j[5]) for j in jobs if j[0] == "random"] == [
+    assert all(j[1:3] == ("cvgl", "paper") for j in jobs if j[0] == "cvgl")
+    assert [(j[3], j[4], j[5], j[6]) for j in jobs if j[0] == "random"] == [
         (0, v, False, v) for v in ("deep-homo", "cpl-u", "baseline", "cpl-a")]
-    assert all(j[1] == "held-out-config" for j in jobs if j[0] == "random")
+    assert all(j[1:3] == ("random", "held-out-config") for j in jobs if j[0] == "random")
     # --seed S shifts every run seed; more random seeds: the MTL variants on each
     shifted = reproduce.run_jobs(reproduce.settings(preset="cpu", random_seeds=2), seed=5)
     assert [j[-1] for j in shifted if j[0] == "random"] == [
         "deep-homo-s5", "cpl-u-s5", "baseline-s5", "cpl-a-s5", "cpl-u-s6", "baseline-s6",
         "cpl-a-s6"]
-    assert {j[2] for j in shifted if j[0] == "cvgl"} == {5, 6, 7}
+    assert {j[3] for j in shifted if j[0] == "cvgl"} == {5, 6, 7}
+    # the decision preset: the MTL variants on 8,000 cvgl pairs, 3 seeds, both splits
+    decide = _parsed("--preset", "cpu-8000").config
+    assert (decide["pairs"], decide["seeds"], decide["backbone"]) == (8000, 3, "small_resnet")
+    assert decide["tables"] == ("cvgl", "cvgl_drive") and not decide["released"]
+    jobs = reproduce.run_jobs(decide, seed=0)
+    assert len(jobs) == 18
+    assert {(j[0], j[2]) for j in jobs} == {("cvgl", "paper"), ("cvgl_drive", "drive")}
+    assert {j[1] for j in jobs} == {"cvgl"}          # one dataset for both tables
+    assert [j[-1] for j in jobs if j[0] == "cvgl_drive"] == [
+        f"{v}-s{s}" for s in (0, 1, 2) for v in ("cpl-u", "baseline", "cpl-a")]
+    assert "Seeds per table: cvgl 3, cvgl_drive 3" in reproduce._scale_text(decide)
+    with pytest.raises(ValueError, match="unknown table 'kitti'"):
+        reproduce.settings(preset="cpu", tables=("cvgl", "kitti"))
     with pytest.raises(ValueError, match="seeded variant 'baseline' is not trained"):
         reproduce.settings(preset="cpu", variants=("deep-homo", "cpl-u", "cpl-a"))
     # the report says which rows are of one seed

@@ -104,13 +104,11 @@ def _rig_rows(loaded, data_path, geometric, geometric_max, progress):
             if progress:
                 progress(f"forward pass on {rig_name(metadata, data_path)}: "
                          f"{run['config']['variant']} ({run['run_dir']})")
-            model = run.get("_model") or evaluation.load_model(run)
-            run["_model"] = model
             rows[runs.row_name(run)] = {
                 "source": run["run_dir"], "as_released": runs.as_released(run),
                 "indices": indices, "truth": evaluation.truth_targets(
                     labels, indices, runs.as_released(run)),
-                "pred": evaluation.published(evaluation.predict_run(model, data, indices)),
+                "pred": evaluation.published(evaluation.run_predictions(run, data, indices)),
                 "defined": defined}
         if geometric:
             subset = indices if geometric_max is None else indices[: int(geometric_max)]
@@ -183,7 +181,7 @@ def table2_rigs(run_dirs, data_paths, geometric=True, geometric_max=None, progre
         rigs = [_rig_rows(loaded, path, geometric, geometric_max, progress) for path in paths]
     finally:
         for run in loaded:
-            run.pop("_model", None)
+            evaluation.forget_model(run)
     return [r["run_dir"] for r in loaded], rigs
 
 
