@@ -81,3 +81,57 @@ def test_undefined_disparity_is_left_out(setup, tmp_path):
     pooled = table["rows"]["MTL-Baseline"]["targets"]
     assert pooled["disparity"]["num_defined"] == 13 and pooled["fx"]["num_defined"] == 15
     assert "defined on part of the pairs only" in open(out / "table2.md").read()
+
+
+def _rig(name, n, rectified, geometric_pairs, seed):
+    """Raw rows of one rig (``table2_from_rigs``' input) with known errors."""
+    from cpl_keras.baselines.geometric import FAILURE_FLAGS
+    from cpl_keras.camera import TARGETS
+
+    rng = np.random.default_rng(seed)
+    truth = {k: rng.uniform(50.0, 150.0, n) for k in TARGETS}
+    if rectified:
+        truth["pitch"] = np.zeros(n)
+    indices = np.arange(n)
+
+    def row(pred_scale, subset=None):
+        take = indices if subset is None else indices[:subset]
+        return {"source": "x", "as_released": False, "indices": take,
+                "truth": {k: v[take] for k, v in truth.items()},
+                "pred": {k: v[take] * pred_scale for k, v in truth.items()},
+                "defined": {k: np.ones(len(take), bool) for k in TARGETS}}
+
+    rows = {"Average": row(1.5), "MTL-CPL-A": row(1.1)}
+    geo = row(1.3, geometric_pairs)
+    geo.update(priors={}, statuses=[{f: False for f in FAILURE_FLAGS}] * geometric_pairs,
+               degenerate=["fx", "fy"] if rectified else [])
+    if rectified:
+        geo["defined"] = dict(geo["defined"], fx=np.zeros(geometric_pairs, bool),
+                              fy=np.zeros(geometric_pairs, bool))
+    rows["Geometric"] = geo
+    return {"rig": name, "data": f"/{name}.h5", "data_description": f"all {n}",
+            "rectified": rectified, "width": 112, "data_source": name, "num_pairs": n,
+            "rows": rows}
+
+
+def test_pooled_table_compares_every_row_on_the_same_pairs():
+    """fx pools only the pairs every row has (Geometric ran on 4 of the 10
+    chessboard pairs and is degenerate on the rectified rig), pitch only the
+    rig that is not rectified; values derived by hand from the constructed
+    errors (|pred - y| / mean|y| = scale - 1 on any set of pairs)."""
+    from cpl_keras.real.table2 import table2_from_rigs
+
+    rigs = [_rig("chessboard", 10, False, 4, 0), _rig("middlebury", 20, True, 20, 1)]
+    table = table2_from_rigs(["run"], rigs)
+    pooled = table["rows"]
+    fx_pairs = rigs[0]["rows"]["Average"]["truth"]["fx"][:4]
+    for row, scale in (("Average", 1.5), ("MTL-CPL-A", 1.1), ("Geometric", 1.3)):
+        cells = pooled[row]["targets"]
+        assert cells["fx"]["num_defined"] == 4
+        assert cells["fx"]["nmae"] == pytest.approx(scale - 1.0)
+        assert cells["fx"]["mae"] == pytest.approx((scale - 1.0) * fx_pairs.mean())
+        assert cells["pitch"]["num_defined"] == 4       # only the chessboard rig's shared pairs
+        # u0: defined everywhere; the shared pairs are the 4 + 20 Geometric has
+        assert cells["u0"]["num_defined"] == 24
+    # per rig, each row keeps all of its own pairs
+    assert table["rigs"]["chessboard"]["rows"]["MTL-CPL-A"]["targets"]["fx"]["num_defined"] == 10

@@ -20,6 +20,12 @@ Undefined values are never invented:
   pooled fx, fy and of the FOV curves and plot;
 * a zero mean (pitch, tx, tz of a rectified rig) leaves NMAE undefined
   (``n/a``; ``cpl_keras.metrics``).
+
+The pooled table compares every row on the same pairs: each column pools,
+rig by rig, only the pairs on which every row of the table has that column
+defined (so a Geometric row run on fewer pairs, or degenerate on a rig,
+narrows the column for all rows alike), and pitch only on rigs that are not
+rectified (a rectified rig's relative pitch is 0 by construction).
 """
 
 from __future__ import annotations
@@ -208,8 +214,10 @@ def table2_from_rigs(run_list, rigs):
             description=rig["data_description"], source=rig["data_source"], runs=run_list,
             paper={}), rectified=rig["rectified"])
     pooled_rows = {}
+    shared = [_shared_pairs(rig) for rig in rigs]
     for row in rigs[0]["rows"]:
-        parts = [rig["rows"][row] for rig in rigs if row in rig["rows"]]
+        parts = [_on_shared_pairs(rig["rows"][row], common, rig["rectified"])
+                 for rig, common in zip(rigs, shared) if row in rig["rows"]]
         pooled_rows[row] = dict(parts[0], indices=np.concatenate([p["indices"] for p in parts]),
                                 truth={k: np.concatenate([p["truth"][k] for p in parts]) for k in TARGETS},
                                 pred={k: np.concatenate([np.asarray(p["pred"][k]) for p in parts])
@@ -233,6 +241,35 @@ def table2_from_rigs(run_list, rigs):
     table["fov_points"] = {rig["rig"]: {row: _fov_points(r, width) for row, r in rig["rows"].items()}
                            for rig in rigs}
     return report.jsonable(table)
+
+
+def _shared_pairs(rig):
+    """``{target: set of pair indices}`` where every row of the rig has the
+    target defined: the pairs a pooled column compares all rows on."""
+    common = {}
+    for name in TARGETS:
+        sets = [set(np.asarray(r["indices"])[np.asarray(r["defined"][name], bool)].tolist())
+                for r in rig["rows"].values()]
+        common[name] = set.intersection(*sets) if sets else set()
+    return common
+
+
+def _on_shared_pairs(raw, common, rectified):
+    """A row of one rig for pooling: each target defined only on the pairs
+    every row has (``_shared_pairs``), and pitch not at all on a rectified
+    rig (its true relative pitch is 0 by construction: nothing to measure)."""
+    indices = np.asarray(raw["indices"])
+    defined = {}
+    for name in TARGETS:
+        mask = np.asarray(raw["defined"][name], bool) & np.isin(indices, list(common[name]))
+        if rectified and name in UNDEFINED_ON_RECTIFIED:
+            mask = np.zeros_like(mask)
+        defined[name] = mask
+    return dict(raw, defined=defined)
+
+
+#: Targets that a rectified rig does not define (its rotation is 0 by construction).
+UNDEFINED_ON_RECTIFIED = ("pitch",)
 
 
 def make_table2(run_dirs, data_paths, geometric=True, geometric_max=None, progress=None):
