@@ -323,6 +323,7 @@ def test_presets_resolve():
     decide = _parsed("--preset", "cpu-8000").config
     assert (decide["pairs"], decide["seeds"], decide["backbone"]) == (8000, 3, "small_resnet")
     assert decide["tables"] == ("cvgl", "cvgl_drive") and not decide["released"]
+    assert decide["geometric_max"] is None                 # every baseline on every test pair
     jobs = reproduce.run_jobs(decide, seed=0)
     assert len(jobs) == 18
     assert {(j[0], j[2]) for j in jobs} == {("cvgl", "paper"), ("cvgl_drive", "drive")}
