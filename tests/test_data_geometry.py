@@ -303,11 +303,17 @@ def test_projection_pixels_avoid_the_principal_row_and_column(protocol):
     assert min(np.abs(us)) >= protocols.PRINCIPAL_CLEARANCE
     assert min(np.abs(vs)) >= protocols.PRINCIPAL_CLEARANCE
     # the candidates themselves, for any principal point
-    for u0, v0 in ((24.0, 24.0), (30.0, 27.0), (30.4, 33.0)):
+    for u0, v0 in ((24.0, 24.0), (31.0, 27.0), (32.5, 33.0)):
         c = protocols.projection_candidates(SIZE, SIZE, u0, v0)
         assert len(c) > 0
         assert np.all(np.abs(c[:, 0] - u0) >= 1.0) and np.all(np.abs(c[:, 1] - v0) >= 1.0)
-    assert len(protocols.projection_candidates(SIZE, SIZE, 30.0, 0.0)) == 0  # the column itself
+    # column 30 from row 27 down to row 41 (the margin is 6 at 48 px); row 27 skipped
+    # when it is the principal row, every row when the column is the principal column
+    assert protocols.projection_candidates(SIZE, SIZE, 24.0, 24.0)[:, 1].tolist() == \
+        list(range(27, 42))
+    assert protocols.projection_candidates(SIZE, SIZE, 24.0, 27.0)[:, 1].tolist() == \
+        list(range(28, 42))
+    assert len(protocols.projection_candidates(SIZE, SIZE, 30.0, 0.0)) == 0
 
 
 def test_projection_fallback_avoids_the_principal_row_and_column():
