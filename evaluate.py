@@ -77,6 +77,15 @@ def parse_args(argv=None):
 
 
 def main(argv=None):
+    """The command line; Ctrl-C at any moment ends it with one line and exit
+    status 130 (tables are written atomically: none is left half-written)."""
+    try:
+        return _main(argv)
+    except KeyboardInterrupt:
+        return cli.interrupted(PROG, note="nothing was written")
+
+
+def _main(argv=None):
     args = parse_args(argv)
     from cpl_keras import evaluation, report
     from cpl_keras.data.storage import DatasetError

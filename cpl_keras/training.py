@@ -142,6 +142,11 @@ def plan_run(data, *, variant, run_dir, epochs=200, batch_size=16, learning_rate
             f"{data}: {len(indices['train'])} training pairs; need at least 13 "
             f"(use a larger dataset)"
         )
+    if batch_size > len(indices["train"]):
+        raise TrainingError(
+            f"batch size {batch_size} is larger than the training split ({len(indices['train'])} "
+            f"pairs of {data}); use --batch-size {len(indices['train'])} or less"
+        )
 
     devices = _device_count() if data_parallel else 1
     run_batch = -(-batch_size // devices) * devices

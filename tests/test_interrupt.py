@@ -147,3 +147,31 @@ def test_a_ctrl_c_swallowed_by_a_callback_prints_nothing_and_stays_pending(capsy
         assert capsys.readouterr().err == ""
         with pytest.raises(cli.Interrupted):
             cli.check_interrupt()
+
+
+@pytest.mark.parametrize("moment", ["forward pass", "geometric baseline"])
+def test_ctrl_c_during_evaluate_is_one_line(tiny_run, tmp_path, moment):
+    """Ctrl-C while evaluate.py scores a table (at the line that says it
+    has reached ``moment``): one line, exit 130, no table written."""
+    out = tmp_path / "out"
+    process = _start(["evaluate.py", "--table", "1", "--runs", tiny_run["run"],
+                      "--out", str(out)])
+    seen = []
+    try:
+        while True:
+            line = process.stderr.readline()
+            assert line, "evaluate.py ended before " + moment + ": " + "".join(seen)
+            seen.append(line)
+            if line.startswith(moment):
+                break
+        _ctrl_c(process)
+        rest, err = process.communicate(timeout=60)
+    finally:
+        if process.poll() is None:
+            process.kill()
+    err = "".join(seen) + err
+    assert process.returncode == 130, err
+    assert "Traceback" not in err, err
+    lines = [line for line in err.splitlines() if "interrupted" in line]
+    assert lines == ["evaluate.py: interrupted; nothing was written"], err
+    assert not out.exists() or not any(out.iterdir())

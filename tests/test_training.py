@@ -310,6 +310,14 @@ def test_bad_input_is_one_line_exit_2_and_writes_nothing(tmp_path, capsys):
         assert err.startswith("train.py: error:")
         assert not run_dir.exists(), name
 
+    # A batch larger than the training split (30 pairs: 19 for training) is refused.
+    code = train_cli.main(["--variant", "cpl-a", "--backbone", "small", "--data", good,
+                           "--batch-size", "20", "--run-dir", str(tmp_path / "big-batch")])
+    err = capsys.readouterr().err.strip()
+    assert code == 2 and "\n" not in err
+    assert "batch size 20 is larger than the training split (19 pairs" in err
+    assert not (tmp_path / "big-batch").exists()
+
     # A run directory holding another run is refused before anything changes.
     occupied = tmp_path / "occupied"
     occupied.mkdir()
