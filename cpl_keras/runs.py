@@ -270,6 +270,12 @@ def run_label(config):
         options += f", lr {config['learning_rate']:g}"
     if config.get("target_scaling", "none") != "none":
         options += f", targets scaled by {config['target_scaling']}"
+    rate = config.get("build", {}).get("alpha_rate")
+    if rate is not None:
+        from cpl_keras.losses import ALPHA_RATE
+
+        if rate != ALPHA_RATE:
+            options += f", alpha rate {rate:g}"
     return (f"{config['variant']}{released}, {config['build']['backbone']}, "
             f"{os.path.basename(config['data'])}, split {config['split']}{options}")
 
