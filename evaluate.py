@@ -87,14 +87,24 @@ def main(argv=None):
 
 def _main(argv=None):
     args = parse_args(argv)
-    from cpl_keras import evaluation, report
-    from cpl_keras.data.storage import DatasetError
-
     command = cli.command_line(PROG, argv)
     if args.reproduce:
         from cpl_keras import reproduce
 
         return reproduce.run(args, command, PROG)
+
+    def progress(message):
+        cli.check_interrupt()  # (a Ctrl-C swallowed by a callback stops here)
+        print(message, file=sys.stderr)
+
+    with cli.interruptible():
+        return _evaluate(args, command, progress)
+
+
+def _evaluate(args, command, progress):
+    from cpl_keras import evaluation, report
+    from cpl_keras.data.storage import DatasetError
+
     try:
         if os.path.exists(args.out) and not os.path.isdir(args.out):
             raise evaluation.EvaluationError(f"output directory is a file: {args.out}")
@@ -106,8 +116,8 @@ def _main(argv=None):
 
             table = table2.make_table2(
                 args.runs, args.data, geometric=not args.no_geometric,
-                geometric_max=args.geometric_max,
-                progress=lambda message: print(message, file=sys.stderr))
+                geometric_max=args.geometric_max, progress=progress)
+            cli.check_interrupt()
             paths = table2.write_table2(args.out, "table2", table, command)
             print(table2.markdown(report.portable(table, args.out)))
             print("wrote " + ", ".join(paths), file=sys.stderr)
@@ -116,8 +126,9 @@ def _main(argv=None):
             table = evaluation.make_table(
                 args.table, args.runs, args.data, geometric=not args.no_geometric,
                 geometric_max=args.geometric_max, batch_size=args.batch_size,
-                progress=lambda message: print(message, file=sys.stderr))
+                progress=progress)
             stem = f"table{args.table}"
+        cli.check_interrupt()
         paths = report.write_outputs(args.out, stem, table, command)
     except (evaluation.EvaluationError, DatasetError, OSError) as error:
         return cli.fail(PROG, error)

@@ -63,9 +63,14 @@ def test_table2_real_data_forward_pass(tiny, tmp_path):
     assert table["num_pairs"] == 5 and "all 5 pairs" in table["data_description"]
     assert "Geometric" not in table["rows"]
     # pitch, tx, tz are 0 on a rectified real rig: NMAE undefined, never inf
-    row = table["rows"]["MTL-Baseline"]["targets"]
+    rig = next(iter(table["rigs"].values()))
+    row = rig["rows"]["MTL-Baseline"]["targets"]
     assert row["pitch"]["nmae"] is None and row["tz"]["nmae_signed"] is None
     assert row["fx"]["nmae"] is not None and row["pitch"]["mae"] is not None
+    # pooled, pitch leaves out the rectified rigs (nothing to measure): here all
+    pooled = table["rows"]["MTL-Baseline"]["targets"]
+    assert pooled["pitch"]["num_defined"] == 0 and pooled["pitch"]["mae"] is None
+    assert pooled["fx"]["num_defined"] == 5 and pooled["fx"]["nmae"] == row["fx"]["nmae"]
     md = open(tmp_path / "table2.md").read()
     assert "n/a" in md and "(2321.338)" in md
 
