@@ -3,7 +3,7 @@
     python evaluate.py --run RUN_DIR --data DATA.h5
     python evaluate.py --table 1 --runs RUN_DIR [RUN_DIR ...] [--data DATA.h5]
     python evaluate.py --table 2 --runs RUN_DIR [RUN_DIR ...] --data data/real [MORE.h5 ...]
-    python evaluate.py --reproduce [--quick | --preset {paper-gpu,cpu}] [--pairs N --epochs E ...]
+    python evaluate.py --reproduce [--quick | --preset NAME] [--pairs N --epochs E ...]
     python evaluate.py --reproduce --from-predictions DIR
 
 ``--reproduce`` regenerates everything in paper_results/ (datasets, training

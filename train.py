@@ -19,7 +19,7 @@ os.environ.setdefault("KERAS_BACKEND", "jax")
 from cpl_keras import cli  # noqa: E402
 from cpl_keras.datasets import SPLITS  # noqa: E402
 from cpl_keras.models import BACKBONES, VARIANTS  # noqa: E402
-from cpl_keras.models.factory import DISENTANGLE  # noqa: E402
+from cpl_keras.models.variants import DISENTANGLE  # noqa: E402
 
 #: The demonstration run (no --data): dataset and training settings chosen to
 #: finish in about five minutes on a 2-core CPU.
@@ -60,8 +60,8 @@ def build_parser():
     parser.add_argument("--linear-pitch-head", action="store_true",
                         help="an unbounded pitch head (the release's; default: clipped to +-pi/2)")
     parser.add_argument("--linear-focal-head", action="store_true",
-                        help="CPL: linear fx, fy heads (the release's; default exp(z), positive, "
-                        "since the camera graph divides by them)")
+                        help="CPL: linear fx, fy heads (the release's; default clipped at 1 px, "
+                        "straight-through, since the camera graph divides by them)")
     parser.add_argument("--alpha-rate", type=cli.positive_float,
                         help="MTL-CPL-A: how many times an ordinary weight's pace the adaptive "
                         "weights move (default 10; 1 = Eq. 9 as the paper trains it)")
@@ -71,6 +71,10 @@ def build_parser():
     parser.add_argument("--target-scaling", choices=("none", "std"), default="none",
                         help="MTL-Baseline: divide each output's MAE by the target's training "
                         "standard deviation (std; not the paper's) or not (none, default)")
+    parser.add_argument("--time-budget", type=cli.positive_float, metavar="SECONDS",
+                        help="seconds of training the run may take: no epoch is started that "
+                        "would overrun them (judged by the last epoch's length); the run "
+                        "then ends as finished with its best epoch (default: no limit)")
     parser.add_argument("--quiet", action="store_true",
                         help="no per-epoch lines or progress bar (the summary line stays)")
     return parser
@@ -187,7 +191,7 @@ def _train(args, demo, seed, epochs, backbone, run_dir, command):
             positive_focal_head=False if args.linear_focal_head else None,
             alpha_rate=args.alpha_rate,
             bn_recompute_batches=args.bn_recompute_batches, target_scaling=args.target_scaling,
-            verbose=0 if args.quiet else 1,
+            time_budget_s=args.time_budget, verbose=0 if args.quiet else 1,
             command=command,
         )
     except (DatasetError, TrainingError, OSError) as error:
@@ -195,14 +199,15 @@ def _train(args, demo, seed, epochs, backbone, run_dir, command):
     if summary.get("finished_before"):
         # nothing trained, no file changed
         print(f"already {summary['status']}, left as it is: {summary_line(summary)}")
-        return 1 if summary["status"] == "failed" else 0
-    if summary["status"] == "failed":  # diverged: the best weights so far are kept
-        print(f"{PROG}: error: {summary_line(summary)}", file=sys.stderr)
-        return 1
+        return 0
+    if summary["status"] == "failed":
+        # diverged: the run directory says so (and keeps the best weights so
+        # far); the next run into it replaces it
+        return cli.fail(PROG, summary_line(summary))
     print(summary_line(summary))
     if demo:
         print(next_step(args.variant, data))
-    return 1 if summary["status"] == "failed" else 0
+    return 0
 
 
 if __name__ == "__main__":

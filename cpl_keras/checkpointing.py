@@ -35,9 +35,12 @@ class RunState(keras.callbacks.Callback):
     number them from 1.
     """
 
-    def __init__(self, run_dir, patience, sequence, bn_recompute_batches=0):
+    def __init__(self, run_dir, patience, sequence, bn_recompute_batches=0,
+                 time_budget_s=None):
         super().__init__()
         self.run_dir = run_dir
+        # wall-clock seconds of training the run may take (None: no limit)
+        self.time_budget_s = time_budget_s
         self.bn_recompute_batches = int(bn_recompute_batches)
         self.backup = os.path.join(run_dir, runs.BACKUP)
         self.state_path = os.path.join(run_dir, runs.STATE)
@@ -131,7 +134,14 @@ class RunState(keras.callbacks.Callback):
                 self.model.stop_training = True
         alphas = self.model.adaptive_weights() or {}
         logs.update({f"alpha_{name}": value for name, value in alphas.items()})
-        state["wall_time_s"] += time.perf_counter() - (self._epoch_start or time.perf_counter())
+        took = time.perf_counter() - (self._epoch_start or time.perf_counter())
+        state["wall_time_s"] += took
+        if (state["stopped"] is None and self.time_budget_s is not None
+                and state["wall_time_s"] + took > self.time_budget_s):
+            # another epoch as long as this one would overrun the budget
+            state["stopped"] = (f"time budget: another epoch would end after "
+                                f"{self.time_budget_s:g} s of training")
+            self.model.stop_training = True
         # the run's training time so far and the machine's load, per epoch
         logs.update(wall_time_s=round(state["wall_time_s"], 3),
                     load_average=round(os.getloadavg()[0], 2))

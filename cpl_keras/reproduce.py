@@ -1,7 +1,8 @@
 """Regenerate every result of ``paper_results/`` with one command.
 
     python -m cpl_keras.reproduce                     # the paper's scale (a GPU job)
-    python -m cpl_keras.reproduce --preset paper-gpu  # the same, into paper_results/paper-gpu/
+    python -m cpl_keras.reproduce --preset paper      # the same, into paper_results/paper/
+    python -m cpl_keras.reproduce --preset paper-gpu  # CPL-A vs Baseline in 10 min of a GPU
     python -m cpl_keras.reproduce --preset cpu --jobs 2   # compact towers, 3 seeds, ~1.5 h on 2 cores
     python -m cpl_keras.reproduce --quick             # the same pipeline in minutes
     python -m cpl_keras.reproduce --pairs 2000 --epochs 4   # a chosen scale
@@ -43,6 +44,7 @@ from their last epoch):
 from __future__ import annotations
 
 import json
+import math
 import os
 import platform
 import sys
@@ -72,12 +74,25 @@ RELEASED_RUN = "cpl-a-released"
 #: baseline runs on (None: all); ``workers``: data generation processes
 #: (None: every core).
 PRESETS = {
-    # The paper's scale: CVGL's 123,017 pairs, up to 200 epochs, InceptionV3 at 112.
-    "paper-gpu": {"pairs": 123017, "random_pairs": 123017, "epochs": 200, "image_size": 112,
+    # The paper's scale: CVGL's 123,017 pairs, up to 200 epochs, InceptionV3 at
+    # 112 (the scale without --preset, into paper_results/paper/).
+    "paper": {"pairs": 123017, "random_pairs": 123017, "epochs": 200, "image_size": 112,
+              "backbone": "inception_v3", "crops": 500, "chessboard_crops": 20,
+              "geometric_max": None, "batch_size": 16, "patience": 5, "seeds": 1,
+              "random_seeds": 1, "variants": TABLE_ORDER, "released": True,
+              "seeded_variants": None, "workers": None},
+    # Ten minutes of one GPU machine (the device's per-command limit): the
+    # deciding pair, MTL-CPL-A then MTL-Baseline, with the paper's towers on
+    # 20,000 cvgl pairs rendered on that machine's CPU cores; each run ends at
+    # early stopping or at its time budget, whichever comes first; Table 2
+    # from both. bench/paper_gpu.sh runs it there and packs what comes back;
+    # its --dry-run checks the same plan on a CPU at tiny scale.
+    "paper-gpu": {"pairs": 20000, "random_pairs": 20000, "epochs": 200, "image_size": 112,
                   "backbone": "inception_v3", "crops": 500, "chessboard_crops": 20,
-                  "geometric_max": None, "batch_size": 16, "patience": 5, "seeds": 1,
-                  "random_seeds": 1, "variants": TABLE_ORDER, "released": True,
-                  "seeded_variants": None, "workers": 16},
+                  "geometric_max": 200, "batch_size": 16, "patience": 5, "seeds": 1,
+                  "random_seeds": 1, "variants": ("cpl-a", "baseline"), "released": False,
+                  "seeded_variants": None, "workers": None, "tables": ("cvgl",),
+                  "run_budget_s": 150},
     # Sized for a 2-core CPU: 1 h 24 min measured with --jobs 2 (docs/evaluation.md):
     # every row of the tables, the MTL variants on cvgl over 3 seeds, Deep-Homo
     # and MTL-CPL-A as released on the first seed only; 1,000 pairs per
@@ -118,7 +133,7 @@ TABLE1 = {
 }
 DEFAULT_TABLES = ("cvgl", "random")
 #: The scale without --preset: the paper's, generating data on every core.
-PAPER_SCALE = dict(PRESETS["paper-gpu"], workers=None)
+PAPER_SCALE = PRESETS["paper"]
 QUICK = PRESETS["quick"]
 #: Settings that are counts: positive integers (patience may be 0).
 POSITIVE = ("pairs", "random_pairs", "epochs", "image_size", "crops", "chessboard_crops",
@@ -148,6 +163,7 @@ def settings(quick=False, preset=None, **overrides):
         raise ValueError(f"unknown preset {name!r}; choose one of {', '.join(PRESETS)}")
     chosen = dict(PRESETS[name] if name else PAPER_SCALE)
     chosen.setdefault("tables", DEFAULT_TABLES)
+    chosen.setdefault("run_budget_s", None)
     for key, value in overrides.items():
         if value is None:
             continue
@@ -162,8 +178,12 @@ def settings(quick=False, preset=None, **overrides):
         if isinstance(value, bool) or not isinstance(value, int) or value < least:
             what = "non-negative" if least == 0 else "positive"
             raise ValueError(f"{key.replace('_', '-')} must be {what}, got {value}")
+    budget = chosen["run_budget_s"]
+    if budget is not None and (isinstance(budget, bool) or not isinstance(budget, (int, float))
+                               or not math.isfinite(budget) or budget <= 0):
+        raise ValueError(f"run-budget must be a positive number of seconds, got {budget}")
     from cpl_keras.models import variants as registry
-    from cpl_keras.models.backbones import BACKBONES, MIN_IMAGE_SIZE
+    from cpl_keras.models.variants import BACKBONES, MIN_IMAGE_SIZE
 
     if chosen["backbone"] not in BACKBONES:
         raise ValueError(f"unknown backbone {chosen['backbone']!r}; choose one of "
@@ -291,6 +311,7 @@ def train_all(config, paths, runs_dir, seed, jobs=1, out_dir=None):
             variant=variant, run_dir=run_dir, epochs=config["epochs"],
             batch_size=config["batch_size"], backbone=config["backbone"], split=split,
             as_released=released, seed=run_seed, patience=config["patience"],
+            time_budget_s=config.get("run_budget_s"),
         )
         record = published_record(out_dir, key, name) if out_dir else None
         finished = (runs.read_config(run_dir) or {}).get("status") == "finished"
@@ -586,6 +607,12 @@ def _stem_row(stem):
     return VARIANT_ROWS.get(stem, stem)
 
 
+def _budget_text(config):
+    budget = config.get("run_budget_s")
+    return "" if budget is None else (f", or at a budget of {budget:g} s of training per run "
+                                      f"(whichever ends it first)")
+
+
 def _scale_text(config):
     preset = config.get("preset")
     if config.get("quick"):
@@ -615,7 +642,8 @@ def _scale_text(config):
     return (f"Scale: {scale}. Backbone `{config['backbone']}`, {config['image_size']}x"
             f"{config['image_size']} images, batch {config['batch_size']}, Adam (lr 1e-3, "
             f"Deep-Homo 1.5e-3), up to {config['epochs']} epochs with early stopping "
-            f"(patience {config['patience']}, best weights restored).{seeds} The paper trained "
+            f"(patience {config['patience']}, best weights restored){_budget_text(config)}."
+            f"{seeds} The paper trained "
             f"up to 200 epochs on 123,017 pairs from ImageNet weights; here the towers start "
             f"from random weights (none can be downloaded).")
 
@@ -850,21 +878,25 @@ def rebuild(out_dir, command="", discussion_file=None):
 #: Options that set the scale (not allowed with --from-predictions).
 SCALE_OPTIONS = ("quick", "preset", "pairs", "random_pairs", "epochs", "patience", "backbone",
                  "image_size", "crops", "chessboard_crops", "seeds", "random_seeds", "workers",
-                 "data_dir", "runs_dir", "geometric_max", "jobs") + REAL_ROOTS
+                 "data_dir", "runs_dir", "geometric_max", "jobs", "run_budget",
+                 "allow_cpu") + REAL_ROOTS
 
 
 def add_arguments(parser):
     """The reproduction's options, as an argument group of ``parser``; every
     number is checked when parsed (``cli.positive_int``)."""
-    from cpl_keras.models.backbones import BACKBONES
+    from cpl_keras.models.variants import BACKBONES
 
     positive, non_negative = cli.positive_int, cli.non_negative_int
     group = parser.add_argument_group("reproduce (cpl_keras/reproduce.py)")
-    group.add_argument("--preset", choices=tuple(PRESETS), help="a named scale: paper-gpu (the "
-                       "paper's, the default), cpu (compact towers, 3 seeds, ~1.5 h on 2 cores "
-                       "with --jobs 2), cpu-8000 (MTL variants on 8,000 cvgl pairs, 3 seeds, "
-                       "paper and drive splits; many hours, resumable run by run), "
-                       "quick (= --quick); the flags below override its values")
+    group.add_argument("--preset", choices=tuple(PRESETS), help="a named scale: paper (the "
+                       "paper's: 123,017 pairs, InceptionV3, every row; the default, into "
+                       "paper_results/), paper-gpu (MTL-CPL-A and MTL-Baseline with InceptionV3 "
+                       "towers on 20,000 pairs, sized for ten minutes of one GPU), cpu (compact "
+                       "towers, 3 seeds, ~1.5 h on 2 cores with --jobs 2), cpu-8000 (MTL "
+                       "variants on 8,000 cvgl pairs, 3 seeds, paper and drive splits; many "
+                       "hours, resumable run by run), quick (= --quick); the flags below "
+                       "override its values")
     group.add_argument("--quick", action="store_true", help="tiny settings (minutes)")
     group.add_argument("--pairs", type=positive, help="cvgl-protocol pairs (paper: 123017)")
     group.add_argument("--random-pairs", type=positive, help="random-protocol pairs")
@@ -879,7 +911,13 @@ def add_arguments(parser):
                        "SEED, SEED+1, ... (each its own split and initial weights)")
     group.add_argument("--random-seeds", type=positive, help="random-protocol runs per variant")
     group.add_argument("--workers", type=positive, help="data generation processes "
-                       "(default: every core; paper-gpu: 16)")
+                       "(default: every core)")
+    group.add_argument("--run-budget", type=cli.positive_float, metavar="SECONDS",
+                       help="seconds of training each run may take (train.py --time-budget; "
+                       "paper-gpu: 150; default: no limit)")
+    group.add_argument("--allow-cpu", action="store_true",
+                       help="run settings sized for a GPU (InceptionV3 towers on "
+                       f"{GPU_SIZED_PAIRS:,}+ pairs) on a machine without one")
     group.add_argument("--jobs", type=positive, help="training runs at a time, each in its own "
                        "process (default 1; 2 did about 1.4x the work per unit time on a "
                        "2-core CPU); the runs and the tables are the same")
@@ -901,6 +939,35 @@ def add_arguments(parser):
                        help="rebuild every table and REPORT.md in DIR (a reproduction's output "
                        "folder) from its published predictions alone: no weights, no datasets")
     return group
+
+
+#: Settings sized for a GPU: InceptionV3 towers on this many pairs or more.
+GPU_SIZED_PAIRS = 10000
+#: The faithful model's training rate on a 2-core CPU (docs/performance.md).
+CPU_SAMPLES_PER_S = 12
+
+
+def gpu_sized(config):
+    """Whether ``config`` trains InceptionV3 towers on GPU-sized data."""
+    return config["backbone"] == "inception_v3" and config["pairs"] >= GPU_SIZED_PAIRS
+
+
+def has_accelerator():
+    """Whether JAX sees a GPU or TPU (imported here, after the arguments are checked)."""
+    import jax
+
+    return jax.default_backend() != "cpu"
+
+
+def cpu_cost(config, seed=0):
+    """The one line that refuses GPU-sized settings on a CPU, with their cost."""
+    train = config["pairs"] * (1 - 0.3) * (1 - 0.1)
+    epoch_h = train / CPU_SAMPLES_PER_S / 3600
+    count = len(run_jobs(config, seed))
+    return (f"these settings are sized for a GPU ({config['pairs']:,} pairs, InceptionV3 "
+            f"towers, {count} runs) and JAX sees no GPU here: one epoch of one run would take "
+            f"about {epoch_h:.1f} h on this CPU (~{CPU_SAMPLES_PER_S} samples/s); pass "
+            f"--allow-cpu to go on, or use --preset cpu or cpu-8000")
 
 
 def default_folders(preset):
@@ -940,9 +1007,11 @@ def resolve_args(parser, args):
             epochs=args.epochs, patience=args.patience, backbone=args.backbone,
             image_size=args.image_size, crops=args.crops, chessboard_crops=args.chessboard_crops,
             geometric_max=args.geometric_max, seeds=args.seeds, random_seeds=args.random_seeds,
-            workers=args.workers)
+            workers=args.workers, run_budget_s=args.run_budget)
     except ValueError as error:
         parser.error(str(error))
+    if gpu_sized(args.config) and not args.allow_cpu and not has_accelerator():
+        parser.error(cpu_cost(args.config, args.seed))
     out, data_dir, runs_dir = default_folders(args.config["preset"])
     args.out = args.out or out
     args.data_dir = args.data_dir or data_dir

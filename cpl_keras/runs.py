@@ -417,7 +417,7 @@ def load_model(run, error=RunError):
     """The run's best model (``keras.saving.load_model(..., safe_mode=True)``)."""
     import keras
 
-    import cpl_keras.models  # noqa: F401  (registers the custom layers)
+    import cpl_keras.models.factory  # noqa: F401  (registers the custom layers)
     from cpl_keras.cli import one_line
 
     import zipfile

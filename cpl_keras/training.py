@@ -26,6 +26,7 @@ from __future__ import annotations
 import contextlib
 import math
 import os
+import shutil
 import sys
 
 import numpy as np
@@ -62,7 +63,8 @@ def plan_run(data, *, variant, run_dir, epochs=200, batch_size=16, learning_rate
              seed=0, data_parallel=False, patience=5, test_fraction=0.3, val_fraction=0.1,
              workers=1, disentangle="exact", bounded_pitch_head=None,
              positive_focal_head=None, alpha_rate=None,
-             bn_recompute_batches=None, target_scaling="none", command=None):
+             bn_recompute_batches=None, target_scaling="none", time_budget_s=None,
+             command=None):
     """Check the dataset and the arguments; return the run's plan (a dict).
 
     Raises ``DatasetError`` or ``TrainingError`` with a one-line message.
@@ -92,7 +94,7 @@ def plan_run(data, *, variant, run_dir, epochs=200, batch_size=16, learning_rate
         raise TrainingError(
             f"BatchNorm recompute batches must be a non-negative integer, got {bn_recompute_batches!r}"
         )
-    from cpl_keras.models.factory import DISENTANGLE
+    from cpl_keras.models.variants import DISENTANGLE
 
     if disentangle not in DISENTANGLE:
         raise TrainingError(
@@ -115,6 +117,13 @@ def plan_run(data, *, variant, run_dir, epochs=200, batch_size=16, learning_rate
         isinstance(alpha_rate, (int, float)) and math.isfinite(alpha_rate) and alpha_rate > 0
     )):
         raise TrainingError(f"alpha rate must be a positive number, got {alpha_rate!r}")
+
+    if time_budget_s is not None and (isinstance(time_budget_s, bool) or not (
+        isinstance(time_budget_s, (int, float)) and math.isfinite(time_budget_s)
+        and time_budget_s > 0
+    )):
+        raise TrainingError(f"time budget must be a positive number of seconds, "
+                            f"got {time_budget_s!r}")
 
     data = os.path.abspath(os.fspath(data))
     with StereoFile(data) as f:
@@ -185,6 +194,7 @@ def plan_run(data, *, variant, run_dir, epochs=200, batch_size=16, learning_rate
         "patience": int(patience),
         "bn_recompute_batches": int(bn_recompute_batches),
         "target_scaling": target_scaling,
+        "time_budget_s": None if time_budget_s is None else float(time_budget_s),
         "data_parallel": bool(data_parallel),
         "num_devices": devices,
         "device_batch_size": run_batch,
@@ -227,6 +237,8 @@ def _check_run_dir(run_dir, config):
         if os.listdir(run_dir) and not started:
             raise TrainingError(f"run directory {run_dir} is not empty and holds no run")
         return
+    if old.get("status") == "failed":
+        return  # (replaced by the next run: ``_replace_failed_run``)
     config = runs.normalise_config(config)
     for key in RESUME_KEYS:
         if old.get(key) != config.get(key):
@@ -244,7 +256,8 @@ def train(data, *, variant, run_dir, epochs=200, batch_size=16, learning_rate=No
           data_parallel=False, patience=5, test_fraction=0.3, val_fraction=0.1, workers=1,
           steps_per_execution=1, disentangle="exact", bounded_pitch_head=None,
           positive_focal_head=None, alpha_rate=None,
-          bn_recompute_batches=None, target_scaling="none", verbose=1, command=None):
+          bn_recompute_batches=None, target_scaling="none", time_budget_s=None, verbose=1,
+          command=None):
     """Train ``variant`` on the dataset file ``data``; returns the summary dict.
 
     Everything is validated before the run directory is created (see
@@ -258,6 +271,9 @@ def train(data, *, variant, run_dir, epochs=200, batch_size=16, learning_rate=No
     validation loss and key validation MAEs; every metric is in log.csv)
     and a progress bar during the epoch when stdout is a terminal, 2 the
     epoch lines only.
+    ``time_budget_s``: seconds of training (summed over resumes) the run may
+    take; after an epoch, when another as long would overrun them, the run
+    ends as finished with ``stopped`` saying so, keeping its best epoch.
     """
     if isinstance(steps_per_execution, bool) or not (
         isinstance(steps_per_execution, (int, np.integer)) and steps_per_execution >= 1
@@ -272,13 +288,14 @@ def train(data, *, variant, run_dir, epochs=200, batch_size=16, learning_rate=No
         disentangle=disentangle, bounded_pitch_head=bounded_pitch_head,
         positive_focal_head=positive_focal_head, alpha_rate=alpha_rate,
         bn_recompute_batches=bn_recompute_batches, target_scaling=target_scaling,
-        command=command,
+        time_budget_s=time_budget_s, command=command,
     )
     import keras
 
     finished = _finished_run(plan["config"]["run_dir"])
     if finished is not None:
         return finished
+    _replace_failed_run(plan["config"]["run_dir"])
     scope = contextlib.nullcontext()
     if data_parallel:
         devices = keras.distribution.list_devices()
@@ -287,19 +304,36 @@ def train(data, *, variant, run_dir, epochs=200, batch_size=16, learning_rate=No
         return _run(plan, learning_rate, steps_per_execution, verbose)
 
 
-def _finished_run(run_dir):
-    """The summary of the run in ``run_dir`` if it has ended (finished, or
-    stopped by a non-finite loss), read without changing a file; else None.
-    ``finished_before`` is True in it; ``model`` is model.keras, loaded."""
+def _failed_run(run_dir):
+    """The config of the run in ``run_dir`` if it failed (a non-finite loss), else None."""
     config = runs.read_config(run_dir, {}) if os.path.isdir(run_dir) else {}
-    if config.get("status") not in ("finished", "failed"):
+    return config if config.get("status") == "failed" else None
+
+
+def _replace_failed_run(run_dir):
+    """A failed run is not resumed: the next run into its directory, with
+    these settings or others, starts afresh in its place (said on stderr)."""
+    failed = _failed_run(run_dir)
+    if failed is None:
+        return
+    print(f"Replacing the failed run in {run_dir} ({failed.get('stopped')})", file=sys.stderr,
+          flush=True)
+    shutil.rmtree(run_dir)
+
+
+def _finished_run(run_dir):
+    """The summary of the run in ``run_dir`` if it has finished, read without
+    changing a file; else None. ``finished_before`` is True in it;
+    ``model`` is model.keras, loaded."""
+    config = runs.read_config(run_dir, {}) if os.path.isdir(run_dir) else {}
+    if config.get("status") != "finished":
         return None
     path = os.path.join(run_dir, runs.MODEL)
     model = None
     if os.path.isfile(path):
         import keras
 
-        import cpl_keras.models  # noqa: F401  (registers the custom layers)
+        import cpl_keras.models.factory  # noqa: F401  (registers the custom layers)
 
         model = keras.saving.load_model(path, safe_mode=True)
     return {
@@ -376,7 +410,8 @@ def _run_locked(plan, model, config, run_dir, verbose):
     from cpl_keras.checkpointing import RunState
     from cpl_keras.progress import EpochLines
 
-    run_state = RunState(run_dir, config["patience"], train_seq, config["bn_recompute_batches"])
+    run_state = RunState(run_dir, config["patience"], train_seq, config["bn_recompute_batches"],
+                         time_budget_s=config.get("time_budget_s"))
     state = run_state.state
     done = state.get("stopped") is not None or state["epoch"] >= config["epochs"]
     try:

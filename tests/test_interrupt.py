@@ -118,6 +118,29 @@ def test_ctrl_c_stops_generation_and_leaves_no_partial_file(tmp_path):
     assert os.listdir(tmp_path) == []
 
 
+def test_a_ctrl_c_swallowed_during_generation_stops_it_before_the_file_is_written(
+        tmp_path, monkeypatch, capsys):
+    """A SIGINT that lands where an exception is swallowed (an h5py
+    callback, say: the unraisable hook leaves it pending) still stops the
+    generator at its next block: one line, exit 130, no file."""
+    from cpl_keras import cli
+    from cpl_keras.data import generate, storage
+
+    write = storage.StereoWriter.write
+
+    def write_then_swallowed_ctrl_c(self, *args):
+        write(self, *args)
+        cli._pending.set()  # what the unraisable hook leaves behind
+
+    monkeypatch.setattr(storage.StereoWriter, "write", write_then_swallowed_ctrl_c)
+    out = tmp_path / "cvgl.h5"
+    assert generate.main(["--pairs", "40", "--image-size", "32", "--workers", "1",
+                          "--no-progress", "--out", str(out)]) == 130
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "data.generate: interrupted" in err, err
+    assert os.listdir(tmp_path) == []
+
+
 def test_ctrl_c_stops_the_reproduction_resumably(tmp_path):
     data_dir, runs_dir = tmp_path / "data", tmp_path / "runs"
     command = ["evaluate.py", "--reproduce", "--quick", "--out", str(tmp_path / "out"),

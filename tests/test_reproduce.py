@@ -255,7 +255,31 @@ BAD_NUMBERS = [
     ("--seed", "-1", "argument --seed: must be a non-negative integer, got -1"),
     ("--geometric-max", "0", "argument --geometric-max: must be a positive integer, got 0"),
     ("--batch-size", "0", "argument --batch-size: must be a positive integer, got 0"),
+    ("--run-budget", "inf", "argument --run-budget: must be a positive number, got inf"),
 ]
+
+
+def test_gpu_sized_settings_refused_on_a_cpu(tmp_path, capsys):
+    """The paper's scale and paper-gpu on a machine whose JAX sees no GPU:
+    one line with their cost and the flag that goes on anyway, exit 2,
+    nothing made; the same settings at a CPU's size pass."""
+    if reproduce.has_accelerator():
+        pytest.skip("this machine has a GPU")
+    folders = ["--out", str(tmp_path / "out"), "--data-dir", str(tmp_path / "data"),
+               "--runs-dir", str(tmp_path / "runs")]
+    for argv in ([], ["--preset", "paper-gpu"], ["--preset", "cpu", "--backbone", "inception_v3",
+                                                  "--pairs", "10000"]):
+        with pytest.raises(SystemExit) as exit_info:
+            evaluate.parse_args(["--reproduce"] + argv + folders)
+        assert exit_info.value.code == 2, argv
+        err = capsys.readouterr().err
+        assert err.count("\n") == 1 and "sized for a GPU" in err and "--allow-cpu" in err, err
+        assert "JAX sees no GPU" in err and " h on this CPU" in err, err
+    assert "2 runs" in reproduce.cpu_cost(reproduce.settings(preset="paper-gpu"))
+    for argv in (["--preset", "paper-gpu", "--allow-cpu"], ["--preset", "paper-gpu",
+                                                           "--pairs", "9999"]):
+        assert evaluate.parse_args(["--reproduce"] + argv + folders).config["pairs"]
+    assert os.listdir(tmp_path) == []
 
 
 def test_reproduce_numbers_checked_when_parsed(tmp_path, capsys):
@@ -329,7 +353,7 @@ def test_presets_resolve():
     assert {(j[0], j[2]) for j in jobs} == {("cvgl", "paper"), ("cvgl_drive", "drive")}
     assert {j[1] for j in jobs} == {"cvgl"}          # one dataset for both tables
     assert [j[-1] for j in jobs if j[0] == "cvgl_drive"] == [
-        f"{v}-s{s}" for s in (0, 1, 2) for v in ("cpl-u", "baseline", "cpl-a")]
+        f"{v}-s{s}" for s in (0, 1, 2) for v in ("cpl-a", "baseline", "cpl-u")]
     assert "Seeds per table: cvgl 3, cvgl_drive 3" in reproduce._scale_text(decide)
     with pytest.raises(ValueError, match="unknown table 'kitti'"):
         reproduce.settings(preset="cpu", tables=("cvgl", "kitti"))
@@ -338,31 +362,40 @@ def test_presets_resolve():
     # the report says which rows are of one seed
     assert "on the first seed only: Deep-Homo, MTL-CPL-A (as released)" in \
         reproduce._scale_text(cpu)
-    gpu = _parsed("--preset", "paper-gpu")
-    config = gpu.config
+    # the paper's scale: every row, into paper_results/paper/ (no preset: paper_results/)
+    paper = _parsed("--preset", "paper", "--allow-cpu")
+    config = paper.config
     assert (config["pairs"], config["random_pairs"], config["epochs"]) == (123017, 123017, 200)
-    assert config["backbone"] == "inception_v3" and config["workers"] == 16
+    assert config["backbone"] == "inception_v3" and config["run_budget_s"] is None
     assert config["variants"] == ("deep-homo", "cpl-u", "baseline", "cpl-a") and config["released"]
     assert config["geometric_max"] is None and config["seeds"] == 1
     assert config["seeded_variants"] is None                     # everything on every seed
     assert [j[-1] for j in reproduce.run_jobs(config, 0)] == [
         "deep-homo", "cpl-u", "baseline", "cpl-a", "cpl-a-released"] + [
         "deep-homo", "cpl-u", "baseline", "cpl-a"]
+    assert paper.out.endswith(os.path.join("paper_results", "paper"))
+    default = _parsed("--allow-cpu")
+    assert os.path.basename(default.out) == "paper_results" and default.discussion
+    assert {k: v for k, v in default.config.items() if k != "preset"} == \
+        {k: v for k, v in config.items() if k != "preset"}
+    # ten minutes of one GPU: the deciding pair first, each run under a time budget
+    gpu = _parsed("--preset", "paper-gpu", "--allow-cpu")
+    config = gpu.config
+    assert config["backbone"] == "inception_v3" and config["image_size"] == 112
+    assert config["run_budget_s"] == 150 and config["tables"] == ("cvgl",)
+    assert [j[-1] for j in reproduce.run_jobs(config, 0)] == ["cpl-a", "baseline"]
+    assert all(j[2] == "paper" for j in reproduce.run_jobs(config, 0))
     assert gpu.out.endswith(os.path.join("paper_results", "paper-gpu"))
     assert gpu.runs_dir == os.path.join("runs", "reproduce-paper-gpu")
-    # without a preset: the paper's scale into paper_results/, as before
-    # (data generated on every core)
-    default = _parsed()
-    assert default.config["workers"] is None
-    assert {k: v for k, v in default.config.items() if k not in ("preset", "workers")} == \
-        {k: v for k, v in config.items() if k not in ("preset", "workers")}
-    assert os.path.basename(default.out) == "paper_results" and default.discussion
+    assert "a budget of 150 s of training per run" in reproduce._scale_text(config)
+    assert _parsed("--preset", "paper-gpu", "--allow-cpu",
+                   "--run-budget", "2.5").config["run_budget_s"] == 2.5
     # explicit flags override the preset's values
     mine = _parsed("--preset", "cpu", "--epochs", "7", "--seeds", "2", "--out", "x").config
     assert (mine["epochs"], mine["seeds"], mine["pairs"]) == (7, 2, 1000)
-    # the paper-gpu recipe at --quick's values is --quick's pipeline (what CI runs)
+    # the paper's recipe at --quick's values is --quick's pipeline (what CI runs)
     quick = reproduce.settings(quick=True)
-    scaled = reproduce.settings(preset="paper-gpu", **{
+    scaled = reproduce.settings(preset="paper", **{
         k: quick[k] for k in ("pairs", "random_pairs", "epochs", "image_size", "backbone",
                               "crops", "chessboard_crops", "geometric_max")}, workers=1)
     assert reproduce.run_jobs(scaled, 0) == reproduce.run_jobs(quick, 0)

@@ -58,7 +58,7 @@ def cli(*args, cache, env=None):
 def test_every_variant_writes_the_run_directory(variant, dataset, tmp_path):
     import keras
 
-    import cpl_keras.models  # noqa: F401  (registers the custom objects)
+    import cpl_keras.models.factory  # noqa: F401  (registers the custom objects)
     from cpl_keras.camera import TARGETS
     from cpl_keras.data.storage import StereoFile
     from cpl_keras.datasets import load_split
@@ -383,6 +383,7 @@ def _train_script():
     ("--steps-per-execution", "0"), ("--steps-per-execution", "-1"), ("--seed", "-1"),
     ("--epochs", "0"), ("--batch-size", "0"), ("--workers", "0"), ("--patience", "-1"),
     ("--bn-recompute-batches", "-2"), ("--image-size", "0"), ("--lr", "0"), ("--lr", "-1"), ("--lr", "nan"),
+    ("--time-budget", "0"), ("--time-budget", "nan"),
 ])
 def test_numeric_arguments_are_checked_before_anything_is_written(
         flag, value, dataset, tmp_path, capsys):
@@ -400,24 +401,57 @@ def test_library_checks_steps_per_execution_and_seed(dataset, tmp_path):
     from cpl_keras.training import TrainingError, train
 
     for kwargs, needle in (({"steps_per_execution": 0}, "steps per execution"),
-                           ({"seed": -1}, "seed")):
+                           ({"seed": -1}, "seed"), ({"time_budget_s": -1.0}, "time budget"),
+                           ({"time_budget_s": True}, "time budget")):
         with pytest.raises(TrainingError, match=needle):
             train(dataset, variant="baseline", run_dir=tmp_path / "run", backbone="small",
                   verbose=0, **kwargs)
     assert not (tmp_path / "run").exists()
 
 
-def test_diverging_run_reports_on_stderr(dataset, tmp_path, capsys):
-    status = _train_script().main(["--variant", "baseline", "--backbone", "small", "--data",
-                                   dataset, "--run-dir", str(tmp_path / "run"), "--epochs", "6",
-                                   "--batch-size", "5", "--lr", "1e35", "--patience", "10",
-                                   "--quiet"])
-    captured = capsys.readouterr()
-    assert status == 1
-    assert captured.out == ""
-    lines = captured.err.strip().splitlines()
-    assert len(lines) == 1 and lines[0].startswith("train.py: error: "), captured.err
-    assert "non-finite training loss" in lines[0]
+def test_time_budget_ends_the_run_after_the_epoch_that_would_overrun_it(
+        dataset, tmp_path, capsys):
+    """--time-budget: after an epoch, when another as long would pass the
+    budget, the run ends as finished with its best epoch and says why; a
+    budget that is not reached changes nothing."""
+    run_dir = tmp_path / "run"
+    args = ["--variant", "baseline", "--backbone", "small", "--data", dataset, "--epochs", "3",
+            "--batch-size", "8", "--quiet", "--run-dir", str(run_dir)]
+    assert _train_script().main(args + ["--time-budget", "0.001"]) == 0
+    config = json.loads((run_dir / "config.json").read_text())
+    assert config["status"] == "finished" and config["time_budget_s"] == 0.001
+    assert (config["epochs_run"], config["best_epoch"]) == (1, 1)
+    assert config["stopped"] == "time budget: another epoch would end after 0.001 s of training"
+    assert (run_dir / "model.keras").is_file()
+    assert "best epoch 1 of 1" in capsys.readouterr().out
+    roomy = tmp_path / "roomy"
+    args[-1] = str(roomy)
+    assert _train_script().main(args + ["--epochs", "2", "--time-budget", "1e6"]) == 0
+    config = json.loads((roomy / "config.json").read_text())
+    assert (config["epochs_run"], config["stopped"]) == (2, None)
+
+
+def test_diverged_run_is_exit_2_and_replaced_by_the_next_run(dataset, tmp_path, capsys):
+    """A non-finite loss: one error line, exit 2, the run directory marked
+    failed; the same command again replaces it (and fails again, alike),
+    and a command with sane settings trains a new run in its place."""
+    run_dir = tmp_path / "run"
+    args = ["--variant", "baseline", "--backbone", "small", "--data", dataset, "--epochs", "2",
+            "--batch-size", "5", "--quiet", "--run-dir", str(run_dir)]
+    for attempt in range(2):
+        assert _train_script().main(args + ["--lr", "1e35"]) == 2
+        captured = capsys.readouterr()
+        lines = captured.err.strip().splitlines()
+        assert captured.out == "" and len(lines) == 1 + attempt, captured.err
+        assert lines[-1].startswith("train.py: error: ") and "non-finite" in lines[-1]
+        assert ("Replacing the failed run" in captured.err) == (attempt == 1), captured.err
+        config = json.loads((run_dir / "config.json").read_text())
+        assert config["status"] == "failed" and config["learning_rate"] == 1e35
+    assert _train_script().main(args + ["--epochs", "1"]) == 0
+    assert "Replacing the failed run" in capsys.readouterr().err
+    config = json.loads((run_dir / "config.json").read_text())
+    assert config["status"] == "finished" and config["learning_rate"] is None
+    assert config["epochs_run"] == 1
 
 
 def test_truncated_files_are_called_truncated(dataset, tmp_path, tiny_run):

@@ -384,7 +384,7 @@ def _generate(out, protocol, pairs, seed, image_size, workers, progress, command
         workers = os.cpu_count() or 1
     meta = metadata(protocol, pairs, seed, image_size, command_line)
     bar = _Progress(pairs, f"{protocol}", progress)
-    from cpl_keras.cli import make_parent
+    from cpl_keras.cli import check_interrupt, make_parent
 
     make_parent(out)
     with StereoWriter(out, pairs, image_size, metadata=meta,
@@ -394,6 +394,10 @@ def _generate(out, protocol, pairs, seed, image_size, workers, progress, command
                                                          workers):
             writer.write(start, left, right, labels)
             bar.update(len(left))
+            # a Ctrl-C that landed where an exception is swallowed (a callback
+            # of h5py's, say) stops here, before the file is committed
+            check_interrupt()
+        check_interrupt()
     return out
 
 

@@ -38,9 +38,7 @@ import keras
 import numpy as np
 from keras import ops
 
-BACKBONES = ("inception_v3", "small", "small_resnet")
-#: The smallest image side each backbone accepts (InceptionV3's own limit is 75).
-MIN_IMAGE_SIZE = {"inception_v3": 75, "small": 16, "small_resnet": 16}
+from cpl_keras.models.variants import BACKBONES, MIN_IMAGE_SIZE  # noqa: E402,F401
 #: Channels of the small ResNet's four residual stages (the stem has the first).
 SMALL_RESNET_WIDTHS = (16, 32, 64, 128)
 

@@ -57,10 +57,9 @@ from cpl_keras.layers import (
 )
 from cpl_keras.models import backbones, deep_homo, variants
 from cpl_keras.models.calibration_model import CalibrationModel
-from cpl_keras.models.variants import VARIANTS
+from cpl_keras.models.variants import DISENTANGLE, VARIANTS  # noqa: F401
+
 PIXEL_HEADS = ("u", "v")
-#: How the X, Y, Z terms of the camera projection loss reach the heads.
-DISENTANGLE = ("exact", "partial")
 
 
 def build_model(variant, *, backbone="inception_v3", image_size=112, as_released=False,

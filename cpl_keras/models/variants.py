@@ -34,6 +34,16 @@ class Variant:
         return self.released_loss if as_released else self.loss
 
 
+#: The towers a variant can be built with (``backbones``), and the smallest
+#: image side each accepts (InceptionV3's own limit is 75). Here, beside the
+#: variants, so that the command lines can offer and check them without
+#: importing Keras.
+BACKBONES = ("inception_v3", "small", "small_resnet")
+MIN_IMAGE_SIZE = {"inception_v3": 75, "small": 16, "small_resnet": 16}
+#: How the X, Y, Z terms of the camera projection loss reach the heads
+#: (``factory.build_model``).
+DISENTANGLE = ("exact", "partial")
+
 SPECS = (
     Variant("baseline", "MTL-Baseline", 2, "mae", "mae", 1e-3, "direct", False,
             description="two towers, 13 heads regressing all 13 targets (MAE)"),

@@ -1,0 +1,45 @@
+"""Every command line checks its arguments before it imports Keras or JAX:
+a bad flag is answered at once (one line, exit 2), not after the seconds
+that importing them takes."""
+
+import os
+import subprocess
+import sys
+
+import pytest
+
+REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+
+#: Runs a command's main with a bad argument and reports, after its exit,
+#: whether Keras or JAX was imported on the way.
+PROBE = """
+import runpy, sys
+sys.argv = [{script!r}] + {argv!r}
+try:
+    if {script!r}.endswith(".py"):
+        runpy.run_path({script!r}, run_name="__main__")
+    else:
+        runpy.run_module({script!r}, run_name="__main__", alter_sys=True)
+except SystemExit as exit:
+    code = exit.code
+heavy = sorted(m for m in ("keras", "jax", "tensorflow", "torch") if m in sys.modules)
+print("exit", code, "heavy", ",".join(heavy) or "none")
+"""
+
+
+@pytest.mark.parametrize("script, argv", [
+    ("train.py", ["--bogus"]),
+    ("train.py", ["--variant", "cpl-a", "--epochs", "0"]),
+    ("train.py", ["--variant", "nope"]),
+    ("evaluate.py", ["--bogus"]),
+    ("evaluate.py", ["--reproduce", "--pairs", "0"]),
+    ("cpl_keras.reproduce", ["--preset", "nope"]),
+    ("cpl_keras.calibrate", ["--bogus"]),
+    ("cpl_keras.data.generate", ["--pairs", "0"]),
+])
+def test_bad_arguments_are_refused_before_keras_or_jax_is_imported(script, argv):
+    env = dict(os.environ, KERAS_BACKEND="jax")
+    result = subprocess.run([sys.executable, "-c", PROBE.format(script=script, argv=argv)],
+                            cwd=REPO, env=env, capture_output=True, text=True, timeout=120)
+    assert result.stdout.strip() == "exit 2 heavy none", (result.stdout, result.stderr)
+    assert result.stderr.count("\n") == 1 and ": error: " in result.stderr, result.stderr
