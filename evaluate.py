@@ -28,12 +28,13 @@ os.environ.setdefault("KERAS_BACKEND", "jax")
 
 from cpl_keras import cli  # noqa: E402
 
+#: Where --table writes without --out (git-ignored, like every run).
+TABLES_DIR = os.path.join("runs", "tables")
 PROG = "evaluate.py"
 
 
 def parse_args(argv=None):
     from cpl_keras import reproduce
-    from cpl_keras.evaluation import PAPER_DIR
 
     parser = cli.Parser(prog=PROG, description=__doc__.split("\n")[0])
     parser.add_argument("--run", help="evaluate one run directory (with --data)")
@@ -43,8 +44,9 @@ def parse_args(argv=None):
                         "real sets or folders of them (cpl_keras.real.build all), scored per "
                         "rig and pooled")
     parser.add_argument("--out", help="output directory, created if missing (default: "
-                        "paper_results/; with --run: the run's parent directory; with "
-                        "--reproduce --quick: runs/quick/paper_results)")
+                        f"{TABLES_DIR}/ for --table, so the committed paper_results/ is never "
+                        "overwritten; with --run: the run's parent directory; with "
+                        "--reproduce: see --preset)")
     parser.add_argument("--batch-size", type=cli.positive_int, default=32)
     parser.add_argument("--no-geometric", action="store_true", help="leave out the Geometric row")
     parser.add_argument("--geometric-max", type=cli.positive_int,
@@ -66,7 +68,7 @@ def parse_args(argv=None):
         parser.error("--run needs --data DATA.h5")
     if args.run is not None:
         args.out = args.out or os.path.dirname(os.path.abspath(os.path.normpath(args.run)))
-    args.out = args.out or PAPER_DIR
+    args.out = args.out or TABLES_DIR
     if args.table is not None and not args.runs:
         parser.error("--table needs --runs RUN_DIR [RUN_DIR ...]")
     if args.data is not None and args.table != 2:

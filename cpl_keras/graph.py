@@ -1,7 +1,7 @@
 """Inspect the Lambda camera graph of a model.
 
     python -m cpl_keras.graph --variant cpl-a [--backbone small]
-        [--image-size 112] [--as-released] [--out camera_graph.png]
+        [--image-size 112] [--as-released] [--out runs/camera_graph.png]
 
 Prints every camera-graph layer with its op, its inputs and the paper
 equation it implements, and draws the graph (PNG, SVG or PDF by the file
@@ -389,7 +389,9 @@ def main(argv=None, prog=PROG):
                         "it builds fast)")
     parser.add_argument("--image-size", type=int, default=112)
     parser.add_argument("--as-released", action="store_true", help="the released code's graph")
-    parser.add_argument("--out", default="camera_graph.png", help="diagram file (.png, .svg or .pdf)")
+    parser.add_argument("--out", default=os.path.join("runs", "camera_graph.png"),
+                        help="diagram file (.png, .svg or .pdf; default runs/camera_graph.png, "
+                        "git-ignored; docs/camera_graph.png is made with --out)")
     args = parser.parse_args(argv)
     try:
         if args.variant not in with_graph:
@@ -398,8 +400,8 @@ def main(argv=None, prog=PROG):
         if os.path.splitext(args.out)[1].lower() not in (".png", ".svg", ".pdf"):
             raise ValueError(f"--out must end in .png, .svg or .pdf: {args.out}")
         directory = os.path.dirname(os.path.abspath(args.out))
-        if not os.path.isdir(directory):
-            raise ValueError(f"output directory does not exist: {directory}")
+        if os.path.exists(directory) and not os.path.isdir(directory):
+            raise ValueError(f"not a directory: {directory}")
         from cpl_keras.models import build_model
 
         model = build_model(args.variant, backbone=args.backbone,
@@ -416,6 +418,7 @@ def main(argv=None, prog=PROG):
         print(f"The graph reads {', '.join(detached)} through stop_gradient: the X, Y, Z terms "
               "of the loss train only the pixel heads u, v (exact disentangling of Eq. 7).")
     try:
+        cli.make_parent(args.out)  # (runs/, the default's folder, may not exist yet)
         draw_graph(graph, args.out, f"{args.variant} camera graph ({mode}): Eqs. 4a-5c as Lambda layers")
     except OSError as error:
         return cli.fail(prog, f"cannot write {args.out}: {error.strerror or error}")

@@ -847,6 +847,17 @@ def read_summary(out_dir):
     return summary
 
 
+def rebuild_command(out_dir):
+    """The command REPORT.md names as its rebuild: the same whichever way it
+    was spelt (``evaluate.py --reproduce``, with ``--discussion``: that text
+    is then in ``reproduce.json``), so that rebuilding a committed folder in
+    place changes no byte of it."""
+    path = os.path.relpath(out_dir)
+    if path.startswith(os.pardir):
+        path = os.path.abspath(out_dir)
+    return f"{PROG} --from-predictions {path}"
+
+
 def rebuild(out_dir, command="", discussion_file=None):
     """Every table and REPORT.md of the reproduction in ``out_dir`` again, from
     its published predictions and ``reproduce.json`` alone (no weights, no
@@ -1031,7 +1042,7 @@ def run(args, command, prog=PROG):
 
     try:
         if args.from_predictions is not None:
-            report = rebuild(args.out, command, args.discussion)
+            report = rebuild(args.out, rebuild_command(args.out), args.discussion)
         else:
             with cli.interruptible():
                 report = reproduce(

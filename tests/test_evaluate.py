@@ -89,6 +89,14 @@ def test_single_run_evaluation(tiny, tmp_path):
     assert os.path.samefile(os.path.join(out, result["runs"][0]), tiny["run"])
 
 
+def test_tables_without_out_go_to_runs_tables_not_paper_results():
+    """evaluate.py --table writes into runs/tables/ (git-ignored) by default:
+    the committed paper_results/ is written only by the reproduction."""
+    args = evaluate.parse_args(["--table", "1", "--runs", "runs/x"])
+    assert args.out == os.path.join("runs", "tables")
+    assert evaluate.parse_args(["--table", "1", "--runs", "runs/x", "--out", "o"]).out == "o"
+
+
 def test_single_run_writes_next_to_the_run(tiny, tmp_path):
     """Without --out, --run writes beside the run directory, not into paper_results/."""
     run = tmp_path / "runs" / "mine"

@@ -27,7 +27,7 @@ def test_released_cpl_a_graph_has_the_gates():
 
 
 def test_cli_prints_the_table_and_writes_the_diagram(tmp_path, capsys):
-    out = tmp_path / "graph.png"
+    out = tmp_path / "new" / "graph.png"  # (missing folders are made)
     assert main(["--variant", "cpl-a", "--image-size", "32", "--out", str(out)]) == 0
     text = capsys.readouterr().out
     assert "xCam = fx * b / d" in text and "4a" in text
