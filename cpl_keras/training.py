@@ -474,6 +474,12 @@ def _finish(model, run_dir, config, state):
     publish_run_files(run_dir, state)
     best = state.get("best_weights")
     if best:
+        # The file holds the optimizer's variables too: a run resumed after a
+        # kill during this save has a fresh model whose optimizer must be
+        # built first, or Keras skips them (with a warning) and model.keras
+        # would lose its optimizer state.
+        if not model.optimizer.built:
+            model.optimizer.build(model.trainable_variables)
         model.load_weights(os.path.join(run_dir, runs.BEST_WEIGHTS))
         with runs.atomic_path(os.path.join(run_dir, runs.MODEL)) as tmp:
             model.save(tmp)

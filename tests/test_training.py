@@ -454,6 +454,38 @@ def test_diverged_run_is_exit_2_and_replaced_by_the_next_run(dataset, tmp_path, 
     assert config["epochs_run"] == 1
 
 
+def test_resume_after_a_kill_during_the_final_save_keeps_the_optimizer_state(dataset, tmp_path):
+    """A run killed while it wrote model.keras (its state says it ended, its
+    config says running) is finished by the same command: model.keras again,
+    with the optimizer's state and without Keras's skipped-variables warning."""
+    import warnings
+
+    import keras
+
+    from cpl_keras.training import train
+
+    run_dir = tmp_path / "run"
+    kwargs = dict(variant="baseline", run_dir=str(run_dir), epochs=1, batch_size=8,
+                  backbone="small", verbose=0)
+    train(dataset, **kwargs)
+    first = keras.saving.load_model(run_dir / "model.keras", safe_mode=True)
+    steps = int(first.optimizer.iterations.numpy())
+    assert steps > 0
+    # what a kill in the middle of the final save leaves behind
+    config = json.loads((run_dir / "config.json").read_text())
+    (run_dir / "config.json").write_text(json.dumps(dict(config, status="running")))
+    (run_dir / "model.keras").unlink()
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        summary = train(dataset, **kwargs)
+    assert summary["status"] == "finished" and not summary.get("finished_before")
+    assert not [w for w in caught if "Skipping variable loading" in str(w.message)]
+    again = keras.saving.load_model(run_dir / "model.keras", safe_mode=True)
+    assert int(again.optimizer.iterations.numpy()) == steps
+    for a, b in zip(first.optimizer.variables, again.optimizer.variables):
+        np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+
+
 def test_truncated_files_are_called_truncated(dataset, tmp_path, tiny_run):
     from cpl_keras import runs
     from cpl_keras.data.storage import DatasetError, StereoFile
