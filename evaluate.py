@@ -47,7 +47,8 @@ def parse_args(argv=None):
                         f"{TABLES_DIR}/ for --table, so the committed paper_results/ is never "
                         "overwritten; with --run: the run's parent directory; with "
                         "--reproduce: see --preset)")
-    parser.add_argument("--batch-size", type=cli.positive_int, default=32)
+    parser.add_argument("--batch-size", type=cli.positive_int, default=32,
+                        help="pairs per forward pass (default 32; the results do not depend on it)")
     parser.add_argument("--no-geometric", action="store_true", help="leave out the Geometric row")
     parser.add_argument("--geometric-max", type=cli.positive_int,
                         help="run the Geometric baseline on the first N evaluation pairs only")

@@ -34,17 +34,25 @@ def build_parser():
         prog=PROG,
         description="Train a camera calibration network (Butt & Taj) on a stereo dataset.",
     )
-    parser.add_argument("--variant", required=True, choices=VARIANTS)
+    parser.add_argument("--variant", required=True, choices=VARIANTS,
+                        help="the network: baseline (MTL-Baseline, 13 heads, MAE), cpl-u "
+                        "(camera projection loss, uniform), cpl-a (CPL with adaptive weights, "
+                        "the paper's), deep-homo (the Deep-Homo comparison)")
     parser.add_argument("--data", help="dataset file (.h5) from the data generator; "
                         "default: a small demonstration dataset")
     parser.add_argument("--epochs", type=cli.positive_int, help="maximum epochs (default 200)")
-    parser.add_argument("--batch-size", type=cli.positive_int, default=16)
+    parser.add_argument("--batch-size", type=cli.positive_int, default=16,
+                        help="pairs per training step (default 16, the paper's); at most the "
+                        "training split")
     parser.add_argument("--lr", type=cli.positive_float, help="learning rate (default 1e-3, Deep-Homo 1.5e-3)")
     parser.add_argument("--image-size", type=cli.positive_int,
                         help="expected image side; must match the dataset (default: the dataset's)")
     parser.add_argument("--backbone", choices=BACKBONES,
                         help="tower backbone (default inception_v3, the paper's)")
-    parser.add_argument("--split", choices=SPLITS, default="paper")
+    parser.add_argument("--split", choices=SPLITS, default="paper",
+                        help="paper: the paper's frame-level 70/30 split (default); drive: "
+                        "whole contiguous drives held out; held-out-config: whole rigs held out "
+                        "(random protocol)")
     parser.add_argument("--as-released", action="store_true",
                         help="reproduce the released code (labels, loss, val = test)")
     parser.add_argument("--run-dir", help="run directory (default runs/<variant>-<split>-s<seed>)")
@@ -53,7 +61,9 @@ def build_parser():
                         help="data parallelism over all local devices")
     parser.add_argument("--patience", type=cli.non_negative_int, default=5, help="early stopping patience")
     parser.add_argument("--workers", type=cli.positive_int, default=1, help="data reading threads")
-    parser.add_argument("--steps-per-execution", type=cli.positive_int, default=1)
+    parser.add_argument("--steps-per-execution", type=cli.positive_int, default=1,
+                        help="training steps per compiled call (Keras's steps_per_execution; "
+                        "default 1)")
     parser.add_argument("--disentangle", choices=DISENTANGLE, default="exact",
                         help="CPL: the X, Y, Z terms of Eq. 7 train only the pixel heads "
                         "(exact, default) or every head the camera graph reads (partial)")

@@ -172,8 +172,8 @@ def calibrate_pair(left_path, right_path, run_dir, warn=None):
 
 def main(argv=None):
     parser = cli.Parser(prog=PROG, description=__doc__.split("\n")[0])
-    parser.add_argument("left")
-    parser.add_argument("right")
+    parser.add_argument("left", help="left image file (PNG, JPEG, ...)")
+    parser.add_argument("right", help="right image file of the same pair")
     parser.add_argument("--run", required=True, help="run directory of a trained model")
     parser.add_argument("--json-out", help="also write the JSON to this file")
     args = parser.parse_args(argv)

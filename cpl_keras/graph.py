@@ -387,7 +387,8 @@ def main(argv=None, prog=PROG):
     parser.add_argument("--backbone", default="small",
                         help=f"{', '.join(BACKBONES)} (default small: the graph is the same, "
                         "it builds fast)")
-    parser.add_argument("--image-size", type=int, default=112)
+    parser.add_argument("--image-size", type=int, default=112,
+                        help="square input side of the model drawn (default 112)")
     parser.add_argument("--as-released", action="store_true", help="the released code's graph")
     parser.add_argument("--out", default=os.path.join("runs", "camera_graph.png"),
                         help="diagram file (.png, .svg or .pdf; default runs/camera_graph.png, "

@@ -328,8 +328,10 @@ def main(argv=None):
     parser.add_argument("--out", required=True, help="output folder (created if missing)")
     parser.add_argument("--experiment", action="store_true",
                         help="make the datasets and train the four runs first")
-    parser.add_argument("--pairs", type=int, default=8000)
-    parser.add_argument("--backbone", default="small_resnet")
+    parser.add_argument("--pairs", type=int, default=8000,
+                        help="--experiment: cvgl pairs of its dataset (default 8000)")
+    parser.add_argument("--backbone", default="small_resnet",
+                        help="--experiment: the towers (default small_resnet)")
     parser.add_argument("--only", action="append",
                         help="with --experiment: train only this run (repeatable; e.g. "
                         "cvgl-cpl-a-small_resnet), so runs can share the machine in parallel")
@@ -338,8 +340,10 @@ def main(argv=None):
                         "given now")
     parser.add_argument("--at-epoch", type=cli.positive_int,
                         help="also tabulate every run's validation NMAE after this many epochs")
-    parser.add_argument("--data-dir", default="data")
-    parser.add_argument("--runs-dir", default="runs/learning")
+    parser.add_argument("--data-dir", default="data",
+                        help="--experiment: where its dataset goes (default data)")
+    parser.add_argument("--runs-dir", default="runs/learning",
+                        help="--experiment: where its runs go (default runs/learning)")
     args = parser.parse_args(argv)
     try:
         if args.experiment:

@@ -913,8 +913,10 @@ def add_arguments(parser):
     group.add_argument("--random-pairs", type=positive, help="random-protocol pairs")
     group.add_argument("--epochs", type=positive, help="maximum epochs per run (paper: 200)")
     group.add_argument("--patience", type=non_negative, help="early stopping patience (paper: 5)")
-    group.add_argument("--backbone", choices=BACKBONES)
-    group.add_argument("--image-size", type=positive)
+    group.add_argument("--backbone", choices=BACKBONES,
+                       help="the towers (paper: inception_v3; cpu presets: small_resnet)")
+    group.add_argument("--image-size", type=positive,
+                       help="square image side of every dataset (paper: 112)")
     group.add_argument("--crops", type=positive, help="Middlebury crops for Table 2")
     group.add_argument("--chessboard-crops", type=positive,
                        help="crops per OpenCV chessboard pair for Table 2")

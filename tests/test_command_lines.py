@@ -43,3 +43,50 @@ def test_bad_arguments_are_refused_before_keras_or_jax_is_imported(script, argv)
                             cwd=REPO, env=env, capture_output=True, text=True, timeout=120)
     assert result.stdout.strip() == "exit 2 heavy none", (result.stdout, result.stderr)
     assert result.stderr.count("\n") == 1 and ": error: " in result.stderr, result.stderr
+
+
+class _Captured(Exception):
+    pass
+
+
+def _main_functions():
+    import importlib.util
+
+    from cpl_keras import calibrate, graph, learning_curves, reproduce
+    from cpl_keras.data import generate
+    from cpl_keras.real import build
+
+    mains = {"reproduce": reproduce.main, "data.generate": generate.main,
+             "calibrate": calibrate.main, "graph": graph.main, "real.build": build.main,
+             "learning_curves": learning_curves.main}
+    for script in ("train.py", "evaluate.py"):
+        spec = importlib.util.spec_from_file_location(script[:-3] + "_cli",
+                                                      os.path.join(REPO, script))
+        module = importlib.util.module_from_spec(spec)
+        spec.loader.exec_module(module)
+        mains[script] = module.main
+    return mains
+
+
+def test_every_option_of_every_command_has_help_text(monkeypatch):
+    """``--help`` explains every option and argument of every command (and
+    of real.build's subcommands)."""
+    import argparse
+
+    def capture(self, args=None, namespace=None):
+        raise _Captured(self)
+
+    monkeypatch.setattr(argparse.ArgumentParser, "parse_args", capture)
+    missing = []
+    for name, main in _main_functions().items():
+        with pytest.raises(_Captured) as caught:
+            main([])
+        parsers = [(name, caught.value.args[0])]
+        while parsers:
+            label, parser = parsers.pop()
+            for action in parser._actions:
+                if isinstance(action, argparse._SubParsersAction):
+                    parsers += [(f"{label} {sub}", p) for sub, p in action.choices.items()]
+                elif not isinstance(action, argparse._HelpAction) and not action.help:
+                    missing.append(f"{label}: {action.option_strings or action.dest}")
+    assert not missing, missing

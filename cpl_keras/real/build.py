@@ -49,7 +49,9 @@ PROG = "python -m cpl_keras.real.build"
 
 def parse_args(argv=None):
     parser = cli.Parser(prog=PROG, description=__doc__.split("\n")[0])
-    parser.add_argument("source", choices=SOURCES)
+    parser.add_argument("source", choices=SOURCES,
+                        help="the real rig to build, or all (every shipped rig and every root "
+                        "given) into --out-dir")
     parser.add_argument("--out", help="output HDF5 file (every source but all)")
     parser.add_argument("--out-dir", help="output folder (all)")
     parser.add_argument("--root", help="dataset root (kitti, tsinghua, cityscapes; "
@@ -60,12 +62,19 @@ def parse_args(argv=None):
                         "kitti: e.g. training)")
     parser.add_argument("--layout", choices=("stereo", "raw"), default="stereo",
                         help="kitti: stereo 2015 / scene flow, or raw")
-    parser.add_argument("--image-size", type=int, default=112)
+    parser.add_argument("--image-size", type=int, default=112,
+                        help="square side the pairs are resized to, intrinsics transformed "
+                        "exactly (default 112)")
     parser.add_argument("--crops", type=int, help="chessboard: crops per pair (20); "
                         "middlebury: number of crops (500)")
-    parser.add_argument("--seed", type=int, default=0)
-    parser.add_argument("--right", choices=("warp", "released"), default="warp")
-    parser.add_argument("--labels", choices=LABEL_MODES, default="rig")
+    parser.add_argument("--seed", type=int, default=0,
+                        help="seed of the crops and projection pixels (default 0)")
+    parser.add_argument("--right", choices=("warp", "released"), default="warp",
+                        help="tsinghua: the right image as the left one forward-warped with "
+                        "its disparity (warp, default) or as the release made it (released)")
+    parser.add_argument("--labels", choices=LABEL_MODES, default="rig",
+                        help="tsinghua: the right camera's pose in the left camera's frame "
+                        "(rig, default) or the dataset's vehicle-frame pose (vehicle)")
     parser.add_argument("--limit", type=int, help="use only the first N images")
     parser.add_argument("--force", action="store_true", help="all: rebuild existing files")
     args = parser.parse_args(argv)
