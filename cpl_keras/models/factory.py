@@ -27,7 +27,8 @@ CPL-A adaptive weights        per-term alpha_i (loss)      per-sample sigmoid ga
                                                            multiplying X, Y, Z
 Deep-Homo input               grey level of each image     one channel of each image
 pitch head                    clipped to +-pi/2            linear (a minimum every 2 pi)
-CPL disparity, fx, fy heads   exp(z), positive             linear (fy trapped below 0)
+CPL disparity head            exp(z), positive             linear
+CPL fx, fy heads              clipped at 1 px              linear (fy trapped below 0)
 X, Y, Z terms of Eq. 7        reach only the pixel heads   (MAE: every head)
 divisor floors                ``camera.FLOORS``            ``camera.RELEASED_FLOORS``
 ============================  ===========================  ============================
