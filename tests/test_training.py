@@ -238,22 +238,89 @@ def test_second_process_waits_for_the_first_and_ends_like_it(
                uninterrupted)
 
 
-def test_nan_loss_stops_and_keeps_the_best_weights(dataset, tmp_path):
+def test_nan_loss_stops_and_keeps_the_best_weights(dataset, tmp_path, monkeypatch):
+    """A loss that turns non-finite in epoch 2 (NaN targets from then on)
+    stops the run there, marked failed, and model.keras holds epoch 1's
+    weights: finite, predicting finite values, equal to best.weights.h5."""
+    import keras
+
+    from cpl_keras.checkpointing import RunState
+    from cpl_keras.datasets import StereoSequence
     from cpl_keras.training import summary_line, train
 
-    run_dir = str(tmp_path / "run")
-    # An absurd learning rate makes the MAE loss overflow within a few steps.
-    summary = train(dataset, variant="baseline", run_dir=run_dir, epochs=6, batch_size=5,
-                    learning_rate=1e35, backbone="small", verbose=0, patience=10)
-    assert summary["status"] == "failed"
-    assert summary["stopped"].startswith("non-finite training loss")
-    assert "non-finite" in summary_line(summary)
-    assert summary["epochs_run"] < 6
-    with open(os.path.join(run_dir, "config.json")) as f:
-        assert json.load(f)["status"] == "failed"
-    if summary["best_epoch"] is not None:
-        assert os.path.isfile(os.path.join(run_dir, "model.keras"))
+    getitem = StereoSequence.__getitem__
 
+    def nan_from_epoch_2(self, index):
+        x, y = getitem(self, index)
+        if self.shuffle and self.epoch >= 1:  # (the training sequence)
+            y = {name: value * np.nan for name, value in y.items()}
+        return x, y
+
+    kept = {}
+    on_epoch_end = RunState.on_epoch_end
+
+    def remember(self, epoch, logs=None):
+        kept.setdefault(epoch, [np.array(w) for w in self.model.get_weights()])
+        return on_epoch_end(self, epoch, logs)
+
+    monkeypatch.setattr(StereoSequence, "__getitem__", nan_from_epoch_2)
+    monkeypatch.setattr(RunState, "on_epoch_end", remember)
+    run_dir = tmp_path / "run"
+    summary = train(dataset, variant="baseline", run_dir=str(run_dir), epochs=4, batch_size=8,
+                    backbone="small", verbose=0, patience=10)
+    assert summary["status"] == "failed" and summary["best_epoch"] == 1
+    assert summary["stopped"] == "non-finite training loss at epoch 2, batch 1"
+    assert "non-finite" in summary_line(summary) and summary["epochs_run"] == 1
+    assert json.loads((run_dir / "config.json").read_text())["status"] == "failed"
+    model = keras.saving.load_model(run_dir / "model.keras", safe_mode=True)
+    saved = model.get_weights()
+    assert all(np.isfinite(w).all() for w in saved)
+    for a, b in zip(saved, kept[0]):
+        np.testing.assert_array_equal(a, b)
+    predictions = model.predict(_images(dataset), verbose=0)
+    outputs = predictions.values() if isinstance(predictions, dict) else predictions
+    assert all(np.isfinite(np.asarray(v)).all() for v in outputs)
+
+
+def _images(path, count=4):
+    from cpl_keras.data.storage import StereoFile
+
+    with StereoFile(path) as f:
+        left, right = f.read_pairs(np.arange(count))
+    return {"left_image": left.astype(np.float32), "right_image": right.astype(np.float32)}
+
+
+def test_early_stopping_ends_the_run_and_model_keras_holds_the_best_epoch(
+        dataset, tmp_path, monkeypatch):
+    """Validation losses 3, 2, 5, 6 (scripted) with patience 2: the run stops
+    after epoch 4 by early stopping, best epoch 2, and model.keras holds the
+    weights of epoch 2, not those of the last epoch."""
+    import keras
+
+    from cpl_keras.checkpointing import RunState
+    from cpl_keras.training import train
+
+    scripted = [3.0, 2.0, 5.0, 6.0, 7.0, 8.0]
+    kept = {}
+    on_epoch_end = RunState.on_epoch_end
+
+    def scripted_val_loss(self, epoch, logs=None):
+        kept[epoch] = [np.array(w) for w in self.model.get_weights()]
+        return on_epoch_end(self, epoch, dict(logs or {}, val_loss=scripted[epoch]))
+
+    monkeypatch.setattr(RunState, "on_epoch_end", scripted_val_loss)
+    run_dir = tmp_path / "run"
+    summary = train(dataset, variant="baseline", run_dir=str(run_dir), epochs=6, batch_size=8,
+                    backbone="small", verbose=0, patience=2)
+    assert (summary["epochs_run"], summary["best_epoch"]) == (4, 2)
+    assert summary["stopped"] == "early stopping: no improvement of val_loss for 2 epochs"
+    assert summary["status"] == "finished" and summary["best_val_loss"] == 2.0
+    saved = keras.saving.load_model(run_dir / "model.keras", safe_mode=True).get_weights()
+    for a, b in zip(saved, kept[1]):
+        np.testing.assert_array_equal(a, b)
+    assert any(not np.array_equal(a, b) for a, b in zip(saved, kept[3]))
+    rows = (run_dir / "log.csv").read_text().strip().splitlines()
+    assert len(rows) == 1 + 4
 
 @pytest.mark.slow
 def test_data_parallel_on_two_devices_with_uneven_batches(dataset, tmp_path, xla_cache):
