@@ -135,3 +135,59 @@ def test_pooled_table_compares_every_row_on_the_same_pairs():
         assert cells["u0"]["num_defined"] == 24
     # per rig, each row keeps all of its own pairs
     assert table["rigs"]["chessboard"]["rows"]["MTL-CPL-A"]["targets"]["fx"]["num_defined"] == 10
+
+
+def _synthetic_rig(name, n, errors, rectified, subset=None, seed=0):
+    """A rig whose rows predict ``truth * (1 + error)`` (an error per pair):
+    each row's NMAE on pairs P is then mean(|y| e) / mean(|y|) over P."""
+    from cpl_keras.camera import TARGETS
+
+    rng = np.random.default_rng(seed)
+    truth = {k: rng.uniform(1.0, 2.0, n) for k in TARGETS}
+    rows = {}
+    for row, error in errors.items():
+        idx = np.arange(n) if subset is None or row != "Average" else np.arange(subset)
+        e = np.broadcast_to(np.asarray(error, float), (n,))[idx]
+        rows[row] = {"source": row, "as_released": False, "indices": idx,
+                     "truth": {k: v[idx] for k, v in truth.items()},
+                     "pred": {k: v[idx] * (1 + e) for k, v in truth.items()},
+                     "defined": {k: np.ones(len(idx), bool) for k in TARGETS}}
+    return {"rig": name, "data": f"{name}.h5", "data_description": "synthetic",
+            "rectified": rectified, "width": 64, "data_source": "test", "num_pairs": n,
+            "rows": rows}, truth
+
+
+def test_table2_values_per_rig_and_pooled_against_hand_computed_nmae():
+    """Table 2's cells from rows with known errors, against NMAE worked out
+    here: per rig every pair of each row; pooled, only the pairs every row
+    has (Average has the first 10 of rig A's 30), and pitch only on the
+    unrectified rig."""
+    from cpl_keras.real.table2 import table2_from_rigs
+
+    baseline_a = np.where(np.arange(30) < 10, 0.1, 0.5)   # worse off the shared pairs
+    rig_a, truth_a = _synthetic_rig("A", 30, {"Average": 0.3, "MTL-Baseline": baseline_a},
+                                    rectified=False, subset=10, seed=1)
+    rig_b, truth_b = _synthetic_rig("B", 20, {"Average": 0.2, "MTL-Baseline": 0.05},
+                                    rectified=True, seed=2)
+    table = table2_from_rigs(["run"], [rig_a, rig_b])
+
+    def cell(t, row, name):
+        return t["rows"][row]["targets"][name]["nmae"]
+
+    # per rig: all of the row's own pairs
+    fx_a = truth_a["fx"]
+    assert cell(table["rigs"]["A"], "MTL-Baseline", "fx") == pytest.approx(
+        np.sum(fx_a * baseline_a) / np.sum(fx_a), rel=1e-12)
+    assert cell(table["rigs"]["A"], "Average", "fx") == pytest.approx(0.3, rel=1e-12)
+    assert cell(table["rigs"]["B"], "MTL-Baseline", "pitch") == pytest.approx(0.05, rel=1e-12)
+    # pooled over the shared pairs: A's first 10 and all of B's 20
+    for name in ("fx", "baseline", "Z"):
+        y = np.concatenate([truth_a[name][:10], truth_b[name]])
+        e = np.concatenate([np.full(10, 0.1), np.full(20, 0.05)])
+        assert cell(table, "MTL-Baseline", name) == pytest.approx(
+            np.sum(y * e) / np.sum(y), rel=1e-12), name
+        assert table["rows"]["MTL-Baseline"]["targets"][name]["num_defined"] == 30
+    # pitch pooled only where defined: rig B is rectified
+    assert cell(table, "MTL-Baseline", "pitch") == pytest.approx(0.1, rel=1e-12)
+    assert cell(table, "Average", "pitch") == pytest.approx(0.3, rel=1e-12)
+    assert table["rows"]["Average"]["targets"]["pitch"]["num_defined"] == 10
