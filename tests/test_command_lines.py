@@ -90,3 +90,26 @@ def test_every_option_of_every_command_has_help_text(monkeypatch):
                 elif not isinstance(action, argparse._HelpAction) and not action.help:
                     missing.append(f"{label}: {action.option_strings or action.dest}")
     assert not missing, missing
+
+
+def test_every_subprocess_a_test_waits_for_has_a_timeout():
+    """A hung command fails its test instead of blocking the suite:
+    ``subprocess.run`` and every ``communicate`` / ``wait`` in tests/ carry
+    a ``timeout``."""
+    import ast
+    import glob
+
+    missing = []
+    for path in sorted(glob.glob(os.path.join(REPO, "tests", "*.py"))):
+        with open(path) as f:
+            tree = ast.parse(f.read())
+        for node in ast.walk(tree):
+            if not (isinstance(node, ast.Call) and isinstance(node.func, ast.Attribute)):
+                continue
+            name, base = node.func.attr, node.func.value
+            if name == "run" and getattr(base, "id", None) != "subprocess":
+                continue
+            if name in ("run", "communicate", "wait") and \
+                    not any(k.arg == "timeout" for k in node.keywords):
+                missing.append(f"{os.path.basename(path)}:{node.lineno} {name}")
+    assert not missing, missing

@@ -216,7 +216,7 @@ def test_killed_write_leaves_no_file_at_final_path(tmp_path):
     assert partial.exists(), "the writer never started"
     time.sleep(0.3)
     proc.send_signal(signal.SIGKILL)
-    proc.wait()
+    proc.wait(timeout=300)
     assert not out.exists()
 
 

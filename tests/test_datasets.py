@@ -382,7 +382,7 @@ def test_numpy_modules_do_not_import_keras():
     code = ("import sys, cpl_keras.datasets, cpl_keras.baselines; "
             "sys.exit(1 if 'keras' in sys.modules else 0)")
     result = subprocess.run([sys.executable, "-c", code], cwd=os.path.dirname(os.path.dirname(
-        os.path.abspath(__file__))))
+        os.path.abspath(__file__))), timeout=600)
     assert result.returncode == 0
 
 

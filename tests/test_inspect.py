@@ -43,7 +43,7 @@ def test_cli_bad_arguments_exit_2_without_output(tmp_path):
                  ["--variant", "cpl-u", "--image-size", "8"]):
         result = subprocess.run([sys.executable, "-m", "cpl_keras.inspect", *args, "--out", str(out)]
                                 if "--out" not in args else [sys.executable, "-m", "cpl_keras.inspect", *args],
-                                capture_output=True, text=True)
+                                capture_output=True, text=True, timeout=600)
         assert result.returncode == 2
         assert result.stderr.startswith("python -m cpl_keras.inspect: error: ") and "Traceback" not in result.stderr
         assert len(result.stderr.strip().splitlines()) == 1

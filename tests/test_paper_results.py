@@ -28,7 +28,7 @@ def test_committed_tables_are_what_their_predictions_give(folder, tmp_path):
     copy = tmp_path / "results"
     shutil.copytree(folder, copy)
     result = subprocess.run([sys.executable, "-m", "cpl_keras.reproduce", "--from-predictions",
-                             str(copy)], capture_output=True, text=True)
+                             str(copy)], capture_output=True, text=True, timeout=600)
     assert result.returncode == 0, result.stderr[-3000:]
     committed, rebuilt = _files(folder), _files(copy)
     assert set(rebuilt) == set(committed)

@@ -18,12 +18,12 @@ from cpl_keras.camera import TARGETS
 
 def run(*args, cwd=None):
     return subprocess.run([sys.executable, "evaluate.py", *args], capture_output=True, text=True,
-                          cwd=cwd)
+                          cwd=cwd, timeout=600)
 
 
 def rebuild(directory):
     return subprocess.run([sys.executable, "-m", "cpl_keras.reproduce", "--from-predictions",
-                           str(directory)], capture_output=True, text=True)
+                           str(directory)], capture_output=True, text=True, timeout=600)
 
 
 @pytest.fixture(scope="module")
@@ -181,7 +181,7 @@ def test_rebuild_with_a_new_discussion(quick, tmp_path):
     (tmp_path / "comparison.md").write_text("MTL-CPL-A beats MTL-Baseline on fx.\n")
     result = subprocess.run([sys.executable, "-m", "cpl_keras.reproduce", "--from-predictions",
                              str(copy), "--discussion", str(tmp_path / "comparison.md")],
-                            capture_output=True, text=True)
+                            capture_output=True, text=True, timeout=600)
     assert result.returncode == 0, result.stderr[-3000:]
     report = (copy / "REPORT.md").read_text()
     assert report.rstrip().endswith("## Comparison with the paper\n\nMTL-CPL-A beats "
@@ -193,7 +193,7 @@ def test_rebuild_with_a_new_discussion(quick, tmp_path):
     before = _contents(copy)
     result = subprocess.run([sys.executable, "-m", "cpl_keras.reproduce", "--from-predictions",
                              str(copy), "--discussion", str(tmp_path / "missing.md")],
-                            capture_output=True, text=True)
+                            capture_output=True, text=True, timeout=600)
     assert result.returncode == 2 and result.stderr.count("\n") == 1
     assert "--discussion: file not found" in result.stderr and _contents(copy) == before
 
@@ -232,7 +232,7 @@ def test_reproduce_bad_arguments_exit_2(tmp_path):
         assert result.stderr.startswith("evaluate.py: error: ") and "Traceback" not in result.stderr
     # the reproduction's own entry point, same error format under its own name
     result = subprocess.run([sys.executable, "-m", "cpl_keras.reproduce", "--pairs", "0",
-                             "--out", str(tmp_path / "out")], capture_output=True, text=True)
+                             "--out", str(tmp_path / "out")], capture_output=True, text=True, timeout=600)
     assert result.returncode == 2
     assert result.stderr == ("python -m cpl_keras.reproduce: error: argument --pairs: must be "
                              "a positive integer, got 0\n")

@@ -203,7 +203,7 @@ def test_killed_run_resumes_and_ends_like_an_uninterrupted_run(
         assert _wait_for(lambda: epochs_done() >= 1)
         time.sleep(0.3)
     process.send_signal(signal.SIGKILL)
-    process.wait()
+    process.wait(timeout=300)
     done = epochs_done()
     assert 1 <= done < 4, f"the run must be killed mid-training ({when})"
     assert len(read_log(run_dir)) == done
