@@ -693,3 +693,60 @@ def test_old_zero_based_log_is_read_alike_and_renumbered_on_resume(dataset, tmp_
         resumed = f.read()
     assert resumed.startswith(new_text)  # the first two rows as before, renumbered
     assert [int(row["epoch"]) for row in read_log(run_dir)] == [1, 2, 3]
+
+
+FLAG_CASES = {
+    "as released": (["--as-released"], "cpl-a", lambda c: c["build"]["as_released"]
+                    and c["bn_recompute_batches"] == 0
+                    and not c["build"]["positive_focal_head"]
+                    and not c["build"]["bounded_pitch_head"]),
+    "cpl-u heads": (["--disentangle", "partial", "--linear-pitch-head"], "cpl-u",
+                    lambda c: c["build"]["disentangle"] == "partial"
+                    and c["build"]["bounded_pitch_head"] is False),
+    "cpl-a heads": (["--linear-focal-head", "--alpha-rate", "3"], "cpl-a",
+                    lambda c: c["build"]["positive_focal_head"] is False
+                    and c["build"]["alpha_rate"] == 3.0),
+    "baseline steps": (["--target-scaling", "std", "--steps-per-execution", "2",
+                        "--bn-recompute-batches", "0", "--split", "held-out-config"], "baseline",
+                       lambda c: c["target_scaling"] == "std"
+                       and c["bn_recompute_batches"] == 0 and c["split"] == "held-out-config"),
+}
+
+
+@pytest.mark.parametrize("case", list(FLAG_CASES))
+def test_every_training_flag_reaches_the_run(case, tiny_run, tmp_path):
+    """The train.py options at tiny scale (several per run): the run
+    finishes, its config records them, and model.keras loads (safe mode)
+    as the model they ask for."""
+    import keras
+
+    flags, variant, check = FLAG_CASES[case]
+    run_dir = tmp_path / "run"
+    assert _train_script().main(["--variant", variant, "--backbone", "small", "--data",
+                                 tiny_run["data"], "--epochs", "1", "--batch-size", "4",
+                                 "--quiet", "--run-dir", str(run_dir)] + flags) == 0
+    config = json.loads((run_dir / "config.json").read_text())
+    assert config["status"] == "finished" and config["epochs_run"] == 1
+    assert check(config), config
+    if config["split"] == "held-out-config":  # no rig of the test set in training
+        from cpl_keras.data.storage import StereoFile
+        from cpl_keras.datasets import load_split
+
+        with StereoFile(tiny_run["data"]) as f:
+            rig = np.asarray(f.labels["config_id"])
+        split = load_split(str(run_dir / "split.npz"))
+        assert not set(rig[split["test"]]) & set(rig[split["train"]])
+    model = keras.saving.load_model(run_dir / "model.keras", safe_mode=True)
+    assert model.calibration["as_released"] == config["build"]["as_released"]
+    if "alpha_rate" in config["build"]:
+        assert model.alpha_rate == config["build"]["alpha_rate"]
+
+
+def test_drive_split_flag_reaches_the_split(tiny_run, tmp_path, capsys):
+    """--split drive is the drive split: on 40 cvgl pairs of nearly as many
+    rigs it has no validation frames, and says so (exit 2, nothing written)."""
+    assert _train_script().main(["--variant", "baseline", "--backbone", "small", "--data",
+                                 tiny_run["data"], "--quiet", "--run-dir", str(tmp_path / "run"),
+                                 "--split", "drive"]) == 2
+    assert "drive split of 40 pairs leaves the val set empty" in capsys.readouterr().err
+    assert not (tmp_path / "run").exists()
