@@ -19,9 +19,8 @@ another machine. It evaluates from ``predictions/`` alone.
 
 Training writes it through this module; evaluation, calibration, the
 reproduction and the learning curves read it only through ``load_run``,
-``read_config`` and ``load_model``. ``atomic_path`` is the package's one
-way of writing a file atomically (written under a temporary name, fsync'd,
-then renamed into place).
+``read_config`` and ``load_model``. Its files are written atomically
+(``cpl_keras.files``).
 
 config.json holds each fact once: ``as_released`` lives in ``build`` (the
 model's build arguments). Run directories of the older layout, which also
@@ -30,8 +29,6 @@ had it at the top level, still load and resume (``normalise_config``).
 
 from __future__ import annotations
 
-import contextlib
-import json
 import os
 
 CONFIG = "config.json"
@@ -59,75 +56,11 @@ class RunError(ValueError):
     """A run directory cannot be read (one-line message)."""
 
 
-# ---------------------------------------------------------------------------
-# Atomic files
-# ---------------------------------------------------------------------------
-def _partial(path):
-    """``path``'s temporary name, keeping its extension (savers pick the
-    format from it; Keras's weights files must end in ``.weights.h5``)."""
-    directory, name = os.path.split(path)
-    for ext in (".weights.h5", ".partial"):
-        if name.endswith(ext):
-            break
-    else:
-        ext = os.path.splitext(name)[1]
-    stem = name[: len(name) - len(ext)] if ext else name
-    return os.path.join(directory, f".{stem}.partial{ext}")
-
-
-def commit(tmp, path):
-    """Flush the finished temporary file ``tmp`` to disk and rename it to ``path``."""
-    with open(tmp, "rb") as f:
-        os.fsync(f.fileno())
-    os.replace(tmp, path)
-
-
-@contextlib.contextmanager
-def atomic_path(*paths):
-    """Yield temporary paths (one per ``path``, the same extension) to write
-    to; when the block ends without an error, each file is fsync'd and
-    renamed into place, all of them or (on an error) none: the temporary
-    files are removed and the final files left as they were. With one path,
-    yields one temporary path; with several, a list."""
-    tmps = [_partial(os.fspath(p)) for p in paths]
-    try:
-        yield tmps[0] if len(tmps) == 1 else tmps
-        for tmp, path in zip(tmps, paths):
-            commit(tmp, path)
-    finally:
-        for tmp in tmps:
-            if os.path.exists(tmp):
-                os.remove(tmp)
-
-
-def write_text(path, text):
-    """Write ``text`` to ``path`` atomically."""
-    with atomic_path(path) as tmp, open(tmp, "w") as f:
-        f.write(text)
-
-
-def write_json(path, payload, indent=2):
-    """Write ``payload`` as JSON to ``path`` atomically (strict JSON: no NaN)."""
-    write_text(path, json.dumps(payload, indent=indent) + "\n")
-
-
-def save_figure(fig, path, **savefig_args):
-    """Save the matplotlib figure ``fig`` to ``path`` atomically, then close it."""
-    import matplotlib.pyplot as plt
-
-    try:
-        with atomic_path(path) as tmp:
-            fig.savefig(tmp, **savefig_args)
-    finally:
-        plt.close(fig)
-
-
-def read_json(path, default=None):
-    """The JSON in ``path``, or ``default`` when there is no such file."""
-    if not os.path.exists(path):
-        return default
-    with open(path) as f:
-        return json.load(f)
+# Atomic files (``cpl_keras.files``; used here and re-exported for the callers
+# of the run directory's writers)
+from cpl_keras.files import (  # noqa: E402,F401
+    atomic_path, commit, read_json, save_figure, write_json, write_text,
+)
 
 
 def relative(path, start):

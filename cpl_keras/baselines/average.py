@@ -21,6 +21,7 @@ import os
 import numpy as np
 
 from cpl_keras.camera import TARGETS
+from cpl_keras.files import write_json
 
 KINDS = ("mean", "release")
 
@@ -82,7 +83,6 @@ def average_predictions(stats, n, kind="mean"):
 
 def save_statistics(path, stats):
     """Write statistics as JSON (atomically)."""
-    from cpl_keras.runs import write_json
 
     write_json(os.fspath(path), stats)
 

@@ -46,8 +46,9 @@ from cpl_keras import camera
 from cpl_keras.data import protocols
 from cpl_keras.data.protocols import PROTOCOLS
 from cpl_keras.data.scenes import SKY_DISTANCE
+from cpl_keras.data.storage import GENERATOR_VERSION  # noqa: F401  (the generator's own)
+from cpl_keras.files import atomic_path
 
-GENERATOR_VERSION = "3.0"
 MIN_IMAGE_SIZE = 16
 MAX_IMAGE_SIZE = 1024
 BLOCK = 32
@@ -527,7 +528,6 @@ def write_preview(path, protocol, pairs, seed=0, image_size=112, count=8, column
         for k, line in enumerate(lines):
             draw.text((x0 + 1, y0 + W + 1 + 11 * k), line, fill=(0, 0, 0))
     from cpl_keras.cli import make_parent
-    from cpl_keras.runs import atomic_path
 
     make_parent(path)
     with atomic_path(path) as tmp:

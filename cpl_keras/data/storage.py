@@ -31,6 +31,7 @@ import os
 import numpy as np
 
 from cpl_keras.camera import TARGETS, UNITS
+from cpl_keras.files import commit
 
 SCHEMA_VERSION = 1
 
@@ -141,8 +142,6 @@ class StereoWriter:
                 os.remove(self.tmp_path)
                 raise DatasetError(f"{missing} of {self.num_pairs} pairs were never written")
             if exc_type is None:
-                from cpl_keras.runs import commit
-
                 commit(self.tmp_path, self.path)
             elif os.path.exists(self.tmp_path):
                 os.remove(self.tmp_path)
@@ -168,6 +167,10 @@ def _has_hdf5_signature(path):
 
 
 GENERATOR = "cpl_keras.data.generate"
+#: The data generator's format version (its labels' meaning): a file made by
+#: another major version is refused (``check_generator_version``). Kept with
+#: the storage format; ``cpl_keras.data.generate`` writes it into every file.
+GENERATOR_VERSION = "3.0"
 
 
 def _major(version):
@@ -183,8 +186,6 @@ def check_generator_version(path, metadata):
     Files from other writers (real data, tests) are not checked."""
     if metadata.get("generator") != GENERATOR:
         return
-    from cpl_keras.data.generate import GENERATOR_VERSION
-
     version = metadata.get("generator_version")
     found, current = _major(version), _major(GENERATOR_VERSION)
     if found == current:
