@@ -1,0 +1,90 @@
+"""Every command the README and docs/ print is one the command lines accept:
+its flags exist and its values pass their checks. Commands with a
+placeholder (a CAPITALISED name such as RUN_DIR or DATA.h5, ``...``, an
+optional ``[--flag]``, or ``$VARIABLE``) are templates, as README.md says;
+they are checked too once the placeholders are filled in with examples."""
+
+import argparse
+import glob
+import os
+import re
+import shlex
+
+import pytest
+
+from test_command_lines import REPO, _main_functions
+
+DOCUMENTS = ["README.md"] + sorted(
+    os.path.relpath(p, REPO) for p in glob.glob(os.path.join(REPO, "docs", "*.md")))
+#: A placeholder word: capitals, digits and _ (two or more letters), maybe with an extension.
+PLACEHOLDER = re.compile(r"(?<![\w/.-])([A-Z][A-Z0-9_]{1,})(\.[a-z0-9]+)?(?![\w])")
+#: How a template's placeholders are filled in for the check.
+EXAMPLES = {"RUN_DIR": "runs/x", "RUN_A": "runs/a", "RUN_B": "runs/b", "DATA": "data/x",
+            "DIR": "some/dir", "LEFT": "left", "RIGHT": "right", "N": "3", "OUT": "out"}
+#: The command lines the docs use, by how they are invoked.
+ENTRY = {"train.py": "train.py", "evaluate.py": "evaluate.py",
+         "cpl_keras.reproduce": "reproduce", "cpl_keras.data.generate": "data.generate",
+         "cpl_keras.calibrate": "calibrate", "cpl_keras.graph": "graph",
+         "cpl_keras.inspect": "graph", "cpl_keras.real.build": "real.build",
+         "cpl_keras.learning_curves": "learning_curves"}
+
+
+def documented_commands():
+    """``(document, command text)`` for every ``python ...`` line of a code
+    block (continuation lines joined, the shell comment dropped)."""
+    found = []
+    for document in DOCUMENTS:
+        with open(os.path.join(REPO, document)) as f:
+            text = f.read()
+        for block in re.findall(r"```[a-z]*\n(.*?)```", text, re.S):
+            for line in block.replace("\\\n", " ").splitlines():
+                for part in re.split(r"\s&&\s", line.strip()):
+                    part = part.strip()
+                    if part.startswith("python ") and "<<" not in part:
+                        found.append((document, re.sub(r"\s+#.*$", "", part)))
+    return found
+
+
+def _fill(command):
+    """The template with its placeholders filled in and its options chosen."""
+    command = re.sub(r"\[([^\[\]]*)\]", lambda m: m.group(1).split("|")[0], command)
+    command = command.replace("...", "").replace("$OUT", "out")
+    return PLACEHOLDER.sub(lambda m: EXAMPLES.get(m.group(1), m.group(1).lower())
+                           + (m.group(2) or ""), command)
+
+
+def _argv(command):
+    words = shlex.split(command)[1:]
+    if words[0] == "-m":
+        return words[1], words[2:]
+    return os.path.basename(words[0]), words[1:]
+
+
+class _Parsed(Exception):
+    pass
+
+
+COMMANDS = documented_commands()
+
+
+def test_the_docs_have_commands_and_say_what_a_template_is():
+    assert len(COMMANDS) > 40
+    with open(os.path.join(REPO, "README.md")) as f:
+        assert "CAPITALISED" in f.read()
+
+
+@pytest.mark.parametrize("document, command", COMMANDS,
+                         ids=[f"{d}:{c[:60]}" for d, c in COMMANDS])
+def test_every_documented_command_parses(document, command, monkeypatch):
+    entry, argv = _argv(_fill(command))
+    if entry not in ENTRY:
+        pytest.skip(f"{entry}: a benchmark or another tool")
+    original = argparse.ArgumentParser.parse_args
+
+    def parse_then_stop(self, args=None, namespace=None):
+        raise _Parsed(original(self, args, namespace))
+
+    monkeypatch.setattr(argparse.ArgumentParser, "parse_args", parse_then_stop)
+    main = _main_functions()[ENTRY[entry]]
+    with pytest.raises(_Parsed):
+        main(argv)
