@@ -150,4 +150,8 @@ def test_a_tiny_run_learns_and_its_pitch_stays_bounded(variant, tiny):
     pitch = model.predict(x, verbose=0)[list(model.output_names).index("pitch")]
     if variant != "deep-homo":  # Deep-Homo's 13 outputs are linear, as in the release
         assert np.all(np.abs(pitch) <= np.pi / 2)
-        assert np.abs(pitch - y["pitch"]).mean() < 0.5
+        # fitted, not bounded by construction: well below what predicting the
+        # pairs' mean pitch (or 0) would give (measured 0.018-0.088 rad
+        # against 0.179)
+        spread = np.abs(y["pitch"] - y["pitch"].mean()).mean()
+        assert np.abs(pitch - y["pitch"]).mean() < 0.75 * spread, (pitch, y["pitch"])

@@ -224,13 +224,29 @@ def test_second_process_waits_for_the_first_and_ends_like_it(
         dataset, tmp_path, xla_cache, uninterrupted):
     """A kill that missed: the command run again while the first process still
     trains waits for it, then finds the run finished (exit 0, no error)."""
+    import select
+
     run_dir = str(tmp_path / "run")
     args = [*RESUME_ARGS, "--data", dataset, "--run-dir", run_dir]
     first = cli(*args, cache=xla_cache)
-    assert _wait_for(lambda: os.path.exists(os.path.join(run_dir, "backup", "lock")))
-    second = cli(*args, cache=xla_cache)
+    assert _wait_for(lambda: os.path.exists(os.path.join(run_dir, "backup", "lock"))
+                     and os.path.exists(os.path.join(run_dir, "config.json")))
+    os.kill(first.pid, signal.SIGSTOP)  # the first holds the lock, frozen mid-run
+    try:
+        second = cli(*args, cache=xla_cache)
+        waiting, deadline = b"", time.time() + 120
+        while b"Waiting for the training process" not in waiting and time.time() < deadline:
+            ready, _, _ = select.select([second.stderr], [], [], 1.0)
+            if ready:
+                waiting += os.read(second.stderr.fileno(), 4096)
+        assert b"Waiting for the training process" in waiting, waiting  # it waits
+        time.sleep(1.0)
+        assert second.poll() is None  # ... and goes on waiting while the first holds the lock
+    finally:
+        os.kill(first.pid, signal.SIGCONT)
     first_out, first_err = first.communicate(timeout=180)
     out, err = second.communicate(timeout=180)
+    err = waiting.decode() + err
     _ends_like(run_dir, first.returncode, first_out, first_err, uninterrupted)
     assert "Resuming" not in err and out.startswith(FINISHED)  # it found the run finished
     _ends_like(run_dir, second.returncode, out[len(FINISHED):], err.replace("Waiting for the training process "
