@@ -101,7 +101,8 @@ PRESETS = {
             "backbone": "small_resnet", "crops": 500, "chessboard_crops": 20,
             "geometric_max": 200, "batch_size": 16, "patience": 5, "seeds": 3,
             "random_seeds": 1, "variants": TABLE_ORDER, "released": True,
-            "seeded_variants": MTL_VARIANTS, "workers": None},
+            "seeded_variants": MTL_VARIANTS, "workers": None,
+            "real_sets": ("chessboard", "middlebury")},
     # Tiny settings that run the paper-gpu pipeline end to end in minutes (CI).
     "quick": {"pairs": 150, "random_pairs": 150, "epochs": 1, "image_size": 32,
               "backbone": "small", "crops": 24, "chessboard_crops": 1, "geometric_max": 20,
@@ -120,7 +121,7 @@ PRESETS = {
                  "geometric_max": None, "batch_size": 16, "patience": 5, "seeds": 3,
                  "random_seeds": 1, "variants": ("cpl-a", "baseline", "cpl-u"),
                  "released": False, "seeded_variants": None, "workers": None,
-                 "tables": ("cvgl", "cvgl_drive")},
+                 "tables": ("cvgl", "cvgl_drive"), "real_sets": ("chessboard", "middlebury")},
 }
 #: The Table 1 versions a reproduction can make, by key: (protocol, split,
 #: the setting holding its number of seeds). A preset's ``tables`` lists
@@ -141,6 +142,10 @@ POSITIVE = ("pairs", "random_pairs", "epochs", "image_size", "crops", "chessboar
 #: Smallest image side of the real sets (StereoBM's block of 15 and 16 disparities).
 MIN_REAL_IMAGE_SIZE = 32
 
+#: The real sets that ship with the package, each a Table 2 rig (a preset's
+#: ``real_sets`` may name fewer: the presets whose runs are committed keep
+#: the rigs they were evaluated on, so that a rerun restores them).
+REAL_SETS = ("chessboard", "middlebury", "oakd")
 #: Real-data roots reproduce passes on to ``cpl_keras.real.build all``.
 REAL_ROOTS = ("kitti", "kitti_raw", "tsinghua", "cityscapes")
 #: The tables' titles in REPORT.md.
@@ -164,6 +169,11 @@ def settings(quick=False, preset=None, **overrides):
     chosen = dict(PRESETS[name] if name else PAPER_SCALE)
     chosen.setdefault("tables", DEFAULT_TABLES)
     chosen.setdefault("run_budget_s", None)
+    chosen.setdefault("real_sets", REAL_SETS)
+    chosen["real_sets"] = tuple(chosen["real_sets"])
+    unknown = [s for s in chosen["real_sets"] if s not in REAL_SETS]
+    if unknown:
+        raise ValueError(f"unknown real set {unknown[0]!r}; choose from {', '.join(REAL_SETS)}")
     for key, value in overrides.items():
         if value is None:
             continue
@@ -252,8 +262,9 @@ def make_datasets(config, data_dir, seed, real_roots=None):
     for name in REAL_ROOTS:
         setattr(args, name, (real_roots or {}).get(name))
     paths["real"] = build.build_all(
-        args, report=_log,
-        crops={"middlebury": config["crops"], "chessboard": config["chessboard_crops"]})
+        args, report=_log, stems=config["real_sets"],
+        crops={"middlebury": config["crops"], "chessboard": config["chessboard_crops"],
+               "oakd": config["chessboard_crops"]})
     return paths
 
 

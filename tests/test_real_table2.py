@@ -29,8 +29,9 @@ def test_table2_per_rig_and_pooled(setup, tmp_path, capsys):
     assert evaluate.main(["--table", "2", "--runs", setup["run"], "--data", str(setup["real"]),
                           "--out", str(out), "--geometric-max", "2"]) == 0
     table = json.load(open(out / "table2.json"))
-    assert set(table["rigs"]) == {"chessboard", "middlebury"}
-    assert table["num_pairs"] == 13 + 1
+    assert set(table["rigs"]) == {"chessboard", "middlebury", "oakd"}
+    assert table["num_pairs"] == 13 + 1 + 12
+    assert table["rigs"]["oakd"]["rectified"] is True
     assert table["rigs"]["chessboard"]["rectified"] is False
     assert table["rigs"]["middlebury"]["rectified"] is True
     # chessboard: every column defined (unrectified, nonzero pitch / tx / tz)

@@ -56,6 +56,7 @@ def test_quick_reproduction_end_to_end(quick):
     report = (out / "REPORT.md").read_text()
     for heading in ("Table 1, paper protocol", "Table 1, unseen rigs", "Table 2, real rigs",
                     "Rig: chessboard (not rectified)", "Rig: middlebury (rectified)",
+                    "Rig: oakd (rectified)",
                     "Training runs", "MTL-CPL-A (as released)", "Geometric"):
         assert heading in report
     for stem in ("table1_cvgl", "table1_random", "table2"):
@@ -64,7 +65,7 @@ def test_quick_reproduction_end_to_end(quick):
         assert (out / f"{stem}_fov.png").read_bytes()[:4] == b"\x89PNG"
     # Table 2 on every real rig that needs no download, per rig and pooled
     table2 = json.loads((out / "table2.json").read_text())
-    assert set(table2["rigs"]) == {"chessboard", "middlebury"}
+    assert set(table2["rigs"]) == {"chessboard", "middlebury", "oakd"}
     assert table2["num_pairs"] == sum(r["num_pairs"] for r in table2["rigs"].values())
     assert (out / "table2_fov_scatter.png").read_bytes()[:4] == b"\x89PNG"
     cvgl = json.loads((out / "table1_cvgl.json").read_text())

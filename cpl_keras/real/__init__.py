@@ -8,6 +8,8 @@
 * ``cpl_keras.real.chessboard``: OpenCV's 13 sample chessboard pairs from one
   real, unrectified rig, every label derived from the images
   (``cv2.stereoCalibrate``, triangulated corners).
+* ``cpl_keras.real.oakd``: twelve rectified pairs of an OAK-D Lite rig with
+  its calibration (shipped; disparity measured by semi-global matching).
 * ``cpl_keras.real.kitti``: the KITTI stereo 2015 / scene-flow and KITTI raw
   layouts (rectified projection matrices, ``disp_occ_0`` disparity).
 * ``cpl_keras.real.build``: the command line that writes any of them as HDF5.

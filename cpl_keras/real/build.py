@@ -6,16 +6,17 @@ Usage::
                                        [--tsinghua DIR] [--cityscapes DIR]
     python -m cpl_keras.real.build chessboard --out data/real/chessboard.h5 [--root DIR] [--crops 20]
     python -m cpl_keras.real.build middlebury --out data/middlebury.h5 [--crops 500]
+    python -m cpl_keras.real.build oakd --out data/oakd.h5 [--crops 20]
     python -m cpl_keras.real.build kitti --root DIR --out data/kitti.h5 [--layout stereo|raw] [--split training]
     python -m cpl_keras.real.build tsinghua --root DIR --out data/tdcb.h5 [--split test]
     python -m cpl_keras.real.build cityscapes --root DIR --out data/cityscapes.h5
 
-``all`` builds every real set that needs no download (the chessboard rig and
-Middlebury) and each dataset whose root is given, one file per rig in
+``all`` builds every real set that needs no download (the chessboard rig,
+Middlebury and the OAK-D rig) and each dataset whose root is given, one file per rig in
 ``--out-dir`` (existing files are kept; ``--force`` rebuilds them).
 
-Options: ``--image-size`` (112), ``--seed`` (0), ``--crops`` (chessboard: per
-pair, default 20; middlebury: total, default 500), ``--right {warp,released}``
+Options: ``--image-size`` (112), ``--seed`` (0), ``--crops`` (chessboard, oakd:
+per pair, default 20; middlebury: total, default 500), ``--right {warp,released}``
 and ``--labels {rig,vehicle}`` (Tsinghua-Daimler / Cityscapes only),
 ``--limit N`` (first N images). Bad input prints one line and exits with
 status 2; the output file appears only when complete.
@@ -30,13 +31,16 @@ import sys
 from cpl_keras import cli
 from cpl_keras.real import LABEL_MODES
 
-SOURCES = ("all", "chessboard", "middlebury", "kitti", "tsinghua", "cityscapes")
-#: Default crops of the sets that draw crops.
-DEFAULT_CROPS = {"chessboard": 20, "middlebury": 500}
+SOURCES = ("all", "chessboard", "middlebury", "oakd", "kitti", "tsinghua", "cityscapes")
+#: Default crops of the sets that draw crops (chessboard, oakd: per pair).
+DEFAULT_CROPS = {"chessboard": 20, "middlebury": 500, "oakd": 20}
 #: ``all``: (file stem, source, option holding the root, extra arguments).
+#: The sets that ship with the package (no --root needed).
+SHIPPED = ("chessboard", "middlebury", "oakd")
 ALL_SETS = (
     ("chessboard", "chessboard", None, {}),
     ("middlebury", "middlebury", None, {}),
+    ("oakd", "oakd", None, {}),
     ("kitti", "kitti", "kitti", {"layout": "stereo"}),
     ("kitti_raw", "kitti", "kitti_raw", {"layout": "raw"}),
     ("tsinghua", "tsinghua", "tsinghua", {}),
@@ -55,7 +59,8 @@ def parse_args(argv=None):
     parser.add_argument("--out", help="output HDF5 file (every source but all)")
     parser.add_argument("--out-dir", help="output folder (all)")
     parser.add_argument("--root", help="dataset root (kitti, tsinghua, cityscapes; "
-                        "chessboard: a folder of left*/right* pairs, default the shipped one)")
+                        "chessboard: a folder of left*/right* pairs; oakd: of *_left.png/*_right.png "
+                        "pairs and their calibration; default the shipped ones)")
     for name in ("kitti", "kitti-raw", "tsinghua", "cityscapes"):
         parser.add_argument(f"--{name}", help=f"all: {name} root")
     parser.add_argument("--split", help="split folder (tsinghua/cityscapes: under leftImg8bit/; "
@@ -65,7 +70,7 @@ def parse_args(argv=None):
     parser.add_argument("--image-size", type=int, default=112,
                         help="square side the pairs are resized to, intrinsics transformed "
                         "exactly (default 112)")
-    parser.add_argument("--crops", type=int, help="chessboard: crops per pair (20); "
+    parser.add_argument("--crops", type=int, help="chessboard, oakd: crops per pair (20); "
                         "middlebury: number of crops (500)")
     parser.add_argument("--seed", type=int, default=0,
                         help="seed of the crops and projection pixels (default 0)")
@@ -95,7 +100,7 @@ def build_one(source, out, *, root=None, args=None, command=None, report=None):
     """Build one real set; returns its path."""
     _check_out(out)
     crops = args.crops if args.crops is not None else DEFAULT_CROPS.get(source)
-    if source not in ("middlebury", "chessboard") and not (root and os.path.isdir(root)):
+    if source not in SHIPPED and not (root and os.path.isdir(root)):
         raise ValueError(f"--root is required for {source}" if not root
                          else f"dataset root not found: {root}")
     cli.make_parent(out)
@@ -104,6 +109,11 @@ def build_one(source, out, *, root=None, args=None, command=None, report=None):
 
         return build_middlebury(out, crops=crops, image_size=args.image_size, seed=args.seed,
                                 command=command)
+    if source == "oakd":
+        from cpl_keras.real.oakd import DATA_DIR, build_oakd
+
+        return build_oakd(out, root=root or DATA_DIR, crops=crops, image_size=args.image_size,
+                          seed=args.seed, command=command)
     if source == "chessboard":
         from cpl_keras.real.chessboard import DATA_DIR, build_chessboard
 
@@ -126,9 +136,10 @@ def build_one(source, out, *, root=None, args=None, command=None, report=None):
         right=args.right, labels=args.labels, seed=args.seed, limit=args.limit, command=command)
 
 
-def build_all(args, command=None, report=print, crops=None):
+def build_all(args, command=None, report=print, crops=None, stems=None):
     """``all``: every set that needs no download, and each one given a root;
-    ``crops`` ({source: crops}) overrides ``args.crops`` per source."""
+    ``crops`` ({source: crops}) overrides ``args.crops`` per source;
+    ``stems`` (None: all) limits the shipped sets to those named."""
     if os.path.exists(args.out_dir) and not os.path.isdir(args.out_dir):
         raise ValueError(f"output directory is a file: {args.out_dir}")
     cli.check_output_file(os.path.join(args.out_dir, "x.h5"))
@@ -137,6 +148,8 @@ def build_all(args, command=None, report=print, crops=None):
     for stem, source, option, extra in ALL_SETS:
         root = getattr(args, option) if option else None
         if option and not root:
+            continue
+        if not option and stems is not None and stem not in stems:
             continue
         out = os.path.join(args.out_dir, f"{stem}.h5")
         if os.path.exists(out) and not args.force:
