@@ -435,6 +435,9 @@ def _aggregate_rows(tables, seeds):
         for k in first["fov_within_deg"]:
             fov[k], fov_spread[k] = _mean_and_spread([p["fov_within_deg"][k] for p in parts])
         entry.update(targets=targets, fov_within_deg=fov)
+        if all("field" in p for p in parts):  # (Table 2: the field's focal and FoV metrics)
+            entry["field"] = {key: _mean_and_spread([p["field"][key] for p in parts])[0]
+                              for key in first["field"]}
         if "degenerate" in first:
             entry["degenerate"] = first["degenerate"]
         entry["seeds"] = row_seeds

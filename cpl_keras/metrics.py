@@ -98,6 +98,41 @@ def percent_within(errors_deg, thresholds=FOV_THRESHOLDS_DEG):
     return np.array([100.0 * np.mean(finite <= k) for k in thresholds])
 
 
+#: Thresholds (degrees) of the field-of-view error's AUC (GeoCalib, AnyCalib).
+AUC_THRESHOLDS_DEG = (1, 5, 10)
+
+
+def auc(errors, threshold):
+    """Area under the cumulative error curve up to ``threshold``, normalised to
+    [0, 1]: ``(1/t) * integral_0^t P(error <= x) dx = mean(max(0, 1 - e/t))``
+    (non-finite errors count as beyond every threshold); nan when empty."""
+    errors = np.asarray(errors, dtype=np.float64).reshape(-1)
+    if errors.size == 0:
+        return math.nan
+    errors = np.where(np.isfinite(errors), errors, np.inf)
+    return float(np.mean(np.maximum(0.0, 1.0 - errors / float(threshold))))
+
+
+def focal_metrics(fx_true, fx_pred, fy_true, fy_pred, width, height):
+    """The metrics calibration papers report beside NMAE, over the pairs given:
+    median relative focal error ``|f - f*| / f*`` along u and v, median
+    absolute horizontal and vertical field-of-view error (degrees, fx across
+    ``width``, fy across ``height`` pixels), and the AUC of each FoV error at
+    ``AUC_THRESHOLDS_DEG`` (a dict of plain floats; nan when empty)."""
+    fx_true, fx_pred = _pair(fx_true, fx_pred)
+    fy_true, fy_pred = _pair(fy_true, fy_pred)
+    result = {}
+    for axis, true, pred, size in (("h", fx_true, fx_pred, width), ("v", fy_true, fy_pred, height)):
+        relative = np.abs(pred - true) / np.abs(true)
+        errors = fov_errors_deg(true, pred, size)
+        focal = "fx" if axis == "h" else "fy"
+        result[f"relative_{focal}_median"] = float(np.median(relative)) if relative.size else math.nan
+        result[f"{axis}fov_error_deg_median"] = float(np.median(errors)) if errors.size else math.nan
+        for t in AUC_THRESHOLDS_DEG:
+            result[f"{axis}fov_auc_{t}deg"] = auc(errors, t)
+    return result
+
+
 def fov_threshold_curve(fx_true, fx_pred, width, thresholds=FOV_THRESHOLDS_DEG):
     """Percentage of samples with ``|fov_pred - fov_true| <= k`` degrees, k in
     ``thresholds``; the fov is computed from fx across ``width`` pixels."""

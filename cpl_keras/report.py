@@ -69,7 +69,7 @@ def best_rows(table, convention):
     return best
 
 
-def _is_degenerate(row_metrics, column):
+def is_degenerate(row_metrics, column):
     return COLUMN_PARAMETER[column] in row_metrics.get("degenerate", ())
 
 
@@ -144,7 +144,7 @@ def nmae_tables(table, level="##"):
         for row, row_metrics in table["rows"].items():
             cells = []
             for column in COLUMNS:
-                if _is_degenerate(row_metrics, column):
+                if is_degenerate(row_metrics, column):
                     cells.append("degenerate")
                     continue
                 text = metrics.format_value(cell(row_metrics, column, convention))
@@ -169,7 +169,7 @@ def fov_table(table, header="{k} deg"):
     lines = ["| method | " + " | ".join(header.format(k=k) for k in ks) + " |",
              "|---" * (len(ks) + 1) + "|"]
     for row, row_metrics in table["rows"].items():
-        if _is_degenerate(row_metrics, "fx"):
+        if is_degenerate(row_metrics, "fx"):
             cells = ["degenerate"] * len(ks)
         else:
             spread = (row_metrics.get("spread") or {}).get("fov_within_deg")
@@ -251,7 +251,7 @@ def csv_rows(table, prefix=""):
             for column in COLUMNS:
                 value = (spread_cell(row_metrics, column, metric[: -len("_spread")])
                          if metric.endswith("_spread") else cell(row_metrics, column, metric))
-                cells.append("degenerate" if _is_degenerate(row_metrics, column) else
+                cells.append("degenerate" if is_degenerate(row_metrics, column) else
                              "n/a" if not math.isfinite(value) else f"{value:.6g}")
             lines.append(f"{prefix}{row},{metric}," + ",".join(cells) + tail)
     return lines

@@ -79,3 +79,28 @@ def test_parameter_metrics_and_bad_input():
         metrics.mae([1.0, 2.0], [1.0])
     with pytest.raises(ValueError, match="'fx'"):
         metrics.parameter_metrics({}, pred)
+
+
+def test_focal_metrics_by_hand():
+    """Relative focal error, FoV error and its AUC on values worked out here:
+    width 100 px, fx* = 50 px (hFoV 90 deg); predictions 50, 55, 40, 100."""
+    import math
+
+    from cpl_keras import metrics
+
+    true = np.full(4, 50.0)
+    pred = np.array([50.0, 55.0, 40.0, 100.0])
+    m = metrics.focal_metrics(true, pred, true, pred * 2, 100, 100)
+    assert m["relative_fx_median"] == pytest.approx(np.median([0, 0.1, 0.2, 1.0]))
+    fov = [2 * math.degrees(math.atan(50 / f)) for f in pred]          # 90, 84.29, 102.68, 53.13
+    errors = np.abs(np.array(fov) - 90.0)
+    assert m["hfov_error_deg_median"] == pytest.approx(np.median(errors))
+    # AUC@5: mean(max(0, 1 - e/5)): only the exact pair and none of the others
+    assert m["hfov_auc_5deg"] == pytest.approx(np.mean(np.maximum(0, 1 - errors / 5)))
+    assert m["hfov_auc_1deg"] == pytest.approx(0.25)                   # the exact pair only
+    assert m["hfov_auc_10deg"] == pytest.approx(np.mean(np.maximum(0, 1 - errors / 10)))
+    assert 0.25 < m["hfov_auc_10deg"] < 0.5
+    # fy predicted at twice fx's prediction: relative errors 1, 1.2, 0.6, 3
+    assert m["relative_fy_median"] == pytest.approx(np.median([1.0, 1.2, 0.6, 3.0]))
+    assert metrics.auc([], 5) != metrics.auc([], 5)                    # nan when empty
+    assert metrics.auc([np.inf, 0.0], 5) == pytest.approx(0.5)

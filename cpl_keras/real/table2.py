@@ -91,8 +91,13 @@ def score_masked(truth, pred, defined, width):
     ok = np.asarray(defined["fx"], bool)
     curve = metrics.fov_threshold_curve(np.asarray(truth["fx"])[ok], np.asarray(pred["fx"])[ok],
                                         width)
+    both = ok & np.asarray(defined["fy"], bool)
+    # (the real sets are square: fy spans as many pixels as fx)
+    field = metrics.focal_metrics(np.asarray(truth["fx"])[both], np.asarray(pred["fx"])[both],
+                                  np.asarray(truth["fy"])[both], np.asarray(pred["fy"])[both],
+                                  width, width)
     return {"targets": targets, "fov_within_deg": {
-        str(k): float(p) for k, p in zip(metrics.FOV_THRESHOLDS_DEG, curve)}}
+        str(k): float(p) for k, p in zip(metrics.FOV_THRESHOLDS_DEG, curve)}, "field": field}
 
 
 def _rig_rows(loaded, data_path, geometric, geometric_max, progress):
@@ -282,7 +287,38 @@ def make_table2(run_dirs, data_paths, geometric=True, geometric_max=None, progre
 
 def _nmae_tables(table, level):
     return (report.nmae_tables(table, level)
-            + report.fov_table(table, header="within {k} deg FOV") + report.notes(table))
+            + report.fov_table(table, header="within {k} deg FOV") + field_table(table)
+            + report.notes(table))
+
+
+#: The field's metrics (``metrics.focal_metrics``): (key, column header, decimals).
+FIELD_COLUMNS = (
+    ("relative_fx_median", "rel. fx err (median)", 3),
+    ("relative_fy_median", "rel. fy err (median)", 3),
+    ("hfov_error_deg_median", "hFoV err deg (median)", 2),
+    ("vfov_error_deg_median", "vFoV err deg (median)", 2),
+) + tuple((f"{a}fov_auc_{t}deg", f"{a}FoV AUC@{t}", 3)
+          for a in ("h", "v") for t in metrics.AUC_THRESHOLDS_DEG)
+
+
+def field_table(table):
+    """Markdown lines: the metrics calibration papers report (relative focal
+    error, FoV error in degrees, its AUC), per row that has them."""
+    rows = [(row, m["field"]) for row, m in table["rows"].items() if m.get("field")]
+    if not rows:
+        return []
+    lines = ["| method | " + " | ".join(h for _, h, _ in FIELD_COLUMNS) + " |",
+             "|---" * (len(FIELD_COLUMNS) + 1) + "|"]
+    for row, field in rows:
+        degenerate = report.is_degenerate(table["rows"][row], "fx")
+        cells = ["degenerate" if degenerate else metrics.format_value(field.get(key), decimals)
+                 for key, _, decimals in FIELD_COLUMNS]
+        lines.append(f"| {report.row_label(table, row)} | " + " | ".join(cells) + " |")
+    seeds = (" Over several seeds, each cell is the mean of the seeds' values." if
+             table.get("seeds") and len(table["seeds"]) > 1 else "")
+    return lines + ["", "Relative focal error |f - f*| / f* and FoV error per pair, their "
+                    "medians; AUC of the FoV error's cumulative curve up to 1, 5 and 10 deg "
+                    f"(1 = every pair exact).{seeds}", ""]
 
 
 def markdown(table, command=None):
