@@ -1,6 +1,7 @@
 """Calibrate a stereo pair of image files with a trained run.
 
     python -m cpl_keras.calibrate LEFT.png RIGHT.png --run RUN_DIR [--json-out FILE]
+        [--opencv-yaml FILE] [--ros-yaml DIR]
 
 Prints JSON with the 10 camera parameters, the point X, Y, Z and the
 horizontal and vertical fields of view, in the input images' own pixel
@@ -176,19 +177,33 @@ def main(argv=None):
     parser.add_argument("right", help="right image file of the same pair")
     parser.add_argument("--run", required=True, help="run directory of a trained model")
     parser.add_argument("--json-out", help="also write the JSON to this file")
+    parser.add_argument("--opencv-yaml", metavar="FILE",
+                        help="also write the calibration as OpenCV's stereo YAML (M1, D1, M2, "
+                        "D2, R, T; cv2.FileStorage reads it)")
+    parser.add_argument("--ros-yaml", metavar="DIR",
+                        help="also write ROS camera_info files DIR/left.yaml and DIR/right.yaml")
     args = parser.parse_args(argv)
     try:
-        if args.json_out:
-            directory = os.path.dirname(os.path.abspath(args.json_out))
-            if not os.path.isdir(directory):
-                raise CalibrationError(f"output directory does not exist: {directory}")
-            if os.path.isdir(args.json_out):
-                raise CalibrationError(f"--json-out is a directory: {args.json_out}")
+        for flag, path in (("--json-out", args.json_out), ("--opencv-yaml", args.opencv_yaml)):
+            if path:
+                directory = os.path.dirname(os.path.abspath(path))
+                if not os.path.isdir(directory):
+                    raise CalibrationError(f"output directory does not exist: {directory}")
+                if os.path.isdir(path):
+                    raise CalibrationError(f"{flag} is a directory: {path}")
+        if args.ros_yaml and os.path.exists(args.ros_yaml) and not os.path.isdir(args.ros_yaml):
+            raise CalibrationError(f"--ros-yaml is a file, not a directory: {args.ros_yaml}")
         result = calibrate_pair(args.left, args.right, args.run,
                                 warn=lambda line: print(f"{PROG}: {line}", file=sys.stderr))
         text = json.dumps(result, indent=2, allow_nan=False)
         if args.json_out:
             runs.write_text(args.json_out, text + "\n")
+        from cpl_keras import exports
+
+        if args.opencv_yaml:
+            exports.write_opencv_yaml(args.opencv_yaml, result)
+        if args.ros_yaml:
+            exports.write_ros_yaml(args.ros_yaml, result)
     except (CalibrationError, OSError) as error:
         return cli.fail(PROG, error)
     print(text)

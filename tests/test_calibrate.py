@@ -144,3 +144,61 @@ def test_warns_about_predictions_outside_the_training_labels(setup, tmp_path, ca
                            "--run", str(run)]) == 0
     lines = [line for line in capsys.readouterr().err.splitlines() if "outside" in line]
     assert len(lines) == 1 and "fx" in lines[0] and "1e+06" in lines[0], lines
+
+
+def test_pose_conversion_to_opencv_inverts_the_rig_pose():
+    from cpl_keras.camera import rotation_matrix
+    from cpl_keras.real import opencv_pose_to_rig, rig_to_opencv_pose
+
+    R_lr, t = rotation_matrix(0.2, 0.05, -0.03), np.array([0.3, -0.12, 0.04])
+    R, T = rig_to_opencv_pose(R_lr, t)
+    back_R, back_t = opencv_pose_to_rig(R, T)
+    np.testing.assert_allclose(back_R, R_lr, atol=1e-12)
+    np.testing.assert_allclose(back_t, t, atol=1e-12)
+    # a right camera 0.3 m to the right (project y left: ty < 0), no rotation:
+    # OpenCV's T = -R C = (-0.3, 0, 0) (x right)
+    R, T = rig_to_opencv_pose(np.eye(3), [0.0, -0.3, 0.0])
+    np.testing.assert_allclose(R, np.eye(3), atol=1e-12)
+    np.testing.assert_allclose(T, [-0.3, 0.0, 0.0], atol=1e-12)
+
+
+def test_exports_opencv_and_ros_yaml_that_opencv_reads_back(setup, tmp_path, capsys):
+    """--opencv-yaml and --ros-yaml: cv2.FileStorage reads both back; K holds
+    the printed intrinsics, R is the pitch's rotation in OpenCV's axes, T the
+    translation, and the ROS right projection matrix is K [R | T]."""
+    root = setup["root"]
+    opencv, ros = tmp_path / "stereo.yml", tmp_path / "ros"
+    assert calibrate.main([str(root / "left.png"), str(root / "right.png"), "--run",
+                           setup["run"], "--opencv-yaml", str(opencv), "--ros-yaml",
+                           str(ros)]) == 0
+    p = json.loads(capsys.readouterr().out)["parameters"]
+    K = np.array([[p["fx"], 0, p["u0"]], [0, p["fy"], p["v0"]], [0, 0, 1]])
+    fs = cv2.FileStorage(str(opencv), cv2.FILE_STORAGE_READ)
+    assert fs.isOpened() and fs.getNode("image_width").real() == 64
+    np.testing.assert_allclose(fs.getNode("M1").mat(), K, rtol=1e-12)
+    np.testing.assert_allclose(fs.getNode("M2").mat(), K, rtol=1e-12)
+    assert not fs.getNode("D1").mat().any()
+    R, T = fs.getNode("R").mat(), fs.getNode("T").mat().reshape(3)
+    fs.release()
+    c, s = np.cos(p["pitch"]), np.sin(p["pitch"])
+    # By hand: a pitch p tilts the right camera's optical axis down, to
+    # (0, sin p, cos p) in the left camera's OpenCV axes (y down). R maps left
+    # to right coordinates, so R^T (0, 0, 1), R's third row, is that axis: a
+    # rotation about x, R = [[1, 0, 0], [0, c, -s], [0, s, c]].
+    np.testing.assert_allclose(R, [[1, 0, 0], [0, c, -s], [0, s, c]], atol=1e-12)
+    # T = -R * (right camera centre in OpenCV axes: x = -ty, y = -tz, z = tx)
+    centre = np.array([-p["ty"], -p["tz"], p["tx"]])
+    np.testing.assert_allclose(T, -R @ centre, atol=1e-12)
+    for side in ("left", "right"):
+        fs = cv2.FileStorage(str(ros / f"{side}.yaml"), cv2.FILE_STORAGE_READ)
+        node = fs.getNode("projection_matrix").getNode("data")
+        P = np.array([node.at(i).real() for i in range(node.size())]).reshape(3, 4)
+        node = fs.getNode("camera_matrix").getNode("data")
+        np.testing.assert_allclose(
+            np.array([node.at(i).real() for i in range(node.size())]).reshape(3, 3), K)
+        assert fs.getNode("distortion_model").string() == "plumb_bob"
+        assert fs.getNode("camera_name").string() == side
+        expected = np.hstack([K, np.zeros((3, 1))]) if side == "left" else \
+            K @ np.hstack([R, T.reshape(3, 1)])
+        np.testing.assert_allclose(P, expected, rtol=1e-9, atol=1e-9)
+        fs.release()

@@ -51,6 +51,17 @@ def opencv_pose_to_rig(R, T):
     return CV_TO_PROJECT @ R.T @ CV_TO_PROJECT.T, CV_TO_PROJECT @ (-R.T @ T)
 
 
+def rig_to_opencv_pose(R_lr, t):
+    """The inverse of ``opencv_pose_to_rig``: OpenCV's stereo extrinsics
+    ``(R, T)`` (``X_right = R X_left + T``, OpenCV axes) from the right
+    camera's pose in the left camera frame (project axes)."""
+    R_lr = np.asarray(R_lr, dtype=np.float64).reshape(3, 3)
+    t = np.asarray(t, dtype=np.float64).reshape(3)
+    C = CV_TO_PROJECT
+    R = C.T @ R_lr.T @ C
+    return R, -R @ (C.T @ t)
+
+
 def crop_resize_coordinate(x, start, scale):
     """A pixel coordinate after cropping at ``start`` and resizing by ``scale``.
 

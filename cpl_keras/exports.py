@@ -1,0 +1,100 @@
+"""A calibration written for other tools: OpenCV's stereo YAML and ROS
+``camera_info`` YAML (``python -m cpl_keras.calibrate ... --opencv-yaml FILE
+--ros-yaml DIR``).
+
+Both describe the pair as calibrate found it, in the input images' pixels:
+one pinhole camera model ``K = [[fx, 0, u0], [0, fy, v0], [0, 0, 1]]`` for
+both cameras (the model predicts one), no distortion (the paper's model has
+none), and the right camera's pose from ``pitch`` and ``(tx, ty, tz)``
+(yaw and roll are not predicted: 0).
+
+* OpenCV (``write_opencv_yaml``): ``cv2.FileStorage``'s own YAML, the keys of
+  OpenCV's ``stereo_calib`` sample: ``M1, D1, M2, D2`` (intrinsics and
+  distortion), ``R, T`` (``X_right = R X_left + T``, OpenCV axes, metres),
+  and ``image_width``, ``image_height``.
+* ROS (``write_ros_yaml``): ``left.yaml`` and ``right.yaml`` in the format of
+  ROS's ``camera_calibration_parsers``, as for an unrectified pair:
+  ``camera_matrix``, ``distortion_model: plumb_bob`` with zero
+  coefficients, ``rectification_matrix`` identity and ``projection_matrix
+  = [K | 0]`` for the left camera and ``K [R | T]`` for the right one.
+"""
+
+from __future__ import annotations
+
+import os
+
+import numpy as np
+
+from cpl_keras.camera import rotation_matrix
+from cpl_keras.files import atomic_path, write_text
+
+
+def camera_matrix(parameters):
+    """``K`` from a calibration's ``fx, fy, u0, v0``."""
+    p = parameters
+    return np.array([[p["fx"], 0.0, p["u0"]], [0.0, p["fy"], p["v0"]], [0.0, 0.0, 1.0]])
+
+
+def stereo_pose(parameters):
+    """OpenCV's ``(R, T)`` of the pair: the right camera's pose (pitch, and
+    the translation ``tx, ty, tz`` in the left camera frame, project axes)."""
+    from cpl_keras.real import rig_to_opencv_pose
+
+    R_lr = rotation_matrix(pitch=float(parameters["pitch"]))
+    return rig_to_opencv_pose(R_lr, [parameters["tx"], parameters["ty"], parameters["tz"]])
+
+
+def write_opencv_yaml(path, result):
+    """Write calibrate's ``result`` as an OpenCV stereo YAML (atomically)."""
+    import cv2
+
+    K = camera_matrix(result["parameters"])
+    R, T = stereo_pose(result["parameters"])
+    with atomic_path(path) as tmp:
+        fs = cv2.FileStorage(tmp, cv2.FILE_STORAGE_WRITE | cv2.FILE_STORAGE_FORMAT_YAML)
+        try:
+            fs.write("image_width", int(result["image_width"]))
+            fs.write("image_height", int(result["image_height"]))
+            for name, value in (("M1", K), ("D1", np.zeros((1, 5))), ("M2", K),
+                                ("D2", np.zeros((1, 5))), ("R", R), ("T", T.reshape(3, 1))):
+                fs.write(name, np.asarray(value, np.float64))
+            fs.write("baseline_m", float(result["parameters"]["baseline"]))
+            fs.write("source", f"cpl_keras.calibrate, run {result['run']}")
+        finally:
+            fs.release()
+    return path
+
+
+def _matrix(name, rows, cols, values):
+    data = ", ".join(repr(float(v)) for v in np.asarray(values, np.float64).reshape(-1))
+    return f"{name}:\n  rows: {rows}\n  cols: {cols}\n  data: [{data}]\n"
+
+
+def ros_camera_info(result, side):
+    """The text of one ROS ``camera_info`` YAML (``side``: left or right)."""
+    K = camera_matrix(result["parameters"])
+    if side == "left":
+        P = np.hstack([K, np.zeros((3, 1))])
+    else:
+        R, T = stereo_pose(result["parameters"])
+        P = K @ np.hstack([R, T.reshape(3, 1)])
+    return (f"image_width: {int(result['image_width'])}\n"
+            f"image_height: {int(result['image_height'])}\n"
+            f"camera_name: {side}\n"
+            + _matrix("camera_matrix", 3, 3, K)
+            + "distortion_model: plumb_bob\n"
+            + _matrix("distortion_coefficients", 1, 5, np.zeros(5))
+            + _matrix("rectification_matrix", 3, 3, np.eye(3))
+            + _matrix("projection_matrix", 3, 4, P))
+
+
+def write_ros_yaml(directory, result):
+    """Write ``left.yaml`` and ``right.yaml`` into ``directory`` (created if
+    missing); returns their paths."""
+    os.makedirs(directory, exist_ok=True)
+    paths = []
+    for side in ("left", "right"):
+        path = os.path.join(directory, f"{side}.yaml")
+        write_text(path, ros_camera_info(result, side))
+        paths.append(path)
+    return paths
