@@ -20,7 +20,11 @@ directory without weights) prints one line and exits with status 2; no
 output file is written then. A grey image, and predictions outside the range
 of the run's training labels (train_stats.json), are warned about on stderr,
 one line each. The JSON says what the run was trained on (``training``: its
-protocol, split and training label ranges, in the model's input units).
+protocol, split and training label ranges, in the model's input units), the
+spread of each value over crops of the pair (``spread``), which quantities
+one pair determines and which are scale priors (``scale_free``,
+``scale_priors``), what every field means (``fields``), and whether the run
+is the demonstration model (then also warned about).
 """
 
 from __future__ import annotations
@@ -71,10 +75,63 @@ def to_input_pixels(values, width, height, size_w, size_h):
     return out
 
 
+#: Test-time crops for the spread: how many, and their side as a share of the image.
+TTA_CROPS = 8
+TTA_FRACTION = (0.8, 0.95)
+#: A spread of fx or fy above this share of the value is warned about.
+SPREAD_WARNING = 0.2
+#: What each printed field means, with its unit.
+FIELDS = {
+    "fx": "focal length along u (px of the input images)",
+    "fy": "focal length along v (px)",
+    "u0": "principal point u (px; pixel centres at integers)",
+    "v0": "principal point v (px)",
+    "baseline": "distance between the camera centres (m; a scale prior, see scale_free)",
+    "disparity": "disparity of the projection pixel (px; Eq. 4a: fx * baseline / xCam)",
+    "tx": "right camera's position along the left camera's forward axis (m; scale prior)",
+    "ty": "right camera's position along the left camera's left axis (m; scale prior)",
+    "tz": "right camera's position along the left camera's up axis (m; scale prior)",
+    "pitch": "right camera's pitch relative to the left one (rad; positive: down)",
+    "X": "the projection pixel's point, forward (m, left camera frame; scale prior)",
+    "Y": "the point, to the left (m; scale prior)",
+    "Z": "the point, up (m; scale prior)",
+}
+
+
+def crop_windows(width, height, count=TTA_CROPS, seed=0):
+    """The windows ``(x0, y0, w, h)`` the spread is measured over: the whole
+    image, then ``count`` crops of 80-95 % of each side at seeded positions."""
+    rng = np.random.default_rng(seed)
+    windows = [(0, 0, width, height)]
+    for _ in range(count):
+        w = int(round(width * rng.uniform(*TTA_FRACTION)))
+        h = int(round(height * rng.uniform(*TTA_FRACTION)))
+        windows.append((int(rng.integers(0, width - w + 1)), int(rng.integers(0, height - h + 1)),
+                        w, h))
+    return windows
+
+
+def from_window(values, window, size_w, size_h):
+    """Predictions made on a crop ``window`` resized to the model's input, in
+    the full image's pixels (the inverse of that crop and resize, per axis)."""
+    x0, y0, w, h = window
+    out = to_input_pixels(values, w, h, size_w, size_h)
+    out["u0"] += x0
+    out["v0"] += y0
+    return out
+
+
 def is_grey(image):
     """Whether the RGB ``image`` has no colour (its three channels equal)."""
     return bool(np.array_equal(image[..., 0], image[..., 1])
                 and np.array_equal(image[..., 1], image[..., 2]))
+
+
+def is_demonstration(run):
+    """Whether ``run`` is train.py's demonstration run (trained without --data
+    on the cached demonstration dataset)."""
+    data = os.path.basename(str(run["config"].get("data") or ""))
+    return data.startswith("demo-") or "--data" not in str(run["config"].get("command") or "--data")
 
 
 def training_protocol(run):
@@ -129,8 +186,12 @@ def calibrate_pair(left_path, right_path, run_dir, warn=None):
         if is_grey(image):
             warn(f"warning: the {side} image {path} is grey; the model was trained on colour "
                  "images")
+    windows = crop_windows(width, height)
     pred = evaluation.predict_images(
-        model, resize_image(left, size_w, size_h)[None], resize_image(right, size_w, size_h)[None])
+        model, np.stack([resize_image(left[y:y + h, x:x + w], size_w, size_h)
+                         for x, y, w, h in windows]),
+        np.stack([resize_image(right[y:y + h, x:x + w], size_w, size_h)
+                  for x, y, w, h in windows]))
     values = {name: float(pred[name][0]) for name in pred}
     ranges = label_ranges(run["stats"])
     if ranges:
@@ -149,6 +210,24 @@ def calibrate_pair(left_path, right_path, run_dir, warn=None):
     values = to_input_pixels(values, width, height, size_w, size_h)
     if not all(math.isfinite(v) for v in values.values()):
         raise CalibrationError("the model predicted non-finite values")
+    # the spread over the whole image and the crops, each in the full image's pixels
+    per_window = []
+    for i, window in enumerate(windows):
+        one = {name: float(pred[name][i]) for name in pred}
+        if released:
+            one["pitch"] = math.radians(one["pitch"])
+        per_window.append(from_window(one, window, size_w, size_h))
+    spread = {name: float(np.std([v[name] for v in per_window], ddof=1))
+              for name in PARAMETERS + ("X", "Y", "Z")}
+    for name in ("fx", "fy"):
+        if spread[name] > SPREAD_WARNING * abs(values[name]):
+            warn(f"warning: {name} changes by {spread[name]:.4g} px (std) between crops of the "
+                 f"pair, over {100 * SPREAD_WARNING:.0f} % of its value {values[name]:.4g}: "
+                 "an unreliable estimate")
+    demo = is_demonstration(run)
+    if demo:
+        warn("warning: this run is the demonstration model (800 pairs, small towers, 8 "
+             "epochs): its values show the pipeline working, not a calibration")
     result = {
         "left": os.path.abspath(left_path), "right": os.path.abspath(right_path),
         "image_width": width, "image_height": height, "model_input": [size_h, size_w],
@@ -159,6 +238,20 @@ def calibrate_pair(left_path, right_path, run_dir, warn=None):
         "fov_horizontal_deg": float(np.degrees(fov_from_focal(values["fx"], width))),
         "fov_vertical_deg": float(np.degrees(fov_from_focal(values["fy"], height))),
         "units": {name: UNITS[name] for name in PARAMETERS},
+        "spread": spread,
+        "spread_method": f"standard deviation over the whole image and {len(windows) - 1} "
+                         f"crops of {int(100 * TTA_FRACTION[0])}-{int(100 * TTA_FRACTION[1])} % "
+                         "of each side, each mapped back to the full image's pixels",
+        "scale_free": {
+            "disparity_px": values["disparity"],
+            "baseline_over_depth": values["disparity"] / values["fx"],
+            "note": "one pair fixes the focal length, principal point, pitch and the ratio "
+                    "baseline / depth (disparity / fx); the metres of baseline, tx, ty, tz and "
+                    "X, Y, Z come from the scene scale seen in training (scale priors)",
+        },
+        "scale_priors": ["baseline", "tx", "ty", "tz", "X", "Y", "Z"],
+        "fields": dict(FIELDS),
+        "demonstration_model": demo,
         "training": {
             "protocol": training_protocol(run), "split": run["config"].get("split"),
             "as_released": released,

@@ -202,3 +202,43 @@ def test_exports_opencv_and_ros_yaml_that_opencv_reads_back(setup, tmp_path, cap
             K @ np.hstack([R, T.reshape(3, 1)])
         np.testing.assert_allclose(P, expected, rtol=1e-9, atol=1e-9)
         fs.release()
+
+
+def test_from_window_maps_a_crop_prediction_back_by_hand():
+    values = {"fx": 10.0, "fy": 12.0, "u0": 15.5, "v0": 7.0, "disparity": 4.0, "baseline": 0.3}
+    out = calibrate.from_window(values, (20, 6, 50, 40), 32, 32)
+    assert out["fx"] == pytest.approx(10 * 50 / 32) and out["fy"] == pytest.approx(12 * 40 / 32)
+    assert out["u0"] == pytest.approx((15.5 + 0.5) * 50 / 32 - 0.5 + 20)
+    assert out["v0"] == pytest.approx((7.0 + 0.5) * 40 / 32 - 0.5 + 6)
+    assert out["disparity"] == pytest.approx(4 * 50 / 32) and out["baseline"] == 0.3
+    windows = calibrate.crop_windows(64, 40)
+    assert windows[0] == (0, 0, 64, 40) and len(windows) == 1 + calibrate.TTA_CROPS
+    assert all(x + w <= 64 and y + h <= 40 and 0.75 * 64 < w < 64 for x, y, w, h in windows[1:])
+
+
+def test_spread_scale_priors_fields_and_the_demonstration_notice(setup, tmp_path, capsys):
+    """The JSON gives a spread per parameter (crops of the pair), the
+    scale-free quantities beside the scale priors, a meaning for every
+    field; a demonstration run is announced as such on stderr."""
+    root = setup["root"]
+    args = [str(root / "left.png"), str(root / "right.png"), "--run"]
+    assert calibrate.main(args + [setup["run"]]) == 0
+    captured = capsys.readouterr()
+    result = json.loads(captured.out)
+    assert set(result["spread"]) == set(PARAMETERS) | {"X", "Y", "Z"}
+    assert all(np.isfinite(v) and v >= 0 for v in result["spread"].values())
+    assert result["spread"]["fx"] > 0           # the crops do move the estimate
+    p = result["parameters"]
+    assert result["scale_free"]["baseline_over_depth"] == pytest.approx(p["disparity"] / p["fx"])
+    assert set(result["scale_priors"]) == {"baseline", "tx", "ty", "tz", "X", "Y", "Z"}
+    assert set(result["fields"]) == set(PARAMETERS) | {"X", "Y", "Z"}
+    assert result["demonstration_model"] is False and "demonstration" not in captured.err
+    demo = tmp_path / "demo-run"
+    shutil.copytree(setup["run"], demo)
+    config = json.loads((demo / "config.json").read_text())
+    config["data"] = "/cache/demo-cvgl-800-112px-s0-v3.0.h5"
+    (demo / "config.json").write_text(json.dumps(config))
+    assert calibrate.main(args + [str(demo)]) == 0
+    captured = capsys.readouterr()
+    assert json.loads(captured.out)["demonstration_model"] is True
+    assert "demonstration model" in captured.err
