@@ -39,6 +39,9 @@ DATA_DIR = os.path.join(os.path.dirname(os.path.abspath(__file__)), "oakd_stereo
 CALIBRATION_FILE = "stereodemo_calibration.json"
 #: Largest disparity searched (px, full resolution): 451 px * 7.5 cm / 0.25 m.
 MAX_DISPARITY = 144
+#: Smallest disparity kept (px, full resolution): 451 px * 7.5 cm / 3 px = 11 m,
+#: beyond any of these rooms; a smaller match is a mismatch on a blank wall.
+MIN_DISPARITY = 3.0
 #: Smallest crop side, as a fraction of the image side; share of whole images.
 MIN_CROP_FRACTION = 0.35
 FULL_IMAGE_SHARE = 0.1
@@ -107,9 +110,10 @@ def _read(path):
     return cv2.cvtColor(image, cv2.COLOR_BGR2RGB)
 
 
-def measure_disparity(left, right, max_disparity=MAX_DISPARITY):
+def measure_disparity(left, right, max_disparity=MAX_DISPARITY, min_disparity=MIN_DISPARITY):
     """The left image's disparity (float, NaN where unknown): StereoSGBM, kept
-    where the right image's own match (the mirrored pair) agrees within 1 px."""
+    where the right image's own match (the mirrored pair) agrees within 1 px
+    and it is at least ``min_disparity``."""
     import cv2
 
     grey_l = cv2.cvtColor(left, cv2.COLOR_RGB2GRAY)
@@ -131,7 +135,7 @@ def measure_disparity(left, right, max_disparity=MAX_DISPARITY):
     back = np.full_like(d_left, np.nan)
     rows = np.arange(height)[:, None].repeat(width, 1)
     back[inside] = d_right[rows[inside], target[inside]]
-    ok = inside & (np.abs(back - d_left) <= 1.0)
+    ok = inside & (d_left >= min_disparity) & (np.abs(back - d_left) <= 1.0)
     return np.where(ok, d_left, np.nan)
 
 
