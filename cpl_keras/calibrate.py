@@ -158,16 +158,9 @@ def label_ranges(stats):
             if name in stats["min"] and name in stats["max"]}
 
 
-def calibrate_pair(left_path, right_path, run_dir, warn=None):
-    """The calibration of one pair as a JSON-ready dict; ``warn(line)`` is
-    called with each warning (a grey image, a prediction outside the
-    training labels' range)."""
-    from cpl_keras import evaluation
-    from cpl_keras.real import resize_image
-
-    warn = warn or (lambda line: None)
-    left = read_image(left_path)
-    right = read_image(right_path)
+def read_pair(left_path, right_path):
+    """The two images of a pair, checked to be a pair (CalibrationError)."""
+    left, right = read_image(left_path), read_image(right_path)
     if left.shape != right.shape:
         raise CalibrationError(
             f"left and right images differ in size: {left.shape[1]}x{left.shape[0]} "
@@ -175,6 +168,50 @@ def calibrate_pair(left_path, right_path, run_dir, warn=None):
     if np.array_equal(left, right):
         raise CalibrationError("left and right images are identical: a stereo pair needs two "
                                "views")
+    return left, right
+
+
+def predict_windows(model, left, right, windows, released):
+    """The model's outputs on each window of the pair (resized to its input):
+    ``(raw, mapped)``, two lists of dicts, as the model gives them and in the
+    full image's pixels with pitch in radians."""
+    from cpl_keras import evaluation
+    from cpl_keras.real import resize_image
+
+    size_h, size_w = evaluation.model_image_shape(model)
+    pred = evaluation.predict_images(
+        model, np.stack([resize_image(left[y:y + h, x:x + w], size_w, size_h)
+                         for x, y, w, h in windows]),
+        np.stack([resize_image(right[y:y + h, x:x + w], size_w, size_h)
+                  for x, y, w, h in windows]))
+    raw, mapped = [], []
+    for i, window in enumerate(windows):
+        one = {name: float(pred[name][i]) for name in pred}
+        raw.append(dict(one))
+        if released:  # (the release predicted pitch in degrees)
+            one["pitch"] = math.radians(one["pitch"])
+        mapped.append(from_window(one, window, size_w, size_h))
+    return raw, mapped
+
+
+def _check_ranges(raw, ranges, warn):
+    """Warn about predictions outside the training labels' range (model units)."""
+    outside = [f"{name} {raw[name]:.4g} (trained on {lo:.4g}..{hi:.4g})"
+               for name, (lo, hi) in (ranges or {}).items()
+               if name in raw and not lo <= raw[name] <= hi]
+    if outside:
+        warn("warning: predictions outside the training labels' range, in the model's "
+             f"input units: {', '.join(outside)}")
+
+
+def calibrate_pair(left_path, right_path, run_dir, warn=None):
+    """The calibration of one pair as a JSON-ready dict; ``warn(line)`` is
+    called with each warning (a grey image, a prediction outside the
+    training labels' range, a large spread, the demonstration model)."""
+    from cpl_keras import evaluation
+
+    warn = warn or (lambda line: None)
+    left, right = read_pair(left_path, right_path)
     run = runs.load_run(run_dir, error=CalibrationError)
     model = runs.load_model(run, error=CalibrationError)
     size_h, size_w = evaluation.model_image_shape(model)
@@ -186,37 +223,14 @@ def calibrate_pair(left_path, right_path, run_dir, warn=None):
         if is_grey(image):
             warn(f"warning: the {side} image {path} is grey; the model was trained on colour "
                  "images")
-    windows = crop_windows(width, height)
-    pred = evaluation.predict_images(
-        model, np.stack([resize_image(left[y:y + h, x:x + w], size_w, size_h)
-                         for x, y, w, h in windows]),
-        np.stack([resize_image(right[y:y + h, x:x + w], size_w, size_h)
-                  for x, y, w, h in windows]))
-    values = {name: float(pred[name][0]) for name in pred}
-    ranges = label_ranges(run["stats"])
-    if ranges:
-        outside = [f"{name} {values[name]:.4g} (trained on {lo:.4g}..{hi:.4g})"
-                   for name, (lo, hi) in ranges.items()
-                   if name in values and not lo <= values[name] <= hi]
-        if outside:
-            warn("warning: predictions outside the training labels' range, in the model's "
-                 f"input units: {', '.join(outside)}")
     released = runs.as_released(run)
-    notes = []
-    if released:
-        values["pitch"] = math.radians(values["pitch"])
-        notes.append("run trained as released: pitch converted from degrees; disparity is the "
-                     "release's StereoBM mean label, not a pixel disparity")
-    values = to_input_pixels(values, width, height, size_w, size_h)
+    windows = crop_windows(width, height)
+    raw, per_window = predict_windows(model, left, right, windows, released)
+    values = per_window[0]                      # the whole image
     if not all(math.isfinite(v) for v in values.values()):
         raise CalibrationError("the model predicted non-finite values")
-    # the spread over the whole image and the crops, each in the full image's pixels
-    per_window = []
-    for i, window in enumerate(windows):
-        one = {name: float(pred[name][i]) for name in pred}
-        if released:
-            one["pitch"] = math.radians(one["pitch"])
-        per_window.append(from_window(one, window, size_w, size_h))
+    ranges = label_ranges(run["stats"])
+    _check_ranges(raw[0], ranges, warn)
     spread = {name: float(np.std([v[name] for v in per_window], ddof=1))
               for name in PARAMETERS + ("X", "Y", "Z")}
     for name in ("fx", "fy"):
@@ -238,30 +252,32 @@ def calibrate_pair(left_path, right_path, run_dir, warn=None):
         "fov_horizontal_deg": float(np.degrees(fov_from_focal(values["fx"], width))),
         "fov_vertical_deg": float(np.degrees(fov_from_focal(values["fy"], height))),
         "units": {name: UNITS[name] for name in PARAMETERS},
-        "spread": spread,
-        "spread_method": f"standard deviation over the whole image and {len(windows) - 1} "
-                         f"crops of {int(100 * TTA_FRACTION[0])}-{int(100 * TTA_FRACTION[1])} % "
-                         "of each side, each mapped back to the full image's pixels",
-        "scale_free": {
-            "disparity_px": values["disparity"],
-            "baseline_over_depth": values["disparity"] / values["fx"],
-            "note": "one pair fixes the focal length, principal point, pitch and the ratio "
-                    "baseline / depth (disparity / fx); the metres of baseline, tx, ty, tz and "
-                    "X, Y, Z come from the scene scale seen in training (scale priors)",
-        },
-        "scale_priors": ["baseline", "tx", "ty", "tz", "X", "Y", "Z"],
-        "fields": dict(FIELDS),
+        "spread": spread, "spread_method": SPREAD_METHOD.format(len(windows) - 1),
+        "scale_free": {"disparity_px": values["disparity"],
+                       "baseline_over_depth": values["disparity"] / values["fx"],
+                       "note": SCALE_NOTE},
+        "scale_priors": list(SCALE_PRIORS), "fields": dict(FIELDS),
         "demonstration_model": demo,
         "training": {
             "protocol": training_protocol(run), "split": run["config"].get("split"),
-            "as_released": released,
-            "label_ranges": ranges,
+            "as_released": released, "label_ranges": ranges,
             "label_ranges_units": f"the model's input ({size_w}x{size_h} px), targets as trained",
         },
     }
-    if notes:
-        result["notes"] = notes
+    if released:
+        result["notes"] = ["run trained as released: pitch converted from degrees; disparity "
+                           "is the release's StereoBM mean label, not a pixel disparity"]
     return result
+
+
+#: What calibrate's JSON says of the quantities a pair does not fix.
+SCALE_PRIORS = ("baseline", "tx", "ty", "tz", "X", "Y", "Z")
+SCALE_NOTE = ("one pair fixes the focal length, principal point, pitch and the ratio "
+              "baseline / depth (disparity / fx); the metres of baseline, tx, ty, tz and "
+              "X, Y, Z come from the scene scale seen in training (scale priors)")
+SPREAD_METHOD = (f"standard deviation over the whole image and {{}} crops of "
+                 f"{int(100 * TTA_FRACTION[0])}-{int(100 * TTA_FRACTION[1])} % of each side, "
+                 "each mapped back to the full image's pixels")
 
 
 def main(argv=None):
