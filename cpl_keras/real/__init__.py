@@ -21,6 +21,8 @@ crop + resize, the OpenCV-to-project axis change (and, from
 
 from __future__ import annotations
 
+import os
+
 import numpy as np
 
 from cpl_keras.data.generate import released_disparity  # noqa: F401  (the builders' label)
@@ -85,6 +87,90 @@ def crop_resize_intrinsics(fx, fy, u0, v0, x0, y0, crop_width, crop_height, out_
     sy = out_height / float(crop_height)
     return (fx * sx, fy * sy, float(crop_resize_coordinate(u0, x0, sx)),
             float(crop_resize_coordinate(v0, y0, sy)), sx, sy)
+
+
+def read_rgb(path):
+    """A uint8 RGB image from ``path`` (RealDataError if it cannot be read)."""
+    import cv2
+
+    image = cv2.imread(os.fspath(path), cv2.IMREAD_COLOR)
+    if image is None:
+        raise RealDataError(f"cannot read image {path}")
+    return cv2.cvtColor(image, cv2.COLOR_BGR2RGB)
+
+
+def rectified_crop(left, right, window, pixel, match, disparity, intrinsics, baseline,
+                   image_size):
+    """One sample of a rectified pair: both images cropped at ``window``
+    ``(x0, y0, w, h)`` and resized to ``image_size`` squared, with the labels
+    of the "rig" convention (the module doc of ``real.middlebury``).
+
+    ``pixel`` = ``(u_left, v)``, a left pixel whose right match is ``match``
+    pixels to its left; ``disparity`` is Eq. 4a's disparity there at full
+    resolution (``match`` plus any offset of the principal points);
+    ``intrinsics`` = ``(fx, fy, cx of the right camera, cy)``. Returns ``(left
+    crop, right crop, labels)``, labels as Python floats/ints."""
+    from cpl_keras.camera import image_to_world
+
+    x0, y0, cw, ch = window
+    u_left, v_full = pixel
+    fx, fy, u0, v0, sx, sy = crop_resize_intrinsics(*intrinsics, x0, y0, cw, ch,
+                                                    image_size, image_size)
+    u = float(crop_resize_coordinate(u_left - match, x0, sx))
+    v = float(crop_resize_coordinate(v_full, y0, sy))
+    d = sx * disparity
+    X, Y, Z = image_to_world(fx, fy, u0, v0, baseline, d, 0.0, 0.0, -baseline, 0.0, u, v)
+    crop_l = resize_image(left[y0:y0 + ch, x0:x0 + cw], image_size, image_size)
+    crop_r = resize_image(right[y0:y0 + ch, x0:x0 + cw], image_size, image_size)
+    return crop_l, crop_r, {
+        "fx": fx, "fy": fy, "u0": u0, "v0": v0, "baseline": baseline, "disparity": d,
+        "tx": 0.0, "ty": -baseline, "tz": 0.0, "pitch": 0.0, "yaw": 0.0, "roll": 0.0,
+        "X": float(X), "Y": float(Y), "Z": float(Z), "u": u, "v": v,
+        "disparity_released": released_disparity(crop_l, crop_r),
+        "u_left": float(crop_resize_coordinate(u_left, x0, sx)),
+        "crop_x0": x0, "crop_y0": y0, "crop_width": cw, "crop_height": ch,
+    }
+
+
+#: Labels of a rectified rig in the "rig" convention, shared by its builders.
+RECTIFIED_LABEL_DESCRIPTIONS = {
+    "disparity_released": "mean raw StereoBM(16, 15) output, as the release computed it",
+    "tx": "right camera position in the left camera frame (0)",
+    "ty": "right camera position in the left camera frame (-baseline: to the right)",
+    "tz": "right camera position in the left camera frame (0)",
+    "pitch": "relative pitch of the rectified pair (0)",
+    "u": "projection pixel u in the RIGHT image (resized pixels)",
+    "v": "projection pixel v (resized pixels)",
+    "X": "image_to_world of the labels: the point in the left camera frame",
+}
+
+
+def check_crop_settings(crops, image_size, what="crops per pair"):
+    """``(crops, image_size)`` as ints; ValueError (one line) when they cannot
+    make a real set (StereoBM's block of 15 and 16 disparities need 32 px)."""
+    crops, image_size = int(crops), int(image_size)
+    if crops <= 0:
+        raise ValueError(f"{what} must be positive, got {crops}")
+    if image_size < 32:
+        raise ValueError(f"image size must be at least 32 (StereoBM block 15 + 16 disparities), "
+                         f"got {image_size}")
+    return crops, image_size
+
+
+def write_samples(out, samples, image_size, metadata, label_descriptions, block=64):
+    """Write ``(left, right, labels)`` samples to the HDF5 file ``out``
+    (atomically, ``block`` at a time); returns the path."""
+    from cpl_keras.data.storage import StereoWriter
+
+    samples = list(samples)
+    with StereoWriter(out, len(samples), image_size, metadata=metadata,
+                      label_descriptions=label_descriptions) as writer:
+        for start in range(0, len(samples), block):
+            part = samples[start:start + block]
+            labels = {name: np.array([s[2][name] for s in part]) for name in part[0][2]}
+            writer.write(start, np.stack([s[0] for s in part]), np.stack([s[1] for s in part]),
+                         labels)
+    return str(out)
 
 
 def resize_image(image, width, height):

@@ -59,10 +59,9 @@ import sys
 import numpy as np
 
 from cpl_keras.camera import PARAMETERS, UNITS, disparity_from_depth, euler_from_rotation, fov_from_focal
-from cpl_keras.data.storage import StereoWriter
 from cpl_keras.real import (
     CV_TO_PROJECT, RealDataError, crop_resize_coordinate, crop_resize_intrinsics,
-    opencv_pose_to_rig, released_disparity, resize_image,
+    check_crop_settings, opencv_pose_to_rig, released_disparity, resize_image, write_samples,
 )
 
 #: The project's copy of OpenCV's sample pairs.
@@ -324,12 +323,7 @@ def build_chessboard(out, *, root=DATA_DIR, crops=20, image_size=112, seed=0, co
     """Calibrate the rig in ``root`` and write its test set to ``out`` (HDF5,
     atomic); returns the path. ``report`` (a callable) receives one line on
     the skipped pairs, if any."""
-    crops, image_size = int(crops), int(image_size)
-    if crops <= 0:
-        raise ValueError(f"crops per pair must be positive, got {crops}")
-    if image_size < 32:
-        raise ValueError(f"image size must be at least 32 (StereoBM block 15 + 16 disparities), "
-                         f"got {image_size}")
+    crops, image_size = check_crop_settings(crops, image_size)
     cal = calibrate(root)
     if cal["skipped"] and report is not None:
         report(f"skipped {len(cal['skipped'])} of {cal['num_found']} pairs: "
@@ -344,15 +338,8 @@ def build_chessboard(out, *, root=DATA_DIR, crops=20, image_size=112, seed=0, co
         "labels": "rig: right camera pose in the left camera frame; (u, v) in the right image",
         "command": command,
     }
-    samples = list(chessboard_samples(cal, crops, image_size, seed))
-    with StereoWriter(out, len(samples), image_size, metadata=metadata,
-                      label_descriptions=LABEL_DESCRIPTIONS) as writer:
-        for start in range(0, len(samples), 64):
-            block = samples[start:start + 64]
-            labels = {name: np.array([s[2][name] for s in block]) for name in block[0][2]}
-            writer.write(start, np.stack([s[0] for s in block]), np.stack([s[1] for s in block]),
-                         labels)
-    return str(out)
+    return write_samples(out, chessboard_samples(cal, crops, image_size, seed), image_size,
+                         metadata, LABEL_DESCRIPTIONS)
 
 
 def calibration_report(cal, pair=None):

@@ -55,7 +55,7 @@ from cpl_keras.camera import image_to_world
 from cpl_keras.data.storage import StereoWriter
 from cpl_keras.real import (
     CV_TO_PROJECT, RealDataError, crop_resize_coordinate, crop_resize_intrinsics,
-    released_disparity, resize_image,
+    read_rgb, released_disparity, resize_image,
 )
 
 LAYOUTS = ("stereo", "raw")
@@ -162,14 +162,6 @@ def read_disparity(path):
     return disparity
 
 
-def _read_rgb(path):
-    import cv2
-
-    image = cv2.imread(os.fspath(path), cv2.IMREAD_COLOR)
-    if image is None:
-        raise RealDataError(f"cannot read image {path}")
-    return cv2.cvtColor(image, cv2.COLOR_BGR2RGB)
-
 
 def _images(directory):
     return sorted(f for f in os.listdir(directory) if f.lower().endswith(IMAGE_SUFFIXES))
@@ -253,7 +245,7 @@ def sample_from_frame(left_path, right_path, calib_path, disparity_path=None, im
     calib = read_calib_file(calib_path)
     P2, P3 = projection_matrices(calib, calib_path)
     rig = rig_from_projections(P2, P3)
-    left_full, right_full = _read_rgb(left_path), _read_rgb(right_path)
+    left_full, right_full = read_rgb(left_path), read_rgb(right_path)
     if left_full.shape != right_full.shape:
         raise RealDataError(f"{right_path} is {right_full.shape[1]}x{right_full.shape[0]}, "
                             f"{left_path} is {left_full.shape[1]}x{left_full.shape[0]}")

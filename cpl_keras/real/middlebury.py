@@ -28,10 +28,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from cpl_keras.camera import image_to_world
-from cpl_keras.data.storage import StereoWriter
 from cpl_keras.real import (
-    crop_resize_coordinate, crop_resize_intrinsics, released_disparity, resize_image,
+    RECTIFIED_LABEL_DESCRIPTIONS, check_crop_settings, crop_resize_coordinate, rectified_crop,
+    write_samples,
 )
 
 #: Calibration of the pair as scikit-image documents it (pixels, metres).
@@ -50,14 +49,7 @@ LABEL_DESCRIPTIONS = {
     "v0": "principal point v after crop + resize",
     "baseline": "193.001 mm (Middlebury calibration)",
     "disparity": "sx * (d + doffs): Eq. 4a disparity fx * b / xCam in resized pixels",
-    "disparity_released": "mean raw StereoBM(16, 15) output, as the release computed it",
-    "tx": "right camera position in the left camera frame (0)",
-    "ty": "right camera position in the left camera frame (-baseline: to the right)",
-    "tz": "right camera position in the left camera frame (0)",
-    "pitch": "relative pitch of the rectified pair (0)",
-    "u": "projection pixel u in the RIGHT image (resized pixels)",
-    "v": "projection pixel v (resized pixels)",
-    "X": "image_to_world of the labels: the point in the left camera frame",
+    **RECTIFIED_LABEL_DESCRIPTIONS,
 }
 
 
@@ -113,38 +105,18 @@ def middlebury_samples(crops, image_size=112, seed=0):
         if pixel is None:
             continue
         x0, y0, cw, ch = window
-        u_left, v_full = pixel
-        d_full = float(disparity[v_full, u_left])
-        fx, fy, u0, v0, sx, sy = crop_resize_intrinsics(
-            f, f, cx1, cy, x0, y0, cw, ch, image_size, image_size)
-        u = float(crop_resize_coordinate(u_left - d_full, x0, sx))
-        v = float(crop_resize_coordinate(v_full, y0, sy))
-        d = sx * (d_full + doffs)
-        X, Y, Z = image_to_world(fx, fy, u0, v0, b, d, 0.0, 0.0, -b, 0.0, u, v)
-        crop_l = resize_image(left[y0:y0 + ch, x0:x0 + cw], image_size, image_size)
-        crop_r = resize_image(right[y0:y0 + ch, x0:x0 + cw], image_size, image_size)
-        labels = {
-            "fx": fx, "fy": fy, "u0": u0, "v0": v0, "baseline": b, "disparity": d,
-            "tx": 0.0, "ty": -b, "tz": 0.0, "pitch": 0.0, "yaw": 0.0, "roll": 0.0,
-            "X": float(X), "Y": float(Y), "Z": float(Z), "u": u, "v": v,
-            "disparity_released": released_disparity(crop_l, crop_r),
-            "u0_left": float(crop_resize_coordinate(cx0, x0, sx)),
-            "u_left": float(crop_resize_coordinate(u_left, x0, sx)),
-            "crop_x0": x0, "crop_y0": y0, "crop_width": cw, "crop_height": ch,
-            "config_id": index, "town_id": -1, "frame_index": index,
-        }
+        d_full = float(disparity[pixel[1], pixel[0]])
+        crop_l, crop_r, labels = rectified_crop(left, right, window, pixel, d_full,
+                                                d_full + doffs, (f, f, cx1, cy), b, image_size)
+        labels.update(u0_left=float(crop_resize_coordinate(cx0, x0, image_size / cw)),
+                      config_id=index, town_id=-1, frame_index=index)
         yield crop_l, crop_r, labels
         index += 1
 
 
 def build_middlebury(out, *, crops=500, image_size=112, seed=0, block=64, command=None):
     """Write the Middlebury test set to ``out`` (HDF5, atomic); returns the path."""
-    crops = int(crops)
-    image_size = int(image_size)
-    if crops <= 0:
-        raise ValueError(f"number of crops must be positive, got {crops}")
-    if image_size < 32:
-        raise ValueError(f"image size must be at least 32 (StereoBM block 15 + 16 disparities), got {image_size}")
+    crops, image_size = check_crop_settings(crops, image_size, what="number of crops")
     metadata = {
         "source": "Middlebury 2014 Motorcycle (skimage.data.stereo_motorcycle, 4x down-sampled)",
         "rig": "middlebury", "rectified": True,
@@ -153,24 +125,5 @@ def build_middlebury(out, *, crops=500, image_size=112, seed=0, block=64, comman
         "min_crop_fraction": MIN_CROP_FRACTION, "full_image_share": FULL_IMAGE_SHARE,
         "command": command,
     }
-    with StereoWriter(out, crops, image_size, metadata=metadata,
-                      label_descriptions=LABEL_DESCRIPTIONS) as writer:
-        buffer = []
-        start = 0
-        for sample in middlebury_samples(crops, image_size, seed):
-            buffer.append(sample)
-            if len(buffer) == block:
-                _flush(writer, start, buffer)
-                start += len(buffer)
-                buffer = []
-        if buffer:
-            _flush(writer, start, buffer)
-    return str(out)
-
-
-def _flush(writer, start, samples):
-    left = np.stack([s[0] for s in samples])
-    right = np.stack([s[1] for s in samples])
-    names = samples[0][2].keys()
-    labels = {name: np.array([s[2][name] for s in samples]) for name in names}
-    writer.write(start, left, right, labels)
+    return write_samples(out, middlebury_samples(crops, image_size, seed), image_size, metadata,
+                         LABEL_DESCRIPTIONS, block=block)

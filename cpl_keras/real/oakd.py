@@ -28,11 +28,9 @@ import os
 
 import numpy as np
 
-from cpl_keras.camera import image_to_world
-from cpl_keras.data.storage import StereoWriter
 from cpl_keras.real import (
-    RealDataError, crop_resize_coordinate, crop_resize_intrinsics, released_disparity,
-    resize_image,
+    RECTIFIED_LABEL_DESCRIPTIONS, RealDataError, check_crop_settings, read_rgb, rectified_crop,
+    write_samples,
 )
 
 DATA_DIR = os.path.join(os.path.dirname(os.path.abspath(__file__)), "oakd_stereo")
@@ -54,14 +52,7 @@ LABEL_DESCRIPTIONS = {
     "baseline": "75 mm (the rig's calibration)",
     "disparity": "sx * d, d MEASURED at the pixel (StereoSGBM, left-right checked): "
                  "Eq. 4a in resized pixels",
-    "disparity_released": "mean raw StereoBM(16, 15) output, as the release computed it",
-    "tx": "right camera position in the left camera frame (0)",
-    "ty": "right camera position in the left camera frame (-baseline: to the right)",
-    "tz": "right camera position in the left camera frame (0)",
-    "pitch": "relative pitch of the rectified pair (0)",
-    "u": "projection pixel u in the RIGHT image (resized pixels)",
-    "v": "projection pixel v (resized pixels)",
-    "X": "image_to_world of the labels: the point in the left camera frame",
+    **RECTIFIED_LABEL_DESCRIPTIONS,
 }
 
 
@@ -99,15 +90,6 @@ def find_pairs(root=DATA_DIR):
     if not pairs:
         raise RealDataError(f"no *_left.png / *_right.png pairs in {root}")
     return pairs
-
-
-def _read(path):
-    import cv2
-
-    image = cv2.imread(os.fspath(path), cv2.IMREAD_COLOR)
-    if image is None:
-        raise RealDataError(f"cannot read image: {path}")
-    return cv2.cvtColor(image, cv2.COLOR_BGR2RGB)
 
 
 def measure_disparity(left, right, max_disparity=MAX_DISPARITY, min_disparity=MIN_DISPARITY):
@@ -171,7 +153,7 @@ def oakd_samples(crops_per_pair=20, image_size=112, seed=0, root=DATA_DIR):
     rng = np.random.default_rng(seed)
     index = 0
     for pair_index, (scene, left_path, right_path) in enumerate(find_pairs(root)):
-        left, right = _read(left_path), _read(right_path)
+        left, right = read_rgb(left_path), read_rgb(right_path)
         if left.shape[:2] != (cal["height"], cal["width"]) or right.shape != left.shape:
             raise RealDataError(f"{scene}: images are not {cal['width']}x{cal['height']}")
         disparity = measure_disparity(left, right)
@@ -185,26 +167,11 @@ def oakd_samples(crops_per_pair=20, image_size=112, seed=0, root=DATA_DIR):
             pixel = _draw_pixel(rng, disparity, window)
             if pixel is None:
                 continue
-            x0, y0, cw, ch = window
-            u_left, v_full = pixel
-            d_full = float(disparity[v_full, u_left])
-            fx, fy, u0, v0, sx, sy = crop_resize_intrinsics(
-                f_x, f_y, cx, cy, x0, y0, cw, ch, image_size, image_size)
-            u = float(crop_resize_coordinate(u_left - d_full, x0, sx))
-            v = float(crop_resize_coordinate(v_full, y0, sy))
-            d = sx * d_full
-            X, Y, Z = image_to_world(fx, fy, u0, v0, b, d, 0.0, 0.0, -b, 0.0, u, v)
-            crop_l = resize_image(left[y0:y0 + ch, x0:x0 + cw], image_size, image_size)
-            crop_r = resize_image(right[y0:y0 + ch, x0:x0 + cw], image_size, image_size)
-            yield crop_l, crop_r, {
-                "fx": fx, "fy": fy, "u0": u0, "v0": v0, "baseline": b, "disparity": d,
-                "tx": 0.0, "ty": -b, "tz": 0.0, "pitch": 0.0, "yaw": 0.0, "roll": 0.0,
-                "X": float(X), "Y": float(Y), "Z": float(Z), "u": u, "v": v,
-                "disparity_released": released_disparity(crop_l, crop_r),
-                "u_left": float(crop_resize_coordinate(u_left, x0, sx)),
-                "crop_x0": x0, "crop_y0": y0, "crop_width": cw, "crop_height": ch,
-                "config_id": 0, "town_id": -1, "frame_index": index, "pair_index": pair_index,
-            }
+            d_full = float(disparity[pixel[1], pixel[0]])
+            crop_l, crop_r, labels = rectified_crop(
+                left, right, window, pixel, d_full, d_full, (f_x, f_y, cx, cy), b, image_size)
+            yield crop_l, crop_r, dict(labels, config_id=0, town_id=-1, frame_index=index,
+                                       pair_index=pair_index)
             drawn += 1
             index += 1
 
@@ -212,12 +179,7 @@ def oakd_samples(crops_per_pair=20, image_size=112, seed=0, root=DATA_DIR):
 def build_oakd(out, *, root=DATA_DIR, crops=20, image_size=112, seed=0, command=None):
     """Write the OAK-D test set to ``out`` (HDF5, atomic; ``crops`` per pair);
     returns the path."""
-    crops, image_size = int(crops), int(image_size)
-    if crops <= 0:
-        raise ValueError(f"crops per pair must be positive, got {crops}")
-    if image_size < 32:
-        raise ValueError(f"image size must be at least 32 (StereoBM block 15 + 16 disparities), "
-                         f"got {image_size}")
+    crops, image_size = check_crop_settings(crops, image_size)
     cal = load_calibration(root)
     shipped = os.path.abspath(os.fspath(root)) == DATA_DIR
     metadata = {
@@ -231,12 +193,5 @@ def build_oakd(out, *, root=DATA_DIR, crops=20, image_size=112, seed=0, command=
         "labels": "rig: right camera pose in the left camera frame; (u, v) in the right image",
         "command": command,
     }
-    samples = list(oakd_samples(crops, image_size, seed, root))
-    with StereoWriter(out, len(samples), image_size, metadata=metadata,
-                      label_descriptions=LABEL_DESCRIPTIONS) as writer:
-        for start in range(0, len(samples), 64):
-            block = samples[start:start + 64]
-            labels = {name: np.array([s[2][name] for s in block]) for name in block[0][2]}
-            writer.write(start, np.stack([s[0] for s in block]), np.stack([s[1] for s in block]),
-                         labels)
-    return str(out)
+    return write_samples(out, oakd_samples(crops, image_size, seed, root), image_size,
+                         metadata, LABEL_DESCRIPTIONS)
