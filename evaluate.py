@@ -10,7 +10,7 @@
 runs, published predictions, both tables, REPORT.md); ``--quick`` runs that
 pipeline on tiny settings in minutes, ``--preset`` at a named scale;
 ``--from-predictions DIR`` rebuilds DIR's tables and REPORT.md from its
-published predictions alone (cpl_keras/reproduce.py).
+published predictions alone (cpl_keras/reproduce/).
 
 Writes Markdown, CSV and JSON tables and a FOV-threshold plot to
 paper_results/ (or --out DIR, created if missing), atomically; ``--run R``

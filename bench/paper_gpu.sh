@@ -7,7 +7,7 @@
 #   bash bench/paper_gpu.sh "$OUT"              # there (device run, carry [".whl"])
 #   bash bench/paper_gpu.sh /tmp/dry --dry-run  # here: every step of the plan, tiny
 #
-# The plan (cpl_keras/reproduce.py, PRESETS["paper-gpu"]): 20,000 cvgl pairs
+# The plan (cpl_keras/reproduce/presets.py, PRESETS["paper-gpu"]): 20,000 cvgl pairs
 # rendered on every CPU core of the machine, the real sets, MTL-CPL-A then
 # MTL-Baseline with the paper's InceptionV3 towers (112 px, batch 16), each
 # to early stopping or to 150 s of training, whichever comes first; each run

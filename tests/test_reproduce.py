@@ -15,6 +15,9 @@ import evaluate
 from cpl_keras import reproduce
 from cpl_keras.camera import TARGETS
 
+#: The repository root (no result may name it).
+REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+
 
 def run(*args, cwd=None):
     return subprocess.run([sys.executable, "evaluate.py", *args], capture_output=True, text=True,
@@ -93,7 +96,7 @@ def test_quick_reproduction_end_to_end(quick):
         if name.endswith((".md", ".json", ".csv")):
             text = (out / name).read_text().replace(json.dumps(command)[1:-1], "")
             assert str(tmp_path) not in text.replace(command, ""), name
-            assert os.path.dirname(os.path.dirname(reproduce.__file__)) not in text, name
+            assert REPO not in text, name
     assert (out / cvgl["runs"][0] / "config.json").exists()
 
 
@@ -355,14 +358,14 @@ def test_presets_resolve():
     assert {j[1] for j in jobs} == {"cvgl"}          # one dataset for both tables
     assert [j[-1] for j in jobs if j[0] == "cvgl_drive"] == [
         f"{v}-s{s}" for s in (0, 1, 2) for v in ("cpl-a", "baseline", "cpl-u")]
-    assert "Seeds per table: cvgl 3, cvgl_drive 3" in reproduce._scale_text(decide)
+    assert "Seeds per table: cvgl 3, cvgl_drive 3" in reproduce.scale_text(decide)
     with pytest.raises(ValueError, match="unknown table 'kitti'"):
         reproduce.settings(preset="cpu", tables=("cvgl", "kitti"))
     with pytest.raises(ValueError, match="seeded variant 'baseline' is not trained"):
         reproduce.settings(preset="cpu", variants=("deep-homo", "cpl-u", "cpl-a"))
     # the report says which rows are of one seed
     assert "on the first seed only: Deep-Homo, MTL-CPL-A (as released)" in \
-        reproduce._scale_text(cpu)
+        reproduce.scale_text(cpu)
     # the paper's scale: every row, into paper_results/paper/ (no preset: paper_results/)
     paper = _parsed("--preset", "paper", "--allow-cpu")
     config = paper.config
@@ -388,7 +391,7 @@ def test_presets_resolve():
     assert all(j[2] == "paper" for j in reproduce.run_jobs(config, 0))
     assert gpu.out.endswith(os.path.join("paper_results", "paper-gpu"))
     assert gpu.runs_dir == os.path.join("runs", "reproduce-paper-gpu")
-    assert "a budget of 150 s of training per run" in reproduce._scale_text(config)
+    assert "a budget of 150 s of training per run" in reproduce.scale_text(config)
     assert _parsed("--preset", "paper-gpu", "--allow-cpu",
                    "--run-budget", "2.5").config["run_budget_s"] == 2.5
     # explicit flags override the preset's values

@@ -1,0 +1,165 @@
+"""The reproduction's command line (``python -m cpl_keras.reproduce``, also
+``evaluate.py --reproduce``): its options, their checks, and the run."""
+
+from __future__ import annotations
+
+import os
+import sys
+
+from cpl_keras import cli
+from cpl_keras.reproduce.pipeline import rebuild, rebuild_command, reproduce
+from cpl_keras.reproduce.presets import (
+    GPU_SIZED_PAIRS, PRESETS, PROG, REAL_ROOTS, cpu_cost, default_folders, gpu_sized,
+    has_accelerator, settings,
+)
+
+# ---------------------------------------------------------------------------
+# Command line (also evaluate.py --reproduce)
+# ---------------------------------------------------------------------------
+#: Options that set the scale (not allowed with --from-predictions).
+SCALE_OPTIONS = ("quick", "preset", "pairs", "random_pairs", "epochs", "patience", "backbone",
+                 "image_size", "crops", "chessboard_crops", "seeds", "random_seeds", "workers",
+                 "data_dir", "runs_dir", "geometric_max", "jobs", "run_budget",
+                 "allow_cpu") + REAL_ROOTS
+
+
+def add_arguments(parser):
+    """The reproduction's options, as an argument group of ``parser``; every
+    number is checked when parsed (``cli.positive_int``)."""
+    from cpl_keras.models.variants import BACKBONES
+
+    positive, non_negative = cli.positive_int, cli.non_negative_int
+    group = parser.add_argument_group("reproduce (cpl_keras/reproduce/)")
+    group.add_argument("--preset", choices=tuple(PRESETS), help="a named scale: paper (the "
+                       "paper's: 123,017 pairs, InceptionV3, every row; the default, into "
+                       "paper_results/), paper-gpu (MTL-CPL-A and MTL-Baseline with InceptionV3 "
+                       "towers on 20,000 pairs, sized for ten minutes of one GPU), cpu (compact "
+                       "towers, 3 seeds, ~1.5 h on 2 cores with --jobs 2), cpu-8000 (MTL "
+                       "variants on 8,000 cvgl pairs, 3 seeds, paper and drive splits; many "
+                       "hours, resumable run by run), quick (= --quick); the flags below "
+                       "override its values")
+    group.add_argument("--quick", action="store_true", help="tiny settings (minutes)")
+    group.add_argument("--pairs", type=positive, help="cvgl-protocol pairs (paper: 123017)")
+    group.add_argument("--random-pairs", type=positive, help="random-protocol pairs")
+    group.add_argument("--epochs", type=positive, help="maximum epochs per run (paper: 200)")
+    group.add_argument("--patience", type=non_negative, help="early stopping patience (paper: 5)")
+    group.add_argument("--backbone", choices=BACKBONES,
+                       help="the towers (paper: inception_v3; cpu presets: small_resnet)")
+    group.add_argument("--image-size", type=positive,
+                       help="square image side of every dataset (paper: 112)")
+    group.add_argument("--crops", type=positive, help="Middlebury crops for Table 2")
+    group.add_argument("--chessboard-crops", type=positive,
+                       help="crops per OpenCV chessboard pair for Table 2")
+    group.add_argument("--seeds", type=positive, help="cvgl runs per variant, seeds "
+                       "SEED, SEED+1, ... (each its own split and initial weights)")
+    group.add_argument("--random-seeds", type=positive, help="random-protocol runs per variant")
+    group.add_argument("--workers", type=positive, help="data generation processes "
+                       "(default: every core)")
+    group.add_argument("--run-budget", type=cli.positive_float, metavar="SECONDS",
+                       help="seconds of training each run may take (train.py --time-budget; "
+                       "paper-gpu: 150; default: no limit)")
+    group.add_argument("--allow-cpu", action="store_true",
+                       help="run settings sized for a GPU (InceptionV3 towers on "
+                       f"{GPU_SIZED_PAIRS:,}+ pairs) on a machine without one")
+    group.add_argument("--jobs", type=positive, help="training runs at a time, each in its own "
+                       "process (default 1; 2 did about 1.4x the work per unit time on a "
+                       "2-core CPU); the runs and the tables are the same")
+    group.add_argument("--seed", type=non_negative, default=0,
+                       help="seed of the datasets and the first run seed")
+    group.add_argument("--kitti", help="Table 2: KITTI stereo 2015 root")
+    group.add_argument("--kitti-raw", help="Table 2: KITTI raw root")
+    group.add_argument("--tsinghua", help="Table 2: Tsinghua-Daimler Cyclist root")
+    group.add_argument("--cityscapes", help="Table 2: Cityscapes root")
+    group.add_argument("--data-dir", help="where the datasets go (default data/reproduce, "
+                       "data/quick with --quick, data/reproduce-<preset> with --preset)")
+    group.add_argument("--runs-dir", help="where the runs go (default runs/reproduce, "
+                       "runs/quick, runs/reproduce-<preset>)")
+    group.add_argument("--discussion", help="Markdown file appended to REPORT.md as the "
+                       "comparison with the paper (default: discussion.md in the output "
+                       "folder, if there is one); with --from-predictions it replaces the "
+                       "stored one")
+    group.add_argument("--from-predictions", metavar="DIR",
+                       help="rebuild every table and REPORT.md in DIR (a reproduction's output "
+                       "folder) from its published predictions alone: no weights, no datasets")
+    return group
+
+
+def resolve_args(parser, args):
+    """Check the reproduction's options (``parser.error``: one line, exit 2,
+    before anything is written) and fill in the folders and the settings
+    (``args.config``)."""
+    if args.from_predictions is not None:
+        given = [name for name in SCALE_OPTIONS if getattr(args, name, None) not in (None, False)]
+        if given:
+            parser.error(f"--from-predictions rebuilds the tables of DIR as they were made; "
+                         f"drop --{given[0].replace('_', '-')}")
+        if args.out is not None and os.path.abspath(args.out) != \
+                os.path.abspath(args.from_predictions):
+            parser.error("--from-predictions DIR writes into DIR; drop --out")
+        if args.discussion is not None and not os.path.isfile(args.discussion):
+            parser.error(f"--discussion: file not found: {args.discussion}")
+        args.out = args.from_predictions
+        args.config = None
+        return args
+    try:
+        args.config = settings(
+            args.quick, args.preset, pairs=args.pairs, random_pairs=args.random_pairs,
+            epochs=args.epochs, patience=args.patience, backbone=args.backbone,
+            image_size=args.image_size, crops=args.crops, chessboard_crops=args.chessboard_crops,
+            geometric_max=args.geometric_max, seeds=args.seeds, random_seeds=args.random_seeds,
+            workers=args.workers, run_budget_s=args.run_budget)
+    except ValueError as error:
+        parser.error(str(error))
+    if gpu_sized(args.config) and not args.allow_cpu and not has_accelerator():
+        parser.error(cpu_cost(args.config, args.seed))
+    out, data_dir, runs_dir = default_folders(args.config["preset"])
+    args.out = args.out or out
+    args.data_dir = args.data_dir or data_dir
+    args.runs_dir = args.runs_dir or runs_dir
+    if args.discussion is None:
+        args.discussion = os.path.join(args.out, "discussion.md")
+    for name in REAL_ROOTS:
+        root = getattr(args, name)
+        if root is not None and not os.path.isdir(root):
+            parser.error(f"--{name.replace('_', '-')}: dataset root not found: {root}")
+    return args
+
+
+def run(args, command, prog=PROG):
+    """Run the reproduction (or the rebuild) for resolved ``args``; the exit status."""
+    from cpl_keras.data.storage import DatasetError
+
+    try:
+        if args.from_predictions is not None:
+            report = rebuild(args.out, rebuild_command(args.out), args.discussion)
+        else:
+            with cli.interruptible():
+                report = reproduce(
+                    out_dir=args.out, data_dir=args.data_dir, runs_dir=args.runs_dir,
+                    config=args.config, seed=args.seed, command=command,
+                    discussion_file=args.discussion,
+                    real_roots={name: getattr(args, name) for name in REAL_ROOTS},
+                    jobs=args.jobs or 1)
+    except KeyboardInterrupt:  # every stage is resumable: the same command goes on
+        return cli.interrupted(prog, resume=command)
+    except (ValueError, DatasetError, OSError) as error:  # EvaluationError is a ValueError
+        return cli.fail(prog, error)
+    print(f"report written to {report}")
+    return 0
+
+
+def main(argv=None):
+    parser = cli.Parser(prog=PROG, description=__doc__.split("\n")[0])
+    parser.add_argument("--out", help="output directory (default: paper_results/; with "
+                        "--quick: runs/quick/paper_results; with --preset P: "
+                        "paper_results/P)")
+    parser.add_argument("--geometric-max", type=cli.positive_int,
+                        help="run the Geometric baseline on the first N evaluation pairs only")
+    add_arguments(parser)
+    args = resolve_args(parser, parser.parse_args(argv))
+    return run(args, cli.command_line(PROG, argv), PROG)
+
+
+if __name__ == "__main__":
+    sys.exit(main())
+

@@ -1,0 +1,189 @@
+"""Stage 2 of the reproduction: training every run of the settings, one at
+a time or several in processes of their own, each published the moment it
+ends (and restored from its published record on another machine)."""
+
+from __future__ import annotations
+
+import os
+import sys
+import time
+
+from cpl_keras import cli, runs
+from cpl_keras.reproduce.presets import PROG, log, run_jobs
+
+# ---------------------------------------------------------------------------
+# Stage 2: training
+# ---------------------------------------------------------------------------
+def train_all(config, paths, runs_dir, seed, jobs=1, out_dir=None):
+    """Stage 2: every run; returns ``{table key: {seed: [run dirs]}}``.
+    ``jobs`` > 1 trains that many runs at a time, each in its own process
+    (``train_parallel``); the runs are the same either way.
+
+    With ``out_dir``, each run is published the moment it ends
+    (``publish_run``: its stored predictions, log, curves, config and split
+    in ``out_dir/runs/<key>_<name>/``, no weights), and a run whose
+    published record is there but whose run directory is not (another
+    machine, a later session) is restored from it instead of trained again.
+    """
+    from cpl_keras import training
+
+    trained, pending = {}, []
+    for key, protocol, split, run_seed, variant, released, name in run_jobs(config, seed):
+        run_dir = os.path.join(runs_dir, key, name)
+        plan = dict(
+            variant=variant, run_dir=run_dir, epochs=config["epochs"],
+            batch_size=config["batch_size"], backbone=config["backbone"], split=split,
+            as_released=released, seed=run_seed, patience=config["patience"],
+            time_budget_s=config.get("run_budget_s"),
+        )
+        record = published_record(out_dir, key, name) if out_dir else None
+        finished = (runs.read_config(run_dir) or {}).get("status") == "finished"
+        if not finished and record and runs.is_published(record) and \
+                not (os.path.isdir(run_dir) and os.listdir(run_dir)):
+            runs.restore_run_dir(record, run_dir, paths[protocol])
+            log(f"{key}/{name}: restored from its published record {record} (no weights)")
+            finished = True
+        # Refuses (TrainingError) a run directory that holds a run of other
+        # settings, so a run made at another scale is never reused.
+        training.plan_run(paths[protocol], **plan)
+        trained.setdefault(key, {}).setdefault(run_seed, []).append(run_dir)
+        if finished:
+            log(f"{key}/{name}: finished run found, reused")
+            if record and not runs.is_published(record):
+                publish_run(run_dir, record, _real_paths(key, paths))
+            continue
+        pending.append((f"{key}/{name}", paths[protocol], plan,
+                        (record, _real_paths(key, paths)) if record else None))
+    if jobs > 1 and len(pending) > 1:
+        train_parallel(pending, jobs, config["backbone"], config["epochs"])
+        return trained
+    for label, data, plan, publish in pending:
+        log(f"training {label} ({config['backbone']}, up to {config['epochs']} epochs)")
+        summary = training.train(data, verbose=2, **plan)
+        log(training.summary_line(summary))
+        if summary["best_epoch"] is None:
+            raise training.TrainingError(f"{plan['run_dir']}: no epoch completed "
+                                         f"({summary['stopped']})")
+        if publish:
+            publish_run(plan["run_dir"], *publish)
+    return trained
+
+
+def published_record(out_dir, key, name):
+    """Where run ``name`` of table ``key`` is published: ``out_dir/runs/<key>_<name>``."""
+    return os.path.join(out_dir, "runs", f"{key}_{name}")
+
+
+def _real_paths(key, paths):
+    """The real sets a run of table ``key`` is evaluated on (Table 2: the cvgl runs)."""
+    return list(paths.get("real") or []) if key == "cvgl" else []
+
+
+def publish_run(run_dir, record, real_paths):
+    """Publish a finished run at once: its outputs on its test split and on
+    ``real_paths`` stored in the run directory (``evaluation.store_predictions``),
+    then its published part copied to ``record`` (``runs.publish_run_dir``)
+    and its log and curves beside it (``runs.publish_files``)."""
+    from cpl_keras import evaluation
+
+    evaluation.store_predictions(run_dir, real_paths)
+    runs.publish_run_dir(run_dir, record)
+    runs.publish_files(run_dir, os.path.dirname(record), os.path.basename(record))
+    log(f"published {record}")
+
+
+#: Variants whose training step costs many MTL steps (Deep-Homo: 15-18x a
+#: small_resnet step, bench/bench_variants.py); ``train_parallel`` starts them
+#: first, so that the short runs fill the other process meanwhile.
+SLOW_VARIANTS = ("deep-homo",)
+
+
+def _exit_with_parent(parent, every=2.0):
+    """End this process (status 143, as by SIGTERM) once ``parent`` is gone:
+    a reproduction killed outright leaves no training behind."""
+    import threading
+
+    def watch():
+        while os.getppid() == parent:
+            time.sleep(every)
+        os._exit(143)
+
+    threading.Thread(target=watch, daemon=True, name="exit-with-parent").start()
+
+
+def _train_job(data, plan, parent):
+    """A training run in a process of its own (``train_parallel``): quiet; the
+    exit status says how it ended (0 trained, 1 no epoch completed, 2 an
+    error, printed on one line, 130 interrupted, 143 its parent gone; a
+    killed run resumes from its last completed epoch)."""
+    from cpl_keras import training
+    from cpl_keras.cache import enable_compile_cache
+    from cpl_keras.data.storage import DatasetError
+
+    _exit_with_parent(parent)
+    enable_compile_cache()
+    try:
+        with cli.interruptible():
+            summary = training.train(data, verbose=0, **plan)
+    except KeyboardInterrupt:  # the last completed epoch is checkpointed
+        sys.exit(130)
+    except (training.TrainingError, DatasetError, OSError) as error:
+        print(f"{PROG}: error: {plan['run_dir']}: {error}", file=sys.stderr)
+        sys.exit(2)
+    log(training.summary_line(summary))
+    sys.exit(0 if summary["best_epoch"] is not None else 1)
+
+
+def train_parallel(pending, jobs, backbone, epochs):
+    """Train ``pending`` runs (``(label, data, plan[, publish])``: ``publish``
+    is None or ``publish_run``'s record and real sets, used when the run
+    ends) ``jobs`` at a time,
+    each in a fresh process (spawned: JAX does not survive a fork); the slow
+    variants first. Ctrl-C (or SIGINT to this process) interrupts every
+    running run, which resumes from its last epoch next time; a run that
+    fails stops the others and raises ``TrainingError``."""
+    import multiprocessing
+    import multiprocessing.connection
+    import signal
+
+    from cpl_keras import training
+
+    context = multiprocessing.get_context("spawn")
+    pending = [tuple(job) + (None,) * (4 - len(job)) for job in pending]
+    queue = sorted(pending, key=lambda job: job[2]["variant"] not in SLOW_VARIANTS)
+    running = {}
+    failure = None
+    try:
+        while (queue and failure is None) or running:
+            while queue and failure is None and len(running) < jobs:
+                label, data, plan, publish = queue.pop(0)
+                log(f"training {label} ({backbone}, up to {epochs} epochs; "
+                     f"{jobs} runs at a time)")
+                process = context.Process(target=_train_job, args=(data, plan, os.getpid()),
+                                          name=label)
+                process.start()
+                running[process.sentinel] = (label, plan, process, publish)
+            ready = multiprocessing.connection.wait(list(running), timeout=5)
+            for sentinel in ready:
+                label, plan, process, publish = running.pop(sentinel)
+                process.join()
+                if process.exitcode == 0 and publish:
+                    publish_run(plan["run_dir"], *publish)
+                if process.exitcode != 0 and failure is None:
+                    failure = (f"{plan['run_dir']}: training ended with exit status "
+                               f"{process.exitcode}")
+                    for _, _, other, _ in running.values():
+                        other.terminate()  # SIGTERM: resumes from its last epoch
+    except KeyboardInterrupt:
+        for _, _, process, _ in running.values():
+            if process.is_alive():
+                os.kill(process.pid, signal.SIGINT)
+        for _, _, process, _ in running.values():
+            process.join(timeout=60)
+            if process.is_alive():
+                process.terminate()
+        raise
+    if failure is not None:
+        raise training.TrainingError(failure)
+
+

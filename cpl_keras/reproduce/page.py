@@ -1,0 +1,203 @@
+"""Stage 5 of the reproduction: its page, REPORT.md, written from
+``reproduce.json`` and the tables (and again by a rebuild)."""
+
+from __future__ import annotations
+
+import os
+
+from cpl_keras import runs
+from cpl_keras.reproduce.presets import (
+    DEFAULT_TABLES, RELEASED_RUN, TABLE1, TITLES, run_stems,
+)
+
+# ---------------------------------------------------------------------------
+# Stage 5: REPORT.md (from reproduce.json and the tables)
+# ---------------------------------------------------------------------------
+def _stem_row(stem):
+    """The table row of a run name stem (``cpl-a-released``: MTL-CPL-A (as released))."""
+    from cpl_keras.models.variants import VARIANT_ROWS
+    from cpl_keras.runs import RELEASED
+
+    if stem == RELEASED_RUN:
+        return VARIANT_ROWS["cpl-a"] + RELEASED
+    return VARIANT_ROWS.get(stem, stem)
+
+
+def _budget_text(config):
+    budget = config.get("run_budget_s")
+    return "" if budget is None else (f", or at a budget of {budget:g} s of training per run "
+                                      f"(whichever ends it first)")
+
+
+def scale_text(config):
+    preset = config.get("preset")
+    if config.get("quick"):
+        scale = "quick (tiny settings, a smoke test of the pipeline)"
+    elif preset:
+        scale = f"preset `{preset}`, as set below"
+    else:
+        scale = "as set below"
+    counts = {TABLE1[t][2]: config[TABLE1[t][2]] for t in config.get("tables", DEFAULT_TABLES)}
+    if tuple(config.get("tables", DEFAULT_TABLES)) != DEFAULT_TABLES:
+        seeds = (f" Seeds per table: {', '.join(f'{t} {config[TABLE1[t][2]]}' for t in config['tables'])} "
+                 f"(each seed its own initial weights and, on the paper split, its own split; "
+                 f"a table over several seeds gives mean ± spread)."
+                 if max(counts.values()) > 1 else "")
+    else:
+        seeds = (f" Seeds per protocol: cvgl {config['seeds']}, random {config['random_seeds']} "
+                 f"(each seed its own split and initial weights; a table over several seeds "
+                 f"gives mean ± spread)." if max(config["seeds"], config["random_seeds"]) > 1
+                 else "")
+    seeded = config.get("seeded_variants")
+    if seeds and seeded is not None:
+        once = [stem for stem in run_stems(config) if stem not in seeded]
+        if once:
+            seeds += (f" Trained on every seed: {', '.join(_stem_row(s) for s in seeded)}; "
+                      f"on the first seed only: {', '.join(_stem_row(s) for s in once)} (their "
+                      f"rows are one run's values, without spread).")
+    return (f"Scale: {scale}. Backbone `{config['backbone']}`, {config['image_size']}x"
+            f"{config['image_size']} images, batch {config['batch_size']}, Adam (lr 1e-3, "
+            f"Deep-Homo 1.5e-3), up to {config['epochs']} epochs with early stopping "
+            f"(patience {config['patience']}, best weights restored){_budget_text(config)}."
+            f"{seeds} The paper trained "
+            f"up to 200 epochs on 123,017 pairs from ImageNet weights; here the towers start "
+            f"from random weights (none can be downloaded).")
+
+
+#: The parameters of the learning-curve figures (validation MAE per epoch).
+CURVE_PARAMETERS = ("fx", "baseline", "disparity", "pitch")
+
+
+def plot_protocol_curves(out_dir, runs_list):
+    """``curves_<protocol>.png`` in ``out_dir``: the validation MAE of
+    ``CURVE_PARAMETERS`` per epoch, every run of the protocol, from the
+    published logs (``runs/<name>_log.csv``; so a rebuild draws them alike).
+    Returns ``[(protocol, file name)]``."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from cpl_keras.learning_curves import _val_mae
+
+    figures = []
+    for protocol in dict.fromkeys(s["protocol"] for s in runs_list):
+        logged = []
+        for s in runs_list:
+            path = os.path.join(out_dir, "runs", f"{s['name']}_log.csv")
+            if s["protocol"] == protocol and os.path.isfile(path):
+                logged.append((s, runs.read_log(path)))
+        if not logged:
+            continue
+        stems = list(dict.fromkeys(_run_stem(s) for s, _ in logged))
+        seeds = sorted({s.get("seed") or 0 for s, _ in logged})
+        fig, axes = plt.subplots(1, len(CURVE_PARAMETERS), figsize=(16, 4.2))
+        for ax, parameter in zip(axes, CURVE_PARAMETERS):
+            for s, rows in logged:
+                epochs = [row["epoch"] for row in rows]
+                values = [_val_mae(row, parameter) for row in rows]
+                colour = plt.cm.tab10(stems.index(_run_stem(s)) % 10)
+                style = ("-", "--", ":", "-.")[seeds.index(s.get("seed") or 0) % 4]
+                label = _stem_row(_run_stem(s)) + (f", seed {s['seed']}" if len(seeds) > 1
+                                                    else "")
+                ax.plot(epochs, values, style, color=colour, linewidth=1.2, label=label)
+                best = s.get("best_epoch")
+                if best and best <= len(values):
+                    ax.plot([best], [values[best - 1]], "o", color=colour, markersize=3.5)
+            ax.set_yscale("log")
+            ax.set_title(f"validation MAE of {parameter}", fontsize=10)
+            ax.set_xlabel("epoch")
+            ax.grid(True, alpha=0.3)
+        axes[0].legend(fontsize=6.5)
+        fig.suptitle(TITLES.get(f"table1_{protocol}", protocol), fontsize=10)
+        fig.tight_layout()
+        name = f"curves_{protocol}.png"
+        runs.save_figure(fig, os.path.join(out_dir, name), dpi=80)
+        figures.append((protocol, name))
+    return figures
+
+
+def _run_name(run_summary):
+    """The run's name without its table key (``cvgl_drive_cpl-u-s1``: ``cpl-u-s1``)."""
+    name, key = run_summary["name"], run_summary["protocol"]
+    return name[len(key) + 1:] if name.startswith(key + "_") else name.split("_", 1)[1]
+
+
+def _run_stem(run_summary):
+    """The name stem of a run's summary (``cvgl_cpl-u-s1``: ``cpl-u``)."""
+    name = _run_name(run_summary)
+    seed = run_summary.get("seed")
+    return name[: -len(f"-s{seed}")] if seed is not None and name.endswith(f"-s{seed}") \
+        else name
+
+
+def write_report(out_dir, summary, tables, rebuilt_by=None):
+    """Stage 5: REPORT.md from the reproduction's summary (``reproduce.json``)
+    and its tables; ``rebuilt_by``: the command that rebuilt them from the
+    published predictions."""
+    from cpl_keras import report
+    from cpl_keras.real import table2
+
+    config, info = summary["settings"], summary["machine"]
+    lines = ["# Reproducing Tables 1 and 2", ""]
+    lines += ["Everything on this page was produced by one command:", "", "```",
+              summary["command"], "```", ""]
+    if rebuilt_by:
+        lines += ["The tables and this page were rebuilt from the published predictions "
+                  "(`runs/*_predictions.npz`), without weights or datasets, by:", "", "```",
+                  rebuilt_by, "```", ""]
+    runs_list = summary["runs"]
+    lines += [scale_text(config), "",
+              f"Machine: {info['platform']}, Python {info['python']}, {info['cpus']} CPUs, "
+              f"Keras {info['keras']}, JAX {info['jax']}, devices {', '.join(info['devices'])}. "
+              f"Training wall time, summed over the runs: "
+              f"{sum(s['wall_time_s'] or 0 for s in runs_list) / 60:.1f} min; this invocation "
+              f"(stages not reused from earlier ones): {info['wall_time_s'] / 60:.1f} min.", "",
+              "## Data", ""]
+    lines += [f"- {kind}: {line}" for kind, line in summary["datasets"].items()]
+    lines += ["", "## Training runs", "",
+              "| protocol | run | split | seed | epochs run | best epoch | best val loss | "
+              "wall time (min) | stopped |",
+              "|---|---|---|---|---|---|---|---|---|"]
+    for s in runs_list:
+        stopped = s["stopped"] or (f"epoch cap ({config['epochs']})"
+                                   if s["epochs_run"] == config["epochs"] else "")
+        wall = "" if s["wall_time_s"] is None else f"{s['wall_time_s'] / 60:.1f}"
+        loss = "" if s["best_val_loss"] is None else f"{s['best_val_loss']:.4g}"
+        lines.append(f"| {s['protocol']} | {_run_name(s)} | {s['split']} | "
+                     f"{s.get('seed', '')} | {s['epochs_run']} | {s['best_epoch']} | {loss} | "
+                     f"{wall} | {stopped} |")
+    lines += ["", "Training curves, per-epoch logs and each table row's published predictions "
+              "(`*_predictions.npz`): [`runs/`](runs/).", ""]
+    figures = plot_protocol_curves(out_dir, runs_list)
+    if figures:
+        lines += ["## Learning curves", "",
+                  "Validation MAE per epoch of every run (from the published logs; one "
+                  "colour per table row, one line style per seed; a dot marks the kept "
+                  "epoch).", ""]
+        lines += [f"![Learning curves, {protocol}]({name})" for protocol, name in figures]
+        lines += [""]
+    for stem, table in tables.items():
+        render = table2.markdown if "rigs" in table else report.markdown
+        body = render(table).split("\n")[1:]
+        body = ["#" + line if line.startswith("#") else line for line in body]
+        lines += [f"## {TITLES.get(stem, stem)}", ""] + body
+        plots = [f"![FOV-threshold curves, {stem}]({stem}_fov.png)"]
+        if "rigs" in table:
+            plots.append(f"![Predicted against true field of view per rig, {stem}]"
+                         f"({stem}_fov_scatter.png)")
+        lines += plots + ["", f"Files: [`{stem}.md`]({stem}.md), [`{stem}.csv`]({stem}.csv), "
+                              f"[`{stem}.json`]({stem}.json).", ""]
+        differences = report.differences_beyond_spread(table)
+        if differences:
+            lines += ["### Differences beyond the spread" + (" (pooled)" if "rigs" in table
+                                                            else ""), "",
+                      "NMAE = MAE / mean(|y|) of the rows trained on several seeds: `<` where "
+                      "the first row's mean is lower by more than the two spreads added, "
+                      "`>` where the second's is, `=` where the difference is within them.",
+                      ""] + differences + [""]
+    if summary.get("discussion"):
+        lines += ["## Comparison with the paper", "", summary["discussion"].strip(), ""]
+    runs.write_text(os.path.join(out_dir, "REPORT.md"), "\n".join(lines) + "\n")
+
+

@@ -1,0 +1,285 @@
+"""The reproduction's pipeline: datasets, runs (``jobs``), published
+predictions, tables, REPORT.md (``page``); and the rebuild of the tables
+and REPORT.md from the published predictions alone."""
+
+from __future__ import annotations
+
+import json
+import os
+import platform
+import time
+
+from cpl_keras import cli, runs
+from cpl_keras.reproduce.jobs import train_all
+from cpl_keras.reproduce.page import write_report
+from cpl_keras.reproduce.presets import DEFAULT_TABLES, PROG, REAL_ROOTS, TABLE1, log
+
+# ---------------------------------------------------------------------------
+# Stage 1: data
+# ---------------------------------------------------------------------------
+def real_set_folder(config, data_dir, seed):
+    """Where the real sets of these settings go (one file per rig)."""
+    return os.path.join(data_dir, f"real_{config['image_size']}px_mb{config['crops']}_"
+                                  f"cb{config['chessboard_crops']}_s{seed}")
+
+
+def make_datasets(config, data_dir, seed, real_roots=None):
+    """Stage 1: the synthetic datasets and every real set (reused when
+    present); ``{"cvgl": path, "random": path, "real": [paths]}``."""
+    from cpl_keras.data.generate import GENERATOR_VERSION, generate_dataset
+    from cpl_keras.real import build
+
+    size = config["image_size"]
+    paths = {}
+    needed = {TABLE1[t][0] for t in config.get("tables", DEFAULT_TABLES)}
+    for protocol, pairs in (("cvgl", config["pairs"]), ("random", config["random_pairs"])):
+        if protocol not in needed:
+            continue
+        # the format version in the name: a file of an older generator is
+        # never reused (it would be refused), a new one is made beside it
+        path = os.path.join(data_dir, f"{protocol}_{pairs}_{size}px_s{seed}_v{GENERATOR_VERSION}.h5")
+        if not os.path.exists(path):
+            log(f"generating {pairs} {protocol} pairs at {size}px -> {path}")
+            generate_dataset(path, protocol=protocol, pairs=pairs, seed=seed, image_size=size,
+                             workers=config["workers"], progress=True)
+        paths[protocol] = path
+    # every real rig, through the one builder of ``python -m cpl_keras.real.build all``
+    args = build.parse_args(["all", "--out-dir", real_set_folder(config, data_dir, seed),
+                             "--image-size", str(size), "--seed", str(seed)])
+    for name in REAL_ROOTS:
+        setattr(args, name, (real_roots or {}).get(name))
+    paths["real"] = build.build_all(
+        args, report=log, stems=config["real_sets"],
+        crops={"middlebury": config["crops"], "chessboard": config["chessboard_crops"],
+               "oakd": config["chessboard_crops"]})
+    return paths
+
+
+# ---------------------------------------------------------------------------
+# Stage 3: published predictions
+# ---------------------------------------------------------------------------
+def _group_predictions(number, stem, prefix, run_dirs, data, config, out_dir, suffix):
+    """The predictions files of one table of one seed: reused when they were
+    made from the same runs, data and settings after the runs' models were
+    written, else computed and written (all files or none)."""
+    from cpl_keras import evaluation, predictions
+
+    folder = os.path.join(out_dir, "runs")
+    key = json.dumps({"table": stem, "runs": [runs.relative(r, out_dir) for r in run_dirs],
+                      "data": [runs.relative(p, out_dir) for p in data] if data else None,
+                      "geometric_max": config["geometric_max"],
+                      "format": predictions.FORMAT_VERSION}, sort_keys=True)
+    rows = ["Average", "Average (release bug)"] + list(run_dirs) + ["Geometric"]
+    stems = [None] if number == 1 else [os.path.splitext(os.path.basename(p))[0] for p in data]
+    names = [predictions.file_name(prefix, predictions.row_slug(r, {"source": r}, suffix), s)
+             for s in stems for r in rows]
+    expected = [os.path.join(folder, name) for name in names]
+    models = [os.path.join(r, runs.MODEL) for r in run_dirs]
+    if all(os.path.exists(p) for p in expected + models) and \
+            all(predictions.read_key(p) == key for p in expected) and \
+            min(os.path.getmtime(p) for p in expected) >= max(os.path.getmtime(m) for m in models):
+        log(f"{stem} ({', '.join(os.path.basename(r) for r in run_dirs)}): published "
+             f"predictions up to date with their runs, reused")
+        return expected
+    log(f"evaluating {stem}: {', '.join(os.path.basename(r) for r in run_dirs)}")
+    if number == 1:
+        context, raw = evaluation.table_rows(1, run_dirs, geometric=True,
+                                             geometric_max=config["geometric_max"], progress=log)
+        files = predictions.table1_files(context, raw, out_dir=out_dir, prefix=prefix, stem=stem,
+                                         key=key, suffix=suffix)
+    else:
+        from cpl_keras.real import table2
+
+        run_list, rigs = table2.table2_rigs(run_dirs, data, geometric=True,
+                                            geometric_max=config["geometric_max"], progress=log)
+        files = predictions.table2_files(run_list, rigs, out_dir=out_dir, prefix=prefix,
+                                         stem=stem, key=key, suffix=suffix)
+    if sorted(files) != sorted(names):
+        raise evaluation.EvaluationError(f"{stem}: predictions files {sorted(files)} are not "
+                                         f"the expected {sorted(names)}")
+    return predictions.write_files(folder, {name: files[name] for name in names})
+
+
+def make_predictions(config, paths, trained, out_dir):
+    """Stage 3: the predictions of every row of every table, for every seed;
+    returns their paths (Table 1 per table key, then Table 2)."""
+    groups = []
+    for key, by_seed in trained.items():
+        for run_seed, run_dirs in by_seed.items():
+            groups.append((1, f"table1_{key}", key, run_dirs, None,
+                           f"-s{run_seed}" if len(by_seed) > 1 else ""))
+    cvgl = trained.get("cvgl", {})
+    for run_seed, run_dirs in cvgl.items():
+        groups.append((2, "table2", "cvgl", run_dirs, paths["real"],
+                       f"-s{run_seed}" if len(cvgl) > 1 else ""))
+    files = []
+    for number, stem, prefix, run_dirs, data, suffix in groups:
+        files += _group_predictions(number, stem, prefix, run_dirs, data, config, out_dir, suffix)
+    return files
+
+
+# ---------------------------------------------------------------------------
+# Stage 4: tables (from the published predictions alone)
+# ---------------------------------------------------------------------------
+def make_tables(prediction_files, out_dir, command):
+    """Every table from the predictions files; each written as Markdown, CSV,
+    JSON and plots into ``out_dir``. Returns ``{stem: table}``."""
+    from cpl_keras import predictions, report
+    from cpl_keras.real import table2
+
+    tables = predictions.tables_from_files(prediction_files)
+    for stem, table in tables.items():
+        if "rigs" in table:
+            table2.write_table2(out_dir, stem, table, command)
+        else:
+            report.write_outputs(out_dir, stem, table, command)
+    return tables
+
+
+def collect_run_files(trained, out_dir):
+    """Copy each run's training log and curves into ``out_dir/runs``; the
+    runs' summaries (run directories relative to ``out_dir``)."""
+    target = os.path.join(out_dir, "runs")
+    os.makedirs(target, exist_ok=True)
+    summaries = []
+    for protocol, by_seed in trained.items():
+        for run_dirs in by_seed.values():
+            for run_dir in run_dirs:
+                name = f"{protocol}_{os.path.basename(run_dir)}"
+                runs.publish_files(run_dir, target, name)
+                run_config = runs.read_config(run_dir, {})
+                summaries.append({"protocol": protocol, "name": name,
+                                  "run_dir": runs.relative(run_dir, out_dir),
+                                  "as_released": runs.config_as_released(run_config),
+                                  **{k: run_config.get(k) for k in (
+                                      "variant", "split", "seed", "epochs", "epochs_run",
+                                      "best_epoch", "best_val_loss", "wall_time_s", "stopped")}})
+    return summaries
+
+
+def machine():
+    import jax
+    import keras
+
+    return {"platform": platform.platform(), "python": platform.python_version(),
+            "cpus": os.cpu_count(), "keras": keras.__version__, "jax": jax.__version__,
+            "devices": [str(d) for d in jax.devices()]}
+
+
+def _dataset_line(path):
+    from cpl_keras.data.storage import StereoFile
+
+    with StereoFile(path) as f:
+        meta = f.metadata
+        configs = len(set(f.labels["config_id"].tolist())) if "config_id" in f.labels else "n/a"
+        return (f"`{os.path.basename(path)}`: {f.num_pairs} pairs, "
+                f"{f.image_shape[1]}x{f.image_shape[0]} px, {configs} configurations, "
+                f"source {meta.get('source', meta.get('protocol'))}, seed {meta.get('seed')}")
+
+
+def dataset_lines(paths):
+    """``{kind: line}`` describing every dataset (real sets: ``real``, one per file)."""
+    lines = {k: _dataset_line(paths[k]) for k in ("cvgl", "random") if k in paths}
+    for path in paths["real"]:
+        lines[f"real ({os.path.splitext(os.path.basename(path))[0]})"] = _dataset_line(path)
+    return lines
+
+
+def reproduce(*, out_dir, data_dir, runs_dir, config, seed=0, command="", discussion_file=None,
+              real_roots=None, jobs=1):
+    """Run the whole pipeline; returns the path of REPORT.md. ``jobs``:
+    training runs at a time (``train_all``)."""
+    for directory in (out_dir, data_dir, runs_dir):
+        os.makedirs(directory, exist_ok=True)
+    start = time.time()
+    from cpl_keras.cache import enable_compile_cache
+
+    enable_compile_cache()
+    paths = make_datasets(config, data_dir, seed, real_roots)
+    trained = train_all(config, paths, runs_dir, seed, jobs, out_dir=out_dir)
+    files = make_predictions(config, paths, trained, out_dir)
+    tables = make_tables(files, out_dir, command)
+    summaries = collect_run_files(trained, out_dir)
+    info = dict(machine(), wall_time_s=time.time() - start)
+    discussion = None
+    if discussion_file and os.path.exists(discussion_file):
+        with open(discussion_file) as f:
+            discussion = f.read()
+    roots = {k: runs.relative(v, out_dir) for k, v in (real_roots or {}).items() if v}
+    summary = {
+        "command": command, "settings": dict(config, variants=list(config["variants"])),
+        "seed": seed, "real_roots": roots,
+        "data": dict({k: runs.relative(paths[k], out_dir) for k in ("cvgl", "random")
+                      if k in paths},
+                     real=[runs.relative(p, out_dir) for p in paths["real"]]),
+        "datasets": dataset_lines(paths), "runs": summaries, "machine": info,
+        "predictions": [runs.relative(p, out_dir) for p in files], "tables": list(tables),
+        "discussion": discussion}
+    runs.write_json(os.path.join(out_dir, SUMMARY), summary)
+    write_report(out_dir, summary, tables)
+    return os.path.join(out_dir, "REPORT.md")
+
+
+# ---------------------------------------------------------------------------
+# Rebuilding the tables and REPORT.md from the published predictions
+# ---------------------------------------------------------------------------
+#: The reproduction's summary, beside REPORT.md.
+SUMMARY = "reproduce.json"
+#: The keys of the summary a rebuild needs.
+SUMMARY_KEYS = ("command", "settings", "datasets", "runs", "machine", "predictions", "tables")
+
+
+def read_summary(out_dir):
+    """``out_dir/reproduce.json``, checked; ValueError (one line) otherwise."""
+    path = os.path.join(out_dir, SUMMARY)
+    if not os.path.isdir(out_dir):
+        raise ValueError(f"not a folder: {out_dir}")
+    try:
+        summary = runs.read_json(path)
+    except (OSError, ValueError) as error:
+        raise ValueError(f"cannot read {path}: {cli.one_line(error)}") from None
+    if summary is None:
+        raise ValueError(f"{path} not found: not the output folder of a reproduction")
+    missing = [k for k in SUMMARY_KEYS if not isinstance(summary, dict) or k not in summary]
+    if missing:
+        raise ValueError(f"{path} has no {', '.join(missing)} (written before predictions "
+                         f"were published? run the reproduction again)")
+    return summary
+
+
+def rebuild_command(out_dir):
+    """The command REPORT.md names as its rebuild: the same whichever way it
+    was spelt (``evaluate.py --reproduce``, with ``--discussion``: that text
+    is then in ``reproduce.json``), so that rebuilding a committed folder in
+    place changes no byte of it."""
+    path = os.path.relpath(out_dir)
+    if path.startswith(os.pardir):
+        path = os.path.abspath(out_dir)
+    return f"{PROG} --from-predictions {path}"
+
+
+def rebuild(out_dir, command="", discussion_file=None):
+    """Every table and REPORT.md of the reproduction in ``out_dir`` again, from
+    its published predictions and ``reproduce.json`` alone (no weights, no
+    datasets). Every file is read and checked before anything is written.
+    ``discussion_file``: a new comparison with the paper (Markdown), stored
+    in ``reproduce.json`` in place of the old one (written after the tables
+    were seen). Returns the path of REPORT.md."""
+    from cpl_keras import predictions
+
+    summary = read_summary(out_dir)
+    if discussion_file is not None:
+        with open(discussion_file) as f:
+            summary["discussion"] = f.read()
+    files = [os.path.join(out_dir, p) for p in summary["predictions"]]
+    tables = predictions.tables_from_files(files)
+    if list(tables) != list(summary["tables"]):
+        raise predictions.PredictionsError(
+            f"the predictions make tables {list(tables)}, {SUMMARY} lists {summary['tables']}")
+    make_tables(files, out_dir, summary["command"])
+    if discussion_file is not None:
+        runs.write_json(os.path.join(out_dir, SUMMARY), summary)
+    write_report(out_dir, summary, tables, rebuilt_by=command)
+    return os.path.join(out_dir, "REPORT.md")
+
+

@@ -1,0 +1,257 @@
+"""The reproduction's settings: the named presets (``PRESETS``), the Table 1
+versions (``TABLE1``), the runs a setting trains (``run_jobs``), and what a
+machine without a GPU is told about GPU-sized settings."""
+
+from __future__ import annotations
+
+import math
+import os
+import sys
+
+from cpl_keras.models import variants as registry
+from cpl_keras.models.variants import BACKBONES, MIN_IMAGE_SIZE, TABLE_ORDER
+
+PROG = "python -m cpl_keras.reproduce"
+
+#: The MTL variants (the paper's three networks with two towers).
+MTL_VARIANTS = ("cpl-u", "baseline", "cpl-a")
+
+#: The run name stem of MTL-CPL-A as released (a ``seeded_variants`` entry).
+RELEASED_RUN = "cpl-a-released"
+
+#: Named scales. ``pairs`` / ``random_pairs``: pairs of the cvgl / random
+#: datasets; ``seeds`` / ``random_seeds``: seeds per protocol (each its own
+#: split and initial weights); ``variants``: trained on each protocol;
+#: ``released``: also MTL-CPL-A as released on cvgl; ``seeded_variants``: the
+#: runs trained on every seed (variants, and ``RELEASED_RUN``; None: all of
+#: them), the others are trained once, on the first seed; ``crops``:
+#: Middlebury crops; ``chessboard_crops``: crops per chessboard pair;
+#: ``geometric_max``: pairs of each table (or real set) the Geometric
+#: baseline runs on (None: all); ``workers``: data generation processes
+#: (None: every core).
+PRESETS = {
+    # The paper's scale: CVGL's 123,017 pairs, up to 200 epochs, InceptionV3 at
+    # 112 (the scale without --preset, into paper_results/paper/).
+    "paper": {"pairs": 123017, "random_pairs": 123017, "epochs": 200, "image_size": 112,
+              "backbone": "inception_v3", "crops": 500, "chessboard_crops": 20,
+              "geometric_max": None, "batch_size": 16, "patience": 5, "seeds": 1,
+              "random_seeds": 1, "variants": TABLE_ORDER, "released": True,
+              "seeded_variants": None, "workers": None},
+    # Ten minutes of one GPU machine (the device's per-command limit): the
+    # deciding pair, MTL-CPL-A then MTL-Baseline, with the paper's towers on
+    # 20,000 cvgl pairs rendered on that machine's CPU cores; each run ends at
+    # early stopping or at its time budget, whichever comes first; Table 2
+    # from both. bench/paper_gpu.sh runs it there and packs what comes back;
+    # its --dry-run checks the same plan on a CPU at tiny scale.
+    "paper-gpu": {"pairs": 20000, "random_pairs": 20000, "epochs": 200, "image_size": 112,
+                  "backbone": "inception_v3", "crops": 500, "chessboard_crops": 20,
+                  "geometric_max": 200, "batch_size": 16, "patience": 5, "seeds": 1,
+                  "random_seeds": 1, "variants": ("cpl-a", "baseline"), "released": False,
+                  "seeded_variants": None, "workers": None, "tables": ("cvgl",),
+                  "run_budget_s": 150},
+    # Sized for a 2-core CPU: 1 h 24 min measured with --jobs 2 (docs/evaluation.md):
+    # every row of the tables, the MTL variants on cvgl over 3 seeds, Deep-Homo
+    # and MTL-CPL-A as released on the first seed only; 1,000 pairs per
+    # protocol, since a Deep-Homo training step costs 15-18 small_resnet ones.
+    "cpu": {"pairs": 1000, "random_pairs": 1000, "epochs": 60, "image_size": 112,
+            "backbone": "small_resnet", "crops": 500, "chessboard_crops": 20,
+            "geometric_max": 200, "batch_size": 16, "patience": 5, "seeds": 3,
+            "random_seeds": 1, "variants": TABLE_ORDER, "released": True,
+            "seeded_variants": MTL_VARIANTS, "workers": None,
+            "real_sets": ("chessboard", "middlebury")},
+    # Tiny settings that run the paper-gpu pipeline end to end in minutes (CI).
+    "quick": {"pairs": 150, "random_pairs": 150, "epochs": 1, "image_size": 32,
+              "backbone": "small", "crops": 24, "chessboard_crops": 1, "geometric_max": 20,
+              "batch_size": 16, "patience": 5, "seeds": 1, "random_seeds": 1,
+              "variants": TABLE_ORDER, "released": True, "seeded_variants": None,
+              "workers": None},
+    # Does MTL-CPL-A beat MTL-Baseline? The three MTL variants on 8,000 cvgl
+    # pairs, 3 seeds each, on the paper's frame-level split and on the drive
+    # split (no test frame next to a training frame), every run to early
+    # stopping; Table 2 from the paper-split runs. Many hours on 2 cores:
+    # each finished run is published at once and a rerun skips it
+    # (docs/evaluation.md#presets). The runs of a seed train in the order
+    # CPL-A, Baseline, CPL-U, so the comparison that decides comes first.
+    "cpu-8000": {"pairs": 8000, "random_pairs": 1000, "epochs": 100, "image_size": 112,
+                 "backbone": "small_resnet", "crops": 500, "chessboard_crops": 20,
+                 "geometric_max": None, "batch_size": 16, "patience": 5, "seeds": 3,
+                 "random_seeds": 1, "variants": ("cpl-a", "baseline", "cpl-u"),
+                 "released": False, "seeded_variants": None, "workers": None,
+                 "tables": ("cvgl", "cvgl_drive"), "real_sets": ("chessboard", "middlebury")},
+}
+#: The Table 1 versions a reproduction can make, by key: (protocol, split,
+#: the setting holding its number of seeds). A preset's ``tables`` lists
+#: those it makes (default: ``DEFAULT_TABLES``); Table 2 comes from the
+#: ``cvgl`` runs.
+TABLE1 = {
+    "cvgl": ("cvgl", "paper", "seeds"),
+    "cvgl_drive": ("cvgl", "drive", "seeds"),
+    "random": ("random", "held-out-config", "random_seeds"),
+}
+DEFAULT_TABLES = ("cvgl", "random")
+#: The scale without --preset: the paper's, generating data on every core.
+PAPER_SCALE = PRESETS["paper"]
+QUICK = PRESETS["quick"]
+#: Settings that are counts: positive integers (patience may be 0).
+POSITIVE = ("pairs", "random_pairs", "epochs", "image_size", "crops", "chessboard_crops",
+            "geometric_max", "batch_size", "seeds", "random_seeds", "workers")
+#: Smallest image side of the real sets (StereoBM's block of 15 and 16 disparities).
+MIN_REAL_IMAGE_SIZE = 32
+
+#: The real sets that ship with the package, each a Table 2 rig (a preset's
+#: ``real_sets`` may name fewer: the presets whose runs are committed keep
+#: the rigs they were evaluated on, so that a rerun restores them).
+REAL_SETS = ("chessboard", "middlebury", "oakd")
+#: Real-data roots reproduce passes on to ``cpl_keras.real.build all``.
+REAL_ROOTS = ("kitti", "kitti_raw", "tsinghua", "cityscapes")
+#: The tables' titles in REPORT.md.
+TITLES = {"table1_cvgl": "Table 1, paper protocol (cvgl rigs, frame-level 70/30 split)",
+          "table1_cvgl_drive": "Table 1, paper protocol, drive split (cvgl rigs, the end of "
+                               "every rig's drive held out)",
+          "table1_random": "Table 1, unseen rigs (random protocol, whole configurations held out)",
+          "table2": "Table 2, real rigs (per rig and pooled; forward pass of the cvgl-trained "
+                    "models)"}
+
+
+def settings(quick=False, preset=None, **overrides):
+    """The run settings: a preset (``PRESETS``; default ``PAPER_SCALE``,
+    ``quick=True`` is ``preset="quick"``) with ``overrides`` applied (None:
+    keep the preset's). ValueError (one line) on a bad value."""
+    if quick and preset not in (None, "quick"):
+        raise ValueError(f"--quick is --preset quick; it cannot go with --preset {preset}")
+    name = "quick" if quick else preset
+    if name is not None and name not in PRESETS:
+        raise ValueError(f"unknown preset {name!r}; choose one of {', '.join(PRESETS)}")
+    chosen = dict(PRESETS[name] if name else PAPER_SCALE)
+    chosen.setdefault("tables", DEFAULT_TABLES)
+    chosen.setdefault("run_budget_s", None)
+    chosen.setdefault("real_sets", REAL_SETS)
+    chosen["real_sets"] = tuple(chosen["real_sets"])
+    unknown = [s for s in chosen["real_sets"] if s not in REAL_SETS]
+    if unknown:
+        raise ValueError(f"unknown real set {unknown[0]!r}; choose from {', '.join(REAL_SETS)}")
+    for key, value in overrides.items():
+        if value is None:
+            continue
+        if key not in chosen:
+            raise ValueError(f"unknown setting {key!r}")
+        chosen[key] = value
+    for key in POSITIVE + ("patience",):
+        value = chosen[key]
+        if value is None and key in ("geometric_max", "workers"):
+            continue
+        least = 0 if key == "patience" else 1
+        if isinstance(value, bool) or not isinstance(value, int) or value < least:
+            what = "non-negative" if least == 0 else "positive"
+            raise ValueError(f"{key.replace('_', '-')} must be {what}, got {value}")
+    budget = chosen["run_budget_s"]
+    if budget is not None and (isinstance(budget, bool) or not isinstance(budget, (int, float))
+                               or not math.isfinite(budget) or budget <= 0):
+        raise ValueError(f"run-budget must be a positive number of seconds, got {budget}")
+    if chosen["backbone"] not in BACKBONES:
+        raise ValueError(f"unknown backbone {chosen['backbone']!r}; choose one of "
+                         f"{', '.join(BACKBONES)}")
+    chosen["variants"] = tuple(chosen["variants"])
+    chosen["tables"] = tuple(chosen["tables"])
+    unknown = [t for t in chosen["tables"] if t not in TABLE1]
+    if unknown or not chosen["tables"]:
+        raise ValueError(f"unknown table {unknown[0] if unknown else '(none)'!r}; choose from "
+                         f"{', '.join(TABLE1)}")
+    for variant in chosen["variants"]:
+        registry.get(variant)
+    if chosen["seeded_variants"] is not None:
+        chosen["seeded_variants"] = tuple(chosen["seeded_variants"])
+        trained = run_stems(chosen)
+        for stem in chosen["seeded_variants"]:
+            if stem not in trained:
+                raise ValueError(f"seeded variant {stem!r} is not trained by these settings "
+                                 f"({', '.join(trained)})")
+    least = max([MIN_REAL_IMAGE_SIZE, MIN_IMAGE_SIZE.get(chosen["backbone"], 1)]
+                + [registry.get(v).min_image_size or 1 for v in chosen["variants"]])
+    if chosen["image_size"] < least:
+        raise ValueError(f"image-size must be at least {least} (the {chosen['backbone']} "
+                         f"backbone and the real sets), got {chosen['image_size']}")
+    chosen["preset"] = name
+    chosen["quick"] = name == "quick"
+    return chosen
+
+
+def log(message):
+    print(f"[reproduce] {message}", file=sys.stderr, flush=True)
+
+
+
+def run_stems(config, protocol="cvgl"):
+    """The runs of the settings on ``protocol``, by name stem (the variant, or
+    ``RELEASED_RUN``)."""
+    stems = list(config["variants"])
+    if protocol == "cvgl" and config["released"]:
+        stems.append(RELEASED_RUN)
+    return tuple(stems)
+
+
+def run_jobs(config, seed):
+    """Every training run of the settings: ``(table key, protocol, split, run
+    seed, variant, as released, run name)``. The runs of ``seeded_variants``
+    (None: all) are trained on every seed of a table, the others on its first
+    seed only; a table trained over several seeds names its runs
+    ``<stem>-s<seed>`` (``cpl-u-s1``, ``deep-homo-s0``, ``cpl-a-released-s0``)."""
+    seeded = config.get("seeded_variants")
+    jobs = []
+    for key in config.get("tables", DEFAULT_TABLES):
+        protocol, split, seeds_key = TABLE1[key]
+        count = config[seeds_key]
+        for run_seed in range(seed, seed + count):
+            for stem in run_stems(config, protocol):
+                if run_seed != seed and seeded is not None and stem not in seeded:
+                    continue
+                released = stem == RELEASED_RUN
+                variant = "cpl-a" if released else stem
+                name = stem + (f"-s{run_seed}" if count > 1 else "")
+                jobs.append((key, protocol, split, run_seed, variant, released, name))
+    return jobs
+
+
+#: Settings sized for a GPU: InceptionV3 towers on this many pairs or more.
+GPU_SIZED_PAIRS = 10000
+#: The faithful model's training rate on a 2-core CPU (docs/performance.md).
+CPU_SAMPLES_PER_S = 12
+
+
+def gpu_sized(config):
+    """Whether ``config`` trains InceptionV3 towers on GPU-sized data."""
+    return config["backbone"] == "inception_v3" and config["pairs"] >= GPU_SIZED_PAIRS
+
+
+def has_accelerator():
+    """Whether JAX sees a GPU or TPU (imported here, after the arguments are checked)."""
+    import jax
+
+    return jax.default_backend() != "cpu"
+
+
+def cpu_cost(config, seed=0):
+    """The one line that refuses GPU-sized settings on a CPU, with their cost."""
+    train = config["pairs"] * (1 - 0.3) * (1 - 0.1)
+    epoch_h = train / CPU_SAMPLES_PER_S / 3600
+    count = len(run_jobs(config, seed))
+    return (f"these settings are sized for a GPU ({config['pairs']:,} pairs, InceptionV3 "
+            f"towers, {count} runs) and JAX sees no GPU here: one epoch of one run would take "
+            f"about {epoch_h:.1f} h on this CPU (~{CPU_SAMPLES_PER_S} samples/s); pass "
+            f"--allow-cpu to go on, or use --preset cpu or cpu-8000")
+
+
+def default_folders(preset):
+    """``(out, data_dir, runs_dir)`` of a preset (None: the paper's scale into
+    paper_results/)."""
+    from cpl_keras.evaluation import PAPER_DIR
+
+    if preset == "quick":
+        return os.path.join("runs", "quick", "paper_results"), os.path.join("data", "quick"), \
+            os.path.join("runs", "quick")
+    if preset is None:
+        return PAPER_DIR, os.path.join("data", "reproduce"), os.path.join("runs", "reproduce")
+    return (os.path.join(PAPER_DIR, preset), os.path.join("data", f"reproduce-{preset}"),
+            os.path.join("runs", f"reproduce-{preset}"))
+
+
