@@ -137,3 +137,36 @@ def test_bad_kitti_inputs(tmp_path, capsys):
     _fails(args, capsys, "missing right image", "000000_11.png")
     assert not out.exists() and not os.path.exists(str(out) + ".partial")
     _fails(["kitti", "--out", str(out)], capsys, "--root is required")
+
+
+def test_calibration_in_a_separate_root(tmp_path, capsys):
+    """KITTI ships the calibration as an archive of its own: --kitti-calib
+    finds it unpacked elsewhere, and without it the missing file is named."""
+    root = _stereo_root(tmp_path / "images", "cam_to_cam")
+    separate = tmp_path / "calib_archive" / "training" / "calib_cam_to_cam"
+    separate.mkdir(parents=True)
+    shutil.move(str(root / "training" / "calib_cam_to_cam" / "000000.txt"), separate)
+    out = tmp_path / "k.h5"
+    assert build.main(["kitti", "--root", str(root), "--out", str(out), "--image-size",
+                       str(SIZE)]) == 2
+    assert "missing calibration file" in capsys.readouterr().err and not out.exists()
+    assert build.main(["kitti", "--root", str(root), "--out", str(out), "--image-size",
+                       str(SIZE), "--kitti-calib", str(tmp_path / "calib_archive")]) == 0
+    with StereoFile(out) as data:
+        np.testing.assert_allclose(data.labels["fx"], FX * SIZE / WIDTH, rtol=1e-6)
+
+
+def test_raw_calibration_in_a_separate_root(tmp_path):
+    """KITTI raw: the date's calib_cam_to_cam.txt found under --kitti-calib."""
+    drive = tmp_path / "raw" / "2011_09_26" / "2011_09_26_drive_0001_sync"
+    for cam in ("image_02", "image_03"):
+        (drive / cam / "data").mkdir(parents=True)
+        cv2.imwrite(str(drive / cam / "data" / "0000000000.png"), _image(cam == "image_03"))
+    (tmp_path / "calib" / "2011_09_26").mkdir(parents=True)
+    shutil.copy(CAM_TO_CAM, tmp_path / "calib" / "2011_09_26" / "calib_cam_to_cam.txt")
+    out = tmp_path / "raw.h5"
+    assert build.main(["kitti", "--layout", "raw", "--root", str(tmp_path / "raw"),
+                       "--image-size", str(SIZE), "--out", str(out), "--kitti-calib",
+                       str(tmp_path / "calib")]) == 0
+    with StereoFile(out) as data:
+        assert data.labels["baseline"][0] == pytest.approx(B, rel=1e-6)

@@ -80,6 +80,10 @@ def parse_args(argv=None):
     parser.add_argument("--labels", choices=LABEL_MODES, default="rig",
                         help="tsinghua: the right camera's pose in the left camera's frame "
                         "(rig, default) or the dataset's vehicle-frame pose (vehicle)")
+    parser.add_argument("--kitti-calib", metavar="DIR",
+                        help="kitti: where the calibration files are when they are not beside "
+                        "the images (the data_scene_flow_calib archive, or the raw data's "
+                        "<date>_calib archives, unpacked there)")
     parser.add_argument("--limit", type=int, help="use only the first N images")
     parser.add_argument("--force", action="store_true", help="all: rebuild existing files")
     args = parser.parse_args(argv)
@@ -128,7 +132,8 @@ def build_one(source, out, *, root=None, args=None, command=None, report=None):
         from cpl_keras.real.kitti import build_kitti
 
         return build_kitti(root, out, layout=args.layout, split=args.split,
-                           image_size=args.image_size, limit=args.limit, command=command)
+                           image_size=args.image_size, limit=args.limit,
+                           calib_root=getattr(args, "kitti_calib", None), command=command)
     from cpl_keras.real.tsinghua import build_stereo_dataset
 
     return build_stereo_dataset(

@@ -167,13 +167,26 @@ def _images(directory):
     return sorted(f for f in os.listdir(directory) if f.lower().endswith(IMAGE_SUFFIXES))
 
 
-def find_stereo_frames(root, split=None):
-    """``[(name, left, right, calib, disparity or None)]`` of a stereo 2015 /
-    scene-flow folder (``root`` or ``root/split`` holds ``image_2``)."""
+def _split_base(root, split, probe):
+    """``root``, ``root/split``, or ``root/training`` when ``probe`` is only there."""
     base = os.path.join(os.fspath(root), split) if split else os.fspath(root)
-    if not os.path.isdir(os.path.join(base, "image_2")) and os.path.isdir(
-            os.path.join(base, "training", "image_2")) and split is None:
+    if split is None and not os.path.isdir(os.path.join(base, probe)) and \
+            os.path.isdir(os.path.join(base, "training", probe)):
         base = os.path.join(base, "training")
+    return base
+
+
+def find_stereo_frames(root, split=None, calib_root=None):
+    """``[(name, left, right, calib, disparity or None)]`` of a stereo 2015 /
+    scene-flow folder (``root`` or ``root/split`` holds ``image_2``). The
+    calibration files are looked for beside the images, then under
+    ``calib_root`` (KITTI ships them as an archive of their own,
+    ``data_scene_flow_calib``, whose ``training/calib_cam_to_cam`` may be
+    unpacked elsewhere)."""
+    base = _split_base(root, split, "image_2")
+    calib_bases = [base] + ([b for b in (_split_base(calib_root, split, "calib_cam_to_cam"),
+                                         _split_base(calib_root, split, "calib"))]
+                            if calib_root else [])
     left_dir = os.path.join(base, "image_2")
     if not os.path.isdir(left_dir):
         raise RealDataError(f"no image_2 directory under {base}")
@@ -184,7 +197,7 @@ def find_stereo_frames(root, split=None):
         if not os.path.isfile(right):
             raise RealDataError(f"missing right image {right} for {os.path.join(left_dir, file)}")
         sequence = re.sub(r"_\d+$", "", name)
-        candidates = [os.path.join(base, folder, sequence + ".txt")
+        candidates = [os.path.join(b, folder, sequence + ".txt") for b in calib_bases
                       for folder in ("calib_cam_to_cam", "calib")]
         calib = next((c for c in candidates if os.path.isfile(c)), None)
         if calib is None:
@@ -198,10 +211,12 @@ def find_stereo_frames(root, split=None):
     return frames
 
 
-def find_raw_frames(root):
+def find_raw_frames(root, calib_root=None):
     """``[(name, left, right, calib, None)]`` of a KITTI raw folder: every
     ``image_02/data`` under ``root``; the calibration is the nearest
-    ``calib_cam_to_cam.txt`` in the drive folder or above it (up to ``root``)."""
+    ``calib_cam_to_cam.txt`` in the drive folder or above it (up to ``root``),
+    else ``calib_root/<date>/calib_cam_to_cam.txt`` (the date's own archive,
+    ``<date>_calib.zip``, unpacked elsewhere)."""
     root = os.path.abspath(os.fspath(root))
     frames = []
     for directory, subdirs, _ in os.walk(root):
@@ -216,7 +231,14 @@ def find_raw_frames(root):
             if os.path.isfile(candidate):
                 calib = candidate
             elif probe == root or os.path.dirname(probe) == probe:
-                raise RealDataError(f"missing calibration file calib_cam_to_cam.txt for {drive}")
+                date = os.path.basename(os.path.dirname(drive))
+                separate = os.path.join(os.fspath(calib_root), date, "calib_cam_to_cam.txt") \
+                    if calib_root else None
+                if separate and os.path.isfile(separate):
+                    calib = separate
+                    break
+                raise RealDataError(f"missing calibration file calib_cam_to_cam.txt for {drive}"
+                                    + (f" (nor {separate})" if separate else ""))
             else:
                 probe = os.path.dirname(probe)
         for file in _images(directory):
@@ -287,9 +309,10 @@ def sample_from_frame(left_path, right_path, calib_path, disparity_path=None, im
 
 
 def build_kitti(root, out, *, layout="stereo", split=None, image_size=112, limit=None,
-                command=None):
+                calib_root=None, command=None):
     """Write a KITTI folder (``layout`` "stereo" or "raw") as a project HDF5
-    file at ``out`` (atomic); returns the path."""
+    file at ``out`` (atomic); returns the path. ``calib_root``: where the
+    calibration files are when they are not beside the images."""
     if layout not in LAYOUTS:
         raise ValueError(f"unknown KITTI layout '{layout}' (use {', '.join(LAYOUTS)})")
     image_size = int(image_size)
@@ -297,7 +320,10 @@ def build_kitti(root, out, *, layout="stereo", split=None, image_size=112, limit
         raise ValueError(f"image size must be at least 32, got {image_size}")
     if not os.path.isdir(os.fspath(root)):
         raise RealDataError(f"dataset root not found: {root}")
-    frames = find_stereo_frames(root, split) if layout == "stereo" else find_raw_frames(root)
+    if calib_root is not None and not os.path.isdir(os.fspath(calib_root)):
+        raise RealDataError(f"calibration root not found: {calib_root}")
+    frames = (find_stereo_frames(root, split, calib_root) if layout == "stereo"
+              else find_raw_frames(root, calib_root))
     if limit is not None:
         if int(limit) <= 0:
             raise ValueError(f"limit must be positive, got {limit}")
