@@ -239,4 +239,5 @@ def test_a_row_of_one_seed_in_a_table_over_seeds(published, tmp_path):
     written = table2.write_table2(str(tmp_path / "t2"), "table2", t2, "cmd")
     assert all(os.path.getsize(p) for p in written)
     text = open(tmp_path / "t2" / "table2.md").read()
-    assert text.count("| Deep-Homo (1 seed) |") == 2 * 3    # pooled and rig: 2 NMAE, 1 FOV
+    # pooled and rig: 2 NMAE tables, the FOV table and the field's metrics
+    assert text.count("| Deep-Homo (1 seed) |") == 2 * 4
