@@ -357,8 +357,14 @@ def test_presets_resolve():
     assert len(jobs) == 18
     assert {(j[0], j[2]) for j in jobs} == {("cvgl", "paper"), ("cvgl_drive", "drive")}
     assert {j[1] for j in jobs} == {"cvgl"}          # one dataset for both tables
+    # the deciding pair on every seed before MTL-CPL-U, in each table
     assert [j[-1] for j in jobs if j[0] == "cvgl_drive"] == [
-        f"{v}-s{s}" for s in (0, 1, 2) for v in ("cpl-a", "baseline", "cpl-u")]
+        f"{v}-s{s}" for s in (0, 1, 2) for v in ("cpl-a", "baseline")] + [
+        f"cpl-u-s{s}" for s in (0, 1, 2)]
+    assert [j[-1] for j in jobs if j[0] == "cvgl"][:6] == [
+        "cpl-a-s0", "baseline-s0", "cpl-a-s1", "baseline-s1", "cpl-a-s2", "baseline-s2"]
+    with pytest.raises(ValueError, match="first variant 'baseline' is not trained"):
+        reproduce.settings(preset="cpu-8000", variants=("cpl-a", "cpl-u"))
     assert "Seeds per table: cvgl 3, cvgl_drive 3" in reproduce.scale_text(decide)
     with pytest.raises(ValueError, match="unknown table 'kitti'"):
         reproduce.settings(preset="cpu", tables=("cvgl", "kitti"))

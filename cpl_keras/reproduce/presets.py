@@ -27,8 +27,9 @@ RELEASED_RUN = "cpl-a-released"
 #: them), the others are trained once, on the first seed; ``crops``:
 #: Middlebury crops; ``chessboard_crops``: crops per chessboard pair;
 #: ``geometric_max``: pairs of each table (or real set) the Geometric
-#: baseline runs on (None: all); ``workers``: data generation processes
-#: (None: every core).
+#: baseline runs on (None: all); ``first_variants``: trained on every seed
+#: of a table before the other variants start (default none); ``workers``:
+#: data generation processes (None: every core).
 PRESETS = {
     # The paper's scale: CVGL's 123,017 pairs, up to 200 epochs, InceptionV3 at
     # 112 (the scale without --preset, into paper_results/paper/).
@@ -70,14 +71,16 @@ PRESETS = {
     # split (no test frame next to a training frame), every run to early
     # stopping; Table 2 from the paper-split runs. Many hours on 2 cores:
     # each finished run is published at once and a rerun skips it
-    # (docs/evaluation.md#presets). The runs of a seed train in the order
-    # CPL-A, Baseline, CPL-U, so the comparison that decides comes first.
+    # (docs/evaluation.md#presets). CPL-A and Baseline train on every seed
+    # before CPL-U (``first_variants``), so the comparison that decides lands
+    # first.
     "cpu-8000": {"pairs": 8000, "random_pairs": 1000, "epochs": 100, "image_size": 112,
                  "backbone": "small_resnet", "crops": 500, "chessboard_crops": 20,
                  "geometric_max": None, "batch_size": 16, "patience": 5, "seeds": 3,
                  "random_seeds": 1, "variants": ("cpl-a", "baseline", "cpl-u"),
                  "released": False, "seeded_variants": None, "workers": None,
-                 "tables": ("cvgl", "cvgl_drive"), "real_sets": ("chessboard", "middlebury")},
+                 "tables": ("cvgl", "cvgl_drive"), "real_sets": ("chessboard", "middlebury"),
+                 "first_variants": ("cpl-a", "baseline")},
 }
 #: The Table 1 versions a reproduction can make, by key: (protocol, split,
 #: the setting holding its number of seeds). A preset's ``tables`` lists
@@ -126,6 +129,7 @@ def settings(quick=False, preset=None, **overrides):
     chosen.setdefault("tables", DEFAULT_TABLES)
     chosen.setdefault("run_budget_s", None)
     chosen.setdefault("real_sets", REAL_SETS)
+    chosen.setdefault("first_variants", ())
     chosen["real_sets"] = tuple(chosen["real_sets"])
     unknown = [s for s in chosen["real_sets"] if s not in REAL_SETS]
     if unknown:
@@ -159,6 +163,11 @@ def settings(quick=False, preset=None, **overrides):
                          f"{', '.join(TABLE1)}")
     for variant in chosen["variants"]:
         registry.get(variant)
+    chosen["first_variants"] = tuple(chosen["first_variants"])
+    for variant in chosen["first_variants"]:
+        if variant not in chosen["variants"]:
+            raise ValueError(f"first variant {variant!r} is not trained by these settings "
+                             f"({', '.join(chosen['variants'])})")
     if chosen["seeded_variants"] is not None:
         chosen["seeded_variants"] = tuple(chosen["seeded_variants"])
         trained = run_stems(chosen)
@@ -195,20 +204,26 @@ def run_jobs(config, seed):
     seed, variant, as released, run name)``. The runs of ``seeded_variants``
     (None: all) are trained on every seed of a table, the others on its first
     seed only; a table trained over several seeds names its runs
-    ``<stem>-s<seed>`` (``cpl-u-s1``, ``deep-homo-s0``, ``cpl-a-released-s0``)."""
+    ``<stem>-s<seed>`` (``cpl-u-s1``, ``deep-homo-s0``, ``cpl-a-released-s0``).
+    Within a table, the ``first_variants`` train on every seed before the
+    other runs start (seed by seed in each group)."""
     seeded = config.get("seeded_variants")
+    first = config.get("first_variants", ())
     jobs = []
     for key in config.get("tables", DEFAULT_TABLES):
         protocol, split, seeds_key = TABLE1[key]
         count = config[seeds_key]
-        for run_seed in range(seed, seed + count):
-            for stem in run_stems(config, protocol):
-                if run_seed != seed and seeded is not None and stem not in seeded:
-                    continue
-                released = stem == RELEASED_RUN
-                variant = "cpl-a" if released else stem
-                name = stem + (f"-s{run_seed}" if count > 1 else "")
-                jobs.append((key, protocol, split, run_seed, variant, released, name))
+        stems = run_stems(config, protocol)
+        groups = [[s for s in stems if s in first], [s for s in stems if s not in first]]
+        for group in groups:
+            for run_seed in range(seed, seed + count):
+                for stem in group:
+                    if run_seed != seed and seeded is not None and stem not in seeded:
+                        continue
+                    released = stem == RELEASED_RUN
+                    variant = "cpl-a" if released else stem
+                    name = stem + (f"-s{run_seed}" if count > 1 else "")
+                    jobs.append((key, protocol, split, run_seed, variant, released, name))
     return jobs
 
 
