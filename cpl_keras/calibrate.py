@@ -34,6 +34,10 @@ import math
 import os
 import sys
 
+from cpl_keras import evaluation, exports
+from cpl_keras.data.storage import StereoFile
+from cpl_keras.real import resize_image
+
 os.environ.setdefault("KERAS_BACKEND", "jax")
 
 import numpy as np  # noqa: E402
@@ -141,8 +145,6 @@ def training_protocol(run):
     if config.get("protocol"):
         return config["protocol"]
     try:
-        from cpl_keras.data.storage import StereoFile
-
         with StereoFile(config["data"]) as data:
             return data.metadata.get("protocol")
     except Exception:  # moved or unreadable: unknown
@@ -175,9 +177,6 @@ def predict_windows(model, left, right, windows, released):
     """The model's outputs on each window of the pair (resized to its input):
     ``(raw, mapped)``, two lists of dicts, as the model gives them and in the
     full image's pixels with pitch in radians."""
-    from cpl_keras import evaluation
-    from cpl_keras.real import resize_image
-
     size_h, size_w = evaluation.model_image_shape(model)
     pred = evaluation.predict_images(
         model, np.stack([resize_image(left[y:y + h, x:x + w], size_w, size_h)
@@ -208,8 +207,6 @@ def calibrate_pair(left_path, right_path, run_dir, warn=None):
     """The calibration of one pair as a JSON-ready dict; ``warn(line)`` is
     called with each warning (a grey image, a prediction outside the
     training labels' range, a large spread, the demonstration model)."""
-    from cpl_keras import evaluation
-
     warn = warn or (lambda line: None)
     left, right = read_pair(left_path, right_path)
     run = runs.load_run(run_dir, error=CalibrationError)
@@ -307,7 +304,6 @@ def main(argv=None):
         text = json.dumps(result, indent=2, allow_nan=False)
         if args.json_out:
             runs.write_text(args.json_out, text + "\n")
-        from cpl_keras import exports
 
         if args.opencv_yaml:
             exports.write_opencv_yaml(args.opencv_yaml, result)

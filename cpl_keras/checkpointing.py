@@ -13,6 +13,7 @@ import csv
 import math
 import os
 import shutil
+import textwrap
 import time
 
 import keras
@@ -216,8 +217,6 @@ def plot_curves(path, rows, best_epoch=None, title=None):
     the adaptive weights alpha_i of Eq. 9 beside them when the run has them.
     ``rows`` and ``best_epoch`` are the state's (0-based); the axis numbers
     epochs from 1."""
-    import textwrap
-
     import matplotlib
 
     matplotlib.use("Agg")

@@ -25,6 +25,7 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import math
 import os
 import shlex
 import signal
@@ -86,8 +87,6 @@ def non_negative_int(text):
 
 def positive_float(text):
     """argparse type: a finite number > 0."""
-    import math
-
     try:
         value = float(text)
     except ValueError:

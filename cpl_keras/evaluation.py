@@ -25,8 +25,12 @@ import os
 import numpy as np
 
 from cpl_keras import metrics, runs
+from cpl_keras.baselines import geometric as geo
+from cpl_keras.baselines.average import average_predictions
+from cpl_keras.baselines.geometric import FAILURE_FLAGS
 from cpl_keras.camera import TARGETS
 from cpl_keras.data.storage import DatasetError, StereoFile
+from cpl_keras.datasets import targets_from_labels
 from cpl_keras.models.variants import MODEL_ROWS, VARIANT_ROWS
 from cpl_keras.report import jsonable
 from cpl_keras.runs import RELEASED, as_released, row_name
@@ -157,8 +161,6 @@ def evaluation_indices(run, data_path, num_pairs):
 
 
 def truth_targets(labels, indices, released):
-    from cpl_keras.datasets import targets_from_labels
-
     try:
         targets = targets_from_labels(labels, as_released=released)
     except DatasetError as error:
@@ -220,8 +222,6 @@ def average_rows(reference, labels, indices):
     {row: {source, as_released, truth, pred}}. The release's buggy Average
     averaged the release's labels, so it is scored against the release's
     truth (its frame, degrees, StereoBM disparity)."""
-    from cpl_keras.baselines.average import average_predictions
-
     rows = {}
     for row, kind, released in (("Average", "mean", as_released(reference)),
                                 ("Average (release bug)", "release", True)):
@@ -237,8 +237,6 @@ def geometric_predictions(reference, data, subset):
     """The Geometric baseline on pairs ``subset`` of the open dataset ``data``:
     ``(priors, predictions, statuses)``; its fallbacks are the training means
     (of the run ``reference``) of the unobservable or failed quantities."""
-    from cpl_keras.baselines import geometric as geo
-
     stats_mean = reference["stats"]["mean"]
     priors = {"baseline": stats_mean["baseline"], "fx": stats_mean["fx"], "fy": stats_mean["fx"]}
     pred, statuses = geo.predict_file(data, subset, priors=priors)
@@ -338,8 +336,6 @@ def table_rows(number, run_dirs, data_path=None, geometric=True, geometric_max=N
 def table_from_rows(context, rows):
     """Score the raw ``rows`` of ``table_rows`` (or of published predictions
     files) into the table: a JSON-ready dict with every figure."""
-    from cpl_keras.baselines import geometric as geo
-
     width = context["image_width"]
     scored = {}
     for row, raw in rows.items():
@@ -411,8 +407,6 @@ def _aggregate_rows(tables, seeds):
                  "as_released": first["as_released"],
                  "num_pairs": int(sum(p["num_pairs"] for p in parts))}
         if "failures" in first:
-            from cpl_keras.baselines.geometric import FAILURE_FLAGS
-
             total = entry["num_pairs"]
             failures = {"num_pairs": total}
             for flag in FAILURE_FLAGS + ("all_stages_ok",):

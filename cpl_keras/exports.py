@@ -27,6 +27,7 @@ import numpy as np
 
 from cpl_keras.camera import rotation_matrix
 from cpl_keras.files import atomic_path, write_text
+from cpl_keras.real import rig_to_opencv_pose
 
 
 def camera_matrix(parameters):
@@ -38,8 +39,6 @@ def camera_matrix(parameters):
 def stereo_pose(parameters):
     """OpenCV's ``(R, T)`` of the pair: the right camera's pose (pitch, and
     the translation ``tx, ty, tz`` in the left camera frame, project axes)."""
-    from cpl_keras.real import rig_to_opencv_pose
-
     R_lr = rotation_matrix(pitch=float(parameters["pitch"]))
     return rig_to_opencv_pose(R_lr, [parameters["tx"], parameters["ty"], parameters["tz"]])
 

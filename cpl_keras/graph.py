@@ -14,7 +14,8 @@ from __future__ import annotations
 import os
 import sys
 
-from cpl_keras import camera, cli, runs
+from cpl_keras import camera, cli, models, runs
+from cpl_keras.models import BACKBONES, variants
 
 PROG = "python -m cpl_keras.graph"
 
@@ -378,8 +379,6 @@ def draw_graph(graph, path, title):
 
 
 def main(argv=None, prog=PROG):
-    from cpl_keras.models import BACKBONES, variants
-
     with_graph = [spec.name for spec in variants.SPECS if spec.camera_graph]
     parser = cli.Parser(prog=prog, description="Show the Lambda camera graph of a model.")
     parser.add_argument("--variant", default="cpl-a",
@@ -403,9 +402,7 @@ def main(argv=None, prog=PROG):
         directory = os.path.dirname(os.path.abspath(args.out))
         if os.path.exists(directory) and not os.path.isdir(directory):
             raise ValueError(f"not a directory: {directory}")
-        from cpl_keras.models import build_model
-
-        model = build_model(args.variant, backbone=args.backbone,
+        model = models.build_model(args.variant, backbone=args.backbone,
                             image_size=args.image_size, as_released=args.as_released)
     except ValueError as error:
         return cli.fail(prog, error)

@@ -28,8 +28,13 @@ import time
 import numpy as np
 
 from cpl_keras import cli, runs
+from cpl_keras.baselines.average import load_statistics
 from cpl_keras.camera import PARAMETERS
+from cpl_keras.data.generate import GENERATOR_VERSION, generate_dataset
+from cpl_keras.data.storage import StereoFile
+from cpl_keras.datasets import load_split, targets_from_labels
 from cpl_keras.metrics import nmae
+from cpl_keras.training import train
 
 #: The parameters the write-up quotes.
 KEY_PARAMETERS = ("fx", "fy", "baseline", "pitch")
@@ -67,10 +72,6 @@ def curves(run_dir, data=None):
     lowest NMAE over the epochs) and ``best_epoch_nmae`` (parameter -> NMAE
     at the epoch early stopping kept).
     """
-    from cpl_keras.baselines.average import load_statistics
-    from cpl_keras.data.storage import StereoFile
-    from cpl_keras.datasets import load_split, targets_from_labels
-
     run_dir = os.path.abspath(run_dir)
     try:
         config = runs.read_config(run_dir)
@@ -295,9 +296,6 @@ def run_experiment(*, data_dir, runs_dir, out_dir, pairs, backbone, image_size=1
                    patience=5, max_epochs=200, seed=0, only=None, verbose=0):
     """Make the datasets, train the runs (resuming any that were killed) and
     write the curves. Returns the summary rows."""
-    from cpl_keras.data.generate import GENERATOR_VERSION, generate_dataset
-    from cpl_keras.training import train
-
     os.makedirs(data_dir, exist_ok=True)
     run_dirs, loads = [], {}
     for protocol, split, variant in EXPERIMENT_RUNS:

@@ -63,8 +63,12 @@ import zipfile
 import numpy as np
 
 from cpl_keras import evaluation, report, runs
+from cpl_keras.baselines.geometric import FAILURE_FLAGS
 from cpl_keras.camera import TARGETS
+from cpl_keras.cli import one_line
+from cpl_keras.data.storage import StereoFile
 from cpl_keras.evaluation import EvaluationError
+from cpl_keras.real import table2
 
 #: File name suffix of a predictions file.
 SUFFIX = "_predictions.npz"
@@ -99,8 +103,6 @@ def row_slug(row, raw, suffix=""):
 
 
 def _dataset_facts(path):
-    from cpl_keras.data.storage import StereoFile
-
     with StereoFile(path) as f:
         version = f.metadata.get("generator_version")
     return os.path.basename(path), "" if version is None else str(version)
@@ -138,8 +140,6 @@ def _arrays(row, raw, *, name, out_dir, run_configs, reference, data_path, subse
         "key": np.array(key),
     }
     if row == "Geometric":
-        from cpl_keras.baselines.geometric import FAILURE_FLAGS
-
         arrays["failure_flags"] = np.array(FAILURE_FLAGS)
         arrays["failures"] = np.array([[bool(s[f]) for f in FAILURE_FLAGS]
                                        for s in raw["statuses"]], bool).reshape(n, len(FAILURE_FLAGS))
@@ -238,8 +238,6 @@ def load(path):
         with np.load(path, allow_pickle=False) as f:
             arrays = {k: f[k] for k in f.files}
     except (OSError, ValueError, EOFError, zipfile.BadZipFile, KeyError) as error:
-        from cpl_keras.cli import one_line
-
         raise PredictionsError(f"{path}: not a readable predictions file "
                                f"({type(error).__name__}: {one_line(error)})") from None
     missing = [k for k in STRINGS + NUMBERS + tuple(SHAPES) if k not in arrays]
@@ -302,7 +300,6 @@ def _one_table(stem, items):
                                                                  if item["rig"] else ""))
         rows_seen[where] = item["path"]
     if any(item["rig_index"] >= 0 for item in items):          # real.table2: per rig, pooled
-        from cpl_keras.real import table2
 
         run_lists = {json.dumps(item["context"]["runs"]) for item in items}
         if len(run_lists) > 1:

@@ -29,7 +29,21 @@ had it at the top level, still load and resume (``normalise_config``).
 
 from __future__ import annotations
 
+import csv
 import os
+import shutil
+import zipfile
+
+import numpy as np
+
+from cpl_keras.baselines.average import load_statistics
+from cpl_keras.cli import one_line
+from cpl_keras.datasets import load_split
+# (the atomic file writers, also re-exported for the run directory's callers)
+from cpl_keras.files import (  # noqa: F401
+    atomic_path, commit, read_json, save_figure, write_json, write_text,
+)
+from cpl_keras.models.variants import VARIANT_ROWS
 
 CONFIG = "config.json"
 MODEL = "model.keras"
@@ -54,13 +68,6 @@ RELEASED = " (as released)"
 
 class RunError(ValueError):
     """A run directory cannot be read (one-line message)."""
-
-
-# Atomic files (``cpl_keras.files``; used here and re-exported for the callers
-# of the run directory's writers)
-from cpl_keras.files import (  # noqa: E402,F401
-    atomic_path, commit, read_json, save_figure, write_json, write_text,
-)
 
 
 def relative(path, start):
@@ -115,8 +122,6 @@ def publish_files(run_dir, target_dir, name):
     """Copy a run's log.csv and curves.png to ``target_dir/<name>_log.csv``
     and ``<name>_curves.png`` (atomically; a missing file is skipped): the
     small results that are published, unlike the weights."""
-    import shutil
-
     os.makedirs(target_dir, exist_ok=True)
     for source, suffix in ((LOG, "_log.csv"), (CURVES, "_curves.png")):
         path = os.path.join(run_dir, source)
@@ -131,8 +136,6 @@ def publish_run_dir(run_dir, target):
     config.json names the dataset file and the run directory without a
     machine's paths. File times are kept (a table made from the stored
     predictions is newer than them). Returns ``target``."""
-    import shutil
-
     config = read_config(run_dir)
     if config is None or config.get("status") != "finished":
         raise RunError(f"{run_dir} holds no finished run to publish")
@@ -172,8 +175,6 @@ def restore_run_dir(folder, run_dir, data_path):
     ``data_path`` (the same dataset file name, RunError otherwise) and at
     ``run_dir``. It evaluates from its stored predictions; it cannot resume
     (no weights, and it is finished)."""
-    import shutil
-
     config = read_config(folder)
     if os.path.basename(os.fspath(data_path)) != config.get("data"):
         raise RunError(f"{folder} was trained on {config.get('data')}, not on "
@@ -215,8 +216,6 @@ def run_label(config):
 
 def row_name(run):
     """The table row of a run: its variant's row, marked when trained as released."""
-    from cpl_keras.models.variants import VARIANT_ROWS
-
     row = VARIANT_ROWS[run["config"]["variant"]]
     return row + RELEASED if as_released(run) else row
 
@@ -231,8 +230,6 @@ def read_log(path):
     Logs written before the epochs were numbered from 1 (Keras's CSVLogger
     convention: the first row is epoch 0) are recognised by their first row
     and renumbered, so both read alike."""
-    import csv
-
     if os.path.isdir(path):
         path = os.path.join(path, LOG)
     with open(path, newline="") as f:
@@ -251,10 +248,6 @@ def load_run(run_dir, error=RunError):
     """The run's files as a dict: ``run_dir``, ``config``, ``stats``,
     ``split`` (train/val/test arrays), ``model_path``. Raises ``error``
     (default ``RunError``) naming the first missing or malformed file."""
-    from cpl_keras.baselines.average import load_statistics
-    from cpl_keras.datasets import load_split
-    from cpl_keras.models.variants import VARIANT_ROWS
-
     run_dir = os.path.abspath(os.fspath(run_dir))
     if not os.path.isdir(run_dir):
         raise error(f"run directory not found: {run_dir}")
@@ -307,8 +300,6 @@ def write_predictions(run_dir, data_path, indices, outputs, names):
     """Store a run's ``outputs`` (name -> (n,) array) on pairs ``indices`` of
     ``data_path``: ``indices`` (int64), ``pred`` (n, 13 float32), ``outputs``
     (the names), ``dataset`` (the file's name). Atomic; no pickle."""
-    import numpy as np
-
     path = predictions_path(run_dir, data_path)
     os.makedirs(os.path.dirname(path), exist_ok=True)
     pred = np.stack([np.asarray(outputs[n], np.float32).reshape(-1) for n in names], axis=1)
@@ -324,8 +315,6 @@ def read_predictions(run_dir, data_path, indices, names, error=RunError):
     """The stored outputs of the run on pairs ``indices`` of ``data_path``
     (name -> float64 array), or None when none are stored for that file.
     ``error`` when the file is unreadable or lacks some of the pairs."""
-    import numpy as np
-
     path = predictions_path(run_dir, data_path)
     if not os.path.isfile(path):
         return None
@@ -351,9 +340,6 @@ def load_model(run, error=RunError):
     import keras
 
     import cpl_keras.models.factory  # noqa: F401  (registers the custom layers)
-    from cpl_keras.cli import one_line
-
-    import zipfile
 
     path = run["model_path"]
     if not os.path.exists(path):

@@ -24,6 +24,7 @@ A non-finite training loss stops the run and keeps the best weights so far.
 from __future__ import annotations
 
 import contextlib
+import fcntl
 import math
 import os
 import shutil
@@ -31,10 +32,13 @@ import sys
 
 import numpy as np
 
-from cpl_keras import runs
+from cpl_keras import datasets, models, runs
 from cpl_keras.baselines.average import save_statistics, training_statistics
+from cpl_keras.camera import FLOORS, RELEASED_FLOORS
 from cpl_keras.data.storage import DatasetError, StereoFile
 from cpl_keras.datasets import SPLITS, load_split, make_split, save_split, targets_from_labels
+from cpl_keras.models import BACKBONES, variants
+from cpl_keras.models.variants import DISENTANGLE
 
 #: config.json keys that must match for a run directory to be resumed.
 RESUME_KEYS = (
@@ -70,8 +74,6 @@ def plan_run(data, *, variant, run_dir, epochs=200, batch_size=16, learning_rate
     Raises ``DatasetError`` or ``TrainingError`` with a one-line message.
     Writes nothing.
     """
-    from cpl_keras.models import BACKBONES, variants
-
     try:
         spec = variants.get(variant)
     except ValueError as error:
@@ -94,7 +96,6 @@ def plan_run(data, *, variant, run_dir, epochs=200, batch_size=16, learning_rate
         raise TrainingError(
             f"BatchNorm recompute batches must be a non-negative integer, got {bn_recompute_batches!r}"
         )
-    from cpl_keras.models.variants import DISENTANGLE
 
     if disentangle not in DISENTANGLE:
         raise TrainingError(
@@ -159,7 +160,6 @@ def plan_run(data, *, variant, run_dir, epochs=200, batch_size=16, learning_rate
 
     devices = _device_count() if data_parallel else 1
     run_batch = -(-batch_size // devices) * devices
-    from cpl_keras.camera import FLOORS, RELEASED_FLOORS
 
     build = {
         "backbone": backbone, "image_size": [height, width], "as_released": bool(as_released),
@@ -347,14 +347,13 @@ def _finished_run(run_dir):
 def _run(plan, learning_rate, steps_per_execution, verbose):
     import keras
 
-    from cpl_keras.models import build_model, compile_model
-
     config = plan["config"]
     variant = config["variant"]
     try:
-        model = build_model(variant, **config["build"])
-        compile_model(model, learning_rate=learning_rate, steps_per_execution=steps_per_execution,
-                      target_scale=_target_scale(plan) if config["target_scaling"] == "std" else None)
+        model = models.build_model(variant, **config["build"])
+        models.compile_model(model, learning_rate=learning_rate,
+                             steps_per_execution=steps_per_execution,
+                             target_scale=_target_scale(plan) if config["target_scaling"] == "std" else None)
     except ValueError as error:
         raise TrainingError(f"cannot build {variant}: {error}") from None
     config["learning_rate_used"] = float(
@@ -373,8 +372,6 @@ def _run(plan, learning_rate, steps_per_execution, verbose):
 
 
 def _run_locked(plan, model, config, run_dir, verbose):
-    from cpl_keras.datasets import StereoSequence
-
     finished = _finished_run(run_dir)  # (by the process this one waited for)
     if finished is not None:
         return finished
@@ -403,9 +400,9 @@ def _run_locked(plan, model, config, run_dir, verbose):
     multiple = config["num_devices"]
     common = dict(targets=plan["targets"], batch_size=config["device_batch_size"],
                   multiple_of=multiple, workers=plan["workers"])
-    train_seq = StereoSequence(config["data"], plan["split"]["train"], shuffle=True,
+    train_seq = datasets.StereoSequence(config["data"], plan["split"]["train"], shuffle=True,
                                seed=config["seed"], **common)
-    val_seq = StereoSequence(config["data"], plan["split"]["val"], shuffle=False, **common)
+    val_seq = datasets.StereoSequence(config["data"], plan["split"]["val"], shuffle=False, **common)
 
     from cpl_keras.checkpointing import RunState
     from cpl_keras.progress import EpochLines
@@ -444,8 +441,6 @@ def _lock_run_dir(run_dir):
     and then carries on from the state it left: the run ends as an
     uninterrupted one would. The lock ends with the run, however it ends (the
     caller closes the handle), or with the process."""
-    import fcntl
-
     handle = open(os.path.join(run_dir, runs.LOCK), "a+")
     try:
         fcntl.flock(handle, fcntl.LOCK_EX | fcntl.LOCK_NB)

@@ -89,3 +89,91 @@ def test_no_import_cycle_in_the_package():
     assert "cpl_keras.files" in graph and graph["cpl_keras.files"] == set()  # the ground floor
     assert graph["cpl_keras.data.storage"] >= {"cpl_keras.files"}
     assert cycles(graph) == []
+
+
+#: Third-party modules heavy enough to import only where they are used.
+HEAVY = {"keras", "jax", "jaxlib", "matplotlib", "cv2", "h5py", "skimage", "scipy", "PIL"}
+#: Imports inside functions that are there by design: the lazy attributes of
+#: ``cpl_keras`` and ``cpl_keras.models`` (Keras on first use), and the data
+#: generator's worker task taken from the imported module, not ``__main__``.
+LAZY_BY_DESIGN = {("cpl_keras", "cpl_keras.models"), ("cpl_keras.models", "importlib"),
+                  ("cpl_keras.data.generate", "cpl_keras.data.generate")}
+
+
+def _top_level_imports(module, modules):
+    with open(modules[module]) as f:
+        tree = ast.parse(f.read())
+    names = set()
+    for node in tree.body:
+        if isinstance(node, ast.Import):
+            names |= {alias.name for alias in node.names}
+        elif isinstance(node, ast.ImportFrom) and node.module and not node.level:
+            names.add(node.module)
+            names |= {f"{node.module}.{alias.name}" for alias in node.names
+                      if f"{node.module}.{alias.name}" in modules}
+    return names
+
+
+def function_level_imports():
+    """``[(module, imported name)]`` of every import inside a function."""
+    found = []
+    for module, path in _modules().items():
+        with open(path) as f:
+            tree = ast.parse(f.read())
+        for function in ast.walk(tree):
+            if not isinstance(function, (ast.FunctionDef, ast.AsyncFunctionDef)):
+                continue
+            for node in ast.walk(function):
+                if isinstance(node, ast.Import):
+                    found += [(module, alias.name) for alias in node.names]
+                elif isinstance(node, ast.ImportFrom) and node.module:
+                    inner = [f"{node.module}.{a.name}" for a in node.names
+                             if f"{node.module}.{a.name}" in _modules()]
+                    found += [(module, name) for name in (inner or [node.module])]
+    return found
+
+
+def imports_heavy(name, modules, seen=None):
+    """Whether importing ``name`` imports a HEAVY module (for the package's
+    own modules: through their top-level imports, and their packages')."""
+    if name.split(".")[0] in HEAVY:
+        return True
+    if not name.startswith("cpl_keras"):
+        return False
+    seen = set() if seen is None else seen
+    parts = name.split(".")
+    chain = [".".join(parts[:i]) for i in range(1, len(parts) + 1)]
+    for module in chain:
+        if module in seen or module not in modules:
+            continue
+        seen.add(module)
+        if any(imports_heavy(n, modules, seen) for n in _top_level_imports(module, modules)):
+            return True
+    return False
+
+
+def test_imports_inside_functions_are_heavy_ones_only():
+    """The package's own modules and the standard library are imported at
+    the top of a module; inside a function only what imports Keras, JAX,
+    matplotlib, OpenCV, h5py, scikit-image, SciPy or PIL (or a package module that does), so
+    that the command lines start without them."""
+    modules = _modules()
+    light = sorted({(module, name) for module, name in function_level_imports()
+                    if not imports_heavy(name, modules)} - LAZY_BY_DESIGN)
+    assert light == []
+    # and the check can fail: a light import is light, a Keras module heavy
+    assert not imports_heavy("cpl_keras.runs", modules)
+    assert imports_heavy("cpl_keras.losses", modules) and imports_heavy("cv2", modules)
+
+
+def test_command_line_modules_start_without_keras():
+    import subprocess
+    import sys
+
+    code = ("import sys, cpl_keras.training, cpl_keras.runs, cpl_keras.evaluation, "
+            "cpl_keras.reproduce, cpl_keras.calibrate, cpl_keras.graph, cpl_keras.data.generate, "
+            "cpl_keras.real.build; print(sorted(m for m in ('keras', 'jax', 'cv2', 'h5py', "
+            "'matplotlib') if m in sys.modules))")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                         timeout=120, check=True).stdout
+    assert out.strip() == "[]"

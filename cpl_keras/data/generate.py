@@ -35,18 +35,23 @@ from __future__ import annotations
 
 import contextlib
 import math
+import multiprocessing as mp
 import os
+import signal
 import sys
+import threading
 import time
 import types
 
 import numpy as np
 
-from cpl_keras import camera
-from cpl_keras.data import protocols
+from cpl_keras import camera, cli
+from cpl_keras.cli import check_interrupt, check_output_file, make_parent, Parser
+from cpl_keras.data import protocols, render, scenes
 from cpl_keras.data.protocols import PROTOCOLS
 from cpl_keras.data.scenes import SKY_DISTANCE
 from cpl_keras.data.storage import GENERATOR_VERSION  # noqa: F401  (the generator's own)
+from cpl_keras.data.storage import StereoFile, StereoWriter
 from cpl_keras.files import atomic_path
 
 MIN_IMAGE_SIZE = 16
@@ -141,8 +146,6 @@ def released_disparity(left, right):
 
 def render_pair(protocol, seed, pairs, image_size, index):
     """Left image, right image (uint8 (H, W, 3)) and the labels of pair ``index``."""
-    from cpl_keras.data import render
-
     s = protocols.pair_setup(protocol, seed, pairs, image_size, index)
     town, cfg, right = s["town"], s["config"], s["right"]
     left_img, _ = render.render(town, s["left"])
@@ -220,9 +223,6 @@ def render_block(protocol, seed, pairs, image_size, start, stop):
 @contextlib.contextmanager
 def _sigint_ignored():
     """SIGINT ignored within the block (in the main thread; elsewhere a no-op)."""
-    import signal
-    import threading
-
     if threading.current_thread() is not threading.main_thread():
         yield
         return
@@ -236,8 +236,6 @@ def _sigint_ignored():
 def _ignore_sigint():
     """Workers leave Ctrl-C to the parent, which stops the pool (one line, no
     traceback per worker)."""
-    import signal
-
     signal.signal(signal.SIGINT, signal.SIG_IGN)
 
 
@@ -260,8 +258,6 @@ def _check_int(name, value, minimum, maximum=None):
 def check_output_path(out):
     """The output path as a string, or ValueError if it cannot be written
     (missing folders are fine: they are created when the file is written)."""
-    from cpl_keras.cli import check_output_file
-
     return check_output_file(out)
 
 
@@ -277,8 +273,6 @@ def _check_arguments(protocol, pairs, seed, image_size, workers):
 
 def metadata(protocol, pairs, seed, image_size, command_line=None):
     """The dataset's metadata dict (JSON-able)."""
-    from cpl_keras.data import scenes
-
     return {
         "protocol": protocol, "seed": seed, "pairs": pairs, "image_size": image_size,
         "generator": "cpl_keras.data.generate", "generator_version": GENERATOR_VERSION,
@@ -332,7 +326,6 @@ def _iter_blocks(protocol, seed, pairs, image_size, workers):
         for start, stop in blocks:
             yield start, render_block(protocol, seed, pairs, image_size, start, stop)
         return
-    import multiprocessing as mp
 
     # The task is taken from the imported module (not ``__main__``), so the
     # workers never need to re-import the caller's script.
@@ -377,15 +370,12 @@ def _without_main_module():
 
 
 def _generate(out, protocol, pairs, seed, image_size, workers, progress, command_line=None):
-    from cpl_keras.data.storage import StereoWriter
-
     pairs, seed, image_size, workers = _check_arguments(protocol, pairs, seed, image_size, workers)
     out = check_output_path(out)
     if workers is None:
         workers = os.cpu_count() or 1
     meta = metadata(protocol, pairs, seed, image_size, command_line)
     bar = _Progress(pairs, f"{protocol}", progress)
-    from cpl_keras.cli import check_interrupt, make_parent
 
     make_parent(out)
     with StereoWriter(out, pairs, image_size, metadata=meta,
@@ -424,8 +414,6 @@ def estimate_cost(pairs, sample_file, protocol="cvgl", workers=None, sample=8):
     time from rendering ``sample`` pairs on one core now, shared by ``workers``
     processes (default: every core). Returns a dict: ``bytes_per_pair``,
     ``seconds_per_pair`` (one core), ``workers``, ``bytes``, ``seconds``."""
-    from cpl_keras.data.storage import StereoFile
-
     with StereoFile(sample_file) as data:
         sample_pairs = data.num_pairs
         image_size = data.image_shape[0]
@@ -469,8 +457,6 @@ def label_summary(labels):
 
 def summary_text(path):
     """One line about the dataset file ``path`` (printed by the CLI)."""
-    from cpl_keras.data.storage import StereoFile
-
     with StereoFile(path) as data:
         s = label_summary(data.labels)
         h, w, _ = data.image_shape
@@ -527,7 +513,6 @@ def write_preview(path, protocol, pairs, seed=0, image_size=112, count=8, column
         ]
         for k, line in enumerate(lines):
             draw.text((x0 + 1, y0 + W + 1 + 11 * k), line, fill=(0, 0, 0))
-    from cpl_keras.cli import make_parent
 
     make_parent(path)
     with atomic_path(path) as tmp:
@@ -542,8 +527,6 @@ PROG = "python -m cpl_keras.data.generate"
 
 
 def _parser():
-    from cpl_keras.cli import Parser
-
     p = Parser(
         prog=PROG,
         description="Render a synthetic CVGL-style stereo dataset to one HDF5 file.",
@@ -565,7 +548,6 @@ def main(argv=None):
     args = parser.parse_args(argv)
     if args.out is None and args.preview is None:
         parser.error("give --out (the dataset) and/or --preview (a contact sheet)")
-    from cpl_keras import cli
 
     command_line = cli.command_line(PROG, argv)
     try:
@@ -579,8 +561,6 @@ def main(argv=None):
 
 
 def _main(args, command_line):
-    from cpl_keras import cli
-
     try:
         _check_arguments(args.protocol, args.pairs, args.seed, args.image_size, args.workers)
         if args.out is not None:

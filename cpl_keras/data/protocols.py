@@ -80,6 +80,7 @@ import numpy as np
 
 from cpl_keras import camera
 from cpl_keras.data import scenes
+from cpl_keras.data.render import View
 
 PROTOCOLS = ("cvgl", "random")
 
@@ -279,8 +280,6 @@ def _rotation(pose):
 
 def pair_setup(protocol, seed, pairs, image_size, index):
     """Everything needed to render pair ``index``: config, poses, (u, v)."""
-    from cpl_keras.data.render import View
-
     configs = _configurations(protocol, int(seed), int(pairs), int(image_size))
     c, frame = config_of_pair(protocol, pairs, index)
     cfg = configs[c]

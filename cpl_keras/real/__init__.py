@@ -25,7 +25,9 @@ import os
 
 import numpy as np
 
+from cpl_keras.camera import image_to_world
 from cpl_keras.data.generate import released_disparity  # noqa: F401  (the builders' label)
+from cpl_keras.data.storage import StereoWriter
 
 #: Label conventions a real-data builder can write (see docs/evaluation.md).
 LABEL_MODES = ("rig", "vehicle")
@@ -110,8 +112,6 @@ def rectified_crop(left, right, window, pixel, match, disparity, intrinsics, bas
     resolution (``match`` plus any offset of the principal points);
     ``intrinsics`` = ``(fx, fy, cx of the right camera, cy)``. Returns ``(left
     crop, right crop, labels)``, labels as Python floats/ints."""
-    from cpl_keras.camera import image_to_world
-
     x0, y0, cw, ch = window
     u_left, v_full = pixel
     fx, fy, u0, v0, sx, sy = crop_resize_intrinsics(*intrinsics, x0, y0, cw, ch,
@@ -160,8 +160,6 @@ def check_crop_settings(crops, image_size, what="crops per pair"):
 def write_samples(out, samples, image_size, metadata, label_descriptions, block=64):
     """Write ``(left, right, labels)`` samples to the HDF5 file ``out``
     (atomically, ``block`` at a time); returns the path."""
-    from cpl_keras.data.storage import StereoWriter
-
     samples = list(samples)
     with StereoWriter(out, len(samples), image_size, metadata=metadata,
                       label_descriptions=label_descriptions) as writer:

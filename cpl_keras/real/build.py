@@ -30,6 +30,7 @@ import sys
 
 from cpl_keras import cli
 from cpl_keras.real import LABEL_MODES
+from cpl_keras.real import chessboard, kitti, middlebury, oakd, tsinghua
 
 SOURCES = ("all", "chessboard", "middlebury", "oakd", "kitti", "tsinghua", "cityscapes")
 #: Default crops of the sets that draw crops (chessboard, oakd: per pair).
@@ -109,34 +110,24 @@ def build_one(source, out, *, root=None, args=None, command=None, report=None):
                          else f"dataset root not found: {root}")
     cli.make_parent(out)
     if source == "middlebury":
-        from cpl_keras.real.middlebury import build_middlebury
-
-        return build_middlebury(out, crops=crops, image_size=args.image_size, seed=args.seed,
-                                command=command)
+        return middlebury.build_middlebury(out, crops=crops, image_size=args.image_size,
+                                           seed=args.seed, command=command)
     if source == "oakd":
-        from cpl_keras.real.oakd import DATA_DIR, build_oakd
-
-        return build_oakd(out, root=root or DATA_DIR, crops=crops, image_size=args.image_size,
-                          seed=args.seed, command=command)
+        return oakd.build_oakd(out, root=root or oakd.DATA_DIR, crops=crops,
+                               image_size=args.image_size, seed=args.seed, command=command)
     if source == "chessboard":
-        from cpl_keras.real.chessboard import DATA_DIR, build_chessboard
-
-        return build_chessboard(out, root=root or DATA_DIR, crops=crops,
-                                image_size=args.image_size, seed=args.seed, command=command,
-                                report=report)
+        return chessboard.build_chessboard(out, root=root or chessboard.DATA_DIR, crops=crops,
+                                           image_size=args.image_size, seed=args.seed,
+                                           command=command, report=report)
     if not root:
         raise ValueError(f"--root is required for {source}")
     if not os.path.isdir(root):
         raise ValueError(f"dataset root not found: {root}")
     if source == "kitti":
-        from cpl_keras.real.kitti import build_kitti
-
-        return build_kitti(root, out, layout=args.layout, split=args.split,
-                           image_size=args.image_size, limit=args.limit,
-                           calib_root=getattr(args, "kitti_calib", None), command=command)
-    from cpl_keras.real.tsinghua import build_stereo_dataset
-
-    return build_stereo_dataset(
+        return kitti.build_kitti(root, out, layout=args.layout, split=args.split,
+                                 image_size=args.image_size, limit=args.limit,
+                                 calib_root=getattr(args, "kitti_calib", None), command=command)
+    return tsinghua.build_stereo_dataset(
         root, out, dataset=source, split=args.split, image_size=args.image_size,
         right=args.right, labels=args.labels, seed=args.seed, limit=args.limit, command=command)
 

@@ -58,11 +58,13 @@ import sys
 
 import numpy as np
 
+from cpl_keras import cli
 from cpl_keras.camera import PARAMETERS, UNITS, disparity_from_depth, euler_from_rotation, fov_from_focal
 from cpl_keras.real import (
     CV_TO_PROJECT, RealDataError, crop_resize_coordinate, crop_resize_intrinsics,
     check_crop_settings, opencv_pose_to_rig, released_disparity, resize_image, write_samples,
 )
+from cpl_keras.real.middlebury import _draw_window
 
 #: The project's copy of OpenCV's sample pairs.
 DATA_DIR = os.path.join(os.path.dirname(os.path.abspath(__file__)), "opencv_chessboard")
@@ -256,8 +258,6 @@ def chessboard_samples(cal, crops=20, image_size=112, seed=0):
     ``crops - 1`` random windows (see the module doc)."""
     import cv2
 
-    from cpl_keras.real.middlebury import _draw_window
-
     rng = np.random.default_rng(seed)
     rig = cal["rig"]
     width, height = cal["image_size"]
@@ -377,8 +377,6 @@ def calibration_report(cal, pair=None):
 
 
 def main(argv=None):
-    from cpl_keras import cli
-
     prog = "python -m cpl_keras.real.chessboard"
     parser = cli.Parser(prog=prog, description="print a chessboard rig's calibration")
     parser.add_argument("--root", default=DATA_DIR, help="folder of left*/right* pairs")

@@ -36,6 +36,7 @@ import os
 import numpy as np
 
 from cpl_keras import evaluation, metrics, report, runs
+from cpl_keras.baselines import geometric as geo
 from cpl_keras.camera import TARGETS, fov_from_focal
 from cpl_keras.evaluation import ROWS, EvaluationError
 from cpl_keras.runs import RELEASED
@@ -143,8 +144,6 @@ def _rig_rows(loaded, data_path, geometric, geometric_max, progress):
 
 
 def _table(raw_rows, *, number_of_pairs, width, data, description, source, runs, paper):
-    from cpl_keras.baselines import geometric as geo
-
     rows = {}
     for row, r in raw_rows.items():
         entry = {"source": r["source"], "as_released": r["as_released"],

@@ -7,6 +7,8 @@ import os
 import sys
 
 from cpl_keras import cli
+from cpl_keras.data.storage import DatasetError
+from cpl_keras.models.variants import BACKBONES
 from cpl_keras.reproduce.pipeline import rebuild, rebuild_command, reproduce
 from cpl_keras.reproduce.presets import (
     GPU_SIZED_PAIRS, PRESETS, PROG, REAL_ROOTS, cpu_cost, default_folders, gpu_sized,
@@ -26,8 +28,6 @@ SCALE_OPTIONS = ("quick", "preset", "pairs", "random_pairs", "epochs", "patience
 def add_arguments(parser):
     """The reproduction's options, as an argument group of ``parser``; every
     number is checked when parsed (``cli.positive_int``)."""
-    from cpl_keras.models.variants import BACKBONES
-
     positive, non_negative = cli.positive_int, cli.non_negative_int
     group = parser.add_argument_group("reproduce (cpl_keras/reproduce/)")
     group.add_argument("--preset", choices=tuple(PRESETS), help="a named scale: paper (the "
@@ -127,8 +127,6 @@ def resolve_args(parser, args):
 
 def run(args, command, prog=PROG):
     """Run the reproduction (or the rebuild) for resolved ``args``; the exit status."""
-    from cpl_keras.data.storage import DatasetError
-
     try:
         if args.from_predictions is not None:
             report = rebuild(args.out, rebuild_command(args.out), args.discussion)

@@ -4,11 +4,17 @@ ends (and restored from its published record on another machine)."""
 
 from __future__ import annotations
 
+import multiprocessing
+import multiprocessing.connection
 import os
+import signal
 import sys
+import threading
 import time
 
-from cpl_keras import cli, runs
+from cpl_keras import cli, evaluation, runs, training
+from cpl_keras.cache import enable_compile_cache
+from cpl_keras.data.storage import DatasetError
 from cpl_keras.reproduce.presets import PROG, log, run_jobs
 
 # ---------------------------------------------------------------------------
@@ -25,8 +31,6 @@ def train_all(config, paths, runs_dir, seed, jobs=1, out_dir=None):
     published record is there but whose run directory is not (another
     machine, a later session) is restored from it instead of trained again.
     """
-    from cpl_keras import training
-
     trained, pending = {}, []
     for key, protocol, split, run_seed, variant, released, name in run_jobs(config, seed):
         run_dir = os.path.join(runs_dir, key, name)
@@ -84,8 +88,6 @@ def publish_run(run_dir, record, real_paths):
     ``real_paths`` stored in the run directory (``evaluation.store_predictions``),
     then its published part copied to ``record`` (``runs.publish_run_dir``)
     and its log and curves beside it (``runs.publish_files``)."""
-    from cpl_keras import evaluation
-
     evaluation.store_predictions(run_dir, real_paths)
     runs.publish_run_dir(run_dir, record)
     runs.publish_files(run_dir, os.path.dirname(record), os.path.basename(record))
@@ -101,8 +103,6 @@ SLOW_VARIANTS = ("deep-homo",)
 def _exit_with_parent(parent, every=2.0):
     """End this process (status 143, as by SIGTERM) once ``parent`` is gone:
     a reproduction killed outright leaves no training behind."""
-    import threading
-
     def watch():
         while os.getppid() == parent:
             time.sleep(every)
@@ -116,10 +116,6 @@ def _train_job(data, plan, parent):
     exit status says how it ended (0 trained, 1 no epoch completed, 2 an
     error, printed on one line, 130 interrupted, 143 its parent gone; a
     killed run resumes from its last completed epoch)."""
-    from cpl_keras import training
-    from cpl_keras.cache import enable_compile_cache
-    from cpl_keras.data.storage import DatasetError
-
     _exit_with_parent(parent)
     enable_compile_cache()
     try:
@@ -142,12 +138,6 @@ def train_parallel(pending, jobs, backbone, epochs):
     variants first. Ctrl-C (or SIGINT to this process) interrupts every
     running run, which resumes from its last epoch next time; a run that
     fails stops the others and raises ``TrainingError``."""
-    import multiprocessing
-    import multiprocessing.connection
-    import signal
-
-    from cpl_keras import training
-
     context = multiprocessing.get_context("spawn")
     pending = [tuple(job) + (None,) * (4 - len(job)) for job in pending]
     queue = sorted(pending, key=lambda job: job[2]["variant"] not in SLOW_VARIANTS)

@@ -5,19 +5,20 @@ from __future__ import annotations
 
 import os
 
-from cpl_keras import runs
+from cpl_keras import report, runs
+from cpl_keras.learning_curves import _val_mae
+from cpl_keras.models.variants import VARIANT_ROWS
+from cpl_keras.real import table2
 from cpl_keras.reproduce.presets import (
     DEFAULT_TABLES, RELEASED_RUN, TABLE1, TITLES, run_stems,
 )
+from cpl_keras.runs import RELEASED
 
 # ---------------------------------------------------------------------------
 # Stage 5: REPORT.md (from reproduce.json and the tables)
 # ---------------------------------------------------------------------------
 def _stem_row(stem):
     """The table row of a run name stem (``cpl-a-released``: MTL-CPL-A (as released))."""
-    from cpl_keras.models.variants import VARIANT_ROWS
-    from cpl_keras.runs import RELEASED
-
     if stem == RELEASED_RUN:
         return VARIANT_ROWS["cpl-a"] + RELEASED
     return VARIANT_ROWS.get(stem, stem)
@@ -78,8 +79,6 @@ def plot_protocol_curves(out_dir, runs_list):
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from cpl_keras.learning_curves import _val_mae
-
     figures = []
     for protocol in dict.fromkeys(s["protocol"] for s in runs_list):
         logged = []
@@ -135,9 +134,6 @@ def write_report(out_dir, summary, tables, rebuilt_by=None):
     """Stage 5: REPORT.md from the reproduction's summary (``reproduce.json``)
     and its tables; ``rebuilt_by``: the command that rebuilt them from the
     published predictions."""
-    from cpl_keras import report
-    from cpl_keras.real import table2
-
     config, info = summary["settings"], summary["machine"]
     lines = ["# Reproducing Tables 1 and 2", ""]
     lines += ["Everything on this page was produced by one command:", "", "```",

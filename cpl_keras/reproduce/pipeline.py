@@ -9,7 +9,11 @@ import os
 import platform
 import time
 
-from cpl_keras import cli, runs
+from cpl_keras import cli, evaluation, predictions, report, runs
+from cpl_keras.cache import enable_compile_cache
+from cpl_keras.data.generate import GENERATOR_VERSION, generate_dataset
+from cpl_keras.data.storage import StereoFile
+from cpl_keras.real import build, table2
 from cpl_keras.reproduce.jobs import train_all
 from cpl_keras.reproduce.page import write_report
 from cpl_keras.reproduce.presets import DEFAULT_TABLES, PROG, REAL_ROOTS, TABLE1, log
@@ -26,9 +30,6 @@ def real_set_folder(config, data_dir, seed):
 def make_datasets(config, data_dir, seed, real_roots=None):
     """Stage 1: the synthetic datasets and every real set (reused when
     present); ``{"cvgl": path, "random": path, "real": [paths]}``."""
-    from cpl_keras.data.generate import GENERATOR_VERSION, generate_dataset
-    from cpl_keras.real import build
-
     size = config["image_size"]
     paths = {}
     needed = {TABLE1[t][0] for t in config.get("tables", DEFAULT_TABLES)}
@@ -62,8 +63,6 @@ def _group_predictions(number, stem, prefix, run_dirs, data, config, out_dir, su
     """The predictions files of one table of one seed: reused when they were
     made from the same runs, data and settings after the runs' models were
     written, else computed and written (all files or none)."""
-    from cpl_keras import evaluation, predictions
-
     folder = os.path.join(out_dir, "runs")
     key = json.dumps({"table": stem, "runs": [runs.relative(r, out_dir) for r in run_dirs],
                       "data": [runs.relative(p, out_dir) for p in data] if data else None,
@@ -88,8 +87,6 @@ def _group_predictions(number, stem, prefix, run_dirs, data, config, out_dir, su
         files = predictions.table1_files(context, raw, out_dir=out_dir, prefix=prefix, stem=stem,
                                          key=key, suffix=suffix)
     else:
-        from cpl_keras.real import table2
-
         run_list, rigs = table2.table2_rigs(run_dirs, data, geometric=True,
                                             geometric_max=config["geometric_max"], progress=log)
         files = predictions.table2_files(run_list, rigs, out_dir=out_dir, prefix=prefix,
@@ -124,9 +121,6 @@ def make_predictions(config, paths, trained, out_dir):
 def make_tables(prediction_files, out_dir, command):
     """Every table from the predictions files; each written as Markdown, CSV,
     JSON and plots into ``out_dir``. Returns ``{stem: table}``."""
-    from cpl_keras import predictions, report
-    from cpl_keras.real import table2
-
     tables = predictions.tables_from_files(prediction_files)
     for stem, table in tables.items():
         if "rigs" in table:
@@ -167,8 +161,6 @@ def machine():
 
 
 def _dataset_line(path):
-    from cpl_keras.data.storage import StereoFile
-
     with StereoFile(path) as f:
         meta = f.metadata
         configs = len(set(f.labels["config_id"].tolist())) if "config_id" in f.labels else "n/a"
@@ -192,7 +184,6 @@ def reproduce(*, out_dir, data_dir, runs_dir, config, seed=0, command="", discus
     for directory in (out_dir, data_dir, runs_dir):
         os.makedirs(directory, exist_ok=True)
     start = time.time()
-    from cpl_keras.cache import enable_compile_cache
 
     enable_compile_cache()
     paths = make_datasets(config, data_dir, seed, real_roots)
@@ -265,8 +256,6 @@ def rebuild(out_dir, command="", discussion_file=None):
     ``discussion_file``: a new comparison with the paper (Markdown), stored
     in ``reproduce.json`` in place of the old one (written after the tables
     were seen). Returns the path of REPORT.md."""
-    from cpl_keras import predictions
-
     summary = read_summary(out_dir)
     if discussion_file is not None:
         with open(discussion_file) as f:

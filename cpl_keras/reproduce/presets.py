@@ -8,6 +8,7 @@ import math
 import os
 import sys
 
+from cpl_keras.evaluation import PAPER_DIR
 from cpl_keras.models import variants as registry
 from cpl_keras.models.variants import BACKBONES, MIN_IMAGE_SIZE, TABLE_ORDER
 
@@ -259,8 +260,6 @@ def cpu_cost(config, seed=0):
 def default_folders(preset):
     """``(out, data_dir, runs_dir)`` of a preset (None: the paper's scale into
     paper_results/)."""
-    from cpl_keras.evaluation import PAPER_DIR
-
     if preset == "quick":
         return os.path.join("runs", "quick", "paper_results"), os.path.join("data", "quick"), \
             os.path.join("runs", "quick")
