@@ -322,6 +322,29 @@ def _parser_and_args(argv):
     return parser, parser.parse_args(list(argv))
 
 
+def test_a_preset_is_a_frozen_checked_record():
+    import dataclasses
+
+    cpu = reproduce.PRESETS["cpu"]
+    assert isinstance(cpu, reproduce.Preset) and cpu.pairs == 1000
+    with pytest.raises(dataclasses.FrozenInstanceError):
+        cpu.pairs = 5
+    # every check runs when a preset is made or changed, with the same one line
+    with pytest.raises(ValueError, match="pairs must be positive, got 0"):
+        dataclasses.replace(cpu, pairs=0)
+    with pytest.raises(ValueError, match="unknown backbone 'resnet'"):
+        dataclasses.replace(cpu, backbone="resnet")
+    with pytest.raises(ValueError, match="image-size must be at least 32"):
+        dataclasses.replace(cpu, image_size=16)
+    with pytest.raises(ValueError, match="unknown setting 'pear'"):
+        reproduce.settings(preset="cpu", pear=3)
+    # lists given as settings become tuples; the dict form has every field
+    config = reproduce.settings(preset="cpu", variants=["baseline", "cpl-a", "cpl-u"])
+    assert config["variants"] == ("baseline", "cpl-a", "cpl-u")
+    assert set(config) == {f.name for f in dataclasses.fields(reproduce.Preset)} | {
+        "preset", "quick"}
+
+
 def test_presets_resolve():
     cpu = _parsed("--preset", "cpu").config
     assert cpu["backbone"] == "small_resnet" and cpu["image_size"] == 112

@@ -61,13 +61,13 @@ from cpl_keras.reproduce.pipeline import (  # noqa: E402
 )
 from cpl_keras.reproduce.presets import (  # noqa: E402
     DEFAULT_TABLES, GPU_SIZED_PAIRS, MTL_VARIANTS, PAPER_SCALE, PRESETS, PROG, QUICK,
-    REAL_ROOTS, REAL_SETS, RELEASED_RUN, TABLE1, cpu_cost, default_folders, gpu_sized,
+    Preset, REAL_ROOTS, REAL_SETS, RELEASED_RUN, TABLE1, cpu_cost, default_folders, gpu_sized,
     has_accelerator, run_jobs, run_stems, settings,
 )
 
 __all__ = [
     "DEFAULT_TABLES", "GPU_SIZED_PAIRS", "MTL_VARIANTS", "PAPER_SCALE", "PRESETS", "PROG",
-    "QUICK", "REAL_ROOTS", "REAL_SETS", "RELEASED_RUN", "SLOW_VARIANTS", "SUMMARY", "TABLE1",
+    "Preset", "QUICK", "REAL_ROOTS", "REAL_SETS", "RELEASED_RUN", "SLOW_VARIANTS", "SUMMARY", "TABLE1",
     "add_arguments", "cpu_cost", "default_folders", "gpu_sized", "has_accelerator", "main",
     "make_datasets", "publish_run", "published_record", "read_summary", "rebuild",
     "rebuild_command", "reproduce", "resolve_args", "run", "run_jobs", "run_stems",

@@ -4,6 +4,7 @@ machine without a GPU is told about GPU-sized settings."""
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import os
 import sys
@@ -20,69 +21,6 @@ MTL_VARIANTS = ("cpl-u", "baseline", "cpl-a")
 #: The run name stem of MTL-CPL-A as released (a ``seeded_variants`` entry).
 RELEASED_RUN = "cpl-a-released"
 
-#: Named scales. ``pairs`` / ``random_pairs``: pairs of the cvgl / random
-#: datasets; ``seeds`` / ``random_seeds``: seeds per protocol (each its own
-#: split and initial weights); ``variants``: trained on each protocol;
-#: ``released``: also MTL-CPL-A as released on cvgl; ``seeded_variants``: the
-#: runs trained on every seed (variants, and ``RELEASED_RUN``; None: all of
-#: them), the others are trained once, on the first seed; ``crops``:
-#: Middlebury crops; ``chessboard_crops``: crops per chessboard pair;
-#: ``geometric_max``: pairs of each table (or real set) the Geometric
-#: baseline runs on (None: all); ``first_variants``: trained on every seed
-#: of a table before the other variants start (default none); ``workers``:
-#: data generation processes (None: every core).
-PRESETS = {
-    # The paper's scale: CVGL's 123,017 pairs, up to 200 epochs, InceptionV3 at
-    # 112 (the scale without --preset, into paper_results/paper/).
-    "paper": {"pairs": 123017, "random_pairs": 123017, "epochs": 200, "image_size": 112,
-              "backbone": "inception_v3", "crops": 500, "chessboard_crops": 20,
-              "geometric_max": None, "batch_size": 16, "patience": 5, "seeds": 1,
-              "random_seeds": 1, "variants": TABLE_ORDER, "released": True,
-              "seeded_variants": None, "workers": None},
-    # Ten minutes of one GPU machine (the device's per-command limit): the
-    # deciding pair, MTL-CPL-A then MTL-Baseline, with the paper's towers on
-    # 20,000 cvgl pairs rendered on that machine's CPU cores; each run ends at
-    # early stopping or at its time budget, whichever comes first; Table 2
-    # from both. bench/paper_gpu.sh runs it there and packs what comes back;
-    # its --dry-run checks the same plan on a CPU at tiny scale.
-    "paper-gpu": {"pairs": 20000, "random_pairs": 20000, "epochs": 200, "image_size": 112,
-                  "backbone": "inception_v3", "crops": 500, "chessboard_crops": 20,
-                  "geometric_max": 200, "batch_size": 16, "patience": 5, "seeds": 1,
-                  "random_seeds": 1, "variants": ("cpl-a", "baseline"), "released": False,
-                  "seeded_variants": None, "workers": None, "tables": ("cvgl",),
-                  "run_budget_s": 150},
-    # Sized for a 2-core CPU: 1 h 24 min measured with --jobs 2 (docs/evaluation.md):
-    # every row of the tables, the MTL variants on cvgl over 3 seeds, Deep-Homo
-    # and MTL-CPL-A as released on the first seed only; 1,000 pairs per
-    # protocol, since a Deep-Homo training step costs 15-18 small_resnet ones.
-    "cpu": {"pairs": 1000, "random_pairs": 1000, "epochs": 60, "image_size": 112,
-            "backbone": "small_resnet", "crops": 500, "chessboard_crops": 20,
-            "geometric_max": 200, "batch_size": 16, "patience": 5, "seeds": 3,
-            "random_seeds": 1, "variants": TABLE_ORDER, "released": True,
-            "seeded_variants": MTL_VARIANTS, "workers": None,
-            "real_sets": ("chessboard", "middlebury")},
-    # Tiny settings that run the paper-gpu pipeline end to end in minutes (CI).
-    "quick": {"pairs": 150, "random_pairs": 150, "epochs": 1, "image_size": 32,
-              "backbone": "small", "crops": 24, "chessboard_crops": 1, "geometric_max": 20,
-              "batch_size": 16, "patience": 5, "seeds": 1, "random_seeds": 1,
-              "variants": TABLE_ORDER, "released": True, "seeded_variants": None,
-              "workers": None},
-    # Does MTL-CPL-A beat MTL-Baseline? The three MTL variants on 8,000 cvgl
-    # pairs, 3 seeds each, on the paper's frame-level split and on the drive
-    # split (no test frame next to a training frame), every run to early
-    # stopping; Table 2 from the paper-split runs. Many hours on 2 cores:
-    # each finished run is published at once and a rerun skips it
-    # (docs/evaluation.md#presets). CPL-A and Baseline train on every seed
-    # before CPL-U (``first_variants``), so the comparison that decides lands
-    # first.
-    "cpu-8000": {"pairs": 8000, "random_pairs": 1000, "epochs": 100, "image_size": 112,
-                 "backbone": "small_resnet", "crops": 500, "chessboard_crops": 20,
-                 "geometric_max": None, "batch_size": 16, "patience": 5, "seeds": 3,
-                 "random_seeds": 1, "variants": ("cpl-a", "baseline", "cpl-u"),
-                 "released": False, "seeded_variants": None, "workers": None,
-                 "tables": ("cvgl", "cvgl_drive"), "real_sets": ("chessboard", "middlebury"),
-                 "first_variants": ("cpl-a", "baseline")},
-}
 #: The Table 1 versions a reproduction can make, by key: (protocol, split,
 #: the setting holding its number of seeds). A preset's ``tables`` lists
 #: those it makes (default: ``DEFAULT_TABLES``); Table 2 comes from the
@@ -93,9 +31,6 @@ TABLE1 = {
     "random": ("random", "held-out-config", "random_seeds"),
 }
 DEFAULT_TABLES = ("cvgl", "random")
-#: The scale without --preset: the paper's, generating data on every core.
-PAPER_SCALE = PRESETS["paper"]
-QUICK = PRESETS["quick"]
 #: Settings that are counts: positive integers (patience may be 0).
 POSITIVE = ("pairs", "random_pairs", "epochs", "image_size", "crops", "chessboard_crops",
             "geometric_max", "batch_size", "seeds", "random_seeds", "workers")
@@ -117,73 +52,173 @@ TITLES = {"table1_cvgl": "Table 1, paper protocol (cvgl rigs, frame-level 70/30 
                     "models)"}
 
 
+@dataclasses.dataclass(frozen=True)
+class Preset:
+    """A scale of the reproduction, checked when made (ValueError, one line).
+
+    ``pairs`` / ``random_pairs``: pairs of the cvgl / random datasets;
+    ``seeds`` / ``random_seeds``: seeds per protocol (each its own split and
+    initial weights); ``variants``: trained on each protocol; ``released``:
+    also MTL-CPL-A as released on cvgl; ``seeded_variants``: the runs trained
+    on every seed (variants, and ``RELEASED_RUN``; None: all of them), the
+    others are trained once, on the first seed; ``crops``: Middlebury crops;
+    ``chessboard_crops``: crops per chessboard pair; ``geometric_max``: pairs
+    of each table (or real set) the Geometric baseline runs on (None: all);
+    ``workers``: data generation processes (None: every core); ``tables``:
+    the Table 1 versions made (``TABLE1``); ``run_budget_s``: seconds of
+    training per run (None: no limit); ``real_sets``: the Table 2 rigs;
+    ``first_variants``: trained on every seed of a table before the other
+    variants start.
+    """
+
+    pairs: int
+    random_pairs: int
+    epochs: int
+    image_size: int
+    backbone: str
+    crops: int
+    chessboard_crops: int
+    geometric_max: int | None
+    batch_size: int
+    patience: int
+    seeds: int
+    random_seeds: int
+    variants: tuple
+    released: bool
+    seeded_variants: tuple | None
+    workers: int | None
+    tables: tuple = DEFAULT_TABLES
+    run_budget_s: float | None = None
+    real_sets: tuple = REAL_SETS
+    first_variants: tuple = ()
+
+    def __post_init__(self):
+        for key in ("variants", "tables", "real_sets", "first_variants"):
+            object.__setattr__(self, key, tuple(getattr(self, key)))
+        if self.seeded_variants is not None:
+            object.__setattr__(self, "seeded_variants", tuple(self.seeded_variants))
+        unknown = [s for s in self.real_sets if s not in REAL_SETS]
+        if unknown:
+            raise ValueError(f"unknown real set {unknown[0]!r}; choose from "
+                             f"{', '.join(REAL_SETS)}")
+        for key in POSITIVE + ("patience",):
+            value = getattr(self, key)
+            if value is None and key in ("geometric_max", "workers"):
+                continue
+            least = 0 if key == "patience" else 1
+            if isinstance(value, bool) or not isinstance(value, int) or value < least:
+                what = "non-negative" if least == 0 else "positive"
+                raise ValueError(f"{key.replace('_', '-')} must be {what}, got {value}")
+        budget = self.run_budget_s
+        if budget is not None and (isinstance(budget, bool)
+                                   or not isinstance(budget, (int, float))
+                                   or not math.isfinite(budget) or budget <= 0):
+            raise ValueError(f"run-budget must be a positive number of seconds, got {budget}")
+        if self.backbone not in BACKBONES:
+            raise ValueError(f"unknown backbone {self.backbone!r}; choose one of "
+                             f"{', '.join(BACKBONES)}")
+        unknown = [t for t in self.tables if t not in TABLE1]
+        if unknown or not self.tables:
+            raise ValueError(f"unknown table {unknown[0] if unknown else '(none)'!r}; choose "
+                             f"from {', '.join(TABLE1)}")
+        for variant in self.variants:
+            registry.get(variant)
+        for variant in self.first_variants:
+            if variant not in self.variants:
+                raise ValueError(f"first variant {variant!r} is not trained by these settings "
+                                 f"({', '.join(self.variants)})")
+        if self.seeded_variants is not None:
+            trained = self.variants + ((RELEASED_RUN,) if self.released else ())
+            for stem in self.seeded_variants:
+                if stem not in trained:
+                    raise ValueError(f"seeded variant {stem!r} is not trained by these "
+                                     f"settings ({', '.join(trained)})")
+        least = max([MIN_REAL_IMAGE_SIZE, MIN_IMAGE_SIZE.get(self.backbone, 1)]
+                    + [registry.get(v).min_image_size or 1 for v in self.variants])
+        if self.image_size < least:
+            raise ValueError(f"image-size must be at least {least} (the {self.backbone} "
+                             f"backbone and the real sets), got {self.image_size}")
+
+
+#: The named scales (``--preset``), each a ``Preset``.
+PRESETS = {
+    # The paper's scale: CVGL's 123,017 pairs, up to 200 epochs, InceptionV3 at
+    # 112 (the scale without --preset, into paper_results/paper/).
+    "paper": Preset(pairs=123017, random_pairs=123017, epochs=200, image_size=112,
+                    backbone="inception_v3", crops=500, chessboard_crops=20,
+                    geometric_max=None, batch_size=16, patience=5, seeds=1,
+                    random_seeds=1, variants=TABLE_ORDER, released=True,
+                    seeded_variants=None, workers=None),
+    # Ten minutes of one GPU machine (the device's per-command limit): the
+    # deciding pair, MTL-CPL-A then MTL-Baseline, with the paper's towers on
+    # 20,000 cvgl pairs rendered on that machine's CPU cores; each run ends at
+    # early stopping or at its time budget, whichever comes first; Table 2
+    # from both. bench/paper_gpu.sh runs it there and packs what comes back;
+    # its --dry-run checks the same plan on a CPU at tiny scale.
+    "paper-gpu": Preset(pairs=20000, random_pairs=20000, epochs=200, image_size=112,
+                        backbone="inception_v3", crops=500, chessboard_crops=20,
+                        geometric_max=200, batch_size=16, patience=5, seeds=1,
+                        random_seeds=1, variants=("cpl-a", "baseline"), released=False,
+                        seeded_variants=None, workers=None, tables=("cvgl",),
+                        run_budget_s=150),
+    # Sized for a 2-core CPU: 1 h 24 min measured with --jobs 2 (docs/evaluation.md):
+    # every row of the tables, the MTL variants on cvgl over 3 seeds, Deep-Homo
+    # and MTL-CPL-A as released on the first seed only; 1,000 pairs per
+    # protocol, since a Deep-Homo training step costs 15-18 small_resnet ones.
+    "cpu": Preset(pairs=1000, random_pairs=1000, epochs=60, image_size=112,
+                  backbone="small_resnet", crops=500, chessboard_crops=20,
+                  geometric_max=200, batch_size=16, patience=5, seeds=3,
+                  random_seeds=1, variants=TABLE_ORDER, released=True,
+                  seeded_variants=MTL_VARIANTS, workers=None,
+                  real_sets=("chessboard", "middlebury")),
+    # Tiny settings that run the paper-gpu pipeline end to end in minutes (CI).
+    "quick": Preset(pairs=150, random_pairs=150, epochs=1, image_size=32,
+                    backbone="small", crops=24, chessboard_crops=1, geometric_max=20,
+                    batch_size=16, patience=5, seeds=1, random_seeds=1,
+                    variants=TABLE_ORDER, released=True, seeded_variants=None,
+                    workers=None),
+    # Does MTL-CPL-A beat MTL-Baseline? The three MTL variants on 8,000 cvgl
+    # pairs, 3 seeds each, on the paper's frame-level split and on the drive
+    # split (no test frame next to a training frame), every run to early
+    # stopping; Table 2 from the paper-split runs. Many hours on 2 cores:
+    # each finished run is published at once and a rerun skips it
+    # (docs/evaluation.md#presets). CPL-A and Baseline train on every seed
+    # before CPL-U (``first_variants``), so the comparison that decides lands
+    # first.
+    "cpu-8000": Preset(pairs=8000, random_pairs=1000, epochs=100, image_size=112,
+                       backbone="small_resnet", crops=500, chessboard_crops=20,
+                       geometric_max=None, batch_size=16, patience=5, seeds=3,
+                       random_seeds=1, variants=("cpl-a", "baseline", "cpl-u"),
+                       released=False, seeded_variants=None, workers=None,
+                       tables=("cvgl", "cvgl_drive"),
+                       real_sets=("chessboard", "middlebury"),
+                       first_variants=("cpl-a", "baseline")),
+}
+#: The scale without --preset: the paper's, generating data on every core.
+PAPER_SCALE = PRESETS["paper"]
+QUICK = PRESETS["quick"]
+
+
 def settings(quick=False, preset=None, **overrides):
-    """The run settings: a preset (``PRESETS``; default ``PAPER_SCALE``,
-    ``quick=True`` is ``preset="quick"``) with ``overrides`` applied (None:
-    keep the preset's). ValueError (one line) on a bad value."""
+    """The run settings as a dict (the ``Preset``'s fields, ``preset`` and
+    ``quick``): a preset (``PRESETS``; default ``PAPER_SCALE``, ``quick=True``
+    is ``preset="quick"``) with ``overrides`` applied (None: keep the
+    preset's). ValueError (one line) on a bad value."""
     if quick and preset not in (None, "quick"):
         raise ValueError(f"--quick is --preset quick; it cannot go with --preset {preset}")
     name = "quick" if quick else preset
     if name is not None and name not in PRESETS:
         raise ValueError(f"unknown preset {name!r}; choose one of {', '.join(PRESETS)}")
-    chosen = dict(PRESETS[name] if name else PAPER_SCALE)
-    chosen.setdefault("tables", DEFAULT_TABLES)
-    chosen.setdefault("run_budget_s", None)
-    chosen.setdefault("real_sets", REAL_SETS)
-    chosen.setdefault("first_variants", ())
-    chosen["real_sets"] = tuple(chosen["real_sets"])
-    unknown = [s for s in chosen["real_sets"] if s not in REAL_SETS]
-    if unknown:
-        raise ValueError(f"unknown real set {unknown[0]!r}; choose from {', '.join(REAL_SETS)}")
-    for key, value in overrides.items():
-        if value is None:
-            continue
-        if key not in chosen:
+    fields = {field.name for field in dataclasses.fields(Preset)}
+    for key in overrides:
+        if key not in fields:
             raise ValueError(f"unknown setting {key!r}")
-        chosen[key] = value
-    for key in POSITIVE + ("patience",):
-        value = chosen[key]
-        if value is None and key in ("geometric_max", "workers"):
-            continue
-        least = 0 if key == "patience" else 1
-        if isinstance(value, bool) or not isinstance(value, int) or value < least:
-            what = "non-negative" if least == 0 else "positive"
-            raise ValueError(f"{key.replace('_', '-')} must be {what}, got {value}")
-    budget = chosen["run_budget_s"]
-    if budget is not None and (isinstance(budget, bool) or not isinstance(budget, (int, float))
-                               or not math.isfinite(budget) or budget <= 0):
-        raise ValueError(f"run-budget must be a positive number of seconds, got {budget}")
-    if chosen["backbone"] not in BACKBONES:
-        raise ValueError(f"unknown backbone {chosen['backbone']!r}; choose one of "
-                         f"{', '.join(BACKBONES)}")
-    chosen["variants"] = tuple(chosen["variants"])
-    chosen["tables"] = tuple(chosen["tables"])
-    unknown = [t for t in chosen["tables"] if t not in TABLE1]
-    if unknown or not chosen["tables"]:
-        raise ValueError(f"unknown table {unknown[0] if unknown else '(none)'!r}; choose from "
-                         f"{', '.join(TABLE1)}")
-    for variant in chosen["variants"]:
-        registry.get(variant)
-    chosen["first_variants"] = tuple(chosen["first_variants"])
-    for variant in chosen["first_variants"]:
-        if variant not in chosen["variants"]:
-            raise ValueError(f"first variant {variant!r} is not trained by these settings "
-                             f"({', '.join(chosen['variants'])})")
-    if chosen["seeded_variants"] is not None:
-        chosen["seeded_variants"] = tuple(chosen["seeded_variants"])
-        trained = run_stems(chosen)
-        for stem in chosen["seeded_variants"]:
-            if stem not in trained:
-                raise ValueError(f"seeded variant {stem!r} is not trained by these settings "
-                                 f"({', '.join(trained)})")
-    least = max([MIN_REAL_IMAGE_SIZE, MIN_IMAGE_SIZE.get(chosen["backbone"], 1)]
-                + [registry.get(v).min_image_size or 1 for v in chosen["variants"]])
-    if chosen["image_size"] < least:
-        raise ValueError(f"image-size must be at least {least} (the {chosen['backbone']} "
-                         f"backbone and the real sets), got {chosen['image_size']}")
-    chosen["preset"] = name
-    chosen["quick"] = name == "quick"
-    return chosen
+    chosen = dataclasses.replace(PRESETS[name] if name else PAPER_SCALE,
+                                 **{k: v for k, v in overrides.items() if v is not None})
+    config = dataclasses.asdict(chosen)
+    config["preset"] = name
+    config["quick"] = name == "quick"
+    return config
 
 
 def log(message):
