@@ -28,6 +28,8 @@ class Variant:
     camera_graph: bool   #: X, Y, Z come out of the Lambda camera graph
     min_image_size: int | None = None  #: its own minimum (None: the backbone's)
     released_gates: bool = False  #: as released, X, Y, Z pass through sigmoid gates
+    mtl: bool = True     #: one of the paper's multi-task networks (two towers, 13 outputs)
+    slow: bool = False   #: a training step costs many of the MTL variants' (started first)
     description: str = ""
 
     def loss_mode(self, as_released=False):
@@ -53,7 +55,7 @@ SPECS = (
             released_gates=True,
             description="CPL-U with adaptive weights (Eq. 9)"),
     Variant("deep-homo", "Deep-Homo", 0, "euclidean", "euclidean", 1.5e-3, "deep_homo", False,
-            min_image_size=16,
+            min_image_size=16, mtl=False, slow=True,
             description="the modified Deep-Homo network (8 convolutions, Euclidean loss)"),
 )
 REGISTRY = {spec.name: spec for spec in SPECS}
@@ -65,6 +67,11 @@ MODEL_ROWS = tuple(spec.row for spec in sorted(SPECS, key=lambda s: s.table_orde
 VARIANT_ROWS = {spec.name: spec.row for spec in SPECS}
 #: Variants in the order of the paper's table rows (the reproduction trains these).
 TABLE_ORDER = tuple(spec.name for spec in sorted(SPECS, key=lambda s: s.table_order))
+#: The paper's three multi-task networks, in table order.
+MTL_VARIANTS = tuple(name for name in TABLE_ORDER if REGISTRY[name].mtl)
+#: Variants whose training step costs many MTL ones (Deep-Homo: 15-18 small_resnet
+#: steps); parallel training starts them first.
+SLOW_VARIANTS = tuple(spec.name for spec in SPECS if spec.slow)
 
 
 def get(name):

@@ -15,6 +15,7 @@ import time
 from cpl_keras import cli, evaluation, runs, training
 from cpl_keras.cache import enable_compile_cache
 from cpl_keras.data.storage import DatasetError
+from cpl_keras.models.variants import SLOW_VARIANTS
 from cpl_keras.reproduce.presets import PROG, log, run_jobs
 
 # ---------------------------------------------------------------------------
@@ -94,12 +95,6 @@ def publish_run(run_dir, record, real_paths):
     log(f"published {record}")
 
 
-#: Variants whose training step costs many MTL steps (Deep-Homo: 15-18x a
-#: small_resnet step, bench/bench_variants.py); ``train_parallel`` starts them
-#: first, so that the short runs fill the other process meanwhile.
-SLOW_VARIANTS = ("deep-homo",)
-
-
 def _exit_with_parent(parent, every=2.0):
     """End this process (status 143, as by SIGTERM) once ``parent`` is gone:
     a reproduction killed outright leaves no training behind."""
@@ -140,6 +135,7 @@ def train_parallel(pending, jobs, backbone, epochs):
     fails stops the others and raises ``TrainingError``."""
     context = multiprocessing.get_context("spawn")
     pending = [tuple(job) + (None,) * (4 - len(job)) for job in pending]
+    # the slow variants first, so that the short runs fill the other processes meanwhile
     queue = sorted(pending, key=lambda job: job[2]["variant"] not in SLOW_VARIANTS)
     running = {}
     failure = None

@@ -11,12 +11,9 @@ import sys
 
 from cpl_keras.evaluation import PAPER_DIR
 from cpl_keras.models import variants as registry
-from cpl_keras.models.variants import BACKBONES, MIN_IMAGE_SIZE, TABLE_ORDER
+from cpl_keras.models.variants import BACKBONES, MIN_IMAGE_SIZE, MTL_VARIANTS, TABLE_ORDER
 
 PROG = "python -m cpl_keras.reproduce"
-
-#: The MTL variants (the paper's three networks with two towers).
-MTL_VARIANTS = ("cpl-u", "baseline", "cpl-a")
 
 #: The run name stem of MTL-CPL-A as released (a ``seeded_variants`` entry).
 RELEASED_RUN = "cpl-a-released"
