@@ -192,3 +192,25 @@ def test_cli_builds_middlebury(tmp_path, capsys):
     with StereoFile(out) as data:
         assert data.num_pairs == 3
         assert "cpl_keras.real.build middlebury" in data.metadata["command"]
+
+
+def test_build_all_keyword_api(tmp_path):
+    """``build.build_all``: the sets named, their crops per source, a file
+    kept unless ``force``, a root given for a set that needs one checked."""
+    lines = []
+    out = tmp_path / "real"
+    paths = build.build_all(str(out), stems=("middlebury",), crops_per_source={"middlebury": 3},
+                            image_size=32, seed=1, report=lines.append)
+    assert paths == [str(out / "middlebury.h5")] and os.listdir(out) == ["middlebury.h5"]
+    with StereoFile(paths[0]) as f:
+        assert len(f) == 3 and f.read_pairs(np.arange(1))[0].shape == (1, 32, 32, 3)
+    stamp = os.stat(paths[0]).st_mtime_ns
+    build.build_all(str(out), stems=("middlebury",), image_size=32, report=lines.append)
+    assert os.stat(paths[0]).st_mtime_ns == stamp and "exists, kept" in lines[-1]
+    build.build_all(str(out), stems=("middlebury",), crops_per_source={"middlebury": 2},
+                    image_size=32, force=True, report=lines.append)
+    with StereoFile(paths[0]) as f:
+        assert len(f) == 2
+    with pytest.raises(ValueError, match="dataset root not found"):
+        build.build_all(str(out), stems=(), roots={"kitti": str(tmp_path / "nowhere")},
+                        report=lines.append)

@@ -24,7 +24,6 @@ status 2; the output file appears only when complete.
 
 from __future__ import annotations
 
-import argparse
 import os
 import sys
 
@@ -101,63 +100,74 @@ def _check_out(path):
     cli.check_output_file(path)
 
 
-def build_one(source, out, *, root=None, args=None, command=None, report=None):
-    """Build one real set; returns its path."""
+def build_one(source, out, *, root=None, image_size=112, seed=0, crops=None, split=None,
+              layout="stereo", right="warp", labels="rig", kitti_calib=None, limit=None,
+              command=None, report=None):
+    """Build the real set ``source`` into the HDF5 file ``out``; returns its
+    path. The keywords are the command line's options (``--image-size``,
+    ``--crops`` (None: ``DEFAULT_CROPS``), ...); ``root`` is required for the
+    sets that do not ship with the package."""
     _check_out(out)
-    crops = args.crops if args.crops is not None else DEFAULT_CROPS.get(source)
+    crops = crops if crops is not None else DEFAULT_CROPS.get(source)
     if source not in SHIPPED and not (root and os.path.isdir(root)):
         raise ValueError(f"--root is required for {source}" if not root
                          else f"dataset root not found: {root}")
     cli.make_parent(out)
     if source == "middlebury":
-        return middlebury.build_middlebury(out, crops=crops, image_size=args.image_size,
-                                           seed=args.seed, command=command)
+        return middlebury.build_middlebury(out, crops=crops, image_size=image_size, seed=seed,
+                                           command=command)
     if source == "oakd":
         return oakd.build_oakd(out, root=root or oakd.DATA_DIR, crops=crops,
-                               image_size=args.image_size, seed=args.seed, command=command)
+                               image_size=image_size, seed=seed, command=command)
     if source == "chessboard":
         return chessboard.build_chessboard(out, root=root or chessboard.DATA_DIR, crops=crops,
-                                           image_size=args.image_size, seed=args.seed,
-                                           command=command, report=report)
-    if not root:
-        raise ValueError(f"--root is required for {source}")
-    if not os.path.isdir(root):
-        raise ValueError(f"dataset root not found: {root}")
+                                           image_size=image_size, seed=seed, command=command,
+                                           report=report)
     if source == "kitti":
-        return kitti.build_kitti(root, out, layout=args.layout, split=args.split,
-                                 image_size=args.image_size, limit=args.limit,
-                                 calib_root=getattr(args, "kitti_calib", None), command=command)
+        return kitti.build_kitti(root, out, layout=layout, split=split, image_size=image_size,
+                                 limit=limit, calib_root=kitti_calib, command=command)
     return tsinghua.build_stereo_dataset(
-        root, out, dataset=source, split=args.split, image_size=args.image_size,
-        right=args.right, labels=args.labels, seed=args.seed, limit=args.limit, command=command)
+        root, out, dataset=source, split=split, image_size=image_size, right=right,
+        labels=labels, seed=seed, limit=limit, command=command)
 
 
-def build_all(args, command=None, report=print, crops=None, stems=None):
-    """``all``: every set that needs no download, and each one given a root;
-    ``crops`` ({source: crops}) overrides ``args.crops`` per source;
-    ``stems`` (None: all) limits the shipped sets to those named."""
-    if os.path.exists(args.out_dir) and not os.path.isdir(args.out_dir):
-        raise ValueError(f"output directory is a file: {args.out_dir}")
-    cli.check_output_file(os.path.join(args.out_dir, "x.h5"))
-    os.makedirs(args.out_dir, exist_ok=True)
+def build_all(out_dir, *, roots=None, stems=None, crops_per_source=None, force=False,
+              command=None, report=print, **options):
+    """``all``: every set that ships with the package (``stems`` of them;
+    None: all) and each one ``roots`` ({"kitti", "kitti_raw", "tsinghua",
+    "cityscapes": root}) gives, as ``<out_dir>/<stem>.h5``; an existing file
+    is kept unless ``force``. ``crops_per_source`` ({source: crops}) overrides
+    the crops per source; ``options`` are ``build_one``'s keywords for every
+    set."""
+    if os.path.exists(out_dir) and not os.path.isdir(out_dir):
+        raise ValueError(f"output directory is a file: {out_dir}")
+    cli.check_output_file(os.path.join(out_dir, "x.h5"))
+    os.makedirs(out_dir, exist_ok=True)
+    roots = roots or {}
     paths = []
     for stem, source, option, extra in ALL_SETS:
-        root = getattr(args, option) if option else None
+        root = roots.get(option) if option else None
         if option and not root:
             continue
         if not option and stems is not None and stem not in stems:
             continue
-        out = os.path.join(args.out_dir, f"{stem}.h5")
-        if os.path.exists(out) and not args.force:
+        out = os.path.join(out_dir, f"{stem}.h5")
+        if os.path.exists(out) and not force:
             report(f"{out}: exists, kept (--force rebuilds it)")
             paths.append(out)
             continue
-        one = argparse.Namespace(**{**vars(args), **extra})
-        if crops and source in crops:
-            one.crops = crops[source]
-        paths.append(build_one(source, out, root=root, args=one, command=command, report=report))
+        keywords = {**options, **extra}
+        if crops_per_source and source in crops_per_source:
+            keywords["crops"] = crops_per_source[source]
+        paths.append(build_one(source, out, root=root, command=command, report=report,
+                               **keywords))
         report(f"{out}: built ({stem})")
     return paths
+
+
+#: The options of ``build_one`` the command line passes on.
+OPTIONS = ("image_size", "seed", "crops", "split", "layout", "right", "labels", "kitti_calib",
+           "limit")
 
 
 def main(argv=None):
@@ -168,11 +178,15 @@ def main(argv=None):
         print(line, file=sys.stderr)
 
     try:
+        options = {name: getattr(args, name) for name in OPTIONS}
         if args.source == "all":
-            paths = build_all(args, command, report)
+            roots = {name: getattr(args, name) for name in ("kitti", "kitti_raw", "tsinghua",
+                                                            "cityscapes")}
+            paths = build_all(args.out_dir, roots=roots, force=args.force, command=command,
+                              report=report, **options)
         else:
-            paths = [build_one(args.source, args.out, root=args.root, args=args, command=command,
-                               report=report)]
+            paths = [build_one(args.source, args.out, root=args.root, command=command,
+                               report=report, **options)]
     except (ValueError, OSError) as error:
         return cli.fail(PROG, error)
     print("\n".join(paths))

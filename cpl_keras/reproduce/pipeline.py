@@ -16,7 +16,7 @@ from cpl_keras.data.storage import StereoFile
 from cpl_keras.real import build, table2
 from cpl_keras.reproduce.jobs import train_all
 from cpl_keras.reproduce.page import write_report
-from cpl_keras.reproduce.presets import DEFAULT_TABLES, PROG, REAL_ROOTS, TABLE1, log
+from cpl_keras.reproduce.presets import DEFAULT_TABLES, PROG, TABLE1, log
 
 # ---------------------------------------------------------------------------
 # Stage 1: data
@@ -45,14 +45,11 @@ def make_datasets(config, data_dir, seed, real_roots=None):
                              workers=config["workers"], progress=True)
         paths[protocol] = path
     # every real rig, through the one builder of ``python -m cpl_keras.real.build all``
-    args = build.parse_args(["all", "--out-dir", real_set_folder(config, data_dir, seed),
-                             "--image-size", str(size), "--seed", str(seed)])
-    for name in REAL_ROOTS:
-        setattr(args, name, (real_roots or {}).get(name))
     paths["real"] = build.build_all(
-        args, report=log, stems=config["real_sets"],
-        crops={"middlebury": config["crops"], "chessboard": config["chessboard_crops"],
-               "oakd": config["chessboard_crops"]})
+        real_set_folder(config, data_dir, seed), roots=real_roots, stems=config["real_sets"],
+        crops_per_source={"middlebury": config["crops"], "chessboard": config["chessboard_crops"],
+                          "oakd": config["chessboard_crops"]},
+        report=log, image_size=size, seed=seed)
     return paths
 
 
