@@ -26,7 +26,8 @@ def balance(run_dir, batches=8, batch_size=16):
     from keras import ops
 
     from cpl_keras import camera, runs
-    from cpl_keras.datasets import StereoSequence, targets_from_labels
+    from cpl_keras.datasets import targets_from_labels
+    from cpl_keras.sequence import StereoSequence
     from cpl_keras.data.storage import StereoFile
 
     run = runs.load_run(run_dir)

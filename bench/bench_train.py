@@ -112,7 +112,8 @@ def run(args):
     n = batch * args.steps
     shape = (args.image_size, args.image_size, 3)
     if args.data:
-        from cpl_keras.datasets import StereoSequence, targets_from_labels
+        from cpl_keras.datasets import targets_from_labels
+        from cpl_keras.sequence import StereoSequence
         from cpl_keras.data.storage import StereoFile
 
         with StereoFile(args.data) as f:

@@ -66,9 +66,10 @@ def main(argv=None):
 
     import numpy as np
 
-    from cpl_keras.datasets import StereoSequence, make_split, targets_from_labels
     from cpl_keras.data.storage import StereoFile
+    from cpl_keras.datasets import make_split, targets_from_labels
     from cpl_keras.models import build_model, compile_model
+    from cpl_keras.sequence import StereoSequence
 
     with StereoFile(args.data) as f:
         labels = f.labels

@@ -32,7 +32,7 @@ import sys
 
 import numpy as np
 
-from cpl_keras import datasets, models, runs
+from cpl_keras import models, runs
 from cpl_keras.baselines.average import save_statistics, training_statistics
 from cpl_keras.camera import FLOORS, RELEASED_FLOORS
 from cpl_keras.data.storage import DatasetError, StereoFile
@@ -372,6 +372,8 @@ def _run(plan, learning_rate, steps_per_execution, verbose):
 
 
 def _run_locked(plan, model, config, run_dir, verbose):
+    from cpl_keras.sequence import StereoSequence
+
     finished = _finished_run(run_dir)  # (by the process this one waited for)
     if finished is not None:
         return finished
@@ -400,9 +402,9 @@ def _run_locked(plan, model, config, run_dir, verbose):
     multiple = config["num_devices"]
     common = dict(targets=plan["targets"], batch_size=config["device_batch_size"],
                   multiple_of=multiple, workers=plan["workers"])
-    train_seq = datasets.StereoSequence(config["data"], plan["split"]["train"], shuffle=True,
+    train_seq = StereoSequence(config["data"], plan["split"]["train"], shuffle=True,
                                seed=config["seed"], **common)
-    val_seq = datasets.StereoSequence(config["data"], plan["split"]["val"], shuffle=False, **common)
+    val_seq = StereoSequence(config["data"], plan["split"]["val"], shuffle=False, **common)
 
     from cpl_keras.checkpointing import RunState
     from cpl_keras.progress import EpochLines

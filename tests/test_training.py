@@ -262,7 +262,7 @@ def test_nan_loss_stops_and_keeps_the_best_weights(dataset, tmp_path, monkeypatc
     import keras
 
     from cpl_keras.checkpointing import RunState
-    from cpl_keras.datasets import StereoSequence
+    from cpl_keras.sequence import StereoSequence
     from cpl_keras.training import summary_line, train
 
     getitem = StereoSequence.__getitem__
