@@ -62,18 +62,11 @@ class TrainingError(ValueError):
 # ---------------------------------------------------------------------------
 # Planning: validate everything before anything is written
 # ---------------------------------------------------------------------------
-def plan_run(data, *, variant, run_dir, epochs=200, batch_size=16, learning_rate=None,
-             image_size=None, backbone="inception_v3", split="paper", as_released=False,
-             seed=0, data_parallel=False, patience=5, test_fraction=0.3, val_fraction=0.1,
-             workers=1, disentangle="exact", bounded_pitch_head=None,
-             positive_focal_head=None, alpha_rate=None,
-             bn_recompute_batches=None, target_scaling="none", time_budget_s=None,
-             command=None):
-    """Check the dataset and the arguments; return the run's plan (a dict).
-
-    Raises ``DatasetError`` or ``TrainingError`` with a one-line message.
-    Writes nothing.
-    """
+def _check_arguments(*, variant, backbone, split, epochs, batch_size, workers, patience, seed,
+                     as_released, bn_recompute_batches, disentangle, target_scaling,
+                     learning_rate, alpha_rate, time_budget_s):
+    """``plan_run``'s checks of its arguments (TrainingError, one line);
+    returns the variant's spec and the BatchNorm recompute batches."""
     try:
         spec = variants.get(variant)
     except ValueError as error:
@@ -125,7 +118,13 @@ def plan_run(data, *, variant, run_dir, epochs=200, batch_size=16, learning_rate
     )):
         raise TrainingError(f"time budget must be a positive number of seconds, "
                             f"got {time_budget_s!r}")
+    return spec, bn_recompute_batches
 
+
+def _read_dataset(data, *, image_size, split, seed, test_fraction, val_fraction, as_released,
+                  batch_size):
+    """``plan_run``'s dataset: its facts, targets and split, checked against
+    the arguments (DatasetError or TrainingError, one line)."""
     data = os.path.abspath(os.fspath(data))
     with StereoFile(data) as f:
         labels = f.labels
@@ -157,6 +156,34 @@ def plan_run(data, *, variant, run_dir, epochs=200, batch_size=16, learning_rate
             f"batch size {batch_size} is larger than the training split ({len(indices['train'])} "
             f"pairs of {data}); use --batch-size {len(indices['train'])} or less"
         )
+    return {"data": data, "height": height, "width": width, "num_pairs": num_pairs,
+            "protocol": protocol, "targets": targets, "indices": indices}
+
+
+def plan_run(data, *, variant, run_dir, epochs=200, batch_size=16, learning_rate=None,
+             image_size=None, backbone="inception_v3", split="paper", as_released=False,
+             seed=0, data_parallel=False, patience=5, test_fraction=0.3, val_fraction=0.1,
+             workers=1, disentangle="exact", bounded_pitch_head=None,
+             positive_focal_head=None, alpha_rate=None,
+             bn_recompute_batches=None, target_scaling="none", time_budget_s=None,
+             command=None):
+    """Check the dataset and the arguments; return the run's plan (a dict).
+
+    Raises ``DatasetError`` or ``TrainingError`` with a one-line message.
+    Writes nothing.
+    """
+    spec, bn_recompute_batches = _check_arguments(
+        variant=variant, backbone=backbone, split=split, epochs=epochs, batch_size=batch_size,
+        workers=workers, patience=patience, seed=seed, as_released=as_released,
+        bn_recompute_batches=bn_recompute_batches, disentangle=disentangle,
+        target_scaling=target_scaling, learning_rate=learning_rate, alpha_rate=alpha_rate,
+        time_budget_s=time_budget_s)
+    dataset = _read_dataset(data, image_size=image_size, split=split, seed=seed,
+                            test_fraction=test_fraction, val_fraction=val_fraction,
+                            as_released=as_released, batch_size=batch_size)
+    data, height, width = dataset["data"], dataset["height"], dataset["width"]
+    num_pairs, protocol = dataset["num_pairs"], dataset["protocol"]
+    targets, indices = dataset["targets"], dataset["indices"]
 
     devices = _device_count() if data_parallel else 1
     run_batch = -(-batch_size // devices) * devices
