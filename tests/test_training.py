@@ -200,14 +200,20 @@ def test_killed_run_resumes_and_ends_like_an_uninterrupted_run(
         # as reported: killed as soon as log.csv has two epoch rows
         assert _wait_for(lambda: len(read_log(run_dir)) >= 2)
     else:
-        # epoch 2 has begun (epoch 1 is committed), and a few batches into it
+        # epoch N has been committed; a quarter of an epoch later (the
+        # uninterrupted run's epoch time) the run is inside epoch N + 1
+        walls = [float(row["wall_time_s"]) for row in read_log(uninterrupted["run_dir"])]
+        epoch_s = min(b - a for a, b in zip(walls, walls[1:]))
         assert _wait_for(lambda: epochs_done() >= 1)
-        time.sleep(0.3)
+        committed = epochs_done()
+        time.sleep(epoch_s / 4)
     process.send_signal(signal.SIGKILL)
     process.wait(timeout=300)
     done = epochs_done()
     assert 1 <= done < 4, f"the run must be killed mid-training ({when})"
     assert len(read_log(run_dir)) == done
+    if when == "in the middle of an epoch":  # no epoch was committed after the one seen
+        assert done == committed, (done, committed, epoch_s)
 
     process = cli(*args, cache=xla_cache)
     out, err = process.communicate(timeout=180)
