@@ -247,7 +247,8 @@ def test_deep_homo_saved_by_training_has_statistics_of_its_weights(tmp_path, tin
                                         safe_mode=True)
         bn = model.get_layer("batch_norm1")
         conv = keras.Model(model.inputs, bn.input)
-        from cpl_keras.sequence import StereoSequence, load_split
+        from cpl_keras.datasets import load_split
+        from cpl_keras.sequence import StereoSequence
 
         split = load_split(str(tmp_path / f"r{bn_batches}" / "split.npz"))
         seq = StereoSequence(tiny_cvgl, split["train"], batch_size=5)
