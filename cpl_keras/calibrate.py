@@ -36,6 +36,7 @@ import sys
 
 from cpl_keras import evaluation, exports
 from cpl_keras.data.storage import StereoFile
+from cpl_keras.errors import Error
 from cpl_keras.real import resize_image
 
 os.environ.setdefault("KERAS_BACKEND", "jax")
@@ -49,7 +50,7 @@ from cpl_keras.real import crop_resize_coordinate  # noqa: E402
 PROG = "python -m cpl_keras.calibrate"
 
 
-class CalibrationError(ValueError):
+class CalibrationError(Error):
     """Bad input to calibrate (one-line message)."""
 
 

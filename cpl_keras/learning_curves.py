@@ -33,6 +33,7 @@ from cpl_keras.camera import PARAMETERS
 from cpl_keras.data.generate import GENERATOR_VERSION, generate_dataset
 from cpl_keras.data.storage import StereoFile
 from cpl_keras.datasets import load_split, targets_from_labels
+from cpl_keras.errors import Error
 from cpl_keras.metrics import nmae
 from cpl_keras.training import train
 
@@ -40,7 +41,7 @@ from cpl_keras.training import train
 KEY_PARAMETERS = ("fx", "fy", "baseline", "pitch")
 
 
-class CurveError(ValueError):
+class CurveError(Error):
     """A run directory cannot be read (one line)."""
 
 

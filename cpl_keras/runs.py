@@ -39,6 +39,7 @@ import numpy as np
 from cpl_keras.baselines.average import load_statistics
 from cpl_keras.cli import one_line
 from cpl_keras.datasets import load_split
+from cpl_keras.errors import Error
 # (the atomic file writers, also re-exported for the run directory's callers)
 from cpl_keras.files import (  # noqa: F401
     atomic_path, commit, read_json, save_figure, write_json, write_text,
@@ -66,7 +67,7 @@ PUBLISHED = (CONFIG, STATS, SPLIT, LOG, CURVES, PREDICTIONS)
 RELEASED = " (as released)"
 
 
-class RunError(ValueError):
+class RunError(Error):
     """A run directory cannot be read (one-line message)."""
 
 

@@ -37,6 +37,7 @@ from cpl_keras.baselines.average import save_statistics, training_statistics
 from cpl_keras.camera import FLOORS, RELEASED_FLOORS
 from cpl_keras.data.storage import DatasetError, StereoFile
 from cpl_keras.datasets import SPLITS, load_split, make_split, save_split, targets_from_labels
+from cpl_keras.errors import Error
 from cpl_keras.models import BACKBONES, variants
 from cpl_keras.models.variants import DISENTANGLE
 
@@ -55,7 +56,7 @@ TARGET_SCALINGS = ("none", "std")
 BN_RECOMPUTE_BATCHES = 16
 
 
-class TrainingError(ValueError):
+class TrainingError(Error):
     """A bad argument or run directory (one-line message)."""
 
 

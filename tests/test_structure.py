@@ -177,3 +177,24 @@ def test_command_line_modules_start_without_keras():
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
                          timeout=120, check=True).stdout
     assert out.strip() == "[]"
+
+
+def test_every_error_of_the_package_is_an_errors_error():
+    """Each module's one-line error derives from ``cpl_keras.errors.Error``
+    (itself a ValueError), so one except clause catches them all."""
+    import importlib
+    import inspect
+
+    from cpl_keras.errors import Error
+
+    found = {}
+    for module in _modules():
+        if module.endswith("__main__"):
+            continue
+        for name, value in vars(importlib.import_module(module)).items():
+            if (inspect.isclass(value) and name.endswith("Error")
+                    and value.__module__ == module and value is not Error):
+                found[f"{module}.{name}"] = issubclass(value, Error)
+    assert len(found) >= 8, found
+    assert {name for name, ok in found.items() if not ok} == set()
+    assert issubclass(Error, ValueError)

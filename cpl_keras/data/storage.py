@@ -31,6 +31,7 @@ import os
 import numpy as np
 
 from cpl_keras.camera import TARGETS, UNITS
+from cpl_keras.errors import Error
 from cpl_keras.files import commit
 
 SCHEMA_VERSION = 1
@@ -42,7 +43,7 @@ REQUIRED_LABELS = TARGETS + ("u", "v", "disparity_released")
 INDEX_LABELS = ("config_id", "town_id", "frame_index")
 
 
-class DatasetError(ValueError):
+class DatasetError(Error):
     """A dataset file is missing, unreadable or malformed (one-line message)."""
 
 

@@ -28,6 +28,7 @@ import numpy as np
 from cpl_keras.camera import image_to_world
 from cpl_keras.data.generate import released_disparity  # noqa: F401  (the builders' label)
 from cpl_keras.data.storage import StereoWriter
+from cpl_keras.errors import Error
 
 #: Label conventions a real-data builder can write (see docs/evaluation.md).
 LABEL_MODES = ("rig", "vehicle")
@@ -37,7 +38,7 @@ LABEL_MODES = ("rig", "vehicle")
 CV_TO_PROJECT = np.array([[0.0, 0.0, 1.0], [-1.0, 0.0, 0.0], [0.0, -1.0, 0.0]])
 
 
-class RealDataError(ValueError):
+class RealDataError(Error):
     """A real-data file or directory is missing or malformed (one-line message)."""
 
 
