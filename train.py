@@ -29,6 +29,13 @@ DEMO = {"pairs": 800, "image_size": 112, "epochs": 8, "backbone": "small", "seed
 PROG = "train.py"
 
 
+def disparity_ceiling(text):
+    """argparse type of --disparity-ceiling: auto, none or a positive number."""
+    if text in ("auto", "none"):
+        return None if text == "none" else text
+    return cli.positive_float(text)
+
+
 def build_parser():
     parser = cli.Parser(
         prog=PROG,
@@ -75,6 +82,10 @@ def build_parser():
     parser.add_argument("--alpha-rate", type=cli.positive_float,
                         help="MTL-CPL-A: how many times an ordinary weight's pace the adaptive "
                         "weights move (default 10; 1 = Eq. 9 as the paper trains it)")
+    parser.add_argument("--disparity-ceiling", type=disparity_ceiling, default="auto",
+                        metavar="auto|none|PX",
+                        help="CPL: the exp disparity head's largest output (auto, default: twice "
+                        "the largest training label; none: 1e5 px, the bound before; or pixels)")
     parser.add_argument("--bn-recompute-batches", type=cli.non_negative_int,
                         help="training batches for recomputing BatchNorm statistics before "
                         "each validation (default 16; 0 = Keras's moving averages, as released)")
@@ -199,7 +210,7 @@ def _train(args, demo, seed, epochs, backbone, run_dir, command):
             steps_per_execution=args.steps_per_execution, disentangle=args.disentangle,
             bounded_pitch_head=False if args.linear_pitch_head else None,
             positive_focal_head=False if args.linear_focal_head else None,
-            alpha_rate=args.alpha_rate,
+            alpha_rate=args.alpha_rate, disparity_ceiling=args.disparity_ceiling,
             bn_recompute_batches=args.bn_recompute_batches, target_scaling=args.target_scaling,
             time_budget_s=args.time_budget, verbose=0 if args.quiet else 1,
             command=command,

@@ -87,7 +87,8 @@ def bounded_pitch(x):
 @keras.saving.register_keras_serializable(package=PACKAGE)
 def positive_disparity(x, floor=camera.FLOORS["disparity"]):
     """The CPL disparity head's output: ``d = exp(z)``, z clipped to
-    [log floor, log 1e5] with the gradient of z (straight-through).
+    [log floor, log 1e5] with the gradient of z (straight-through); models
+    trained with a ceiling use ``PositiveDisparity``.
 
     The camera graph divides by the disparity (Eq. 4a), so the projection
     terms have a pole at d = 0. A linear head is trapped on its negative
@@ -133,15 +134,57 @@ def positive_focal(x, floor=camera.FLOORS["focal"]):
     it in Eq. 4b), though its own term has no pole (xCam is linear in fx).
     The release's heads were linear (``as_released``).
     """
-    z = ops.stop_gradient(ops.clip(x, floor, 1e5))
+    z = ops.stop_gradient(ops.clip(x, floor, MAX_OUTPUT))
     return z + (x - ops.stop_gradient(x))
 
 
-def _positive(x, floor):
-    """``exp(z)``, z clipped to [log floor, log 1e5], straight-through."""
-    low, high = math.log(floor), math.log(1e5)
+#: The positive heads' largest output without a ceiling of their own (px).
+MAX_OUTPUT = 1e5
+
+
+def _positive(x, floor, ceiling=MAX_OUTPUT):
+    """``exp(z)``, z clipped to [log floor, log ceiling], straight-through."""
+    low, high = math.log(floor), math.log(ceiling)
     z = ops.stop_gradient(ops.clip(x, low, high)) + (x - ops.stop_gradient(x))
     return ops.exp(z)
+
+
+@keras.saving.register_keras_serializable(package=PACKAGE)
+class PositiveDisparity:
+    """The CPL disparity head's activation with a ceiling: ``d = exp(z)``, z
+    clipped to [log floor, log ceiling], straight-through (as
+    ``positive_disparity``, whose ceiling is ``MAX_OUTPUT``).
+
+    Why a ceiling: in inference mode a few pairs' exp(z) explode. On the
+    faithful-2000 InceptionV3 MTL-CPL-A run's 140 validation pairs
+    (``bench/diagnose_inference_mode.py``), the median absolute disparity
+    error was 132-148 px under every BatchNorm statistics tried, but the MAE
+    ran 364-7,210 px with the statistics of one 256-pair recompute or
+    another, from one to five pairs predicted at up to 1e5 px (the training
+    labels end at 2,085 px); clipped at twice the largest training label the
+    MAE ran 296-534 px. Those few pairs moved the validation loss by 2.6x
+    between epochs, so early stopping kept an early epoch. Training sets the
+    ceiling from its labels (``training.DISPARITY_CEILING_FACTOR``); the
+    compact towers' predictions stay below it (the largest on cpu-8000's
+    test pairs: 2,413 px against a ceiling of 4,171).
+    """
+
+    def __init__(self, floor=camera.FLOORS["disparity"], ceiling=MAX_OUTPUT):
+        floor, ceiling = float(floor), float(ceiling)
+        if not (0 < floor < ceiling and math.isfinite(ceiling)):
+            raise ValueError(f"disparity ceiling must be a finite number above the floor "
+                             f"({floor:g}), got {ceiling!r}")
+        self.floor, self.ceiling = floor, ceiling
+
+    def __call__(self, x):
+        return _positive(x, self.floor, self.ceiling)
+
+    def get_config(self):
+        return {"floor": self.floor, "ceiling": self.ceiling}
+
+    @classmethod
+    def from_config(cls, config):
+        return cls(**config)
 
 
 @keras.saving.register_keras_serializable(package=PACKAGE)

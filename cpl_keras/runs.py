@@ -85,11 +85,14 @@ def relative(path, start):
 # ---------------------------------------------------------------------------
 def normalise_config(config):
     """``config`` with each fact once: the top-level ``as_released`` of the
-    older layout moved into ``build`` (a new dict; the argument is kept)."""
+    older layout moved into ``build``, and a build of before the disparity
+    ceiling given its None (a new dict; the argument is kept)."""
     config = dict(config)
     build = dict(config.get("build") or {})
     if "as_released" in config:
         build.setdefault("as_released", bool(config.pop("as_released")))
+    # (runs from before the disparity head's ceiling: the head's old bound)
+    build.setdefault("disparity_ceiling", None)
     config["build"] = build
     return config
 

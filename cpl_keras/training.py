@@ -54,6 +54,10 @@ TARGET_SCALINGS = ("none", "std")
 #: before every validation (0: keep Keras's moving averages, the default as
 #: released).
 BN_RECOMPUTE_BATCHES = 16
+#: The CPL disparity head's ceiling, ``disparity_ceiling="auto"``: this many
+#: times the largest disparity label of the training split
+#: (``layers.PositiveDisparity`` says why).
+DISPARITY_CEILING_FACTOR = 2.0
 
 
 class TrainingError(Error):
@@ -65,7 +69,7 @@ class TrainingError(Error):
 # ---------------------------------------------------------------------------
 def _check_arguments(*, variant, backbone, split, epochs, batch_size, workers, patience, seed,
                      as_released, bn_recompute_batches, disentangle, target_scaling,
-                     learning_rate, alpha_rate, time_budget_s):
+                     learning_rate, alpha_rate, time_budget_s, disparity_ceiling):
     """``plan_run``'s checks of its arguments (TrainingError, one line);
     returns the variant's spec and the BatchNorm recompute batches."""
     try:
@@ -112,6 +116,13 @@ def _check_arguments(*, variant, backbone, split, epochs, batch_size, workers, p
         isinstance(alpha_rate, (int, float)) and math.isfinite(alpha_rate) and alpha_rate > 0
     )):
         raise TrainingError(f"alpha rate must be a positive number, got {alpha_rate!r}")
+    if disparity_ceiling not in (None, "auto") and (
+        isinstance(disparity_ceiling, bool)
+        or not isinstance(disparity_ceiling, (int, float, np.floating))
+        or not math.isfinite(disparity_ceiling) or disparity_ceiling <= FLOORS["disparity"]
+    ):
+        raise TrainingError(f"disparity ceiling must be 'auto', None or a number of pixels "
+                            f"above {FLOORS['disparity']:g}, got {disparity_ceiling!r}")
 
     if time_budget_s is not None and (isinstance(time_budget_s, bool) or not (
         isinstance(time_budget_s, (int, float)) and math.isfinite(time_budget_s)
@@ -165,7 +176,7 @@ def plan_run(data, *, variant, run_dir, epochs=200, batch_size=16, learning_rate
              image_size=None, backbone="inception_v3", split="paper", as_released=False,
              seed=0, data_parallel=False, patience=5, test_fraction=0.3, val_fraction=0.1,
              workers=1, disentangle="exact", bounded_pitch_head=None,
-             positive_focal_head=None, alpha_rate=None,
+             positive_focal_head=None, alpha_rate=None, disparity_ceiling="auto",
              bn_recompute_batches=None, target_scaling="none", time_budget_s=None,
              command=None):
     """Check the dataset and the arguments; return the run's plan (a dict).
@@ -178,7 +189,7 @@ def plan_run(data, *, variant, run_dir, epochs=200, batch_size=16, learning_rate
         workers=workers, patience=patience, seed=seed, as_released=as_released,
         bn_recompute_batches=bn_recompute_batches, disentangle=disentangle,
         target_scaling=target_scaling, learning_rate=learning_rate, alpha_rate=alpha_rate,
-        time_budget_s=time_budget_s)
+        time_budget_s=time_budget_s, disparity_ceiling=disparity_ceiling)
     dataset = _read_dataset(data, image_size=image_size, split=split, seed=seed,
                             test_fraction=test_fraction, val_fraction=val_fraction,
                             as_released=as_released, batch_size=batch_size)
@@ -197,6 +208,8 @@ def plan_run(data, *, variant, run_dir, epochs=200, batch_size=16, learning_rate
         "positive_focal_head": (not as_released) if positive_focal_head is None
         else bool(positive_focal_head),
         "disentangle": disentangle, "seed": int(seed),
+        "disparity_ceiling": _disparity_ceiling(disparity_ceiling, spec, as_released,
+                                                targets["disparity"][indices["train"]]),
     }
     if spec.loss_mode(as_released) == "projection-adaptive":
         from cpl_keras.losses import ALPHA_RATE
@@ -230,8 +243,19 @@ def plan_run(data, *, variant, run_dir, epochs=200, batch_size=16, learning_rate
         "run_dir": run_dir,
         "keras_backend": _backend(),
     }
-    _check_run_dir(run_dir, config)
+    _check_run_dir(run_dir, config, keep_ceiling=disparity_ceiling == "auto")
     return {"config": config, "targets": targets, "split": indices, "workers": int(workers)}
+
+
+def _disparity_ceiling(setting, spec, as_released, train_disparities):
+    """The build's ``disparity_ceiling`` (px): None where the disparity head
+    is not the positive one (the direct variants, or as released), and with
+    ``"auto"`` ``DISPARITY_CEILING_FACTOR`` times the largest training label."""
+    if as_released or not spec.loss_mode(as_released).startswith("projection"):
+        return None
+    if setting == "auto":
+        return round(DISPARITY_CEILING_FACTOR * float(np.max(train_disparities)), 3)
+    return None if setting is None else float(setting)
 
 
 def _backend():
@@ -246,8 +270,10 @@ def _device_count():
     return len(keras.distribution.list_devices())
 
 
-def _check_run_dir(run_dir, config):
-    """A run directory is new, empty, or holds the same run (to resume)."""
+def _check_run_dir(run_dir, config, keep_ceiling=False):
+    """A run directory is new, empty, or holds the same run (to resume).
+    With ``keep_ceiling`` (``disparity_ceiling="auto"``) a run is resumed
+    with its own disparity ceiling (a run of before the ceiling: None)."""
     if not os.path.exists(run_dir):
         return
     if not os.path.isdir(run_dir):
@@ -267,6 +293,8 @@ def _check_run_dir(run_dir, config):
         return
     if old.get("status") == "failed":
         return  # (replaced by the next run: ``_replace_failed_run``)
+    if keep_ceiling:
+        config["build"]["disparity_ceiling"] = old["build"]["disparity_ceiling"]
     config = runs.normalise_config(config)
     for key in RESUME_KEYS:
         if old.get(key) != config.get(key):
@@ -283,7 +311,7 @@ def train(data, *, variant, run_dir, epochs=200, batch_size=16, learning_rate=No
           image_size=None, backbone="inception_v3", split="paper", as_released=False, seed=0,
           data_parallel=False, patience=5, test_fraction=0.3, val_fraction=0.1, workers=1,
           steps_per_execution=1, disentangle="exact", bounded_pitch_head=None,
-          positive_focal_head=None, alpha_rate=None,
+          positive_focal_head=None, alpha_rate=None, disparity_ceiling="auto",
           bn_recompute_batches=None, target_scaling="none", time_budget_s=None, verbose=1,
           command=None):
     """Train ``variant`` on the dataset file ``data``; returns the summary dict.
@@ -302,6 +330,9 @@ def train(data, *, variant, run_dir, epochs=200, batch_size=16, learning_rate=No
     ``time_budget_s``: seconds of training (summed over resumes) the run may
     take; after an epoch, when another as long would overrun them, the run
     ends as finished with ``stopped`` saying so, keeping its best epoch.
+    ``disparity_ceiling``: the CPL disparity head's largest output in px
+    (``"auto"``: ``DISPARITY_CEILING_FACTOR`` times the largest training
+    label; None: ``layers.MAX_OUTPUT``, the bound of runs made before it).
     """
     if isinstance(steps_per_execution, bool) or not (
         isinstance(steps_per_execution, (int, np.integer)) and steps_per_execution >= 1
@@ -315,6 +346,7 @@ def train(data, *, variant, run_dir, epochs=200, batch_size=16, learning_rate=No
         test_fraction=test_fraction, val_fraction=val_fraction, workers=workers,
         disentangle=disentangle, bounded_pitch_head=bounded_pitch_head,
         positive_focal_head=positive_focal_head, alpha_rate=alpha_rate,
+        disparity_ceiling=disparity_ceiling,
         bn_recompute_batches=bn_recompute_batches, target_scaling=target_scaling,
         time_budget_s=time_budget_s, command=command,
     )

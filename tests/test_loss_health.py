@@ -234,6 +234,15 @@ def test_recomputed_batchnorm_statistics_are_the_batch_averages():
                                np.mean([a.var(0) for a in activations], 0), rtol=1e-3, atol=1e-5)
     assert bn.momentum == pytest.approx(0.99)
     assert batchnorm_layers(model) == [bn]
+    # population=True: the variance of all the batches' pairs together (the
+    # spread of the batch means included), here with batches of unequal means
+    shifted = [b + 3.0 * i for i, b in enumerate(batches)]
+    assert recompute_batchnorm_statistics(model, shifted, population=True) == 5
+    everything = np.concatenate([dense.predict(b, verbose=0) for b in shifted])
+    np.testing.assert_allclose(ops.convert_to_numpy(bn.moving_mean), everything.mean(0),
+                               rtol=1e-4, atol=1e-4)
+    np.testing.assert_allclose(ops.convert_to_numpy(bn.moving_variance), everything.var(0),
+                               rtol=1e-3, atol=1e-4)
 
 
 def test_deep_homo_saved_by_training_has_statistics_of_its_weights(tmp_path, tiny_cvgl):
@@ -345,6 +354,39 @@ def test_cpl_disparity_head_is_positive_in_log_space_and_linear_as_released():
     from cpl_keras.layers import positive_disparity
 
     assert float(jax.grad(lambda z: positive_disparity(z))(np.float32(-50.0))) > 0
+
+
+def test_cpl_disparity_head_stops_at_its_ceiling_and_keeps_the_gradient(tmp_path):
+    """Above the ceiling the head outputs the ceiling (not exp(z)), with the
+    gradient of z (straight-through); the ceiling survives a safe-mode save
+    and load; a ceiling at or below the floor is refused."""
+    import keras
+
+    from cpl_keras.layers import MAX_OUTPUT, PositiveDisparity
+
+    x, _ = batch(2)
+    model = build_model("cpl-a", backbone="small", image_size=SIZE, seed=0,
+                        disparity_ceiling=300.0)
+    head = model.get_layer("disparity")
+    head.kernel.assign(np.zeros(head.kernel.shape, "float32"))
+    for bias, expected in ((math.log(250.0), 250.0), (math.log(900.0), 300.0), (30.0, 300.0)):
+        head.bias.assign(np.full(head.bias.shape, bias, "float32"))
+        d = model.predict(x, verbose=0)[TARGETS.index("disparity")]
+        assert np.allclose(d, expected, rtol=1e-5), (bias, d)
+    path = tmp_path / "m.keras"
+    model.save(path)
+    loaded = keras.saving.load_model(path, safe_mode=True)
+    assert loaded.get_layer("disparity").activation.ceiling == 300.0
+    assert np.allclose(loaded.predict(x, verbose=0)[TARGETS.index("disparity")], 300.0)
+    assert model.calibration["disparity_ceiling"] == 300.0
+    # without one, the bound of before: 1e5 px
+    assert build_model("cpl-u", backbone="small", image_size=SIZE).calibration[
+        "disparity_ceiling"] == MAX_OUTPUT
+    head = PositiveDisparity(ceiling=300.0)
+    assert float(jax.grad(lambda z: head(z))(np.float32(30.0))) > 0
+    for bad in (0.001, float("inf"), -5.0):
+        with pytest.raises(ValueError, match="disparity ceiling"):
+            PositiveDisparity(ceiling=bad)
 
 
 # ---------------------------------------------------------------------------

@@ -2,6 +2,7 @@
 published predictions and the tables rebuilt from them alone, the presets,
 and the checks of its arguments."""
 
+import dataclasses
 import json
 import os
 import shutil
@@ -424,6 +425,21 @@ def test_presets_resolve():
     assert "a budget of 150 s of training per run" in reproduce.scale_text(config)
     assert _parsed("--preset", "paper-gpu", "--allow-cpu",
                    "--run-budget", "2.5").config["run_budget_s"] == 2.5
+    # the disparity head's ceiling: training's default, except cpu-8000, whose
+    # first runs were made before it (all its runs keep one setting)
+    from cpl_keras.reproduce.jobs import training_arguments
+
+    assert config["disparity_ceiling"] == "auto"
+    cpu_8000 = reproduce.settings(preset="cpu-8000")
+    assert cpu_8000["disparity_ceiling"] is None
+    assert training_arguments(cpu_8000, "r", "cpl-a", "paper", False, 0)[
+        "disparity_ceiling"] is None
+    assert training_arguments(config, "r", "cpl-a", "paper", False, 0)[
+        "disparity_ceiling"] == "auto"
+    assert training_arguments({k: v for k, v in config.items() if k != "disparity_ceiling"},
+                              "r", "cpl-a", "paper", False, 0)["disparity_ceiling"] == "auto"
+    with pytest.raises(ValueError, match="disparity-ceiling"):
+        dataclasses.replace(reproduce.PRESETS["cpu"], disparity_ceiling="high")
     # explicit flags override the preset's values
     mine = _parsed("--preset", "cpu", "--epochs", "7", "--seeds", "2", "--out", "x").config
     assert (mine["epochs"], mine["seeds"], mine["pairs"]) == (7, 2, 1000)

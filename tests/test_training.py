@@ -104,14 +104,17 @@ def test_every_variant_writes_the_run_directory(variant, dataset, tmp_path):
         assert np.all(np.isfinite(a))
         np.testing.assert_array_equal(a, b)
     assert not [n for n in os.listdir(os.path.join(run_dir, "backup")) if n.endswith(".h5")]
-    if variant == "baseline":
-        # A run directory of the older config.json layout (as_released also at
-        # the top level) still loads and resumes.
+    if variant in ("baseline", "cpl-a"):
+        # A run directory of the older config.json layouts (as_released also
+        # at the top level; no disparity ceiling) still loads and resumes.
         from cpl_keras import runs
 
+        assert (config["build"]["disparity_ceiling"] is None) == (variant == "baseline")
+        old_build = {k: v for k, v in config["build"].items() if k != "disparity_ceiling"}
         with open(os.path.join(run_dir, "config.json"), "w") as f:
-            json.dump(dict(config, as_released=False), f)
+            json.dump(dict(config, as_released=False, build=old_build), f)
         assert runs.as_released(runs.load_run(run_dir)) is False
+        assert runs.load_run(run_dir)["config"]["build"]["disparity_ceiling"] is None
         # Running the same command on a finished run trains nothing more.
         again = train(dataset, variant=variant, run_dir=run_dir, seed=1, **TINY)
         assert again["epochs_run"] == 2 and again["best_epoch"] == summary["best_epoch"]
@@ -722,10 +725,13 @@ def test_old_zero_based_log_is_read_alike_and_renumbered_on_resume(dataset, tmp_
 FLAG_CASES = {
     "as released": (["--as-released"], "cpl-a", lambda c: c["build"]["as_released"]
                     and c["bn_recompute_batches"] == 0
+                    and c["build"]["disparity_ceiling"] is None
                     and not c["build"]["positive_focal_head"]
                     and not c["build"]["bounded_pitch_head"]),
-    "cpl-u heads": (["--disentangle", "partial", "--linear-pitch-head"], "cpl-u",
+    "cpl-u heads": (["--disentangle", "partial", "--linear-pitch-head",
+                     "--disparity-ceiling", "300"], "cpl-u",
                     lambda c: c["build"]["disentangle"] == "partial"
+                    and c["build"]["disparity_ceiling"] == 300.0
                     and c["build"]["bounded_pitch_head"] is False),
     "cpl-a heads": (["--linear-focal-head", "--alpha-rate", "3"], "cpl-a",
                     lambda c: c["build"]["positive_focal_head"] is False
@@ -733,6 +739,7 @@ FLAG_CASES = {
     "baseline steps": (["--target-scaling", "std", "--steps-per-execution", "2",
                         "--bn-recompute-batches", "0", "--split", "held-out-config"], "baseline",
                        lambda c: c["target_scaling"] == "std"
+                       and c["build"]["disparity_ceiling"] is None
                        and c["bn_recompute_batches"] == 0 and c["split"] == "held-out-config"),
 }
 
@@ -762,6 +769,17 @@ def test_every_training_flag_reaches_the_run(case, tiny_run, tmp_path):
         assert not set(rig[split["test"]]) & set(rig[split["train"]])
     model = keras.saving.load_model(run_dir / "model.keras", safe_mode=True)
     assert model.calibration["as_released"] == config["build"]["as_released"]
+    ceiling = config["build"]["disparity_ceiling"]
+    if ceiling is not None:
+        assert model.get_layer("disparity").activation.ceiling == ceiling
+    if case == "cpl-a heads":  # the default: twice the largest training disparity
+        from cpl_keras.data.storage import StereoFile
+        from cpl_keras.datasets import load_split
+
+        with StereoFile(tiny_run["data"]) as f:
+            disparity = np.asarray(f.labels["disparity"], np.float64)
+        train_pairs = load_split(str(run_dir / "split.npz"))["train"]
+        assert ceiling == pytest.approx(2 * disparity[train_pairs].max(), abs=1e-3)
     if "alpha_rate" in config["build"]:
         assert model.alpha_rate == config["build"]["alpha_rate"]
 

@@ -27,7 +27,9 @@ CPL-A adaptive weights        per-term alpha_i (loss)      per-sample sigmoid ga
                                                            multiplying X, Y, Z
 Deep-Homo input               grey level of each image     one channel of each image
 pitch head                    clipped to +-pi/2            linear (a minimum every 2 pi)
-CPL disparity head            exp(z), positive             linear
+CPL disparity head            exp(z), positive, below      linear
+                              twice the largest training
+                              label
 CPL fx, fy heads              clipped at 1 px              linear (fy trapped below 0)
 X, Y, Z terms of Eq. 7        reach only the pixel heads   (MAE: every head)
 divisor floors                ``camera.FLOORS``            ``camera.RELEASED_FLOORS``
@@ -53,8 +55,8 @@ import numpy as np
 
 from cpl_keras import camera, losses
 from cpl_keras.layers import (
-    LambdaOps, bounded_pitch, multiply, positive_disparity, positive_focal, regression_head,
-    stop_gradient,
+    MAX_OUTPUT, LambdaOps, PositiveDisparity, bounded_pitch, multiply, positive_focal,
+    regression_head, stop_gradient,
 )
 from cpl_keras.models import backbones, deep_homo, variants
 from cpl_keras.models.calibration_model import CalibrationModel
@@ -65,7 +67,8 @@ PIXEL_HEADS = ("u", "v")
 
 def build_model(variant, *, backbone="inception_v3", image_size=112, as_released=False,
                 floors=None, bounded_pitch_head=None, positive_focal_head=None,
-                disentangle="exact", alpha_rate=None, seed=None, name=None):
+                disentangle="exact", alpha_rate=None, disparity_ceiling=None, seed=None,
+                name=None):
     """Build one of the paper's networks.
 
     Args:
@@ -88,6 +91,9 @@ def build_model(variant, *, backbone="inception_v3", image_size=112, as_released
         alpha_rate: how fast MTL-CPL-A's adaptive weights move (default
             ``losses.ALPHA_RATE``; 1 is Eq. 9 trained like every other weight,
             see ``CalibrationModel``).
+        disparity_ceiling: the largest disparity (px) the CPL variants' exp
+            head can output (``layers.PositiveDisparity``; default
+            ``layers.MAX_OUTPUT``). Training sets it from its labels.
         seed: seeds Keras's initialisers when given. Python's and NumPy's
             global random generators are left as they were.
         name: the model's name (default: the variant).
@@ -113,12 +119,14 @@ def build_model(variant, *, backbone="inception_v3", image_size=112, as_released
         raise ValueError(
             f"unknown disentangle {disentangle!r}; choose one of {', '.join(DISENTANGLE)}"
         )
+    disparity = PositiveDisparity(ceiling=MAX_OUTPUT if disparity_ceiling is None
+                                  else disparity_ceiling)
     minimum = spec.min_image_size or backbones.MIN_IMAGE_SIZE[backbone]
     height, width = _image_shape(image_size, minimum, backbone)
     with _seeded(seed):
         return _build(spec, backbone, height, width, bool(as_released), floors,
                       bool(bounded_pitch_head), bool(positive_focal_head), disentangle,
-                      float(alpha_rate), name)
+                      float(alpha_rate), disparity, name)
 
 
 @contextlib.contextmanager
@@ -138,7 +146,7 @@ def _seeded(seed):
 
 
 def _build(spec, backbone, height, width, as_released, floors, bounded_pitch_head,
-           positive_focal_head, disentangle, alpha_rate, name):
+           positive_focal_head, disentangle, alpha_rate, disparity, name):
     left = keras.Input((height, width, 3), name="left_image")
     right = keras.Input((height, width, 3), name="right_image")
     scaled_left, scaled_right = _scale_inputs(left, right, as_released)
@@ -146,7 +154,7 @@ def _build(spec, backbone, height, width, as_released, floors, bounded_pitch_hea
     outputs = BUILDERS[spec.builder](
         spec, scaled_left, scaled_right, backbone=backbone, as_released=as_released,
         floors=floors, pitch_activation=bounded_pitch if bounded_pitch_head else None,
-        positive_focal_head=positive_focal_head,
+        positive_focal_head=positive_focal_head, disparity_activation=disparity,
         detach=loss.startswith("projection") and disentangle == "exact",
     )
     calibration = {
@@ -154,6 +162,7 @@ def _build(spec, backbone, height, width, as_released, floors, bounded_pitch_hea
         "as_released": as_released, "floors": floors, "loss": loss,
         "bounded_pitch_head": bounded_pitch_head and spec.builder != "deep_homo",
         "positive_disparity_head": loss.startswith("projection"),
+        "disparity_ceiling": disparity.ceiling if loss.startswith("projection") else None,
         "positive_focal_head": (positive_focal_head and loss.startswith("projection")
                                 and spec.camera_graph),
         "disentangle": disentangle if loss.startswith("projection") else None,
@@ -179,10 +188,11 @@ def _direct_outputs(spec, left, right, *, backbone, pitch_activation, **_):
 
 
 def _camera_graph_outputs(spec, left, right, *, backbone, as_released, floors,
-                          pitch_activation, positive_focal_head, detach):
+                          pitch_activation, positive_focal_head, disparity_activation, detach):
     features = backbones.stereo_features(left, right, backbone)
     return camera_projection_outputs(features, spec.name, as_released, floors, pitch_activation,
-                                     detach=detach, positive_focal_head=positive_focal_head)
+                                     detach=detach, positive_focal_head=positive_focal_head,
+                                     disparity_activation=disparity_activation)
 
 
 #: How each variant's outputs are made (``variants.Variant.builder``).
@@ -191,9 +201,10 @@ BUILDERS = {"deep_homo": _deep_homo_outputs, "direct": _direct_outputs,
 
 
 def camera_projection_outputs(features, variant, as_released, floors, pitch_activation=None,
-                              detach=False, positive_focal_head=None):
+                              detach=False, positive_focal_head=None,
+                              disparity_activation=None):
     # (the disparity head is positive where the projection loss trains it:
-    # as the paper writes it; see ``layers.positive_disparity``; likewise the
+    # as the paper writes it; see ``layers.PositiveDisparity``; likewise the
     # focal heads unless ``positive_focal_head`` is False, ``layers.positive_focal``)
     """The CPL heads and the Lambda camera graph (Eqs. 4a-5c).
 
@@ -209,7 +220,8 @@ def camera_projection_outputs(features, variant, as_released, floors, pitch_acti
         positive_focal_head = not as_released
     focal = positive_focal if positive_focal_head else None
     activations = {"pitch": pitch_activation,
-                   "disparity": None if as_released else positive_disparity,
+                   "disparity": None if as_released
+                   else disparity_activation or PositiveDisparity(),
                    "fx": focal, "fy": focal}
     params = {name: regression_head(features, name, activation=activations.get(name))
               for name in camera.PARAMETERS}

@@ -21,6 +21,18 @@ from cpl_keras.reproduce.presets import PROG, log, run_jobs
 # ---------------------------------------------------------------------------
 # Stage 2: training
 # ---------------------------------------------------------------------------
+def training_arguments(config, run_dir, variant, split, released, run_seed):
+    """The keyword arguments of ``training.train`` for one run of ``config``
+    (the settings; those of before the disparity ceiling: "auto")."""
+    return dict(
+        variant=variant, run_dir=run_dir, epochs=config["epochs"],
+        batch_size=config["batch_size"], backbone=config["backbone"], split=split,
+        as_released=released, seed=run_seed, patience=config["patience"],
+        time_budget_s=config.get("run_budget_s"),
+        disparity_ceiling=config.get("disparity_ceiling", "auto"),
+    )
+
+
 def train_all(config, paths, runs_dir, seed, jobs=1, out_dir=None):
     """Stage 2: every run; returns ``{table key: {seed: [run dirs]}}``.
     ``jobs`` > 1 trains that many runs at a time, each in its own process
@@ -35,12 +47,7 @@ def train_all(config, paths, runs_dir, seed, jobs=1, out_dir=None):
     trained, pending = {}, []
     for key, protocol, split, run_seed, variant, released, name in run_jobs(config, seed):
         run_dir = os.path.join(runs_dir, key, name)
-        plan = dict(
-            variant=variant, run_dir=run_dir, epochs=config["epochs"],
-            batch_size=config["batch_size"], backbone=config["backbone"], split=split,
-            as_released=released, seed=run_seed, patience=config["patience"],
-            time_budget_s=config.get("run_budget_s"),
-        )
+        plan = training_arguments(config, run_dir, variant, split, released, run_seed)
         record = published_record(out_dir, key, name) if out_dir else None
         finished = (runs.read_config(run_dir) or {}).get("status") == "finished"
         if not finished and record and runs.is_published(record) and \
