@@ -82,7 +82,9 @@ def main(argv=None):
 
     from cpl_keras import runs
     from cpl_keras.datasets import targets_from_labels
-    from cpl_keras.layers import PositiveDisparity
+    import keras
+
+    from cpl_keras.layers import PositiveDisparity, positive_disparity
     from cpl_keras.data.storage import StereoFile
     from cpl_keras.models.batchnorm import recompute_batchnorm_statistics
     from cpl_keras.sequence import StereoSequence
@@ -107,7 +109,11 @@ def main(argv=None):
 
     head = model.get_layer("disparity")
     activation = head.activation
-    capped = PositiveDisparity(ceiling=ceiling)
+    if isinstance(activation, PositiveDisparity) or activation is positive_disparity:
+        capped = PositiveDisparity(ceiling=ceiling)
+    else:  # a linear head (MTL-Baseline, or as released): clipped at the ceiling
+        def capped(x):
+            return keras.ops.minimum(activation(x), ceiling)
 
     def report(label, training=False):
         start = time.perf_counter()

@@ -1,0 +1,36 @@
+"""bench/diagnose_inference_mode.py on the shared tiny run: every row of
+statistics is printed, the saved statistics give the validation loss that
+training recorded, and the figures are finite."""
+
+import importlib.util
+import json
+import math
+import os
+
+import pytest
+
+PATH = os.path.join(os.path.dirname(os.path.dirname(__file__)), "bench",
+                    "diagnose_inference_mode.py")
+spec = importlib.util.spec_from_file_location("diagnose_inference_mode", PATH)
+diagnose = importlib.util.module_from_spec(spec)
+spec.loader.exec_module(diagnose)
+
+
+def test_every_statistics_row_is_reported(tiny_run, capsys):
+    diagnose.main(["--run", tiny_run["run"], "--batches", "2", "--draws", "1",
+                   "--epoch-order", "0"])
+    lines = capsys.readouterr().out.splitlines()
+    rows = {}
+    for line in lines[2:]:
+        label, values = line[:18].strip(), line[18:].split("(")[0].split()
+        rows[label] = [float(v) for v in values]
+    assert list(rows) == ["saved", "epoch 0's first 2", "recompute 2 #1", "population 2 #1",
+                          "recompute all 4", "population all 4", "batch stats"]
+    columns = 2 + len(diagnose.COLUMNS)  # the loss, the loss with the ceiling, the MAEs
+    assert all(len(v) == columns and all(math.isfinite(x) for x in v) for v in rows.values())
+    # the saved statistics are training's; MTL-Baseline's linear disparity
+    # head, clipped at twice its largest training label, changes no loss here
+    assert all(v[0] == v[1] for v in rows.values())
+    # the saved statistics give the validation loss training recorded
+    config = json.load(open(os.path.join(tiny_run["run"], "config.json")))
+    assert rows["saved"][0] == pytest.approx(config["best_val_loss"], rel=1e-3)
