@@ -2,6 +2,7 @@
 
     python -m cpl_keras.calibrate LEFT.png RIGHT.png --run RUN_DIR [--json-out FILE]
         [--opencv-yaml FILE] [--ros-yaml DIR]
+    python -m cpl_keras.calibrate --folder DIR --run RUN_DIR [...]
 
 Prints JSON with the 10 camera parameters, the point X, Y, Z and the
 horizontal and vertical fields of view, in the input images' own pixel
@@ -25,6 +26,12 @@ spread of each value over crops of the pair (``spread``), which quantities
 one pair determines and which are scale priors (``scale_free``,
 ``scale_priors``), what every field means (``fields``), and whether the run
 is the demonstration model (then also warned about).
+
+``--folder DIR`` calibrates every pair of one rig (``find_pairs``) and
+prints ``{"rig": ..., "pairs": [...]}``: the rig's parameters are the
+medians over the pairs (the disparity, which belongs to each pair's scene,
+is left out), ``spread_over_pairs`` their standard deviations; the YAML
+exports describe the rig.
 """
 
 from __future__ import annotations
@@ -204,14 +211,20 @@ def _check_ranges(raw, ranges, warn):
              f"input units: {', '.join(outside)}")
 
 
-def calibrate_pair(left_path, right_path, run_dir, warn=None):
+def load(run_dir):
+    """The run and its model, for calibrating one pair or many."""
+    run = runs.load_run(run_dir, error=CalibrationError)
+    return run, runs.load_model(run, error=CalibrationError)
+
+
+def calibrate_pair(left_path, right_path, run_dir, warn=None, loaded=None):
     """The calibration of one pair as a JSON-ready dict; ``warn(line)`` is
     called with each warning (a grey image, a prediction outside the
-    training labels' range, a large spread, the demonstration model)."""
+    training labels' range, a large spread, the demonstration model).
+    ``loaded``: ``load(run_dir)``'s result, when already loaded."""
     warn = warn or (lambda line: None)
     left, right = read_pair(left_path, right_path)
-    run = runs.load_run(run_dir, error=CalibrationError)
-    model = runs.load_model(run, error=CalibrationError)
+    run, model = loaded or load(run_dir)
     size_h, size_w = evaluation.model_image_shape(model)
     height, width = left.shape[:2]
     if height < size_h or width < size_w:
@@ -268,6 +281,101 @@ def calibrate_pair(left_path, right_path, run_dir, warn=None):
     return result
 
 
+# ---------------------------------------------------------------------------
+# A folder of pairs from one rig
+# ---------------------------------------------------------------------------
+#: The rig's parameters (the disparity belongs to each pair's scene).
+RIG_PARAMETERS = tuple(name for name in PARAMETERS if name != "disparity")
+RIG_METHOD = ("median over the pairs; spread_over_pairs: standard deviation over the pairs "
+              "(n - 1 in the denominator)")
+IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".ppm", ".pgm")
+
+
+def find_pairs(folder):
+    """The stereo pairs of ``folder``, sorted: image files whose names differ
+    only by ``left`` -> ``right`` (any case: ``left01.jpg``/``right01.jpg``,
+    ``desk_left.png``/``desk_right.png``), or files of the same name in
+    ``folder/left`` and ``folder/right``. CalibrationError when there is
+    none, or when a left image has no right one."""
+    if not os.path.isdir(folder):
+        raise CalibrationError(f"not a directory: {folder}")
+    pairs, unmatched = [], []
+    sides = [os.path.join(folder, side) for side in ("left", "right")]
+    if all(os.path.isdir(side) for side in sides):
+        names = sorted(n for n in os.listdir(sides[0]) if n.lower().endswith(IMAGE_SUFFIXES))
+        for name in names:
+            right = os.path.join(sides[1], name)
+            (pairs if os.path.isfile(right) else unmatched).append(
+                (os.path.join(sides[0], name), right))
+    else:
+        names = set(os.listdir(folder))
+        for name in sorted(names):
+            lower = name.lower()
+            if "left" not in lower or not lower.endswith(IMAGE_SUFFIXES):
+                continue
+            at = lower.index("left")
+            match = [n for n in names if n.lower() == lower[:at] + "right" + lower[at + 4:]]
+            pair = (os.path.join(folder, name),
+                    os.path.join(folder, match[0]) if match else None)
+            (pairs if match else unmatched).append(pair)
+    if unmatched:
+        raise CalibrationError(f"{unmatched[0][0]} has no right image in {folder}")
+    if not pairs:
+        raise CalibrationError(f"no stereo pairs in {folder} (names with left/right, or "
+                               "left/ and right/ folders of the same names)")
+    return pairs
+
+
+def calibrate_rig(folder, run_dir, warn=None):
+    """Every pair of ``folder`` (``find_pairs``) calibrated by the run, and
+    the rig's calibration from them: each parameter but the disparity (the
+    scene's) is the median over the pairs, with its spread over the pairs.
+    Warnings name their pair; each is given once."""
+    warn = warn or (lambda line: None)
+    pairs = find_pairs(folder)
+    loaded = load(run_dir)
+    said, results = set(), []
+
+    def warn_once(line):
+        if line not in said:
+            said.add(line)
+            warn(line)
+
+    for left, right in pairs:
+        name = os.path.basename(left)
+        results.append(calibrate_pair(
+            left, right, run_dir, loaded=loaded,
+            warn=lambda line, name=name: warn_once(
+                line if "demonstration model" in line else f"{name}: {line}")))
+    sizes = sorted({(r["image_width"], r["image_height"]) for r in results})
+    if len(sizes) > 1:
+        raise CalibrationError(f"the pairs of {folder} have different image sizes "
+                               f"({sizes[0][0]}x{sizes[0][1]}, {sizes[1][0]}x{sizes[1][1]}); "
+                               "one rig has one")
+    width, height = sizes[0]
+    per_pair = {name: [r["parameters"][name] for r in results] for name in RIG_PARAMETERS}
+    parameters = {name: float(np.median(v)) for name, v in per_pair.items()}
+    spread = {name: float(np.std(v, ddof=1)) if len(v) > 1 else 0.0
+              for name, v in per_pair.items()}
+    for name in ("fx", "fy"):
+        if spread[name] > SPREAD_WARNING * abs(parameters[name]):
+            warn(f"warning: {name} changes by {spread[name]:.4g} px (std) between the "
+                 f"{len(results)} pairs, over {100 * SPREAD_WARNING:.0f} % of its median "
+                 f"{parameters[name]:.4g}: an unreliable estimate")
+    rig = {
+        "folder": os.path.abspath(folder), "num_pairs": len(results), "run": results[0]["run"],
+        "variant": results[0]["variant"], "image_width": width, "image_height": height,
+        "parameters": parameters, "spread_over_pairs": spread, "method": RIG_METHOD,
+        "pitch_deg": math.degrees(parameters["pitch"]),
+        "fov_horizontal_deg": float(np.degrees(fov_from_focal(parameters["fx"], width))),
+        "fov_vertical_deg": float(np.degrees(fov_from_focal(parameters["fy"], height))),
+        "units": {name: UNITS[name] for name in RIG_PARAMETERS},
+        "scale_priors": [n for n in SCALE_PRIORS if n in RIG_PARAMETERS],
+        "demonstration_model": results[0]["demonstration_model"],
+    }
+    return {"rig": rig, "pairs": results}
+
+
 #: What calibrate's JSON says of the quantities a pair does not fix.
 SCALE_PRIORS = ("baseline", "tx", "ty", "tz", "X", "Y", "Z")
 SCALE_NOTE = ("one pair fixes the focal length, principal point, pitch and the ratio "
@@ -280,8 +388,12 @@ SPREAD_METHOD = (f"standard deviation over the whole image and {{}} crops of "
 
 def main(argv=None):
     parser = cli.Parser(prog=PROG, description=__doc__.split("\n")[0])
-    parser.add_argument("left", help="left image file (PNG, JPEG, ...)")
-    parser.add_argument("right", help="right image file of the same pair")
+    parser.add_argument("left", nargs="?", help="left image file (PNG, JPEG, ...)")
+    parser.add_argument("right", nargs="?", help="right image file of the same pair")
+    parser.add_argument("--folder", metavar="DIR",
+                        help="calibrate every pair of DIR (names with left/right, or left/ and "
+                        "right/ folders) as one rig: each parameter the median over the pairs, "
+                        "with its spread over them (instead of LEFT RIGHT)")
     parser.add_argument("--run", required=True, help="run directory of a trained model")
     parser.add_argument("--json-out", help="also write the JSON to this file")
     parser.add_argument("--opencv-yaml", metavar="FILE",
@@ -290,6 +402,10 @@ def main(argv=None):
     parser.add_argument("--ros-yaml", metavar="DIR",
                         help="also write ROS camera_info files DIR/left.yaml and DIR/right.yaml")
     args = parser.parse_args(argv)
+    if args.folder and (args.left or args.right):
+        parser.error("give LEFT RIGHT or --folder DIR, not both")
+    if not args.folder and not (args.left and args.right):
+        parser.error("give the two images of a pair (LEFT RIGHT) or --folder DIR")
     try:
         for flag, path in (("--json-out", args.json_out), ("--opencv-yaml", args.opencv_yaml)):
             if path:
@@ -300,16 +416,21 @@ def main(argv=None):
                     raise CalibrationError(f"{flag} is a directory: {path}")
         if args.ros_yaml and os.path.exists(args.ros_yaml) and not os.path.isdir(args.ros_yaml):
             raise CalibrationError(f"--ros-yaml is a file, not a directory: {args.ros_yaml}")
-        result = calibrate_pair(args.left, args.right, args.run,
-                                warn=lambda line: print(f"{PROG}: {line}", file=sys.stderr))
+        def warn(line):
+            print(f"{PROG}: {line}", file=sys.stderr)
+
+        if args.folder:
+            result = calibrate_rig(args.folder, args.run, warn=warn)
+            calibration = result["rig"]
+        else:
+            result = calibration = calibrate_pair(args.left, args.right, args.run, warn=warn)
         text = json.dumps(result, indent=2, allow_nan=False)
         if args.json_out:
             runs.write_text(args.json_out, text + "\n")
-
         if args.opencv_yaml:
-            exports.write_opencv_yaml(args.opencv_yaml, result)
+            exports.write_opencv_yaml(args.opencv_yaml, calibration)
         if args.ros_yaml:
-            exports.write_ros_yaml(args.ros_yaml, result)
+            exports.write_ros_yaml(args.ros_yaml, calibration)
     except (CalibrationError, OSError) as error:
         return cli.fail(PROG, error)
     print(text)

@@ -242,3 +242,77 @@ def test_spread_scale_priors_fields_and_the_demonstration_notice(setup, tmp_path
     captured = capsys.readouterr()
     assert json.loads(captured.out)["demonstration_model"] is True
     assert "demonstration model" in captured.err
+
+
+def test_find_pairs_of_the_shipped_rigs_and_of_left_right_folders(tmp_path):
+    from cpl_keras.real import chessboard, oakd
+
+    board = calibrate.find_pairs(chessboard.DATA_DIR)
+    assert len(board) == 13 and all(
+        os.path.basename(r) == os.path.basename(l).replace("left", "right") for l, r in board)
+    assert len(calibrate.find_pairs(oakd.DATA_DIR)) == 12
+    for side in ("left", "right"):
+        (tmp_path / side).mkdir()
+        for name in ("a.png", "b.png"):
+            (tmp_path / side / name).write_bytes(b"")
+    assert [os.path.basename(l) for l, _ in calibrate.find_pairs(str(tmp_path))] == \
+        ["a.png", "b.png"]
+    (tmp_path / "left" / "c.png").write_bytes(b"")
+    with pytest.raises(calibrate.CalibrationError, match="c.png has no right image"):
+        calibrate.find_pairs(str(tmp_path))
+    with pytest.raises(calibrate.CalibrationError, match="no stereo pairs"):
+        calibrate.find_pairs(str(tmp_path / "left"))
+
+
+def test_a_folder_of_pairs_is_one_rig_of_medians_with_their_spread(setup, tmp_path, capsys):
+    """--folder: each pair calibrated as on its own, the rig's parameters the
+    medians over the pairs (worked out here from the printed pairs), their
+    spread the standard deviation; the YAML holds the rig's intrinsics; a
+    warning given for every pair is said once."""
+    rng = np.random.default_rng(1)
+    folder = tmp_path / "rig"
+    folder.mkdir()
+    for k in range(3):
+        left = (rng.random((40, 64, 3)) * 255).astype(np.uint8)
+        cv2.imwrite(str(folder / f"{k}_left.png"), left)
+        cv2.imwrite(str(folder / f"{k}_right.png"), np.roll(left, -2 - k, axis=1))
+    opencv = tmp_path / "rig.yml"
+    assert calibrate.main(["--folder", str(folder), "--run", setup["run"],
+                           "--opencv-yaml", str(opencv)]) == 0
+    captured = capsys.readouterr()
+    printed = json.loads(captured.out)
+    pairs, rig = printed["pairs"], printed["rig"]
+    assert [os.path.basename(p["left"]) for p in pairs] == [f"{k}_left.png" for k in range(3)]
+    one = calibrate.calibrate_pair(str(folder / "1_left.png"), str(folder / "1_right.png"),
+                                   setup["run"])
+    assert pairs[1]["parameters"] == one["parameters"]
+    assert rig["num_pairs"] == 3 and "disparity" not in rig["parameters"]
+    for name in calibrate.RIG_PARAMETERS:
+        values = sorted(p["parameters"][name] for p in pairs)
+        assert rig["parameters"][name] == values[1]
+        mean = sum(values) / 3
+        assert rig["spread_over_pairs"][name] == pytest.approx(
+            (sum((v - mean) ** 2 for v in values) / 2) ** 0.5)
+    assert rig["fov_horizontal_deg"] == pytest.approx(
+        float(np.degrees(fov_from_focal(rig["parameters"]["fx"], 64))))
+    fs = cv2.FileStorage(str(opencv), cv2.FILE_STORAGE_READ)
+    M1 = fs.getNode("M1").mat()
+    fs.release()
+    assert M1[0, 0] == pytest.approx(rig["parameters"]["fx"])
+    lines = captured.err.splitlines()
+    assert len(lines) == len(set(lines))
+
+
+def test_folder_and_pair_arguments_are_one_or_the_other(setup, tmp_path, capsys):
+    root = setup["root"]
+    for argv in (["--folder", str(root), str(root / "left.png"), str(root / "right.png")],
+                 [str(root / "left.png")], []):
+        with pytest.raises(SystemExit) as exit_:
+            calibrate.main(argv + ["--run", setup["run"]])
+        assert exit_.value.code == 2
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 or err[-1].startswith(calibrate.PROG)
+    out = tmp_path / "never.json"
+    assert calibrate.main(["--folder", str(tmp_path), "--run", setup["run"],
+                           "--json-out", str(out)]) == 2
+    assert "no stereo pairs" in capsys.readouterr().err and not out.exists()
