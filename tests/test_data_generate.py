@@ -26,7 +26,30 @@ def _read(path):
 
 
 def test_public_names():
-    assert PROTOCOLS == ("cvgl", "random")
+    assert PROTOCOLS == ("cvgl", "random", "cameras")
+
+
+def test_cameras_protocol_squashes_real_aspect_ratios_into_fy():
+    """cameras: fy / fx is the source image's aspect ratio (one of
+    CAMERA_ASPECTS, +-5 %), so portrait and KITTI-wide rigs are both drawn;
+    everything else as random, whose configurations are unchanged by it."""
+    from cpl_keras.data import protocols
+
+    configs = protocols.configurations("cameras", 0, 400, 64)
+    assert len(configs) == 50
+    ratios = np.array([c["fy"] / c["fx"] for c in configs])
+    aspects = np.array([c["source_aspect"] for c in configs])
+    assert set(aspects) <= set(protocols.CAMERA_ASPECTS) and len(set(aspects)) >= 6
+    np.testing.assert_array_less(np.abs(ratios / aspects - 1), 0.05 + 1e-12)
+    assert ratios.min() < 0.6 and ratios.max() > 3.0
+    # the horizontal field of view is drawn as in random: fx from it
+    fov = np.array([c["fov_deg"] for c in configs])
+    np.testing.assert_allclose([c["fx"] for c in configs],
+                               32 / np.tan(np.radians(fov) / 2), rtol=1e-9)
+    random = protocols.configurations("random", 0, 400, 64)
+    assert all(abs(c["fy"] / c["fx"] - 1) <= 0.05 + 1e-12 for c in random)
+    assert "source_aspect" not in random[0]
+    assert protocols.ranges("cameras")["source_aspects"] == list(protocols.CAMERA_ASPECTS)
 
 
 def test_same_seed_same_bytes_with_any_worker_count(tmp_path):

@@ -66,6 +66,15 @@ only for the as-released labels.
     baseline_released = |t| (the release's ``baseline = tx`` fitted the
     forward-offset CVGL rigs, not lateral ones).
 
+``cameras`` (random rigs seen as real cameras' images are)
+    As ``random``, but each configuration's source image has one of the
+    aspect ratios of ``CAMERA_ASPECTS`` (4:3 to KITTI's 3.3:1, and portrait)
+    and is squashed to the square model input, as calibrate maps a user's
+    image: the horizontal fov keeps fx, and fy = fx * aspect (+- 5 %), so
+    fy is a label to learn, not fx again (``source_aspect`` in the
+    configuration). Rendering the square image with those intrinsics is
+    exactly the squashed source image, without its resampling.
+
 Frames: configuration c owns a contiguous run of pair indices (a drive); frame
 k of it puts the vehicle at x = start + k * step along the main street, with a
 slow lateral sway. Everything about pair i is a function of (seed, i) only.
@@ -82,7 +91,7 @@ from cpl_keras import camera
 from cpl_keras.data import scenes
 from cpl_keras.data.render import View
 
-PROTOCOLS = ("cvgl", "random")
+PROTOCOLS = ("cvgl", "random", "cameras")
 
 CVGL_CONFIGS = 50
 CVGL_LEFT = {"x": 2.0, "y": 0.0, "z": 1.4, "pitch_deg": 15.0}
@@ -100,6 +109,10 @@ RANDOM_RANGES = {
     "left_x_m": (0.5, 2.5), "left_y_m": (-0.8, 0.8), "left_z_m": (1.2, 2.0),
     "left_pitch_deg": (-5.0, 15.0), "left_yaw_deg": (-3.0, 3.0), "left_roll_deg": (-2.0, 2.0),
 }
+#: The ``cameras`` protocol's source images, width / height: 4:3, 3:2, 16:10
+#: (OAK-D Lite's 640x400), 16:9, KITTI's 1242x375, square, and portrait 3:4
+#: and 9:16. Each is squashed to the square model input as inference does.
+CAMERA_ASPECTS = (4 / 3, 3 / 2, 16 / 10, 16 / 9, 1242 / 375, 1.0, 3 / 4, 9 / 16)
 #: Projection pixels lie at least this fraction of the image from the border.
 PROJECTION_MARGIN_FRACTION = 0.125
 #: How the projection pixel is chosen (see the module docstring).
@@ -125,6 +138,8 @@ def ranges(protocol):
     check_protocol(protocol)
     base = CVGL_RANGES if protocol == "cvgl" else RANDOM_RANGES
     out = {k: list(v) if isinstance(v, tuple) else v for k, v in base.items()}
+    if protocol == "cameras":
+        out["source_aspects"] = list(CAMERA_ASPECTS)
     out.update({f"drive_{k}": list(v) if isinstance(v, tuple) else v for k, v in DRIVE.items()})
     out["projection_margin_fraction"] = PROJECTION_MARGIN_FRACTION
     out["projection_rule"] = PROJECTION_RULE
@@ -218,7 +233,10 @@ def _configurations(protocol, seed, pairs, image_size):
             town_id = c % len(scenes.TOWNS)
             fov = _u(rng, R["fov_deg"])
             fx = float(camera.focal_from_fov(math.radians(fov), W))
-            fy = fx * (1.0 + _u(rng, R["aspect_jitter"]))
+            # cameras: a source image of width / height ``aspect`` squashed
+            # to the square input keeps fx and multiplies fy by the aspect
+            aspect = float(rng.choice(CAMERA_ASPECTS)) if protocol == "cameras" else 1.0
+            fy = fx * aspect * (1.0 + _u(rng, R["aspect_jitter"]))
             u0 = W / 2 + _u(rng, R["principal_offset_fraction"]) * W
             v0 = H / 2 + _u(rng, R["principal_offset_fraction"]) * H
             left = (_u(rng, R["left_x_m"]), _u(rng, R["left_y_m"]), _u(rng, R["left_z_m"]))
@@ -239,6 +257,8 @@ def _configurations(protocol, seed, pairs, image_size):
                 "right_rotation": rot_right.tolist(),
                 "right_pose": {"position": [float(p) for p in right]},
             }
+            if protocol == "cameras":
+                cfg["source_aspect"] = aspect
         if protocol == "cvgl":
             # as released: CARLA's right-camera values minus the fixed left
             # camera's (x=2, y=0, z=1.4, pitch=-15 deg); baseline = tx
