@@ -1,0 +1,64 @@
+"""The diagnostic scripts of bench/ on the shared tiny run.
+
+diagnose_inference_mode.py: every row of statistics is printed, the saved
+statistics give the validation loss that training recorded, and the figures
+are finite. fy_from_aspect.py: its errors are the ones worked out here from
+the run's own predictions."""
+
+import importlib.util
+import json
+import math
+import os
+
+import pytest
+
+BENCH = os.path.join(os.path.dirname(os.path.dirname(__file__)), "bench")
+
+
+def _script(name):
+    spec = importlib.util.spec_from_file_location(name, os.path.join(BENCH, name + ".py"))
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+diagnose = _script("diagnose_inference_mode")
+
+
+def test_every_statistics_row_is_reported(tiny_run, capsys):
+    diagnose.main(["--run", tiny_run["run"], "--batches", "2", "--draws", "1",
+                   "--epoch-order", "0"])
+    lines = capsys.readouterr().out.splitlines()
+    rows = {}
+    for line in lines[2:]:
+        label, values = line[:18].strip(), line[18:].split("(")[0].split()
+        rows[label] = [float(v) for v in values]
+    assert list(rows) == ["saved", "epoch 0's first 2", "recompute 2 #1", "population 2 #1",
+                          "recompute all 4", "population all 4", "batch stats"]
+    columns = 2 + len(diagnose.COLUMNS)  # the loss, the loss with the ceiling, the MAEs
+    assert all(len(v) == columns and all(math.isfinite(x) for x in v) for v in rows.values())
+    # the saved statistics are training's; MTL-Baseline's linear disparity
+    # head, clipped at twice its largest training label, changes no loss here
+    assert all(v[0] == v[1] for v in rows.values())
+    # the saved statistics give the validation loss training recorded
+    config = json.load(open(os.path.join(tiny_run["run"], "config.json")))
+    assert rows["saved"][0] == pytest.approx(config["best_val_loss"], rel=1e-3)
+
+
+def test_fy_from_aspect_reports_the_runs_errors(tiny_run, capsys):
+    import numpy as np
+
+    from cpl_keras import evaluation, runs
+    from cpl_keras.data.storage import StereoFile
+    from cpl_keras.datasets import targets_from_labels
+
+    _script("fy_from_aspect").main(["--data", tiny_run["data"], "--split-of", tiny_run["run"],
+                                    "--runs", tiny_run["run"]])
+    line = capsys.readouterr().out.splitlines()[1]
+    run = runs.load_run(tiny_run["run"])
+    test = run["split"]["test"]
+    with StereoFile(tiny_run["data"]) as f:
+        truth = targets_from_labels(f.labels)
+        out = evaluation.predict_images(runs.load_model(run), *f.read_pairs(test))
+    fy = np.median(np.abs(out["fy"] - truth["fy"][test]) / truth["fy"][test])
+    assert f"fy {fy:.3f}," in line
