@@ -109,9 +109,9 @@ RANDOM_RANGES = {
     "left_x_m": (0.5, 2.5), "left_y_m": (-0.8, 0.8), "left_z_m": (1.2, 2.0),
     "left_pitch_deg": (-5.0, 15.0), "left_yaw_deg": (-3.0, 3.0), "left_roll_deg": (-2.0, 2.0),
 }
-#: The ``cameras`` protocol's source images, width / height: 4:3, 3:2, 16:10
-#: (OAK-D Lite's 640x400), 16:9, KITTI's 1242x375, square, and portrait 3:4
-#: and 9:16. Each is squashed to the square model input as inference does.
+#: The ``cameras`` protocol's source images, width / height: 4:3, 3:2, 16:10,
+#: 16:9, KITTI's 1242x375, square, and portrait 3:4 and 9:16. Each is
+#: squashed to the square model input as inference does.
 CAMERA_ASPECTS = (4 / 3, 3 / 2, 16 / 10, 16 / 9, 1242 / 375, 1.0, 3 / 4, 9 / 16)
 #: Projection pixels lie at least this fraction of the image from the border.
 PROJECTION_MARGIN_FRACTION = 0.125
