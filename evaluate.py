@@ -115,16 +115,10 @@ def _evaluate(args, command, progress):
             table = evaluation.evaluate_run(args.run, args.data, args.batch_size)
             stem = "eval_" + os.path.basename(os.path.normpath(args.run))
         elif args.table == 2:
-            from cpl_keras.real import table2
-
-            table = table2.make_table2(
+            table = evaluation.make_table2(
                 args.runs, args.data, geometric=not args.no_geometric,
                 geometric_max=args.geometric_max, progress=progress)
-            cli.check_interrupt()
-            paths = table2.write_table2(args.out, "table2", table, command)
-            print(table2.markdown(report.portable(table, args.out)))
-            print("wrote " + ", ".join(paths), file=sys.stderr)
-            return 0
+            stem = "table2"
         else:
             table = evaluation.make_table(
                 args.table, args.runs, args.data, geometric=not args.no_geometric,

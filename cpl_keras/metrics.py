@@ -169,6 +169,22 @@ def json_value(x):
     return x if math.isfinite(x) else None
 
 
+def jsonable(value):
+    """``value`` (dicts, lists, numpy scalars and arrays) as plain JSON types,
+    every float through ``json_value`` (undefined: ``None``)."""
+    if isinstance(value, dict):
+        return {str(k): jsonable(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [jsonable(v) for v in value]
+    if isinstance(value, (np.integer,)):
+        return int(value)
+    if isinstance(value, (float, np.floating)):
+        return json_value(value)
+    if isinstance(value, np.ndarray):
+        return jsonable(value.tolist())
+    return value
+
+
 def format_value(x, decimals=3):
     """A table cell: ``x`` to ``decimals`` places, ``"n/a"`` where undefined."""
     if x is None:

@@ -49,7 +49,7 @@ Geometric only         ``failure_flags`` (k,) str and ``failures`` (n, k) bool
 
 ``tables_from_files(paths)`` groups the files by table and seed, scores each
 group with the same code that scores a table in memory
-(``evaluation.table_from_rows``, ``real.table2.table2_from_rigs``), and
+(``evaluation.table_from_rows``, ``evaluation.table2_from_rigs``), and
 aggregates a table made over several seeds into mean and spread
 (``evaluation.aggregate_seeds``).
 """
@@ -68,7 +68,6 @@ from cpl_keras.camera import TARGETS
 from cpl_keras.cli import one_line
 from cpl_keras.data.storage import StereoFile
 from cpl_keras.evaluation import EvaluationError
-from cpl_keras.real import table2
 
 #: File name suffix of a predictions file.
 SUFFIX = "_predictions.npz"
@@ -168,7 +167,7 @@ def table1_files(context, rows, *, out_dir, prefix, stem, key, suffix=""):
 
 
 def table2_files(run_list, rigs, *, out_dir, prefix, stem, key, suffix=""):
-    """``{file name: arrays}`` for the raw rigs of ``real.table2.table2_rigs``."""
+    """``{file name: arrays}`` for the raw rigs of ``evaluation.table2_rigs``."""
     configs = _run_configs(run_list)
     files = {}
     for index, rig in enumerate(rigs):
@@ -299,7 +298,7 @@ def _one_table(stem, items):
                                    f"{item['row']} of {stem}" + (f" on {item['rig']}"
                                                                  if item["rig"] else ""))
         rows_seen[where] = item["path"]
-    if any(item["rig_index"] >= 0 for item in items):          # real.table2: per rig, pooled
+    if any(item["rig_index"] >= 0 for item in items):          # Table 2: per rig, pooled
 
         run_lists = {json.dumps(item["context"]["runs"]) for item in items}
         if len(run_lists) > 1:
@@ -314,7 +313,7 @@ def _one_table(stem, items):
                 raise PredictionsError(f"{item['path']}: its rig does not match the other "
                                        f"files of {stem} on {item['rig']}")
             rig["rows"][item["row"]] = item["raw"]
-        return table2.table2_from_rigs(items[0]["context"]["runs"], list(rigs.values()))
+        return evaluation.table2_from_rigs(items[0]["context"]["runs"], list(rigs.values()))
     contexts = {json.dumps(item["context"], sort_keys=True) for item in items}
     if len(contexts) > 1:
         raise PredictionsError(f"the files of {stem} disagree on its data or runs "

@@ -11,7 +11,6 @@ import pytest
 
 from cpl_keras import evaluation, predictions, report
 from cpl_keras.camera import TARGETS
-from cpl_keras.real import table2
 
 SIZE = 32
 
@@ -27,14 +26,14 @@ def published(tiny_run, tmp_path_factory):
     context, rows = evaluation.table_rows(1, [tiny_run["run"]], geometric_max=3)
     files = predictions.table1_files(context, rows, out_dir=out, prefix="cvgl",
                                      stem="table1_cvgl", key="k1")
-    run_list, rigs = table2.table2_rigs([tiny_run["run"]], [real], geometric_max=2)
+    run_list, rigs = evaluation.table2_rigs([tiny_run["run"]], [real], geometric_max=2)
     files.update(predictions.table2_files(run_list, rigs, out_dir=out, prefix="cvgl",
                                           stem="table2", key="k2"))
     paths = predictions.write_files(out / "runs", files)
     return {"out": out, "paths": paths, "tiny": tiny_run, "raw1": (context, rows),
             "raw2": (run_list, rigs),
             "table1": report.portable(evaluation.table_from_rows(context, rows), out),
-            "table2": report.portable(table2.table2_from_rigs(run_list, rigs), out)}
+            "table2": report.portable(evaluation.table2_from_rigs(run_list, rigs), out)}
 
 
 def test_files_are_plain_arrays(published):
@@ -118,7 +117,7 @@ def test_a_table_over_seeds_is_mean_and_spread(published, tmp_path):
     assert t2["seeds"] == [0, 1] and t2["rigs"]["middlebury"]["seeds"] == [0, 1]
     assert "spread" in t2["rigs"]["middlebury"]["rows"]["MTL-Baseline"]
     assert len(t2["fov_points"]["middlebury"]["MTL-Baseline"]["true_deg"]) == 6
-    written = table2.write_table2(str(tmp_path / "t2"), "table2", t2, "cmd")
+    written = report.write_outputs(str(tmp_path / "t2"), "table2", t2, "cmd")
     assert all(os.path.getsize(p) for p in written)
     assert "± " in open(tmp_path / "t2" / "table2.md").read()
 
@@ -181,7 +180,7 @@ def _with_deep_homo(published, tmp_path):
                                           stem="table2", key="k2", suffix="-s0"))
     paths = predictions.write_files(tmp_path / "seed0", files)
     return (report.portable(evaluation.table_from_rows(context, rows), out),
-            report.portable(table2.table2_from_rigs(run_list, rigs), out), paths)
+            report.portable(evaluation.table2_from_rigs(run_list, rigs), out), paths)
 
 
 def test_a_row_of_one_seed_in_a_table_over_seeds(published, tmp_path):
@@ -236,7 +235,7 @@ def test_a_row_of_one_seed_in_a_table_over_seeds(published, tmp_path):
         assert "spread" not in sub["rows"]["Deep-Homo"] and "spread" in sub["rows"]["MTL-Baseline"]
     points = t2["fov_points"]["middlebury"]
     assert len(points["Deep-Homo"]["true_deg"]) == 3 and len(points["MTL-Baseline"]["true_deg"]) == 6
-    written = table2.write_table2(str(tmp_path / "t2"), "table2", t2, "cmd")
+    written = report.write_outputs(str(tmp_path / "t2"), "table2", t2, "cmd")
     assert all(os.path.getsize(p) for p in written)
     text = open(tmp_path / "t2" / "table2.md").read()
     # pooled and rig: 2 NMAE tables, the FOV table and the field's metrics

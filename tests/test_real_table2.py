@@ -120,7 +120,7 @@ def test_pooled_table_compares_every_row_on_the_same_pairs():
     chessboard pairs and is degenerate on the rectified rig), pitch only the
     rig that is not rectified; values derived by hand from the constructed
     errors (|pred - y| / mean|y| = scale - 1 on any set of pairs)."""
-    from cpl_keras.real.table2 import table2_from_rigs
+    from cpl_keras.evaluation import table2_from_rigs
 
     rigs = [_rig("chessboard", 10, False, 4, 0), _rig("middlebury", 20, True, 20, 1)]
     table = table2_from_rigs(["run"], rigs)
@@ -163,7 +163,7 @@ def test_table2_values_per_rig_and_pooled_against_hand_computed_nmae():
     here: per rig every pair of each row; pooled, only the pairs every row
     has (Average has the first 10 of rig A's 30), and pitch only on the
     unrectified rig."""
-    from cpl_keras.real.table2 import table2_from_rigs
+    from cpl_keras.evaluation import table2_from_rigs
 
     baseline_a = np.where(np.arange(30) < 10, 0.1, 0.5)   # worse off the shared pairs
     rig_a, truth_a = _synthetic_rig("A", 30, {"Average": 0.3, "MTL-Baseline": baseline_a},

@@ -32,7 +32,7 @@ from their last epoch):
    each protocol's test split, Table 2 as a forward pass of the cvgl-trained
    models on every real rig;
 4. tables, made from those files alone: Table 1 per protocol, Table 2 per rig
-   and pooled (``cpl_keras.real.table2``); a table over several seeds gives
+   and pooled (``cpl_keras.evaluation.table2``); a table over several seeds gives
    every cell as mean ± spread, a row trained on one seed only its value;
 5. ``REPORT.md``: settings, dataset sizes, seeds, epochs actually run, wall
    times, the machine, the tables, the plots and the comparison with the

@@ -8,7 +8,6 @@ import os
 from cpl_keras import report, runs
 from cpl_keras.learning_curves import _val_mae
 from cpl_keras.models.variants import VARIANT_ROWS
-from cpl_keras.real import table2
 from cpl_keras.reproduce.presets import (
     DEFAULT_TABLES, RELEASED_RUN, TABLE1, TITLES, run_stems,
 )
@@ -174,19 +173,18 @@ def write_report(out_dir, summary, tables, rebuilt_by=None):
         lines += [f"![Learning curves, {protocol}]({name})" for protocol, name in figures]
         lines += [""]
     for stem, table in tables.items():
-        render = table2.markdown if "rigs" in table else report.markdown
-        body = render(table).split("\n")[1:]
+        body = report.markdown(table).split("\n")[1:]
         body = ["#" + line if line.startswith("#") else line for line in body]
         lines += [f"## {TITLES.get(stem, stem)}", ""] + body
         plots = [f"![FOV-threshold curves, {stem}]({stem}_fov.png)"]
-        if "rigs" in table:
+        if report.is_table2(table):
             plots.append(f"![Predicted against true field of view per rig, {stem}]"
                          f"({stem}_fov_scatter.png)")
         lines += plots + ["", f"Files: [`{stem}.md`]({stem}.md), [`{stem}.csv`]({stem}.csv), "
                               f"[`{stem}.json`]({stem}.json).", ""]
         differences = report.differences_beyond_spread(table)
         if differences:
-            lines += ["### Differences beyond the spread" + (" (pooled)" if "rigs" in table
+            lines += ["### Differences beyond the spread" + (" (pooled)" if report.is_table2(table)
                                                             else ""), "",
                       "NMAE = MAE / mean(|y|) of the rows trained on several seeds: `<` where "
                       "the first row's mean is lower by more than the two spreads added, "

@@ -13,7 +13,7 @@ from cpl_keras import cli, evaluation, predictions, report, runs
 from cpl_keras.cache import enable_compile_cache
 from cpl_keras.data.generate import GENERATOR_VERSION, generate_dataset
 from cpl_keras.data.storage import StereoFile
-from cpl_keras.real import build, table2
+from cpl_keras.real import build
 from cpl_keras.reproduce.jobs import train_all
 from cpl_keras.reproduce.page import write_report
 from cpl_keras.reproduce.presets import DEFAULT_TABLES, PROG, TABLE1, log
@@ -84,8 +84,8 @@ def _group_predictions(number, stem, prefix, run_dirs, data, config, out_dir, su
         files = predictions.table1_files(context, raw, out_dir=out_dir, prefix=prefix, stem=stem,
                                          key=key, suffix=suffix)
     else:
-        run_list, rigs = table2.table2_rigs(run_dirs, data, geometric=True,
-                                            geometric_max=config["geometric_max"], progress=log)
+        run_list, rigs = evaluation.table2_rigs(run_dirs, data, geometric=True,
+                                                geometric_max=config["geometric_max"], progress=log)
         files = predictions.table2_files(run_list, rigs, out_dir=out_dir, prefix=prefix,
                                          stem=stem, key=key, suffix=suffix)
     if sorted(files) != sorted(names):
@@ -120,10 +120,7 @@ def make_tables(prediction_files, out_dir, command):
     JSON and plots into ``out_dir``. Returns ``{stem: table}``."""
     tables = predictions.tables_from_files(prediction_files)
     for stem, table in tables.items():
-        if "rigs" in table:
-            table2.write_table2(out_dir, stem, table, command)
-        else:
-            report.write_outputs(out_dir, stem, table, command)
+        report.write_outputs(out_dir, stem, table, command)
     return tables
 
 

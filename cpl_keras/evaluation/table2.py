@@ -4,9 +4,9 @@
 fine-tuning) and the Average and Geometric rows on every real set given (a
 folder stands for its ``*.h5`` files), and scores them per rig and pooled
 over all rigs, in both NMAE conventions, with the paper's Table 2 beside the
-pooled table. ``write_table2`` writes Markdown, CSV, JSON, the
-FOV-threshold curves and a plot of predicted against true horizontal field
-of view per rig for every method, atomically.
+pooled table. ``cpl_keras.report.write_table`` writes it: Markdown, CSV,
+JSON, the FOV-threshold curves and a plot of predicted against true
+horizontal field of view per rig for every method, atomically.
 
 Undefined values are never invented:
 
@@ -35,14 +35,24 @@ import os
 
 import numpy as np
 
-from cpl_keras import evaluation, metrics, report, runs
+from cpl_keras import metrics, runs
 from cpl_keras.baselines import geometric as geo
 from cpl_keras.camera import TARGETS, fov_from_focal
-from cpl_keras.evaluation import ROWS, EvaluationError
+from cpl_keras.evaluation.predict import (
+    EvaluationError, evaluation_indices, forget_model, load_run, open_dataset, published,
+    run_predictions, truth_targets,
+)
+from cpl_keras.evaluation.table1 import (
+    PAPER_CONVENTION, ROWS, average_rows, geometric_predictions, read_paper_table,
+)
+from cpl_keras.metrics import jsonable
 from cpl_keras.runs import RELEASED
+
 
 #: Targets that need the ground-truth disparity.
 DISPARITY_TARGETS = ("disparity", "X", "Y", "Z")
+
+
 #: Geometric columns that are degenerate on a rectified rig.
 DEGENERATE_ON_RECTIFIED = ("fx", "fy")
 
@@ -81,7 +91,7 @@ def _defined(labels, indices, n):
 
 
 def score_masked(truth, pred, defined, width):
-    """``evaluation.score`` on the samples where each target is defined."""
+    """``score`` on the samples where each target is defined."""
     targets = {}
     for name in TARGETS:
         ok = np.asarray(defined[name], bool)
@@ -104,37 +114,37 @@ def score_masked(truth, pred, defined, width):
 def _rig_rows(loaded, data_path, geometric, geometric_max, progress):
     """Truth, predictions and definedness of every row on one rig."""
     reference = loaded[0]
-    with evaluation.open_dataset(data_path) as data:
-        indices, description = evaluation.evaluation_indices(reference, data_path, data.num_pairs)
+    with open_dataset(data_path) as data:
+        indices, description = evaluation_indices(reference, data_path, data.num_pairs)
         labels, metadata = data.labels, data.metadata
         width, n = data.image_shape[1], len(indices)
         rectified = is_rectified(metadata, labels)
         defined = _defined(labels, indices, n)
         rows = {row: dict(raw, indices=indices, defined=defined)
-                for row, raw in evaluation.average_rows(reference, labels, indices).items()}
+                for row, raw in average_rows(reference, labels, indices).items()}
         for run in loaded:
             if progress:
                 progress(f"forward pass on {rig_name(metadata, data_path)}: "
                          f"{run['config']['variant']} ({run['run_dir']})")
             rows[runs.row_name(run)] = {
                 "source": run["run_dir"], "as_released": runs.as_released(run),
-                "indices": indices, "truth": evaluation.truth_targets(
+                "indices": indices, "truth": truth_targets(
                     labels, indices, runs.as_released(run)),
-                "pred": evaluation.published(evaluation.run_predictions(run, data, indices)),
+                "pred": published(run_predictions(run, data, indices)),
                 "defined": defined}
         if geometric:
             subset = indices if geometric_max is None else indices[: int(geometric_max)]
             if progress:
                 progress(f"geometric baseline on {len(subset)} pairs of {rig_name(metadata, data_path)}")
-            priors, pred, statuses = evaluation.geometric_predictions(reference, data, subset)
+            priors, pred, statuses = geometric_predictions(reference, data, subset)
             geo_defined = _defined(labels, subset, len(subset))
             if rectified:
                 geo_defined = dict(geo_defined, **{k: np.zeros(len(subset), bool)
                                                    for k in DEGENERATE_ON_RECTIFIED})
             rows["Geometric"] = {
                 "source": "cpl_keras.baselines.geometric", "as_released": False,
-                "indices": subset, "truth": evaluation.truth_targets(labels, subset, False),
-                "pred": evaluation.published(pred), "defined": geo_defined, "priors": priors,
+                "indices": subset, "truth": truth_targets(labels, subset, False),
+                "pred": published(pred), "defined": geo_defined, "priors": priors,
                 "statuses": statuses,
                 "degenerate": list(DEGENERATE_ON_RECTIFIED) if rectified else []}
     return {"rig": rig_name(metadata, data_path), "data": os.path.abspath(data_path),
@@ -153,11 +163,11 @@ def _table(raw_rows, *, number_of_pairs, width, data, description, source, runs,
             entry.update(priors=r["priors"], failures=geo.failure_report(r["statuses"]),
                          degenerate=r["degenerate"])
         rows[row] = entry
-    return report.jsonable({
+    return jsonable({
         "table": 2, "data": data, "data_description": description, "data_source": source,
         "num_pairs": int(number_of_pairs), "image_width": int(width), "runs": runs,
         "rows": {row: rows[row] for base in ROWS for row in (base, base + RELEASED) if row in rows},
-        "paper": paper, "paper_convention": evaluation.PAPER_CONVENTION[2],
+        "paper": paper, "paper_convention": PAPER_CONVENTION[2],
     })
 
 
@@ -179,7 +189,7 @@ def table2_rigs(run_dirs, data_paths, geometric=True, geometric_max=None, progre
         raise EvaluationError("no runs given (--runs RUN_DIR ...)")
     if not data_paths:
         raise EvaluationError("table 2 needs --data REAL.h5 (or a folder of real sets)")
-    loaded = [evaluation.load_run(r) for r in run_dirs]
+    loaded = [load_run(r) for r in run_dirs]
     seen = {}
     for run in loaded:
         row = runs.row_name(run)
@@ -191,7 +201,7 @@ def table2_rigs(run_dirs, data_paths, geometric=True, geometric_max=None, progre
         rigs = [_rig_rows(loaded, path, geometric, geometric_max, progress) for path in paths]
     finally:
         for run in loaded:
-            evaluation.forget_model(run)
+            forget_model(run)
     return [r["run_dir"] for r in loaded], rigs
 
 
@@ -240,11 +250,11 @@ def table2_from_rigs(run_list, rigs):
                        f"{total} pairs pooled over {len(rigs)} rigs: " + ", ".join(
                            f"{r['rig']} {r['num_pairs']}" for r in rigs)),
                    source=rigs[0]["data_source"] if single else "pooled real rigs", runs=run_list,
-                   paper=evaluation.read_paper_table(2))
+                   paper=read_paper_table(2))
     table["rigs"] = tables
     table["fov_points"] = {rig["rig"]: {row: _fov_points(r, width) for row, r in rig["rows"].items()}
                            for rig in rigs}
-    return report.jsonable(table)
+    return jsonable(table)
 
 
 def _shared_pairs(rig):
@@ -283,105 +293,3 @@ def make_table2(run_dirs, data_paths, geometric=True, geometric_max=None, progre
     return table2_from_rigs(*table2_rigs(run_dirs, data_paths, geometric, geometric_max,
                                          progress))
 
-
-def _nmae_tables(table, level):
-    return (report.nmae_tables(table, level)
-            + report.fov_table(table, header="within {k} deg FOV") + field_table(table)
-            + report.notes(table))
-
-
-#: The field's metrics (``metrics.focal_metrics``): (key, column header, decimals).
-FIELD_COLUMNS = (
-    ("relative_fx_median", "rel. fx err (median)", 3),
-    ("relative_fy_median", "rel. fy err (median)", 3),
-    ("hfov_error_deg_median", "hFoV err deg (median)", 2),
-    ("vfov_error_deg_median", "vFoV err deg (median)", 2),
-) + tuple((f"{a}fov_auc_{t}deg", f"{a}FoV AUC@{t}", 3)
-          for a in ("h", "v") for t in metrics.AUC_THRESHOLDS_DEG)
-
-
-def field_table(table):
-    """Markdown lines: the metrics calibration papers report (relative focal
-    error, FoV error in degrees, its AUC), per row that has them."""
-    rows = [(row, m["field"]) for row, m in table["rows"].items() if m.get("field")]
-    if not rows:
-        return []
-    lines = ["| method | " + " | ".join(h for _, h, _ in FIELD_COLUMNS) + " |",
-             "|---" * (len(FIELD_COLUMNS) + 1) + "|"]
-    for row, field in rows:
-        degenerate = report.is_degenerate(table["rows"][row], "fx")
-        cells = ["degenerate" if degenerate else metrics.format_value(field.get(key), decimals)
-                 for key, _, decimals in FIELD_COLUMNS]
-        lines.append(f"| {report.row_label(table, row)} | " + " | ".join(cells) + " |")
-    seeds = (" Over several seeds, each cell is the mean of the seeds' values." if
-             table.get("seeds") and len(table["seeds"]) > 1 else "")
-    return lines + ["", "Relative focal error |f - f*| / f* and FoV error per pair, their "
-                    "medians; AUC of the FoV error's cumulative curve up to 1, 5 and 10 deg "
-                    f"(1 = every pair exact).{seeds}", ""]
-
-
-def markdown(table, command=None):
-    """Pooled table (with the paper's numbers), then one section per rig."""
-    lines = ["# Table 2: NMAE per parameter on real rigs", ""]
-    if command:
-        lines += ["Command:", "", "```", command, "```", ""]
-    lines += [f"Pooled: {table['data_description']}; image width {table['image_width']} px. "
-              "Forward pass only (no fine-tuning). `n/a` = undefined (zero mean, or no "
-              "ground truth on that rig).", ""] + report.seeds_lines(table) + [
-              "## Pooled over all rigs", ""]
-    lines += _nmae_tables(table, "###")
-    for name, rig in table["rigs"].items():
-        kind = "rectified" if rig["rectified"] else "not rectified"
-        lines += [f"## Rig: {name} ({kind})", "",
-                  f"Data: `{rig['data']}` ({rig['data_description']}; source: "
-                  f"{rig['data_source']}).", ""]
-        lines += _nmae_tables(rig, "###")
-    lines += ["Best per column (smallest |NMAE|) in bold. The paper's Average row is placed "
-              "beside 'Average (release bug)'. Plot of predicted against true horizontal field "
-              "of view per rig: `*_fov_scatter.png`.", ""]
-    return "\n".join(lines)
-
-
-def csv_text(table):
-    """``rig,method,metric,<columns>[,seeds]``; rig ``pooled`` for the pooled table."""
-    lines = [report.csv_header(table, "rig,method,metric")]
-    for rig, sub in [("pooled", table)] + list(table["rigs"].items()):
-        lines += report.csv_rows(sub, prefix=f"{rig},")
-    return "\n".join(lines) + "\n"
-
-
-def fov_scatter_plot(table, path):
-    """Predicted against true horizontal FOV, one panel per rig, one colour
-    per method (degenerate rows left out)."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    rigs = list(table["fov_points"].items())
-    fig, axes = plt.subplots(1, len(rigs), figsize=(4.5 * len(rigs), 4.2), squeeze=False)
-    for ax, (rig, rows) in zip(axes[0], rigs):
-        values = []
-        for row, points in rows.items():
-            if points["true_deg"]:
-                ax.scatter(points["true_deg"], points["pred_deg"], s=8, alpha=0.6, label=row)
-                values += points["true_deg"] + points["pred_deg"]
-        if values:
-            lo, hi = min(values), max(values)
-            ax.plot([lo, hi], [lo, hi], "k--", lw=1)
-        ax.set_title(rig)
-        ax.set_xlabel("true horizontal FOV (deg)")
-        ax.set_ylabel("predicted horizontal FOV (deg)")
-        ax.grid(alpha=0.3)
-    axes[0][0].legend(fontsize=7)
-    fig.tight_layout()
-    fig.savefig(path, dpi=100, format="png")
-    plt.close(fig)
-
-
-def write_table2(out_dir, stem, table, command):
-    """Write ``stem``.md/.csv/.json, ``stem``_fov.png (pooled FOV-threshold
-    curves) and ``stem``_fov_scatter.png (``report.write_outputs``)."""
-    return report.write_outputs(
-        out_dir, stem, table, command, render_markdown=markdown, render_csv=csv_text,
-        plots=(("_fov.png", report.fov_plot), ("_fov_scatter.png", fov_scatter_plot)))

@@ -1,22 +1,21 @@
-"""Rendering of evaluation tables: Markdown, CSV, JSON and the FOV plot.
+"""Tables 1 and 2 as text: Markdown and CSV.
 
-``cpl_keras.evaluation`` (and ``cpl_keras.real.table2``) score; this module
-turns a scored table (a JSON-ready dict) into files: ``markdown`` (one table
-per NMAE convention, the best value per column in bold, the paper's numbers
-beside ours), ``csv_text``, ``fov_plot`` (percentage within k degrees of
-field of view) and ``write_outputs``, which writes them all atomically with
-paths relative to the output directory.
+``markdown`` and ``csv_text`` render either table (a scored table from
+``cpl_keras.evaluation``: a Table 2 has its ``rigs``): one table per NMAE
+convention, the best value per column in bold, the paper's numbers beside
+ours in the paper's convention, mean ± spread for a table over seeds, and
+for Table 2 one section per rig and the focal and field-of-view metrics
+calibration papers report. ``differences_beyond_spread`` says which row is
+lower where the difference exceeds the seeds' spread.
 """
 
 from __future__ import annotations
 
-import json
 import math
-import os
 
 import numpy as np
 
-from cpl_keras import metrics, runs
+from cpl_keras import metrics
 from cpl_keras.camera import PARAMETERS
 from cpl_keras.runs import RELEASED
 
@@ -28,20 +27,6 @@ CONVENTION_TITLES = {
     "nmae": "NMAE = MAE / mean(|y|) (the paper's Eq. NMAE)",
     "nmae_signed": "NMAE = MAE / mean(y), signed mean (what produced the paper's Table 1)",
 }
-
-
-def jsonable(value):
-    if isinstance(value, dict):
-        return {str(k): jsonable(v) for k, v in value.items()}
-    if isinstance(value, (list, tuple)):
-        return [jsonable(v) for v in value]
-    if isinstance(value, (np.integer,)):
-        return int(value)
-    if isinstance(value, (float, np.floating)):
-        return metrics.json_value(value)
-    if isinstance(value, np.ndarray):
-        return jsonable(value.tolist())
-    return value
 
 
 def cell(row_metrics, column, convention):
@@ -207,8 +192,8 @@ def notes(table):
     return lines
 
 
-def markdown(table, command=None):
-    """The table as Markdown: one table per NMAE convention, best marked in
+def table1_markdown(table, command=None):
+    """Table 1 (or one run's scores) as Markdown: one table per NMAE convention, best marked in
     bold, the paper's numbers beside ours in the paper's convention."""
     number = table["table"]
     title = f"Table {number}" if number else "Evaluation"
@@ -257,82 +242,10 @@ def csv_rows(table, prefix=""):
     return lines
 
 
-def csv_text(table):
-    """One CSV row per (method, metric): metric in mae, nmae, nmae_signed
-    (``csv_rows``)."""
+def table1_csv(table):
+    """Table 1 (or one run's scores) as CSV: one row per (method, metric),
+    metric in mae, nmae, nmae_signed (``csv_rows``)."""
     return "\n".join([csv_header(table)] + csv_rows(table)) + "\n"
-
-
-def fov_plot(table, path):
-    """Percentage within k degrees of FOV vs k, one curve per row (PNG)."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    fig, ax = plt.subplots(figsize=(6, 4))
-    ks = list(metrics.FOV_THRESHOLDS_DEG)
-    for row, row_metrics in table["rows"].items():
-        values = [row_metrics["fov_within_deg"][str(k)] for k in ks]
-        values = [math.nan if v is None else v for v in values]
-        ax.plot(ks, values, marker="o", label=row_label(table, row))
-    ax.set_xlabel("field-of-view error threshold (degrees)")
-    ax.set_ylabel("samples within threshold (%)")
-    ax.set_title(f"Table {table['table']}: FOV-threshold curves" if table["table"]
-                 else "FOV-threshold curve")
-    ax.set_ylim(-2, 102)
-    ax.grid(alpha=0.3)
-    ax.legend(fontsize=8)
-    fig.tight_layout()
-    fig.savefig(path, dpi=100, format="png")
-    plt.close(fig)
-
-
-def portable(table, out_dir):
-    """``table`` with the paths it records (``data``, ``runs``, ``run_dir``,
-    ``source``) relative to ``out_dir``, where its files are written: a
-    committed table names no machine's directories."""
-    def convert(key, value):
-        if isinstance(value, dict):
-            return {k: convert(k, v) for k, v in value.items()}
-        if key == "runs" and isinstance(value, list):
-            return [runs.relative(v, out_dir) if os.path.isabs(v) else v for v in value]
-        if key in ("data", "run_dir", "source") and isinstance(value, str):
-            return ", ".join(one(part) for part in value.split(", "))  # pooled: several
-        return value
-
-    def one(text):
-        path, sep, rest = text.partition(" (")  # "<path> (<what>)"
-        return runs.relative(path, out_dir) + sep + rest if os.path.isabs(path) else text
-
-    return convert(None, table)
-
-
-def write_outputs(out_dir, stem, table, command, *, render_markdown=markdown,
-                  render_csv=csv_text, plots=(("_fov.png", fov_plot),)):
-    """Write ``stem``.md/.csv/.json and the plots (``(suffix, draw(table,
-    path))``, when the table has rows) into ``out_dir``, created if missing.
-    Paths in them are relative to ``out_dir`` (``portable``). Everything is
-    rendered to temporary files first and renamed only when all succeeded.
-    Returns the paths written."""
-    os.makedirs(out_dir, exist_ok=True)
-    table = portable(table, out_dir)
-    texts = {
-        f"{stem}.md": render_markdown(table, command),
-        f"{stem}.csv": render_csv(table),
-        f"{stem}.json": json.dumps(dict(table, command=command), indent=2, allow_nan=False) + "\n",
-    }
-    drawn = list(plots) if table.get("rows") else []
-    finals = [os.path.join(out_dir, name) for name in texts]
-    finals += [os.path.join(out_dir, stem + suffix) for suffix, _ in drawn]
-    with runs.atomic_path(*finals) as tmps:
-        tmps = tmps if isinstance(tmps, list) else [tmps]
-        for tmp, text in zip(tmps, texts.values()):
-            with open(tmp, "w") as f:
-                f.write(text)
-        for tmp, (_, draw) in zip(tmps[len(texts):], drawn):
-            draw(table, tmp)
-    return finals
 
 
 def differences_beyond_spread(table):
@@ -375,3 +288,86 @@ def differences_beyond_spread(table):
 def _number(value):
     """A JSON cell as a float (None, an undefined cell: NaN)."""
     return math.nan if value is None else float(value)
+
+
+
+def _table2_sections(table, level):
+    return (nmae_tables(table, level)
+            + fov_table(table, header="within {k} deg FOV") + field_table(table)
+            + notes(table))
+
+
+#: The field's metrics (``metrics.focal_metrics``): (key, column header, decimals).
+FIELD_COLUMNS = (
+    ("relative_fx_median", "rel. fx err (median)", 3),
+    ("relative_fy_median", "rel. fy err (median)", 3),
+    ("hfov_error_deg_median", "hFoV err deg (median)", 2),
+    ("vfov_error_deg_median", "vFoV err deg (median)", 2),
+) + tuple((f"{a}fov_auc_{t}deg", f"{a}FoV AUC@{t}", 3)
+          for a in ("h", "v") for t in metrics.AUC_THRESHOLDS_DEG)
+
+
+def field_table(table):
+    """Markdown lines: the metrics calibration papers report (relative focal
+    error, FoV error in degrees, its AUC), per row that has them."""
+    rows = [(row, m["field"]) for row, m in table["rows"].items() if m.get("field")]
+    if not rows:
+        return []
+    lines = ["| method | " + " | ".join(h for _, h, _ in FIELD_COLUMNS) + " |",
+             "|---" * (len(FIELD_COLUMNS) + 1) + "|"]
+    for row, field in rows:
+        degenerate = is_degenerate(table["rows"][row], "fx")
+        cells = ["degenerate" if degenerate else metrics.format_value(field.get(key), decimals)
+                 for key, _, decimals in FIELD_COLUMNS]
+        lines.append(f"| {row_label(table, row)} | " + " | ".join(cells) + " |")
+    seeds = (" Over several seeds, each cell is the mean of the seeds' values." if
+             table.get("seeds") and len(table["seeds"]) > 1 else "")
+    return lines + ["", "Relative focal error |f - f*| / f* and FoV error per pair, their "
+                    "medians; AUC of the FoV error's cumulative curve up to 1, 5 and 10 deg "
+                    f"(1 = every pair exact).{seeds}", ""]
+
+
+def table2_markdown(table, command=None):
+    """Table 2 as Markdown: the pooled table (with the paper's numbers), then one section per rig."""
+    lines = ["# Table 2: NMAE per parameter on real rigs", ""]
+    if command:
+        lines += ["Command:", "", "```", command, "```", ""]
+    lines += [f"Pooled: {table['data_description']}; image width {table['image_width']} px. "
+              "Forward pass only (no fine-tuning). `n/a` = undefined (zero mean, or no "
+              "ground truth on that rig).", ""] + seeds_lines(table) + [
+              "## Pooled over all rigs", ""]
+    lines += _table2_sections(table, "###")
+    for name, rig in table["rigs"].items():
+        kind = "rectified" if rig["rectified"] else "not rectified"
+        lines += [f"## Rig: {name} ({kind})", "",
+                  f"Data: `{rig['data']}` ({rig['data_description']}; source: "
+                  f"{rig['data_source']}).", ""]
+        lines += _table2_sections(rig, "###")
+    lines += ["Best per column (smallest |NMAE|) in bold. The paper's Average row is placed "
+              "beside 'Average (release bug)'. Plot of predicted against true horizontal field "
+              "of view per rig: `*_fov_scatter.png`.", ""]
+    return "\n".join(lines)
+
+
+def table2_csv(table):
+    """Table 2 as CSV: ``rig,method,metric,<columns>[,seeds]``; rig ``pooled`` for the pooled table."""
+    lines = [csv_header(table, "rig,method,metric")]
+    for rig, sub in [("pooled", table)] + list(table["rigs"].items()):
+        lines += csv_rows(sub, prefix=f"{rig},")
+    return "\n".join(lines) + "\n"
+
+
+
+def is_table2(table):
+    """Whether a scored table is Table 2 over real rigs (per rig and pooled)."""
+    return "rigs" in table
+
+
+def markdown(table, command=None):
+    """Either table as Markdown (``table1_markdown``, ``table2_markdown``)."""
+    return (table2_markdown if is_table2(table) else table1_markdown)(table, command)
+
+
+def csv_text(table):
+    """Either table as CSV (``table1_csv``, ``table2_csv``)."""
+    return (table2_csv if is_table2(table) else table1_csv)(table)

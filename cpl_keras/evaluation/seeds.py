@@ -1,0 +1,142 @@
+"""One table over several seeds: the mean and spread of every cell.
+
+``aggregate_seeds`` turns the same table made for several seeds (each seed
+its own split and initial weights) into one, for Table 1 and for Table 2
+rig by rig.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from cpl_keras.baselines.geometric import FAILURE_FLAGS
+from cpl_keras.evaluation.predict import EvaluationError
+from cpl_keras.evaluation.table1 import ROWS
+from cpl_keras.metrics import jsonable
+from cpl_keras.runs import RELEASED
+
+
+#: What the spread of a table over seeds is (the "± x" of its cells).
+SPREAD = "sample standard deviation over the seeds (n - 1 in the denominator)"
+
+
+#: The metrics of a target that get a spread.
+SPREAD_METRICS = ("mae", "nmae", "nmae_signed")
+
+
+def _mean_and_spread(values):
+    """Mean and sample standard deviation of ``values`` (None = undefined:
+    an undefined value in any seed leaves both undefined)."""
+    a = np.array([np.nan if v is None else v for v in values], np.float64)
+    if not np.all(np.isfinite(a)):
+        return None, None
+    return float(np.mean(a)), float(np.std(a, ddof=1)) if len(a) > 1 else 0.0
+
+
+def _row_order(tables):
+    """Every row of ``tables`` (a row may be missing from some), in the
+    tables' order (``ROWS``, each followed by its as-released row)."""
+    names = []
+    for table in tables:
+        names += [row for row in table["rows"] if row not in names]
+    order = [row for base in ROWS for row in (base, base + RELEASED)]
+    return sorted(names, key=lambda r: (order.index(r) if r in order else len(order),
+                                        names.index(r)))
+
+
+def _aggregate_rows(tables, seeds):
+    """Each row over the seeds that have it: means, its ``seeds``, its
+    ``per_seed`` values and (2+ seeds) its ``spread``."""
+    rows = {}
+    for row in _row_order(tables):
+        present = [(s, t["rows"][row]) for s, t in zip(seeds, tables) if row in t["rows"]]
+        row_seeds = [s for s, _ in present]
+        parts = [p for _, p in present]
+        first = parts[0]
+        entry = {"source": ", ".join(p["source"] for p in parts),
+                 "as_released": first["as_released"],
+                 "num_pairs": int(sum(p["num_pairs"] for p in parts))}
+        if "failures" in first:
+            total = entry["num_pairs"]
+            failures = {"num_pairs": total}
+            for flag in FAILURE_FLAGS + ("all_stages_ok",):
+                count = int(sum(p["failures"][flag]["count"] for p in parts))
+                failures[flag] = {"count": count, "rate": count / total if total else None}
+            entry["priors"] = {f"seed {s}": p["priors"] for s, p in present}
+            entry["failures"] = failures
+        targets, target_spread = {}, {}
+        for name, first_metrics in first["targets"].items():
+            targets[name], target_spread[name] = {}, {}
+            for key in first_metrics:
+                values = [p["targets"][name][key] for p in parts]
+                if key == "num_defined":
+                    targets[name][key] = int(sum(values))
+                    continue
+                targets[name][key], spread = _mean_and_spread(values)
+                if key in SPREAD_METRICS:
+                    target_spread[name][key] = spread
+        fov, fov_spread = {}, {}
+        for k in first["fov_within_deg"]:
+            fov[k], fov_spread[k] = _mean_and_spread([p["fov_within_deg"][k] for p in parts])
+        entry.update(targets=targets, fov_within_deg=fov)
+        if all("field" in p for p in parts):  # (Table 2: the field's focal and FoV metrics)
+            entry["field"] = {key: _mean_and_spread([p["field"][key] for p in parts])[0]
+                              for key in first["field"]}
+        if "degenerate" in first:
+            entry["degenerate"] = first["degenerate"]
+        entry["seeds"] = row_seeds
+        if len(parts) > 1:              # one seed: its values, no spread
+            entry["spread"] = {"targets": target_spread, "fov_within_deg": fov_spread}
+        entry["per_seed"] = {str(s): {
+            "targets": {name: {key: p["targets"][name][key] for key in SPREAD_METRICS}
+                        for name in p["targets"]},
+            "fov_within_deg": p["fov_within_deg"]} for s, p in present}
+        rows[row] = entry
+    return rows
+
+
+def _aggregate_table(tables, seeds):
+    table = dict(tables[0])
+    table["seeds"] = [int(s) for s in seeds]
+    table["spread"] = SPREAD
+    table["num_pairs"] = int(sum(t["num_pairs"] for t in tables))
+    descriptions = [t["data_description"] for t in tables]
+    table["data_description"] = (
+        f"{table['num_pairs']} pairs over {len(seeds)} seeds: "
+        + "; ".join(f"seed {s}: {d}" for s, d in zip(seeds, descriptions)))
+    table["runs"] = [r for t in tables for r in t["runs"]]
+    table["rows"] = _aggregate_rows(tables, seeds)
+    return table
+
+
+def aggregate_seeds(tables, seeds):
+    """One table from the same table made for several seeds (each seed its
+    own split and initial weights): every cell is the mean over the seeds
+    that have the row (a run trained on the first seed only is a row of that
+    seed's table alone), the row's ``seeds`` lists them, its spread
+    (``SPREAD``, only over 2+ seeds) is in the row's ``spread`` and each
+    seed's value in ``per_seed``; pair and failure counts are summed. Table
+    2's rigs are aggregated one by one and its FOV points pooled. One seed:
+    that table."""
+    tables, seeds = list(tables), [int(s) for s in seeds]
+    if len(tables) != len(seeds) or not tables:
+        raise EvaluationError("aggregate_seeds needs one table per seed")
+    if len(tables) == 1:
+        return tables[0]
+    table = _aggregate_table(tables, seeds)
+    if "rigs" in tables[0]:
+        rigs = list(tables[0]["rigs"])
+        for seed, other in zip(seeds[1:], tables[1:]):
+            if list(other["rigs"]) != rigs:
+                raise EvaluationError(f"seed {seed} has rigs {list(other['rigs'])}, seed "
+                                      f"{seeds[0]} has {rigs}")
+        table["rigs"] = {rig: _aggregate_table([t["rigs"][rig] for t in tables], seeds)
+                         for rig in rigs}
+        table["fov_points"] = {
+            rig: {row: {key: [x for t in tables if row in t["fov_points"][rig]
+                              for x in t["fov_points"][rig][row][key]]
+                        for key in ("true_deg", "pred_deg")}
+                  for row in _row_order([{"rows": t["fov_points"][rig]} for t in tables])}
+            for rig in tables[0]["fov_points"]}
+    return jsonable(table)
+

@@ -1,0 +1,230 @@
+"""Table 1 (and the rows every table shares): scored from runs and baselines.
+
+``make_table`` scores the rows of the paper's tables -- Average, the
+release's buggy Average, Deep-Homo, MTL-CPL-U, MTL-Baseline, MTL-CPL-A and
+the Geometric baseline -- in both NMAE conventions (``cpl_keras.metrics``);
+``table_rows`` gathers what it scores and ``table_from_rows`` scores it, so
+a table rebuilt from published predictions goes through the same code.
+``evaluate_run`` scores one run.
+
+Each row is scored against the targets its method predicts: a run trained
+with ``as_released`` against the release's targets
+(``datasets.targets_from_labels(..., as_released=True)``), the Average rows
+against the targets of the run whose statistics they use, the Geometric
+baseline against the paper's targets. The truth convention of every row is
+recorded in the JSON.
+"""
+
+from __future__ import annotations
+
+import os
+
+import numpy as np
+
+from cpl_keras import metrics
+from cpl_keras.baselines import geometric as geo
+from cpl_keras.baselines.average import average_predictions
+from cpl_keras.camera import TARGETS
+from cpl_keras.evaluation.predict import (
+    EvaluationError, _same_file, evaluation_indices, forget_model, load_run, open_dataset,
+    published, run_predictions, truth_targets,
+)
+from cpl_keras.metrics import jsonable
+from cpl_keras.models.variants import MODEL_ROWS, VARIANT_ROWS
+from cpl_keras.runs import RELEASED, as_released, row_name
+
+#: Row order of the paper's tables (plus our two extra rows).
+ROWS = ("Average", "Average (release bug)") + MODEL_ROWS + ("Geometric",)
+#: Which NMAE convention the paper used for each table (REPRODUCTION_NOTES.md).
+PAPER_CONVENTION = {1: "nmae_signed", 2: "nmae"}
+#: Where the paper's tables are (``paper_table1.csv``, ``paper_table2.csv``).
+PAPER_DIR = os.path.join(
+    os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__)))),
+    "paper_results")
+
+
+def score(truth, predictions, width):
+    """Metrics of every target and the FOV-threshold curve."""
+    per_target = metrics.parameter_metrics(truth, predictions, names=TARGETS)
+    curve = metrics.fov_threshold_curve(truth["fx"], predictions["fx"], width)
+    return {"targets": per_target, "fov_within_deg": {
+        str(k): float(p) for k, p in zip(metrics.FOV_THRESHOLDS_DEG, curve)}}
+
+
+def evaluate_run(run_dir, data_path, batch_size=32):
+    """Score one run on ``data_path``; returns a JSON-ready dict."""
+    run = load_run(run_dir)
+    with open_dataset(data_path) as data:
+        indices, description = evaluation_indices(run, data_path, data.num_pairs)
+        truth = truth_targets(data.labels, indices, as_released(run))
+        predictions = run_predictions(run, data, indices, batch_size)
+        forget_model(run)
+        width = data.image_shape[1]
+        metadata = data.metadata
+    row = VARIANT_ROWS[run["config"]["variant"]]
+    return jsonable({
+        "table": None, "data": os.path.abspath(data_path), "data_description": description,
+        "data_source": metadata.get("source", metadata.get("protocol")),
+        "num_pairs": int(len(indices)), "image_width": int(width), "runs": [run["run_dir"]],
+        "rows": {row: {"source": run["run_dir"], "as_released": as_released(run),
+                       "num_pairs": int(len(indices)),
+                       **score(truth, predictions, width)}},
+        "paper": {}, "paper_convention": None,
+    })
+
+
+def read_paper_table(number, directory=PAPER_DIR):
+    """The paper's Table ``number`` as {row: {column: float}} (from CSV)."""
+    path = os.path.join(directory, f"paper_table{number}.csv")
+    table = {}
+    try:
+        with open(path) as f:
+            header = f.readline().strip().split(",")
+            for line in f:
+                cells = line.strip().split(",")
+                if len(cells) == len(header):
+                    table[cells[0]] = {c: float(v) for c, v in zip(header[1:], cells[1:])}
+    except OSError:
+        return {}
+    return table
+
+
+def average_rows(reference, labels, indices):
+    """The two Average rows from the statistics of the run ``reference``:
+    {row: {source, as_released, truth, pred}}. The release's buggy Average
+    averaged the release's labels, so it is scored against the release's
+    truth (its frame, degrees, StereoBM disparity)."""
+    rows = {}
+    for row, kind, released in (("Average", "mean", as_released(reference)),
+                                ("Average (release bug)", "release", True)):
+        pred = {k: np.asarray(v, np.float64)
+                for k, v in average_predictions(reference["stats"], len(indices), kind=kind).items()}
+        rows[row] = {"source": f"{reference['run_dir']}/train_stats.json ({kind})",
+                     "as_released": released, "truth": truth_targets(labels, indices, released),
+                     "pred": pred}
+    return rows
+
+
+def geometric_predictions(reference, data, subset):
+    """The Geometric baseline on pairs ``subset`` of the open dataset ``data``:
+    ``(priors, predictions, statuses)``; its fallbacks are the training means
+    (of the run ``reference``) of the unobservable or failed quantities."""
+    stats_mean = reference["stats"]["mean"]
+    priors = {"baseline": stats_mean["baseline"], "fx": stats_mean["fx"], "fy": stats_mean["fx"]}
+    pred, statuses = geo.predict_file(data, subset, priors=priors)
+    return priors, pred, statuses
+
+
+def table_rows(number, run_dirs, data_path=None, geometric=True, geometric_max=None,
+               batch_size=32, progress=None):
+    """The raw rows of the paper's Table ``number`` (1: synthetic, 2: real):
+    ``(context, rows)``, everything ``make_table`` scores.
+
+    ``rows`` maps a row name to ``source``, ``as_released``, ``indices`` (the
+    pairs of the dataset file), ``truth`` and ``pred`` (name -> array; the
+    Geometric row also ``priors`` and ``statuses``); ``context`` holds the
+    table's own fields (``table``, ``data``, ``data_description``,
+    ``data_source``, ``data_metadata``, ``num_pairs``, ``image_width``,
+    ``runs``). Table 1 evaluates on the runs' own dataset (their common test
+    split) unless ``data_path`` is given; Table 2 needs ``data_path``
+    (forward pass only).
+    """
+    if number not in (1, 2):
+        raise EvaluationError(f"unknown table {number}; choose 1 or 2")
+    if not run_dirs:
+        raise EvaluationError("no runs given (--runs RUN_DIR ...)")
+    loaded = [load_run(r) for r in run_dirs]
+    rows_seen = {}
+    for run in loaded:
+        row = row_name(run)
+        if row in rows_seen:
+            raise EvaluationError(f"two runs for {row}: {rows_seen[row]} and {run['run_dir']}")
+        rows_seen[row] = run["run_dir"]
+    if number == 2 and data_path is None:
+        raise EvaluationError("table 2 needs --data REAL.h5")
+    reference = loaded[0]
+    if data_path is None:
+        data_path = reference["config"]["data"]
+        for run in loaded[1:]:
+            if not _same_file(run["config"]["data"], data_path):
+                raise EvaluationError(
+                    f"runs use different datasets ({data_path} and {run['config']['data']}); "
+                    f"pass --data to evaluate them on one file")
+    if not os.path.exists(data_path):
+        raise EvaluationError(f"dataset not found: {data_path}")
+    with open_dataset(data_path) as data:
+        indices, description = evaluation_indices(reference, data_path, data.num_pairs)
+        for run in loaded[1:]:
+            other, _ = evaluation_indices(run, data_path, data.num_pairs)
+            if not np.array_equal(np.sort(other), np.sort(indices)):
+                raise EvaluationError(
+                    f"{run['run_dir']} has a different test split from {reference['run_dir']}; "
+                    f"train the runs with the same --split and --seed")
+        width = data.image_shape[1]
+        labels = data.labels
+        metadata = data.metadata
+        n = len(indices)
+        rows = {}
+
+        for row, raw in average_rows(reference, labels, indices).items():
+            rows[row] = dict(raw, indices=indices, pred=published(raw["pred"]))
+        for run in loaded:
+            if progress:
+                progress(f"forward pass: {run['config']['variant']} ({run['run_dir']})")
+            pred = run_predictions(run, data, indices, batch_size)
+            forget_model(run)
+            rows[row_name(run)] = {
+                "source": run["run_dir"], "as_released": as_released(run), "indices": indices,
+                "truth": truth_targets(labels, indices, as_released(run)),
+                "pred": published(pred)}
+        if geometric:
+            subset = indices if geometric_max is None else indices[: int(geometric_max)]
+            if progress:
+                progress(f"geometric baseline on {len(subset)} pairs")
+            priors, pred, statuses = geometric_predictions(reference, data, subset)
+            rows["Geometric"] = {"source": "cpl_keras.baselines.geometric", "as_released": False,
+                                 "indices": subset, "truth": truth_targets(labels, subset, False),
+                                 "pred": published(pred), "priors": priors,
+                                 "statuses": statuses}
+    context = {
+        "table": number, "data": os.path.abspath(data_path), "data_description": description,
+        "data_source": metadata.get("source", metadata.get("protocol")),
+        "data_metadata": {k: v for k, v in metadata.items() if k in (
+            "source", "protocol", "seed", "image_size", "crops", "right", "labels", "split")},
+        "num_pairs": int(n), "image_width": int(width),
+        "runs": [r["run_dir"] for r in loaded],
+    }
+    return jsonable(context), rows
+
+
+def table_from_rows(context, rows):
+    """Score the raw ``rows`` of ``table_rows`` (or of published predictions
+    files) into the table: a JSON-ready dict with every figure."""
+    width = context["image_width"]
+    scored = {}
+    for row, raw in rows.items():
+        entry = {"source": raw["source"], "as_released": bool(raw["as_released"]),
+                 "num_pairs": int(len(raw["indices"]))}
+        if row == "Geometric":
+            entry.update(priors=raw["priors"], failures=geo.failure_report(raw["statuses"]))
+        scored[row] = dict(entry, **score(raw["truth"], raw["pred"], width))
+    number = context["table"]
+    table = dict(context)
+    table["rows"] = {row: scored[row] for base in ROWS for row in (base, base + RELEASED)
+                     if row in scored}
+    table["paper"] = read_paper_table(number)
+    table["paper_convention"] = PAPER_CONVENTION[number]
+    return jsonable(table)
+
+
+def make_table(number, run_dirs, data_path=None, geometric=True, geometric_max=None,
+               batch_size=32, progress=None):
+    """Score the rows of the paper's Table ``number`` (1: synthetic, 2: real).
+
+    Table 1 evaluates on the runs' own dataset (their common test split)
+    unless ``data_path`` is given; Table 2 needs ``data_path`` (forward pass
+    only). Returns a JSON-ready dict with every figure.
+    """
+    return table_from_rows(*table_rows(number, run_dirs, data_path, geometric, geometric_max,
+                                       batch_size, progress))
+
