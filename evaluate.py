@@ -106,7 +106,7 @@ def _main(argv=None):
 
 def _evaluate(args, command, progress):
     from cpl_keras import evaluation, report
-    from cpl_keras.data.storage import DatasetError
+    from cpl_keras.errors import Error
 
     try:
         if os.path.exists(args.out) and not os.path.isdir(args.out):
@@ -127,7 +127,7 @@ def _evaluate(args, command, progress):
             stem = f"table{args.table}"
         cli.check_interrupt()
         paths = report.write_outputs(args.out, stem, table, command)
-    except (evaluation.EvaluationError, DatasetError, OSError) as error:
+    except (Error, OSError) as error:  # (EvaluationError, RunError, DatasetError, ...)
         return cli.fail(PROG, error)
     print(report.markdown(report.portable(table, args.out)))
     print("wrote " + ", ".join(paths), file=sys.stderr)

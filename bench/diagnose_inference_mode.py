@@ -90,17 +90,16 @@ def main(argv=None):
     from cpl_keras.sequence import StereoSequence
 
     run = runs.load_run(args.run)
-    config = run["config"]
-    data = config["data"]
+    data = run.config.data
     with StereoFile(data) as f:
-        targets = targets_from_labels(f.labels, as_released=runs.as_released(run))
-    batch = int(config.get("batch_size", 16))
-    ceiling = 2.0 * float(np.max(targets["disparity"][run["split"]["train"]]))
-    val = StereoSequence(data, run["split"]["val"], targets=targets, batch_size=batch)
+        targets = targets_from_labels(f.labels, as_released=run.as_released)
+    batch = int(run.config.other.get("batch_size", 16))
+    ceiling = 2.0 * float(np.max(targets["disparity"][run.split["train"]]))
+    val = StereoSequence(data, run.split["val"], targets=targets, batch_size=batch)
     val_batches = [val[i] for i in range(len(val))]
     model = runs.load_model(run)
-    print(f"{args.run}: {config['variant']}, {config['build']['backbone']}, best epoch "
-          f"{config.get('best_epoch')}; {len(run['split']['train'])} training pairs, {len(val)} validation "
+    print(f"{args.run}: {run.config.variant}, {run.config.build['backbone']}, best epoch "
+          f"{run.config.best_epoch}; {len(run.split['train'])} training pairs, {len(val)} validation "
           f"batches of {batch}; 'd capped': the disparity's MAE with its predictions "
           f"clipped at twice the largest training label ({ceiling:.0f} px), 'd median': its "
           "median absolute error, 'capped': the validation loss with the disparity head's "
@@ -132,8 +131,8 @@ def main(argv=None):
     report("saved")
     # Batches of shuffled orders, as training draws them (the split's index
     # order is sorted, so unshuffled batches hold adjacent frames of a drive).
-    shuffled = StereoSequence(data, run["split"]["train"], targets=targets, batch_size=batch,
-                              shuffle=True, seed=int(config["seed"]))
+    shuffled = StereoSequence(data, run.split["train"], targets=targets, batch_size=batch,
+                              shuffle=True, seed=int(run.config.seed))
 
     def first_batches(epoch, count):
         shuffled.set_epoch(epoch)

@@ -39,7 +39,7 @@ def main(argv=None):
     from cpl_keras.data.storage import StereoFile
     from cpl_keras.datasets import targets_from_labels
 
-    test = runs.load_run(args.split_of)["split"]["test"]
+    test = runs.load_run(args.split_of).split["test"]
     with StereoFile(args.data) as f:
         targets = targets_from_labels(f.labels)
         left, right = f.read_pairs(test)

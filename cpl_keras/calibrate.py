@@ -142,18 +142,17 @@ def is_grey(image):
 def is_demonstration(run):
     """Whether ``run`` is train.py's demonstration run (trained without --data
     on the cached demonstration dataset)."""
-    data = os.path.basename(str(run["config"].get("data") or ""))
-    return data.startswith("demo-") or "--data" not in str(run["config"].get("command") or "--data")
+    data = os.path.basename(str(run.config.data or ""))
+    return data.startswith("demo-") or "--data" not in str(run.config.command or "--data")
 
 
 def training_protocol(run):
     """The data generator's protocol of the run's training set (config.json,
     else the dataset's metadata when the file is still there), or None."""
-    config = run["config"]
-    if config.get("protocol"):
-        return config["protocol"]
+    if run.config.protocol:
+        return run.config.protocol
     try:
-        with StereoFile(config["data"]) as data:
+        with StereoFile(run.config.data) as data:
             return data.metadata.get("protocol")
     except Exception:  # moved or unreadable: unknown
         return None
@@ -213,8 +212,8 @@ def _check_ranges(raw, ranges, warn):
 
 def load(run_dir):
     """The run and its model, for calibrating one pair or many."""
-    run = runs.load_run(run_dir, error=CalibrationError)
-    return run, runs.load_model(run, error=CalibrationError)
+    run = runs.load_run(run_dir)
+    return run, runs.load_model(run)
 
 
 def calibrate_pair(left_path, right_path, run_dir, warn=None, loaded=None):
@@ -234,13 +233,13 @@ def calibrate_pair(left_path, right_path, run_dir, warn=None, loaded=None):
         if is_grey(image):
             warn(f"warning: the {side} image {path} is grey; the model was trained on colour "
                  "images")
-    released = runs.as_released(run)
+    released = run.as_released
     windows = crop_windows(width, height)
     raw, per_window = predict_windows(model, left, right, windows, released)
     values = per_window[0]                      # the whole image
     if not all(math.isfinite(v) for v in values.values()):
         raise CalibrationError("the model predicted non-finite values")
-    ranges = label_ranges(run["stats"])
+    ranges = label_ranges(run.stats)
     _check_ranges(raw[0], ranges, warn)
     spread = {name: float(np.std([v[name] for v in per_window], ddof=1))
               for name in PARAMETERS + ("X", "Y", "Z")}
@@ -256,7 +255,7 @@ def calibrate_pair(left_path, right_path, run_dir, warn=None, loaded=None):
     result = {
         "left": os.path.abspath(left_path), "right": os.path.abspath(right_path),
         "image_width": width, "image_height": height, "model_input": [size_h, size_w],
-        "run": run["run_dir"], "variant": run["config"]["variant"],
+        "run": run.run_dir, "variant": run.config.variant,
         "parameters": {name: values[name] for name in PARAMETERS},
         "point": {name: values[name] for name in ("X", "Y", "Z")},
         "pitch_deg": math.degrees(values["pitch"]),
@@ -270,7 +269,7 @@ def calibrate_pair(left_path, right_path, run_dir, warn=None, loaded=None):
         "scale_priors": list(SCALE_PRIORS), "fields": dict(FIELDS),
         "demonstration_model": demo,
         "training": {
-            "protocol": training_protocol(run), "split": run["config"].get("split"),
+            "protocol": training_protocol(run), "split": run.config.split,
             "as_released": released, "label_ranges": ranges,
             "label_ranges_units": f"the model's input ({size_w}x{size_h} px), targets as trained",
         },
@@ -431,7 +430,7 @@ def main(argv=None):
             exports.write_opencv_yaml(args.opencv_yaml, calibration)
         if args.ros_yaml:
             exports.write_ros_yaml(args.ros_yaml, calibration)
-    except (CalibrationError, OSError) as error:
+    except (Error, OSError) as error:  # (CalibrationError, RunError, DatasetError, ...)
         return cli.fail(PROG, error)
     print(text)
     return 0

@@ -75,7 +75,7 @@ def curves(run_dir, data=None):
     """
     run_dir = os.path.abspath(run_dir)
     try:
-        config = runs.read_config(run_dir)
+        config = runs.read_run_config(run_dir)
         if config is None:
             raise OSError(f"no {runs.CONFIG}")
         stats = load_statistics(os.path.join(run_dir, runs.STATS))
@@ -83,9 +83,9 @@ def curves(run_dir, data=None):
     except (OSError, ValueError, KeyError) as error:
         raise CurveError(f"cannot read run {run_dir}: {error}") from None
     rows = read_log(run_dir)
-    data = data or config["data"]
+    data = data or config.data
     with StereoFile(data) as f:
-        targets = targets_from_labels(f.labels, as_released=runs.config_as_released(config))
+        targets = targets_from_labels(f.labels, as_released=config.as_released)
     val = split["val"]
     scale = {}
     average = {}
@@ -95,8 +95,8 @@ def curves(run_dir, data=None):
         average[name] = nmae(truth, np.full_like(truth, stats["mean"][name]))
     out = {name: [_val_mae(row, name) / scale[name] if scale[name] > 0 else math.nan
                   for row in rows] for name in PARAMETERS}
-    num_train = int(config.get("num_train", len(split["train"])))
-    best_epoch = config.get("best_epoch")
+    num_train = int(len(split["train"]) if config.num_train is None else config.num_train)
+    best_epoch = config.best_epoch
     if not best_epoch and rows:
         # a run still going (or killed): the epoch early stopping keeps so far
         best_epoch = 1 + int(np.nanargmin([row.get("val_loss", math.nan) for row in rows]))
@@ -157,16 +157,16 @@ def plot(curve, path):
 def summary_rows(curve, load=None):
     config, rows = curve["config"], curve["rows"]
     loads = [row["load_average"] for row in rows if "load_average" in row]
-    stopped = config.get("stopped")
-    if config.get("status") != "finished":
-        stopped = f"not finished ({config.get('status')}): {len(rows)} epochs so far"
+    stopped = config.stopped
+    if config.status != "finished":
+        stopped = f"not finished ({config.status}): {len(rows)} epochs so far"
     row = {
         "run": os.path.basename(curve["run_dir"]), "label": run_label(curve),
-        "num_train": config.get("num_train"), "num_val": config.get("num_val"),
+        "num_train": config.num_train, "num_val": config.num_val,
         "epochs_run": len(rows), "best_epoch": curve["kept_epoch"],
         "stopped": stopped,
-        "wall_time_s": rows[-1].get("wall_time_s", config.get("wall_time_s")) if rows
-        else config.get("wall_time_s"),
+        "wall_time_s": rows[-1].get("wall_time_s", config.wall_time_s) if rows
+        else config.wall_time_s,
         "load_average": float(np.mean(loads)) if loads else load,
         "best_epoch_nmae": curve["best_epoch_nmae"], "average_nmae": curve["average"],
     }

@@ -18,8 +18,9 @@ best.weights.h5, backup/): what the reproduction commits and restores on
 another machine. It evaluates from ``predictions/`` alone.
 
 Training writes it through this module; evaluation, calibration, the
-reproduction and the learning curves read it only through ``load_run``,
-``read_config`` and ``load_model``. Its files are written atomically
+reproduction and the learning curves read it only through ``load_run`` (a
+typed ``Run`` whose ``config`` is a typed ``RunConfig``), ``read_run_config``
+and ``load_model``; every problem is a one-line ``RunError``. Its files are written atomically
 (``cpl_keras.files``).
 
 config.json holds each fact once: ``as_released`` lives in ``build`` (the
@@ -30,9 +31,11 @@ had it at the top level, still load and resume (``normalise_config``).
 from __future__ import annotations
 
 import csv
+import dataclasses
 import os
 import shutil
 import zipfile
+from typing import Any
 
 import numpy as np
 
@@ -118,8 +121,94 @@ def config_as_released(config):
 
 
 def as_released(run):
-    """Whether the run (a ``load_run`` dict) was trained as released."""
-    return config_as_released(run["config"])
+    """Whether the run (a ``Run``) was trained as released."""
+    return run.config.as_released
+
+
+@dataclasses.dataclass(frozen=True)
+class RunConfig:
+    """config.json as the readers of a run see it, typed (``from_dict``).
+
+    Training writes the file (``write_config``, one dict it fills as the run
+    goes); everything that reads a run takes this record instead, so a key
+    is named in one place. Keys not named here stay in ``other``."""
+
+    variant: str
+    build: dict
+    data: str
+    split: str | None = None
+    seed: int | None = None
+    protocol: str | None = None
+    command: str | None = None
+    run_dir: str | None = None
+    learning_rate: float | None = None
+    target_scaling: str = "none"
+    epochs: int | None = None
+    num_train: int | None = None
+    num_val: int | None = None
+    status: str | None = None
+    stopped: str | None = None
+    epochs_run: int | None = None
+    best_epoch: int | None = None
+    best_val_loss: float | None = None
+    wall_time_s: float | None = None
+    other: dict = dataclasses.field(default_factory=dict)
+
+    @classmethod
+    def from_dict(cls, config, where="config.json"):
+        """The record of a config.json dict (normalised first); RunError,
+        naming ``where``, when a key every run has is missing or the variant
+        is unknown."""
+        config = normalise_config(config)
+        for key in ("variant", "build", "data"):
+            if key not in config:
+                raise RunError(f"{where} has no '{key}'")
+        if config["variant"] not in VARIANT_ROWS:
+            raise RunError(f"{where}: unknown variant {config['variant']!r}")
+        named = {f.name for f in dataclasses.fields(cls)} - {"other"}
+        return cls(**{k: v for k, v in config.items() if k in named},
+                   other={k: v for k, v in config.items() if k not in named})
+
+    @property
+    def as_released(self):
+        """Whether the run was trained as released."""
+        return bool(self.build.get("as_released", False))
+
+    @property
+    def row(self):
+        """The table row of the run: its variant's row, marked when trained
+        as released."""
+        return VARIANT_ROWS[self.variant] + (RELEASED if self.as_released else "")
+
+
+def read_run_config(run_dir):
+    """The run's config.json as a ``RunConfig``, or None when it has none."""
+    config = read_config(run_dir)
+    return None if config is None else RunConfig.from_dict(
+        config, os.path.join(run_dir, CONFIG))
+
+
+@dataclasses.dataclass(eq=False)
+class Run:
+    """A run directory as ``load_run`` reads it: where it is, its typed
+    config, its training statistics (``train_stats.json``), its split
+    (train, val, test index arrays) and where its weights are. ``model``
+    holds the loaded model while evaluation uses it."""
+
+    run_dir: str
+    config: RunConfig
+    stats: dict
+    split: dict
+    model_path: str
+    model: Any = dataclasses.field(default=None, repr=False)
+
+    @property
+    def as_released(self):
+        return self.config.as_released
+
+    @property
+    def row(self):
+        return self.config.row
 
 
 def publish_files(run_dir, target_dir, name):
@@ -199,29 +288,31 @@ def restore_run_dir(folder, run_dir, data_path):
 
 
 def run_label(config):
-    """The run in words: variant, backbone, dataset file, split, and the
-    training options that differ from the defaults (learning rate, target
-    scaling)."""
-    released = RELEASED if config_as_released(config) else ""
+    """The run in words (``config``: a ``RunConfig`` or config.json's dict):
+    variant, backbone, dataset file, split, and the training options that
+    differ from the defaults (learning rate, target scaling, alpha rate)."""
+    if not isinstance(config, RunConfig):
+        config = RunConfig.from_dict(config)
+    released = RELEASED if config.as_released else ""
     options = ""
-    if config.get("learning_rate") is not None:
-        options += f", lr {config['learning_rate']:g}"
-    if config.get("target_scaling", "none") != "none":
-        options += f", targets scaled by {config['target_scaling']}"
-    rate = config.get("build", {}).get("alpha_rate")
+    if config.learning_rate is not None:
+        options += f", lr {config.learning_rate:g}"
+    if config.target_scaling != "none":
+        options += f", targets scaled by {config.target_scaling}"
+    rate = config.build.get("alpha_rate")
     if rate is not None:
         from cpl_keras.losses import ALPHA_RATE
 
         if rate != ALPHA_RATE:
             options += f", alpha rate {rate:g}"
-    return (f"{config['variant']}{released}, {config['build']['backbone']}, "
-            f"{os.path.basename(config['data'])}, split {config['split']}{options}")
+    return (f"{config.variant}{released}, {config.build['backbone']}, "
+            f"{os.path.basename(config.data)}, split {config.split}{options}")
 
 
 def row_name(run):
-    """The table row of a run: its variant's row, marked when trained as released."""
-    row = VARIANT_ROWS[run["config"]["variant"]]
-    return row + RELEASED if as_released(run) else row
+    """The table row of a run (a ``Run``): its variant's row, marked when
+    trained as released."""
+    return run.row
 
 
 # ---------------------------------------------------------------------------
@@ -248,39 +339,30 @@ def read_log(path):
 # ---------------------------------------------------------------------------
 # Reading a finished run
 # ---------------------------------------------------------------------------
-def load_run(run_dir, error=RunError):
-    """The run's files as a dict: ``run_dir``, ``config``, ``stats``,
-    ``split`` (train/val/test arrays), ``model_path``. Raises ``error``
-    (default ``RunError``) naming the first missing or malformed file."""
+def load_run(run_dir):
+    """The run directory as a ``Run``. RunError naming the first missing or
+    malformed file."""
     run_dir = os.path.abspath(os.fspath(run_dir))
     if not os.path.isdir(run_dir):
-        raise error(f"run directory not found: {run_dir}")
+        raise RunError(f"run directory not found: {run_dir}")
     paths = {name: os.path.join(run_dir, name) for name in REQUIRED + (MODEL,)}
     for name, path in paths.items():
         if name == MODEL and stored_predictions(run_dir):
             continue  # a published run: its outputs are stored, not its weights
         if not os.path.isfile(path):
             what = "weights (model.keras)" if name == MODEL else name
-            raise error(f"run directory {run_dir} has no {what}")
-    run = {"run_dir": run_dir, "model_path": paths[MODEL]}
+            raise RunError(f"run directory {run_dir} has no {what}")
+    config = read_run_config(run_dir)
     try:
-        run["config"] = read_config(run_dir)
-    except RunError as problem:
-        raise error(str(problem)) from None
-    try:
-        run["stats"] = load_statistics(paths[STATS])
+        stats = load_statistics(paths[STATS])
     except (OSError, ValueError) as problem:
-        raise error(f"cannot read {paths[STATS]}: {problem}") from None
-    for key in ("variant", "build", "data"):
-        if key not in run["config"]:
-            raise error(f"{paths[CONFIG]} has no '{key}'")
-    if run["config"]["variant"] not in VARIANT_ROWS:
-        raise error(f"{paths[CONFIG]}: unknown variant {run['config']['variant']!r}")
+        raise RunError(f"cannot read {paths[STATS]}: {problem}") from None
     try:
-        run["split"] = load_split(paths[SPLIT])
+        split = load_split(paths[SPLIT])
     except (OSError, ValueError, KeyError) as problem:
-        raise error(f"cannot read {paths[SPLIT]}: {problem}") from None
-    return run
+        raise RunError(f"cannot read {paths[SPLIT]}: {problem}") from None
+    return Run(run_dir=run_dir, config=config, stats=stats, split=split,
+               model_path=paths[MODEL])
 
 
 # ---------------------------------------------------------------------------
@@ -315,10 +397,10 @@ def write_predictions(run_dir, data_path, indices, outputs, names):
     return path
 
 
-def read_predictions(run_dir, data_path, indices, names, error=RunError):
+def read_predictions(run_dir, data_path, indices, names):
     """The stored outputs of the run on pairs ``indices`` of ``data_path``
     (name -> float64 array), or None when none are stored for that file.
-    ``error`` when the file is unreadable or lacks some of the pairs."""
+    RunError when the file is unreadable or lacks some of the pairs."""
     path = predictions_path(run_dir, data_path)
     if not os.path.isfile(path):
         return None
@@ -327,32 +409,33 @@ def read_predictions(run_dir, data_path, indices, names, error=RunError):
             stored, pred = data["indices"], data["pred"]
             outputs = [str(n) for n in data["outputs"]]
     except (OSError, ValueError, KeyError) as problem:
-        raise error(f"cannot read {path}: {problem}") from None
+        raise RunError(f"cannot read {path}: {problem}") from None
     if outputs != list(names) or pred.shape != (len(stored), len(names)):
-        raise error(f"{path}: outputs {outputs} are not {list(names)}")
+        raise RunError(f"{path}: outputs {outputs} are not {list(names)}")
     where = {int(i): k for k, i in enumerate(stored)}
     missing = [int(i) for i in indices if int(i) not in where]
     if missing:
-        raise error(f"{path} has no predictions for {len(missing)} of the pairs asked "
+        raise RunError(f"{path} has no predictions for {len(missing)} of the pairs asked "
                     f"(first: {missing[0]})")
     rows = np.array([where[int(i)] for i in indices], np.int64)
     return {name: pred[rows, k].astype(np.float64) for k, name in enumerate(names)}
 
 
-def load_model(run, error=RunError):
-    """The run's best model (``keras.saving.load_model(..., safe_mode=True)``)."""
+def load_model(run):
+    """The run's best model (``keras.saving.load_model(..., safe_mode=True)``);
+    RunError when it has none or it is damaged."""
     import keras
 
     import cpl_keras.models.factory  # noqa: F401  (registers the custom layers)
 
-    path = run["model_path"]
+    path = run.model_path
     if not os.path.exists(path):
-        raise error(f"run directory {run['run_dir']} has no weights (model.keras): a "
-                    f"published run holds only its stored predictions")
+        raise RunError(f"run directory {run.run_dir} has no weights (model.keras): a "
+                       f"published run holds only its stored predictions")
     if os.path.isfile(path) and not zipfile.is_zipfile(path):
         # (Keras reports a damaged archive as "File not found")
-        raise error(f"cannot load {path}: the file is truncated or corrupt (not a complete "
-                    ".keras archive)")
+        raise RunError(f"cannot load {path}: the file is truncated or corrupt (not a complete "
+                       ".keras archive)")
     try:
         return keras.saving.load_model(path, safe_mode=True)
     except Exception as problem:  # corrupt archives raise many kinds of errors
@@ -361,4 +444,4 @@ def load_model(run, error=RunError):
                                      or "not found" in detail.lower()):
             # a member of the archive is damaged (Keras says "File not found")
             detail = f"the file is truncated or corrupt ({detail})"
-        raise error(f"cannot load {path}: {detail}") from None
+        raise RunError(f"cannot load {path}: {detail}") from None

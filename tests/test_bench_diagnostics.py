@@ -56,7 +56,7 @@ def test_fy_from_aspect_reports_the_runs_errors(tiny_run, capsys):
                                     "--runs", tiny_run["run"]])
     line = capsys.readouterr().out.splitlines()[1]
     run = runs.load_run(tiny_run["run"])
-    test = run["split"]["test"]
+    test = run.split["test"]
     with StereoFile(tiny_run["data"]) as f:
         truth = targets_from_labels(f.labels)
         out = evaluation.predict_images(runs.load_model(run), *f.read_pairs(test))

@@ -139,9 +139,9 @@ def test_published_runs_are_restored_not_trained_again(quick, tmp_path):
         for row in first["rows"]:
             assert again["rows"][row]["targets"] == first["rows"][row]["targets"], (stem, row)
     # a restored run has no weights: asking for its model says so in one line
-    from cpl_keras import evaluation
+    from cpl_keras import evaluation, runs
     run_dir = tmp_path / "runs" / "cvgl" / "cpl-a"
-    with pytest.raises(evaluation.EvaluationError, match="no weights"):
+    with pytest.raises(runs.RunError, match="no weights"):
         evaluation.load_model(evaluation.load_run(run_dir))
 
 

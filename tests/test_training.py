@@ -4,6 +4,7 @@ Small backbone, 32x32 images, a few dozen pairs, two or three epochs.
 """
 
 import csv
+import dataclasses
 import json
 import os
 import re
@@ -113,8 +114,8 @@ def test_every_variant_writes_the_run_directory(variant, dataset, tmp_path):
         old_build = {k: v for k, v in config["build"].items() if k != "disparity_ceiling"}
         with open(os.path.join(run_dir, "config.json"), "w") as f:
             json.dump(dict(config, as_released=False, build=old_build), f)
-        assert runs.as_released(runs.load_run(run_dir)) is False
-        assert runs.load_run(run_dir)["config"]["build"]["disparity_ceiling"] is None
+        assert runs.load_run(run_dir).as_released is False
+        assert runs.load_run(run_dir).config.build["disparity_ceiling"] is None
         # Running the same command on a finished run trains nothing more.
         again = train(dataset, variant=variant, run_dir=run_dir, seed=1, **TINY)
         assert again["epochs_run"] == 2 and again["best_epoch"] == summary["best_epoch"]
@@ -593,12 +594,13 @@ def test_truncated_files_are_called_truncated(dataset, tmp_path, tiny_run):
     with pytest.raises(DatasetError, match="not an HDF5 file"):
         StereoFile(tmp_path / "text.h5")
     model = os.path.join(tiny_run["run"], "model.keras")
+    run = runs.load_run(tiny_run["run"])
     for size in (os.path.getsize(model) // 2, os.path.getsize(model) - 100):
         cut = tmp_path / f"cut{size}.keras"
         with open(model, "rb") as f:
             cut.write_bytes(f.read()[:size])
         with pytest.raises(runs.RunError, match="truncated or corrupt"):
-            runs.load_model({"model_path": str(cut)})
+            runs.load_model(dataclasses.replace(run, model_path=str(cut)))
 
 
 # ---------------------------------------------------------------------------

@@ -20,20 +20,11 @@ from cpl_keras import runs
 from cpl_keras.camera import TARGETS
 from cpl_keras.data.storage import DatasetError, StereoFile
 from cpl_keras.datasets import targets_from_labels
+from cpl_keras.runs import load_model, load_run
 
 
 class EvaluationError(runs.RunError):
     """A run directory, dataset or argument cannot be evaluated (one line)."""
-
-
-def load_run(run_dir):
-    """``runs.load_run``, raising ``EvaluationError``."""
-    return runs.load_run(run_dir, error=EvaluationError)
-
-
-def load_model(run):
-    """``runs.load_model``, raising ``EvaluationError``."""
-    return runs.load_model(run, error=EvaluationError)
 
 
 def model_image_shape(model):
@@ -75,19 +66,18 @@ def run_predictions(run, stereo_file, indices, batch_size=32):
     """The run's outputs on pairs ``indices`` of an open ``StereoFile``: its
     stored predictions for that file when it has them (a published run has
     nothing else), else a forward pass of its model (loaded once, kept on
-    ``run["_model"]``; ``forget_model`` drops it)."""
-    stored = runs.read_predictions(run["run_dir"], stereo_file.path, indices, TARGETS,
-                                   error=EvaluationError)
+    ``run.model``; ``forget_model`` drops it)."""
+    stored = runs.read_predictions(run.run_dir, stereo_file.path, indices, TARGETS)
     if stored is not None:
         return stored
-    if run.get("_model") is None:
-        run["_model"] = load_model(run)
-    return predict_run(run["_model"], stereo_file, indices, batch_size)
+    if run.model is None:
+        run.model = load_model(run)
+    return predict_run(run.model, stereo_file, indices, batch_size)
 
 
 def forget_model(run):
     """Drop the model ``run_predictions`` kept on ``run``."""
-    run.pop("_model", None)
+    run.model = None
 
 
 def store_predictions(run_dir, data_paths, batch_size=32):
@@ -96,8 +86,7 @@ def store_predictions(run_dir, data_paths, batch_size=32):
     ``data_paths`` (real sets, folders of them). The forward passes are the
     ones the tables make. Returns the paths written."""
     run = load_run(run_dir)
-    paths = [run["config"]["data"]] + [p for p in data_paths
-                                       if not _same_file(p, run["config"]["data"])]
+    paths = [run.config.data] + [p for p in data_paths if not _same_file(p, run.config.data)]
     written = []
     try:
         for path in paths:
@@ -128,10 +117,10 @@ def open_dataset(path):
 def evaluation_indices(run, data_path, num_pairs):
     """``(indices, description)``: the run's test split when ``data_path`` is
     the run's own dataset, else every pair of the file."""
-    if _same_file(data_path, run["config"]["data"]):
-        test = run["split"]["test"]
+    if _same_file(data_path, run.config.data):
+        test = run.split["test"]
         if len(test) == 0 or test.max() >= num_pairs:
-            raise EvaluationError(f"{run['run_dir']}: test split does not fit {data_path}")
+            raise EvaluationError(f"{run.run_dir}: test split does not fit {data_path}")
         return test, f"test split of the run ({len(test)} of {num_pairs} pairs)"
     return np.arange(num_pairs), f"all {num_pairs} pairs of the file"
 

@@ -31,7 +31,7 @@ from cpl_keras.evaluation.predict import (
 )
 from cpl_keras.metrics import jsonable
 from cpl_keras.models.variants import MODEL_ROWS, VARIANT_ROWS
-from cpl_keras.runs import RELEASED, as_released, row_name
+from cpl_keras.runs import RELEASED
 
 #: Row order of the paper's tables (plus our two extra rows).
 ROWS = ("Average", "Average (release bug)") + MODEL_ROWS + ("Geometric",)
@@ -56,17 +56,17 @@ def evaluate_run(run_dir, data_path, batch_size=32):
     run = load_run(run_dir)
     with open_dataset(data_path) as data:
         indices, description = evaluation_indices(run, data_path, data.num_pairs)
-        truth = truth_targets(data.labels, indices, as_released(run))
+        truth = truth_targets(data.labels, indices, run.as_released)
         predictions = run_predictions(run, data, indices, batch_size)
         forget_model(run)
         width = data.image_shape[1]
         metadata = data.metadata
-    row = VARIANT_ROWS[run["config"]["variant"]]
+    row = VARIANT_ROWS[run.config.variant]
     return jsonable({
         "table": None, "data": os.path.abspath(data_path), "data_description": description,
         "data_source": metadata.get("source", metadata.get("protocol")),
-        "num_pairs": int(len(indices)), "image_width": int(width), "runs": [run["run_dir"]],
-        "rows": {row: {"source": run["run_dir"], "as_released": as_released(run),
+        "num_pairs": int(len(indices)), "image_width": int(width), "runs": [run.run_dir],
+        "rows": {row: {"source": run.run_dir, "as_released": run.as_released,
                        "num_pairs": int(len(indices)),
                        **score(truth, predictions, width)}},
         "paper": {}, "paper_convention": None,
@@ -95,11 +95,11 @@ def average_rows(reference, labels, indices):
     averaged the release's labels, so it is scored against the release's
     truth (its frame, degrees, StereoBM disparity)."""
     rows = {}
-    for row, kind, released in (("Average", "mean", as_released(reference)),
+    for row, kind, released in (("Average", "mean", reference.as_released),
                                 ("Average (release bug)", "release", True)):
         pred = {k: np.asarray(v, np.float64)
-                for k, v in average_predictions(reference["stats"], len(indices), kind=kind).items()}
-        rows[row] = {"source": f"{reference['run_dir']}/train_stats.json ({kind})",
+                for k, v in average_predictions(reference.stats, len(indices), kind=kind).items()}
+        rows[row] = {"source": f"{reference.run_dir}/train_stats.json ({kind})",
                      "as_released": released, "truth": truth_targets(labels, indices, released),
                      "pred": pred}
     return rows
@@ -109,7 +109,7 @@ def geometric_predictions(reference, data, subset):
     """The Geometric baseline on pairs ``subset`` of the open dataset ``data``:
     ``(priors, predictions, statuses)``; its fallbacks are the training means
     (of the run ``reference``) of the unobservable or failed quantities."""
-    stats_mean = reference["stats"]["mean"]
+    stats_mean = reference.stats["mean"]
     priors = {"baseline": stats_mean["baseline"], "fx": stats_mean["fx"], "fy": stats_mean["fx"]}
     pred, statuses = geo.predict_file(data, subset, priors=priors)
     return priors, pred, statuses
@@ -136,19 +136,19 @@ def table_rows(number, run_dirs, data_path=None, geometric=True, geometric_max=N
     loaded = [load_run(r) for r in run_dirs]
     rows_seen = {}
     for run in loaded:
-        row = row_name(run)
+        row = run.row
         if row in rows_seen:
-            raise EvaluationError(f"two runs for {row}: {rows_seen[row]} and {run['run_dir']}")
-        rows_seen[row] = run["run_dir"]
+            raise EvaluationError(f"two runs for {row}: {rows_seen[row]} and {run.run_dir}")
+        rows_seen[row] = run.run_dir
     if number == 2 and data_path is None:
         raise EvaluationError("table 2 needs --data REAL.h5")
     reference = loaded[0]
     if data_path is None:
-        data_path = reference["config"]["data"]
+        data_path = reference.config.data
         for run in loaded[1:]:
-            if not _same_file(run["config"]["data"], data_path):
+            if not _same_file(run.config.data, data_path):
                 raise EvaluationError(
-                    f"runs use different datasets ({data_path} and {run['config']['data']}); "
+                    f"runs use different datasets ({data_path} and {run.config.data}); "
                     f"pass --data to evaluate them on one file")
     if not os.path.exists(data_path):
         raise EvaluationError(f"dataset not found: {data_path}")
@@ -158,7 +158,7 @@ def table_rows(number, run_dirs, data_path=None, geometric=True, geometric_max=N
             other, _ = evaluation_indices(run, data_path, data.num_pairs)
             if not np.array_equal(np.sort(other), np.sort(indices)):
                 raise EvaluationError(
-                    f"{run['run_dir']} has a different test split from {reference['run_dir']}; "
+                    f"{run.run_dir} has a different test split from {reference.run_dir}; "
                     f"train the runs with the same --split and --seed")
         width = data.image_shape[1]
         labels = data.labels
@@ -170,12 +170,12 @@ def table_rows(number, run_dirs, data_path=None, geometric=True, geometric_max=N
             rows[row] = dict(raw, indices=indices, pred=published(raw["pred"]))
         for run in loaded:
             if progress:
-                progress(f"forward pass: {run['config']['variant']} ({run['run_dir']})")
+                progress(f"forward pass: {run.config.variant} ({run.run_dir})")
             pred = run_predictions(run, data, indices, batch_size)
             forget_model(run)
-            rows[row_name(run)] = {
-                "source": run["run_dir"], "as_released": as_released(run), "indices": indices,
-                "truth": truth_targets(labels, indices, as_released(run)),
+            rows[run.row] = {
+                "source": run.run_dir, "as_released": run.as_released, "indices": indices,
+                "truth": truth_targets(labels, indices, run.as_released),
                 "pred": published(pred)}
         if geometric:
             subset = indices if geometric_max is None else indices[: int(geometric_max)]
@@ -192,7 +192,7 @@ def table_rows(number, run_dirs, data_path=None, geometric=True, geometric_max=N
         "data_metadata": {k: v for k, v in metadata.items() if k in (
             "source", "protocol", "seed", "image_size", "crops", "right", "labels", "split")},
         "num_pairs": int(n), "image_width": int(width),
-        "runs": [r["run_dir"] for r in loaded],
+        "runs": [r.run_dir for r in loaded],
     }
     return jsonable(context), rows
 

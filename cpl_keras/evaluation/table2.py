@@ -35,7 +35,7 @@ import os
 
 import numpy as np
 
-from cpl_keras import metrics, runs
+from cpl_keras import metrics
 from cpl_keras.baselines import geometric as geo
 from cpl_keras.camera import TARGETS, fov_from_focal
 from cpl_keras.evaluation.predict import (
@@ -125,11 +125,11 @@ def _rig_rows(loaded, data_path, geometric, geometric_max, progress):
         for run in loaded:
             if progress:
                 progress(f"forward pass on {rig_name(metadata, data_path)}: "
-                         f"{run['config']['variant']} ({run['run_dir']})")
-            rows[runs.row_name(run)] = {
-                "source": run["run_dir"], "as_released": runs.as_released(run),
+                         f"{run.config.variant} ({run.run_dir})")
+            rows[run.row] = {
+                "source": run.run_dir, "as_released": run.as_released,
                 "indices": indices, "truth": truth_targets(
-                    labels, indices, runs.as_released(run)),
+                    labels, indices, run.as_released),
                 "pred": published(run_predictions(run, data, indices)),
                 "defined": defined}
         if geometric:
@@ -192,17 +192,17 @@ def table2_rigs(run_dirs, data_paths, geometric=True, geometric_max=None, progre
     loaded = [load_run(r) for r in run_dirs]
     seen = {}
     for run in loaded:
-        row = runs.row_name(run)
+        row = run.row
         if row in seen:
-            raise EvaluationError(f"two runs for {row}: {seen[row]} and {run['run_dir']}")
-        seen[row] = run["run_dir"]
+            raise EvaluationError(f"two runs for {row}: {seen[row]} and {run.run_dir}")
+        seen[row] = run.run_dir
     paths = expand_data_paths(data_paths)
     try:
         rigs = [_rig_rows(loaded, path, geometric, geometric_max, progress) for path in paths]
     finally:
         for run in loaded:
             forget_model(run)
-    return [r["run_dir"] for r in loaded], rigs
+    return [r.run_dir for r in loaded], rigs
 
 
 def table2_from_rigs(run_list, rigs):

@@ -135,11 +135,11 @@ def collect_run_files(trained, out_dir):
             for run_dir in run_dirs:
                 name = f"{protocol}_{os.path.basename(run_dir)}"
                 runs.publish_files(run_dir, target, name)
-                run_config = runs.read_config(run_dir, {})
+                run_config = runs.read_run_config(run_dir)
                 summaries.append({"protocol": protocol, "name": name,
                                   "run_dir": runs.relative(run_dir, out_dir),
-                                  "as_released": runs.config_as_released(run_config),
-                                  **{k: run_config.get(k) for k in (
+                                  "as_released": run_config.as_released,
+                                  **{k: getattr(run_config, k) for k in (
                                       "variant", "split", "seed", "epochs", "epochs_run",
                                       "best_epoch", "best_val_loss", "wall_time_s", "stopped")}})
     return summaries
