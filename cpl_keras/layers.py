@@ -164,7 +164,7 @@ class PositiveDisparity:
     labels end at 2,085 px); clipped at twice the largest training label the
     MAE ran 296-534 px. Those few pairs moved the validation loss by 2.6x
     between epochs, so early stopping kept an early epoch. Training sets the
-    ceiling from its labels (``training.DISPARITY_CEILING_FACTOR``); the
+    ceiling from its labels (``planning.DISPARITY_CEILING_FACTOR``); the
     compact towers' predictions stay below it (the largest on cpu-8000's
     test pairs: 2,413 px against a ceiling of 4,171).
     """

@@ -12,7 +12,7 @@ import sys
 import threading
 import time
 
-from cpl_keras import cli, evaluation, runs, training
+from cpl_keras import cli, evaluation, planning, runs, training
 from cpl_keras.cache import enable_compile_cache
 from cpl_keras.data.storage import DatasetError
 from cpl_keras.models.variants import SLOW_VARIANTS
@@ -57,7 +57,7 @@ def train_all(config, paths, runs_dir, seed, jobs=1, out_dir=None):
             finished = True
         # Refuses (TrainingError) a run directory that holds a run of other
         # settings, so a run made at another scale is never reused.
-        training.plan_run(paths[protocol], **plan)
+        planning.plan_run(paths[protocol], **plan)
         trained.setdefault(key, {}).setdefault(run_seed, []).append(run_dir)
         if finished:
             log(f"{key}/{name}: finished run found, reused")
