@@ -135,7 +135,11 @@ def _fill(rng, x0, x1, width, gap_prob, gap):
 
 @functools.lru_cache(maxsize=None)
 def make_town(town_id):
-    """The town with id ``town_id`` (0 = Town01, 1 = Town02), built once per process."""
+    """The town with id ``town_id`` (0 = Town01, 1 = Town02), built once per process.
+
+    Drawn from the town's own seed, in this order: the blocks, the buildings,
+    the objects.
+    """
     if town_id not in range(len(TOWNS)):
         raise ValueError(f"unknown town id {town_id}; known: 0..{len(TOWNS) - 1}")
     name = TOWNS[town_id]
@@ -145,7 +149,27 @@ def make_town(town_id):
     ncell = int(period / cell)
     xs = (np.arange(ncell) + 0.5) * cell
 
-    # Blocks separated by cross streets.
+    blocks = _blocks(rng, st, period)
+    intersection = np.ones(ncell, bool)
+    for b0, b1 in blocks:
+        intersection[(xs >= b0) & (xs < b1)] = False
+    buildings, front_id, back_id = _buildings(rng, st, blocks, xs)
+    neighbours = _front_neighbours(buildings, period, cell, ncell)
+    objects = _make_objects(rng, st, blocks)
+    return Town(
+        town_id=town_id, name=name, period=period, cell=cell,
+        road_half=st["road_half"], verge=st["verge"], facade=st["facade"], back=st["back"],
+        centre=st["centre"], sidewalk_material=MATERIAL_ID[st["sidewalk"]],
+        sun=np.asarray(st["sun"]) / np.linalg.norm(st["sun"]), haze=st["haze"],
+        haze_colour=np.asarray(st["haze_colour"], np.float32),
+        intersection=intersection, front_id=front_id, back_id=back_id, **neighbours,
+        buildings=buildings, objects=objects, car_cells=_car_cells(objects, xs),
+        car_band=(st["road_half"] - CAR_BAND[0], st["road_half"] - CAR_BAND[1]),
+    )
+
+
+def _blocks(rng, st, period):
+    """The blocks ``(x0, x1)`` along the main street, separated by cross streets."""
     lengths = []
     while sum(lengths) + len(lengths) * st["cross"] < period - st["block"][1]:
         lengths.append(rng.uniform(*st["block"]))
@@ -155,10 +179,13 @@ def make_town(town_id):
     for length in lengths:
         blocks.append((x, x + length))
         x += length + st["cross"]
-    intersection = np.ones(ncell, bool)
-    for b0, b1 in blocks:
-        intersection[(xs >= b0) & (xs < b1)] = False
+    return blocks
 
+
+def _buildings(rng, st, blocks, xs):
+    """The buildings of both sides, one row per building (``row`` 0: the front
+    row, 1: the back row), and the per-cell building ids of the front and back
+    rows, shape (2, ncell) for [left, right], -1 where there is none."""
     rows = {k: [] for k in ("row", "side", "x0", "x1", "height", "material", "tint",
                             "floor", "pitch", "win_w", "win_h", "shop")}
 
@@ -176,8 +203,8 @@ def make_town(town_id):
         rows["win_h"].append(rng.uniform(0.4, 0.6))
         rows["shop"].append(rng.random() < 0.5)
 
-    front_id = -np.ones((2, ncell), np.int32)
-    back_id = -np.ones((2, ncell), np.int32)
+    front_id = -np.ones((2, len(xs)), np.int32)
+    back_id = -np.ones((2, len(xs)), np.int32)
     for side in (0, 1):
         for b0, b1 in blocks:
             for x0, x1 in _fill(rng, b0, b1, st["width"], st["alley"], (1.5, 5.0)):
@@ -190,9 +217,14 @@ def make_town(town_id):
                              st["back_walls"][rng.integers(len(st["back_walls"]))])
     buildings = {k: np.asarray(v) for k, v in rows.items()}
     buildings["tint"] = buildings["tint"].astype(np.float32)
+    return buildings, front_id, back_id
 
-    # Next building start / previous building end for each cell (front row),
-    # as offsets from the cell's left edge so they survive the wrap.
+
+def _front_neighbours(buildings, period, cell, ncell):
+    """Next building start / previous building end for each cell (front row),
+    as offsets from the cell's left edge so they survive the wrap, and those
+    buildings' ids: the ``Town`` fields ``next_start``, ``next_id``,
+    ``prev_end``, ``prev_id``."""
     next_start = np.zeros((2, ncell))
     next_id = np.zeros((2, ncell), np.int32)
     prev_end = np.zeros((2, ncell))
@@ -215,24 +247,18 @@ def make_town(town_id):
         k = np.searchsorted(ext_x1, edges, side="right") - 1
         prev_end[side] = ext_x1[k] - edges
         prev_id[side] = ext_ids1[k]
+    return {"next_start": next_start, "next_id": next_id, "prev_end": prev_end,
+            "prev_id": prev_id}
 
-    objects = _make_objects(rng, st, blocks)
-    # where the parked cars stand (for their shadows on the ground)
-    car_cells = np.zeros((2, ncell), bool)
+
+def _car_cells(objects, xs):
+    """The cells where a parked car stands, (2, ncell) for [left, right] (for
+    their shadows on the ground)."""
+    car_cells = np.zeros((2, len(xs)), bool)
     body = objects["look"] == CAR_BODY
     for lo, hi in zip(objects["lo"][body], objects["hi"][body]):
         car_cells[0 if lo[1] > 0 else 1, (xs >= lo[0]) & (xs < hi[0])] = True
-    return Town(
-        town_id=town_id, name=name, period=period, cell=cell,
-        road_half=st["road_half"], verge=st["verge"], facade=st["facade"], back=st["back"],
-        centre=st["centre"], sidewalk_material=MATERIAL_ID[st["sidewalk"]],
-        sun=np.asarray(st["sun"]) / np.linalg.norm(st["sun"]), haze=st["haze"],
-        haze_colour=np.asarray(st["haze_colour"], np.float32),
-        intersection=intersection, front_id=front_id, next_start=next_start,
-        next_id=next_id, prev_end=prev_end, prev_id=prev_id, back_id=back_id,
-        buildings=buildings, objects=objects, car_cells=car_cells,
-        car_band=(st["road_half"] - CAR_BAND[0], st["road_half"] - CAR_BAND[1]),
-    )
+    return car_cells
 
 
 def _make_objects(rng, st, blocks):
