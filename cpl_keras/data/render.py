@@ -15,6 +15,9 @@ ground plane z = 0, the facade planes |y| = facade and |y| = back with
 per-cell building tables, the side walls of the front buildings, and objects
 (boxes, vertical cylinders, spheres) tested only inside their projected
 screen rectangle. The sky is a dome ``SKY_DISTANCE`` metres away.
+
+``render`` colours the hits with ``cpl_keras.data.shading`` and returns the
+image with its depth map; ``depth_at`` casts single pixels.
 """
 
 from __future__ import annotations
@@ -26,10 +29,10 @@ import numpy as np
 
 from cpl_keras import camera
 from cpl_keras.data import scenes
+from cpl_keras.data.scenes import BACK, FACADE, GROUND, OBJECT, SIDEWALL, SKY
 from cpl_keras.data.scenes import BOX, CYLINDER, SPHERE
-from cpl_keras.data.textures import MATERIAL_ID, texture_bank
+from cpl_keras.data.shading import shade
 
-SKY, GROUND, FACADE, SIDEWALL, BACK, OBJECT = range(6)
 _TINY = 1e-12
 
 
@@ -107,11 +110,6 @@ class Hits:
         return self
 
 
-def _cell(town, x):
-    """Per-cell table index of world x (the towns are periodic, ncell a power of 2)."""
-    return ((x + 8 * town.period) * (1.0 / town.cell)).astype(np.intp) & (town.ncell - 1)
-
-
 def cast(town, origin, rays, view=None):
     """Nearest hits of rays ``origin + t * rays`` (rays: (3, ...)) in ``town``.
 
@@ -142,7 +140,7 @@ def cast(town, origin, rays, view=None):
             tc = np.minimum(t, 1e6)
             x = ox + tc * dx
             z = oz + tc * dz
-            fidx = side_offset + _cell(town, x)
+            fidx = side_offset + town.cell_index(x)
             bid = table.reshape(-1)[fidx]
             hit = (z >= 0) & (z < heights[bid])
             hits.update(np.where(hit, t, np.inf), surface, bid)
@@ -380,244 +378,6 @@ def _sphere(o, d, c, r):
     disc = bb * bb - a * cc
     t = (-bb - np.sqrt(np.maximum(disc, 0.0))) / a
     return np.where((disc > 0) & (t > 1e-9), t, np.inf)
-
-
-# ---------------------------------------------------------------------------
-# Shading
-# ---------------------------------------------------------------------------
-_TEXELS_PER_M = 64.0
-
-
-def _hash(*ints):
-    h = np.zeros_like(ints[0], dtype=np.int64)
-    for k, i in zip((73856093, 19349663, 83492791), ints):
-        h ^= (i.astype(np.int64) * k) & 0xFFFFFF
-    return h
-
-
-def _facade_albedo(town, bank, bid, along, local, z, footprint):
-    """Wall texture with windows. ``along`` (texture) and ``local`` (window grid)
-    run along the wall in metres, ``z`` up it."""
-    b = town.buildings
-    rgb = bank.lookup(b["material"][bid], along * _TEXELS_PER_M, z * _TEXELS_PER_M,
-                      footprint * _TEXELS_PER_M) * b["tint"][bid]
-    pitch, floor, win_w = b["pitch"][bid], b["floor"][bid], b["win_w"][bid]
-    col = np.floor(local / pitch)
-    fc = np.abs(local / pitch - col - 0.5)
-    level = np.floor(z / floor)
-    fz = z / floor - level
-    window = (fc < win_w / 2) & (fz > 0.3) & (fz < 0.3 + b["win_h"][bid])
-    window &= (level >= 1) & (z < b["height"][bid] - 0.8)
-    shop = b["shop"][bid] & (level == 0) & (z > 0.5) & (z < 2.6) & (fc < 0.42)
-    glass = window | shop
-    if np.any(glass):
-        g = np.flatnonzero(glass)
-        lit = (_hash(col[g].astype(np.int64), level[g].astype(np.int64), bid[g]) % 9) == 0
-        sky = 0.12 + 0.25 * np.clip(fz[g], 0, 1)[:, None] * np.array([0.8, 0.9, 1.0], np.float32)
-        rgb[g] = np.where(lit[:, None], np.array([0.85, 0.75, 0.45], np.float32), sky)
-        frame = window[g] & (fc[g] > win_w[g] / 2 - 0.05)
-        rgb[g[frame]] = 0.8
-    cornice = z > b["height"][bid] - 0.35
-    rgb[cornice] *= 0.7
-    return rgb
-
-
-def _ground_albedo(town, bank, x, y, footprint):
-    ay = np.abs(y)
-    inter = town.intersection[_cell(town, x)]
-    rh = town.road_half
-    road = (ay < rh) | inter
-    curb = ~road & (ay < rh + 0.25)
-    verge = ~road & ~curb & (ay < rh + 0.25 + town.verge)
-    walk = ~road & ~curb & ~verge & (ay < town.facade)
-    material = np.select(
-        [road, curb, verge, walk],
-        [MATERIAL_ID["asphalt"], MATERIAL_ID["curb"], MATERIAL_ID["grass"],
-         town.sidewalk_material],
-        MATERIAL_ID["asphalt_light"],
-    )
-    scale = np.where(road, 2.0 * _TEXELS_PER_M, _TEXELS_PER_M)   # fine-grained asphalt
-    rgb = bank.lookup(material, x * scale, y * scale, footprint * scale)
-    lane = ~inter & (ay < rh)
-    if town.centre == "white_dashed":
-        centre = (ay < 0.08) & (np.mod(x, 9.0) < 3.0)
-        paint = np.float32(0.85)
-    else:
-        centre = (ay > 0.08) & (ay < 0.22)
-        paint = np.array([0.85, 0.7, 0.15], np.float32)
-    lanes = (np.abs(ay - rh / 2) < 0.07) & (np.mod(x, 12.0) < 4.0)
-    edge = np.abs(ay - (rh - 0.35)) < 0.08
-    # zebra crossings at the start of every block
-    ahead = town.intersection[_cell(town, x - 4.5)] & ~inter
-    zebra = ahead & (ay < rh - 0.6) & (np.mod(y, 1.2) < 0.6)
-    mark = lane & (centre | lanes | edge | zebra)
-    if np.any(mark):
-        g = np.flatnonzero(mark)
-        # fade markings out when one pixel covers much more than a stripe
-        strength = np.clip(0.3 / np.maximum(footprint[g], 1e-6), 0.0, 1.0)[:, None]
-        colour = np.where(centre[g][:, None], paint, np.float32(0.88))
-        rgb[g] += (colour * (0.8 + 0.2 * rgb[g]) - rgb[g]) * strength
-    return rgb
-
-
-def _sun_shadow(town, x, y, z):
-    """True where the sun (direction ``town.sun``) is hidden by a building row.
-
-    Points between the facade lines are tested against the front and back
-    rows on the sun's side: one plane intersection each.
-    """
-    sun = town.sun
-    side = 0 if sun[1] > 0 else 1
-    shadow = np.zeros(x.shape, bool)
-    heights = np.append(town.buildings["height"], -np.inf)
-    for distance, table in ((town.facade, town.front_id), (town.back, town.back_id)):
-        t = (np.sign(sun[1]) * distance - y) / sun[1]
-        bid = table[side][_cell(town, x + t * sun[0])]
-        shadow |= (t > 0) & (z + t * sun[2] < heights[bid])
-    return shadow
-
-
-def _car_shadow(town, x, y):
-    """True for ground points whose sun ray passes through a parked car
-    (tested where the ray is 0.2 m and 0.8 m above the ground)."""
-    sun = town.sun
-    y_in, y_out = town.car_band
-    cells = town.car_cells.reshape(-1)
-    shadow = np.zeros(x.shape, bool)
-    for height in (0.2, 0.8):
-        t = height / sun[2]
-        xs, ys = x + t * sun[0], y + t * sun[1]
-        ay = np.abs(ys)
-        band = (ay > y_in) & (ay < y_out)
-        shadow |= band & cells[(ys < 0) * town.ncell + _cell(town, xs)]
-    return shadow
-
-
-_LOOK_MATERIAL = np.array([MATERIAL_ID[m] for m in (
-    "paint", "paint", "metal", "metal", "paint", "bark", "foliage")])
-_LOOK_GAIN = np.array([1 / 0.8, 1 / 0.8, 1 / 0.45, 1 / 0.45, 1 / 0.8, 1 / 0.3, 1 / 0.25],
-                      np.float32)
-_LOOK_SCALE = np.array([1.0, 1.0, 1.0, 1.0, 1.0, 2.0, 1.5])
-
-
-def _object_albedo(town, bank, ident, face, P, footprint):
-    o = town.objects
-    look = o["look"][ident]
-    colour = o["colour"][ident].astype(np.float32)
-    x, y, z = P
-    scale = _LOOK_SCALE[look] * _TEXELS_PER_M
-    tex = bank.lookup(_LOOK_MATERIAL[look], (x + y) * scale, z * scale,
-                      footprint * _TEXELS_PER_M)
-    rgb = colour * tex * _LOOK_GAIN[look][:, None]
-    trunk = look == scenes.TRUNK
-    rgb[trunk] = tex[trunk]
-    rgb[(look == scenes.CAR_BODY) & (z < 0.42)] = 0.07
-    cabin = look == scenes.CAR_CABIN
-    if np.any(cabin):
-        lo, hi = o["lo"][ident, 2], o["hi"][ident, 2]
-        glass = cabin & (face != 2) & (z > lo + 0.06) & (z < hi - 0.08)
-        rgb[glass] = np.array([0.1, 0.12, 0.16], np.float32)
-    return rgb
-
-
-def _object_normal(town, ident, face, P, D):
-    o = town.objects
-    kind = o["kind"][ident]
-    n = np.zeros((len(ident), 3))
-    rows = np.arange(len(ident))
-    # box: the face axis, facing the ray
-    n[rows, face] = -np.sign(D[face, rows])
-    radial = P.T - o["centre"][ident]
-    cyl = kind == CYLINDER
-    radial_c = radial.copy()
-    radial_c[:, 2] = 0.0
-    n = np.where(cyl[:, None], radial_c, n)
-    n = np.where((kind == SPHERE)[:, None], radial, n)
-    n /= np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-9)
-    return n
-
-
-def shade(town, view, origin, rays, hits):
-    """RGB float32 image (H, W, 3) in [0, 1] for the hits of a full view."""
-    bank = texture_bank()
-    shape = hits.t.shape
-    d = np.asarray(rays).reshape(3, -1)
-    t = hits.t.reshape(-1)
-    surface = hits.surface.reshape(-1)
-    out = np.empty((t.size, 3), np.float32)
-    norm = np.sqrt((d * d).sum(axis=0))
-    dist = t * norm
-    # size of one pixel on a fronto-parallel surface at this distance (metres)
-    pixel = dist / max(view.fx, view.fy)
-    sun = town.sun
-    ambient, diffuse = np.float32(0.5), np.float32(0.6)
-    order = np.argsort(surface, kind="stable")
-    bounds = np.searchsorted(surface[order], np.arange(OBJECT + 2))
-
-    def select(kind):
-        return order[bounds[kind]:bounds[kind + 1]]
-
-    P_all = origin[:, None] + t * d
-
-    def point(g):
-        return P_all[:, g]
-
-    def footprint(g, axis):
-        cos_inc = np.abs(d[axis, g]) / norm[g]
-        return pixel[g] / np.sqrt(np.maximum(cos_inc, 1e-3))
-
-    g = select(SKY)
-    if g.size:
-        dn = d[:, g] / norm[g]
-        w = (np.clip(dn[2] * 2.5, 0.0, 1.0) ** 0.7)[:, None]
-        rgb = (1 - w) * np.array([0.78, 0.84, 0.9], np.float32) + w * np.array(
-            [0.32, 0.52, 0.85], np.float32)
-        up = np.maximum(dn[2], 0.02)
-        cloud = bank.lookup(MATERIAL_ID["clouds"], dn[0] / up * 40.0 + 4096.0,
-                            dn[1] / up * 40.0 + 4096.0, 2.0 / up)[:, :1]
-        cloud *= np.clip(dn[2] * 6.0, 0.0, 1.0)[:, None]
-        out[g] = rgb * (1 - cloud) + np.float32(0.95) * cloud
-
-    g = select(GROUND)
-    if g.size:
-        x, y, z = point(g)
-        lit = np.where(_sun_shadow(town, x, y, z) | _car_shadow(town, x, y), 0.0, diffuse * sun[2])
-        out[g] = _ground_albedo(town, bank, x, y, footprint(g, 2)) * (ambient + lit)[:, None]
-    b = town.buildings
-    for kind in (FACADE, BACK):
-        g = select(kind)
-        if g.size:
-            x, y, z = point(g)
-            bid = hits.ident.reshape(-1)[g]
-            rgb = _facade_albedo(town, bank, bid, x, x - b["x0"][bid], z, footprint(g, 1))
-            lit = np.maximum(0.0, np.where(y > 0, -sun[1], sun[1]))
-            if kind == FACADE:
-                lit[lit > 0] *= ~_sun_shadow(town, x[lit > 0], y[lit > 0], z[lit > 0])
-            out[g] = rgb * (ambient + diffuse * lit)[:, None]
-    g = select(SIDEWALL)
-    if g.size:
-        x, y, z = point(g)
-        bid = hits.ident.reshape(-1)[g]
-        ay = np.abs(y)
-        rgb = _facade_albedo(town, bank, bid, ay, ay - town.facade, z, footprint(g, 0))
-        front = hits.face.reshape(-1)[g] == 0
-        light = ambient + diffuse * np.maximum(0.0, np.where(front, -sun[0], sun[0]))
-        out[g] = rgb * light[:, None]
-    g = select(OBJECT)
-    if g.size:
-        P = point(g)
-        P[0] -= hits.xshift.reshape(-1)[g]
-        ident = hits.ident.reshape(-1)[g]
-        face = hits.face.reshape(-1)[g].astype(np.intp)
-        rgb = _object_albedo(town, bank, ident, face, P, pixel[g])
-        n = _object_normal(town, ident, face, P, d[:, g])
-        out[g] = rgb * (ambient + diffuse * np.maximum(0.0, n @ sun))[:, None].astype(np.float32)
-
-    # Aerial perspective: fade to the haze colour with distance (not the sky).
-    fog = np.exp(np.where(surface == SKY, 0.0, dist) * (-1.0 / town.haze)).astype(np.float32)
-    out *= fog[:, None]
-    out += (1 - fog)[:, None] * town.haze_colour
-    return out.reshape(shape + (3,))
 
 
 def render(town, view):

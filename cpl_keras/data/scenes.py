@@ -41,6 +41,10 @@ TOWNS = ("Town01", "Town02")
 #: Parked cars stand between road_half - 1.95 and road_half - 0.2 m from the centre line.
 CAR_BAND = (1.95, 0.2)
 
+#: What a ray can hit: the sky dome, the ground, a front-row facade, a front
+#: building's side wall, a back-row facade, an object.
+SKY, GROUND, FACADE, SIDEWALL, BACK, OBJECT = range(6)
+
 # Object kinds and looks.
 BOX, CYLINDER, SPHERE = 0, 1, 2
 CAR_BODY, CAR_CABIN, POLE, LAMP, SIGN, TRUNK, CROWN = range(7)
@@ -105,6 +109,10 @@ class Town:
     @property
     def ncell(self):
         return len(self.intersection)
+
+    def cell_index(self, x):
+        """Per-cell table index of world x (the towns are periodic, ncell a power of 2)."""
+        return ((x + 8 * self.period) * (1.0 / self.cell)).astype(np.intp) & (self.ncell - 1)
 
     def describe(self):
         """A JSON-able summary, stored in dataset metadata."""
