@@ -12,6 +12,8 @@ with distance; the sky has a gradient and clouds.
 
 from __future__ import annotations
 
+import functools
+
 import numpy as np
 
 from cpl_keras.data import scenes
@@ -174,81 +176,119 @@ def _object_normal(town, ident, face, P, D):
 def shade(town, view, origin, rays, hits):
     """RGB float32 image (H, W, 3) in [0, 1] for the hits of a full view."""
     bank = texture_bank()
-    shape = hits.t.shape
-    d = np.asarray(rays).reshape(3, -1)
-    t = hits.t.reshape(-1)
-    surface = hits.surface.reshape(-1)
-    out = np.empty((t.size, 3), np.float32)
-    norm = np.sqrt((d * d).sum(axis=0))
-    dist = t * norm
-    # size of one pixel on a fronto-parallel surface at this distance (metres)
-    pixel = dist / max(view.fx, view.fy)
-    sun = town.sun
-    ambient, diffuse = np.float32(0.5), np.float32(0.6)
-    order = np.argsort(surface, kind="stable")
-    bounds = np.searchsorted(surface[order], np.arange(OBJECT + 2))
-
-    def select(kind):
-        return order[bounds[kind]:bounds[kind + 1]]
-
-    P_all = origin[:, None] + t * d
-
-    def point(g):
-        return P_all[:, g]
-
-    def footprint(g, axis):
-        cos_inc = np.abs(d[axis, g]) / norm[g]
-        return pixel[g] / np.sqrt(np.maximum(cos_inc, 1e-3))
-
-    g = select(SKY)
-    if g.size:
-        dn = d[:, g] / norm[g]
-        w = (np.clip(dn[2] * 2.5, 0.0, 1.0) ** 0.7)[:, None]
-        rgb = (1 - w) * np.array([0.78, 0.84, 0.9], np.float32) + w * np.array(
-            [0.32, 0.52, 0.85], np.float32)
-        up = np.maximum(dn[2], 0.02)
-        cloud = bank.lookup(MATERIAL_ID["clouds"], dn[0] / up * 40.0 + 4096.0,
-                            dn[1] / up * 40.0 + 4096.0, 2.0 / up)[:, :1]
-        cloud *= np.clip(dn[2] * 6.0, 0.0, 1.0)[:, None]
-        out[g] = rgb * (1 - cloud) + np.float32(0.95) * cloud
-
-    g = select(GROUND)
-    if g.size:
-        x, y, z = point(g)
-        lit = np.where(_sun_shadow(town, x, y, z) | _car_shadow(town, x, y), 0.0, diffuse * sun[2])
-        out[g] = _ground_albedo(town, bank, x, y, footprint(g, 2)) * (ambient + lit)[:, None]
-    b = town.buildings
-    for kind in (FACADE, BACK):
-        g = select(kind)
+    pixels = _Pixels(view, origin, rays, hits)
+    out = np.empty((pixels.t.size, 3), np.float32)
+    for kind, colour in _SHADERS:
+        g = pixels.select(kind)
         if g.size:
-            x, y, z = point(g)
-            bid = hits.ident.reshape(-1)[g]
-            rgb = _facade_albedo(town, bank, bid, x, x - b["x0"][bid], z, footprint(g, 1))
-            lit = np.maximum(0.0, np.where(y > 0, -sun[1], sun[1]))
-            if kind == FACADE:
-                lit[lit > 0] *= ~_sun_shadow(town, x[lit > 0], y[lit > 0], z[lit > 0])
-            out[g] = rgb * (ambient + diffuse * lit)[:, None]
-    g = select(SIDEWALL)
-    if g.size:
-        x, y, z = point(g)
-        bid = hits.ident.reshape(-1)[g]
-        ay = np.abs(y)
-        rgb = _facade_albedo(town, bank, bid, ay, ay - town.facade, z, footprint(g, 0))
-        front = hits.face.reshape(-1)[g] == 0
-        light = ambient + diffuse * np.maximum(0.0, np.where(front, -sun[0], sun[0]))
-        out[g] = rgb * light[:, None]
-    g = select(OBJECT)
-    if g.size:
-        P = point(g)
-        P[0] -= hits.xshift.reshape(-1)[g]
-        ident = hits.ident.reshape(-1)[g]
-        face = hits.face.reshape(-1)[g].astype(np.intp)
-        rgb = _object_albedo(town, bank, ident, face, P, pixel[g])
-        n = _object_normal(town, ident, face, P, d[:, g])
-        out[g] = rgb * (ambient + diffuse * np.maximum(0.0, n @ sun))[:, None].astype(np.float32)
+            out[g] = colour(town, bank, pixels, g)
+    _aerial_perspective(town, pixels, out)
+    return out.reshape(hits.t.shape + (3,))
 
-    # Aerial perspective: fade to the haze colour with distance (not the sky).
-    fog = np.exp(np.where(surface == SKY, 0.0, dist) * (-1.0 / town.haze)).astype(np.float32)
+
+class _Pixels:
+    """The hits of a view, flattened and grouped by surface kind, and what
+    the shading of every kind reads from them."""
+
+    def __init__(self, view, origin, rays, hits):
+        self.d = np.asarray(rays).reshape(3, -1)
+        self.t = hits.t.reshape(-1)
+        self.surface = hits.surface.reshape(-1)
+        self.ident = hits.ident.reshape(-1)
+        self.face = hits.face.reshape(-1)
+        self.xshift = hits.xshift.reshape(-1)
+        self.norm = np.sqrt((self.d * self.d).sum(axis=0))
+        self.dist = self.t * self.norm
+        # size of one pixel on a fronto-parallel surface at this distance (metres)
+        self.pixel = self.dist / max(view.fx, view.fy)
+        self._order = np.argsort(self.surface, kind="stable")
+        self._bounds = np.searchsorted(self.surface[self._order], np.arange(OBJECT + 2))
+        self._points = origin[:, None] + self.t * self.d
+
+    def select(self, kind):
+        """Indices of the pixels whose ray hit a surface of ``kind``."""
+        return self._order[self._bounds[kind]:self._bounds[kind + 1]]
+
+    def point(self, g):
+        """The world points (3, n) hit by pixels ``g``."""
+        return self._points[:, g]
+
+    def footprint(self, g, axis):
+        """Size (metres) of pixels ``g`` on their surface, whose normal is along ``axis``."""
+        cos_inc = np.abs(self.d[axis, g]) / self.norm[g]
+        return self.pixel[g] / np.sqrt(np.maximum(cos_inc, 1e-3))
+
+
+_AMBIENT, _DIFFUSE = np.float32(0.5), np.float32(0.6)
+
+
+def _sky(town, bank, pixels, g):
+    """A gradient from the horizon up, with clouds."""
+    dn = pixels.d[:, g] / pixels.norm[g]
+    w = (np.clip(dn[2] * 2.5, 0.0, 1.0) ** 0.7)[:, None]
+    rgb = (1 - w) * np.array([0.78, 0.84, 0.9], np.float32) + w * np.array(
+        [0.32, 0.52, 0.85], np.float32)
+    up = np.maximum(dn[2], 0.02)
+    cloud = bank.lookup(MATERIAL_ID["clouds"], dn[0] / up * 40.0 + 4096.0,
+                        dn[1] / up * 40.0 + 4096.0, 2.0 / up)[:, :1]
+    cloud *= np.clip(dn[2] * 6.0, 0.0, 1.0)[:, None]
+    return rgb * (1 - cloud) + np.float32(0.95) * cloud
+
+
+def _ground(town, bank, pixels, g):
+    """The ground, in the shadows of the building rows and the parked cars."""
+    x, y, z = pixels.point(g)
+    shadow = _sun_shadow(town, x, y, z) | _car_shadow(town, x, y)
+    lit = np.where(shadow, 0.0, _DIFFUSE * town.sun[2])
+    return _ground_albedo(town, bank, x, y, pixels.footprint(g, 2)) * (_AMBIENT + lit)[:, None]
+
+
+def _facade(town, bank, pixels, g, front):
+    """Facades along the street; the ``front`` row's in the shadows of the
+    building rows on the sun's side."""
+    x, y, z = pixels.point(g)
+    bid = pixels.ident[g]
+    rgb = _facade_albedo(town, bank, bid, x, x - town.buildings["x0"][bid], z,
+                         pixels.footprint(g, 1))
+    lit = np.maximum(0.0, np.where(y > 0, -town.sun[1], town.sun[1]))
+    if front:
+        lit[lit > 0] *= ~_sun_shadow(town, x[lit > 0], y[lit > 0], z[lit > 0])
+    return rgb * (_AMBIENT + _DIFFUSE * lit)[:, None]
+
+
+def _side_wall(town, bank, pixels, g):
+    """Side walls of the front-row buildings (facing along x)."""
+    x, y, z = pixels.point(g)
+    bid = pixels.ident[g]
+    ay = np.abs(y)
+    rgb = _facade_albedo(town, bank, bid, ay, ay - town.facade, z, pixels.footprint(g, 0))
+    front = pixels.face[g] == 0
+    light = _AMBIENT + _DIFFUSE * np.maximum(0.0, np.where(front, -town.sun[0], town.sun[0]))
+    return rgb * light[:, None]
+
+
+def _object(town, bank, pixels, g):
+    """Cars, lamps, signs and trees (no shadows)."""
+    P = pixels.point(g)
+    P[0] -= pixels.xshift[g]
+    ident = pixels.ident[g]
+    face = pixels.face[g].astype(np.intp)
+    rgb = _object_albedo(town, bank, ident, face, P, pixels.pixel[g])
+    n = _object_normal(town, ident, face, P, pixels.d[:, g])
+    lit = _AMBIENT + _DIFFUSE * np.maximum(0.0, n @ town.sun)
+    return rgb * lit[:, None].astype(np.float32)
+
+
+#: The colour of each kind of surface, in the order they are shaded.
+_SHADERS = ((SKY, _sky), (GROUND, _ground),
+            (FACADE, functools.partial(_facade, front=True)),
+            (BACK, functools.partial(_facade, front=False)),
+            (SIDEWALL, _side_wall), (OBJECT, _object))
+
+
+def _aerial_perspective(town, pixels, out):
+    """Fade ``out`` (in place) to the haze colour with distance (not the sky)."""
+    fog = np.exp(np.where(pixels.surface == SKY, 0.0, pixels.dist) * (-1.0 / town.haze))
+    fog = fog.astype(np.float32)
     out *= fog[:, None]
     out += (1 - fog)[:, None] * town.haze_colour
-    return out.reshape(shape + (3,))
