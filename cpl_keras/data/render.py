@@ -104,6 +104,24 @@ class Hits:
         np.copyto(self.ident, ident, where=closer, casting="unsafe")
         np.copyto(self.face, face, where=closer, casting="unsafe")
 
+    def update_objects(self, pix, t, ident, face, xshift):
+        """Object hits at rays ``pix`` (several may share a ray): the nearest
+        of those at a ray becomes its hit where it is nearer than the current one."""
+        valid = t < self.t[pix]
+        if not np.any(valid):
+            return
+        t, pix, ident, face, xshift = (a[valid] for a in (t, pix, ident, face, xshift))
+        order = np.lexsort((t, pix))
+        first = np.ones(order.size, bool)
+        first[1:] = pix[order][1:] != pix[order][:-1]
+        sel = order[first]
+        p = pix[sel]
+        self.t[p] = t[sel]
+        self.surface[p] = OBJECT
+        self.ident[p] = ident[sel]
+        self.face[p] = face[sel]
+        self.xshift[p] = xshift[sel]
+
     def reshape(self, shape):
         for name in ("t", "surface", "ident", "face", "xshift"):
             setattr(self, name, getattr(self, name).reshape(shape))
@@ -199,74 +217,86 @@ def _cast_objects(town, origin, rays, hits, view):
     idx, shift = _candidate_objects(town, origin, reach)
     if len(idx) == 0:
         return
-    lo = o["lo"][idx].copy()
-    hi = o["hi"][idx].copy()
-    lo[:, 0] += shift
-    hi[:, 0] += shift
-    flat_t = hits.t
-    n_rays = flat_t.size
     if view is not None:
-        W, H = view.width, view.height
-        c0, c1, r0, r1, nearest = _screen_rects(view, lo, hi)
-        size = np.max(hi - lo, axis=1)
-        keep = (c1 > c0) & (r1 > r0) & (size * focal / np.maximum(nearest, 1e-3) > _LOD_PIXELS)
-        # tighten the bounding-sphere rectangles of the survivors: exact box outlines
-        k = np.flatnonzero(keep)
-        if k.size:
-            e0, e1, f0, f1, _ = _clipped_rects(view, lo[k], hi[k])
-            c0[k], c1[k] = np.maximum(c0[k], e0), np.minimum(c1[k], e1)
-            r0[k], r1[k] = np.maximum(r0[k], f0), np.minimum(r1[k], f1)
-            keep[k] = (c1[k] > c0[k]) & (r1[k] > r0[k])
-        # skip large objects hidden behind what is already there (walls, ground)
-        grid = hits.t.reshape(H, W)
-        big = keep & ((c1 - c0) * (r1 - r0) > 64)
-        for n in np.flatnonzero(big):
-            if grid[r0[n]:r1[n], c0[n]:c1[n]].max() < nearest[n]:
-                keep[n] = False
-        obj = np.flatnonzero(keep)
-        widths = c1[obj] - c0[obj]
-        areas = widths * (r1[obj] - r0[obj])
-        pair_obj = np.repeat(obj, areas)
-        offsets = np.repeat(np.cumsum(areas) - areas, areas)
-        local = np.arange(pair_obj.size) - offsets
-        w = np.repeat(widths, areas)
-        pix = (r0[pair_obj] + local // w) * W + c0[pair_obj] + local % w
+        lo = o["lo"][idx].copy()
+        hi = o["hi"][idx].copy()
+        lo[:, 0] += shift
+        hi[:, 0] += shift
+        pair_obj, pix = _covered_pixels(view, focal, lo, hi, hits.t)
     else:
+        n_rays = hits.t.size
         pair_obj = np.repeat(np.arange(len(idx)), n_rays)
         pix = np.tile(np.arange(n_rays), len(idx))
     if pix.size == 0:
         return
-    d = rays[:, pix]
-    kind = o["kind"][idx[pair_obj]]
-    t = np.full(pix.size, np.inf)
-    face = np.zeros(pix.size, np.int8)
+    ident, xshift = idx[pair_obj], shift[pair_obj]
+    t, face = _intersect_objects(o, origin, rays[:, pix], ident, xshift)
+    hits.update_objects(pix, t, ident, face, xshift)
+
+
+def _covered_pixels(view, focal, lo, hi, depth):
+    """The (object, pixel) pairs to test: the pixels of each object's screen
+    rectangle (its box: ``lo``, ``hi`` (n, 3)), less the objects smaller than
+    ``_LOD_PIXELS`` and the large ones hidden behind what ``depth`` (the ray
+    parameters of the hits so far, flat) already holds."""
+    c0, c1, r0, r1, nearest = _screen_rects(view, lo, hi)
+    size = np.max(hi - lo, axis=1)
+    keep = (c1 > c0) & (r1 > r0) & (size * focal / np.maximum(nearest, 1e-3) > _LOD_PIXELS)
+    # tighten the bounding-sphere rectangles of the survivors: exact box outlines
+    k = np.flatnonzero(keep)
+    if k.size:
+        e0, e1, f0, f1, _ = _clipped_rects(view, lo[k], hi[k])
+        c0[k], c1[k] = np.maximum(c0[k], e0), np.minimum(c1[k], e1)
+        r0[k], r1[k] = np.maximum(r0[k], f0), np.minimum(r1[k], f1)
+        keep[k] = (c1[k] > c0[k]) & (r1[k] > r0[k])
+    # skip large objects hidden behind what is already there (walls, ground)
+    grid = depth.reshape(view.height, view.width)
+    big = keep & ((c1 - c0) * (r1 - r0) > 64)
+    for n in np.flatnonzero(big):
+        if grid[r0[n]:r1[n], c0[n]:c1[n]].max() < nearest[n]:
+            keep[n] = False
+    obj = np.flatnonzero(keep)
+    return _rect_pixels(obj, c0[obj], c1[obj], r0[obj], r1[obj], view.width)
+
+
+def _rect_pixels(obj, c0, c1, r0, r1, width):
+    """Every pixel of the rectangles [r0, r1) x [c0, c1) of objects ``obj``,
+    object after object, row by row: (object of each pixel, flat pixel index
+    in an image ``width`` wide)."""
+    widths = c1 - c0
+    areas = widths * (r1 - r0)
+    pair = np.repeat(np.arange(obj.size), areas)
+    offsets = np.repeat(np.cumsum(areas) - areas, areas)
+    local = np.arange(pair.size) - offsets
+    w = np.repeat(widths, areas)
+    return obj[pair], (r0[pair] + local // w) * width + c0[pair] + local % w
+
+
+def _intersect_objects(objects, origin, d, ident, xshift):
+    """Ray parameters t (inf on a miss) and box face axes of rays ``d`` (3, n)
+    from ``origin``: ray i against object ``ident[i]`` moved by ``xshift[i]``
+    along x (the town's period)."""
+    kind = objects["kind"][ident]
+    lo = objects["lo"][ident]
+    hi = objects["hi"][ident]
+    lo[:, 0] += xshift
+    hi[:, 0] += xshift
+    t = np.full(ident.size, np.inf)
+    face = np.zeros(ident.size, np.int8)
     m = kind == BOX
     if np.any(m):
-        t[m], face[m] = _box(origin, d[:, m], lo[pair_obj[m]], hi[pair_obj[m]])
+        t[m], face[m] = _box(origin, d[:, m], lo[m], hi[m])
     m = kind == CYLINDER
     if np.any(m):
-        centre = o["centre"][idx[pair_obj[m]]]
-        t[m] = _cylinder(origin, d[:, m], centre[:, 0] + shift[pair_obj[m]], centre[:, 1],
-                         o["radius"][idx[pair_obj[m]]], lo[pair_obj[m], 2], hi[pair_obj[m], 2])
+        centre = objects["centre"][ident[m]]
+        t[m] = _cylinder(origin, d[:, m], centre[:, 0] + xshift[m], centre[:, 1],
+                         objects["radius"][ident[m]], lo[m, 2], hi[m, 2])
     m = kind == SPHERE
     if np.any(m):
-        centre = o["centre"][idx[pair_obj[m]]].copy()
-        centre[:, 0] += shift[pair_obj[m]]
-        t[m] = _sphere(origin, d[:, m], centre, o["radius"][idx[pair_obj[m]]])
-    valid = t < flat_t[pix]
-    if not np.any(valid):
-        return
-    t, pix, face, pair_obj = t[valid], pix[valid], face[valid], pair_obj[valid]
-    order = np.lexsort((t, pix))
-    first = np.ones(order.size, bool)
-    first[1:] = pix[order][1:] != pix[order][:-1]
-    sel = order[first]
-    p = pix[sel]
-    flat_t[p] = t[sel]
-    hits.surface[p] = OBJECT
-    hits.ident[p] = idx[pair_obj[sel]]
-    hits.face[p] = face[sel]
-    hits.xshift[p] = shift[pair_obj[sel]]
+        centre = objects["centre"][ident[m]].copy()
+        centre[:, 0] += xshift[m]
+        t[m] = _sphere(origin, d[:, m], centre, objects["radius"][ident[m]])
+    return t, face
 
 
 _CORNERS = np.array([[i, j, k] for i in (0, 1) for j in (0, 1) for k in (0, 1)], bool)
