@@ -199,86 +199,116 @@ def _u(rng, lo_hi):
 
 @functools.lru_cache(maxsize=8)
 def _configurations(protocol, seed, pairs, image_size):
+    """The configuration table of a dataset, drawn from (seed, protocol):
+    configuration after configuration, its rig, then its drive."""
     rng = np.random.default_rng([seed, PROTOCOLS.index(protocol)])
-    W = H = image_size
     configs = []
     for c in range(num_configs(protocol, pairs)):
         if protocol == "cvgl":
-            town_id = 0 if c < CVGL_CONFIGS // 2 else 1
-            pitch_left = math.radians(CVGL_LEFT["pitch_deg"])
-            left = (CVGL_LEFT["x"], CVGL_LEFT["y"], CVGL_LEFT["z"])
-            rot_left = camera.rotation_matrix(pitch_left)
-            while True:
-                fov = _u(rng, CVGL_RANGES["fov_deg"])
-                x = _u(rng, CVGL_RANGES["x_m"])
-                y_carla = _u(rng, CVGL_RANGES["y_carla_m"])
-                z = _u(rng, CVGL_RANGES["z_m"])
-                pitch_carla = _u(rng, CVGL_RANGES["pitch_carla_deg"])
-                right = (x, -y_carla, z)
-                rot_right = camera.rotation_matrix(math.radians(-pitch_carla))
-                pitch, yaw, roll, t = _relative(rot_left, left, rot_right, right)
-                if abs(t[0]) >= CVGL_MIN_BASELINE:
-                    break
-            fx = fy = float(camera.focal_from_fov(math.radians(fov), W))
-            u0, v0 = W / 2, H / 2
-            baseline = float(t[0])
-            cfg = {
-                "carla": {"fov_deg": fov, "x": x, "y": y_carla, "z": z, "pitch_deg": pitch_carla},
-                "left_pose": {"position": list(left), "pitch": pitch_left, "yaw": 0.0, "roll": 0.0},
-                "right_pose": {"position": list(right), "pitch": -math.radians(pitch_carla),
-                               "yaw": 0.0, "roll": 0.0},
-            }
+            cfg = _cvgl_rig(rng, c, image_size)
         else:
-            R = RANDOM_RANGES
-            town_id = c % len(scenes.TOWNS)
-            fov = _u(rng, R["fov_deg"])
-            fx = float(camera.focal_from_fov(math.radians(fov), W))
-            # cameras: a source image of width / height ``aspect`` squashed
-            # to the square input keeps fx and multiplies fy by the aspect
-            aspect = float(rng.choice(CAMERA_ASPECTS)) if protocol == "cameras" else 1.0
-            fy = fx * aspect * (1.0 + _u(rng, R["aspect_jitter"]))
-            u0 = W / 2 + _u(rng, R["principal_offset_fraction"]) * W
-            v0 = H / 2 + _u(rng, R["principal_offset_fraction"]) * H
-            left = (_u(rng, R["left_x_m"]), _u(rng, R["left_y_m"]), _u(rng, R["left_z_m"]))
-            lp, ly, lr = (math.radians(_u(rng, R[k])) for k in
-                          ("left_pitch_deg", "left_yaw_deg", "left_roll_deg"))
-            rot_left = camera.rotation_matrix(lp, ly, lr)
-            lateral = _u(rng, R["baseline_m"])
-            t = np.array([_u(rng, R["tx_m"]), -lateral, _u(rng, R["tz_m"])])
-            # relative rotation: pitch only (R_rel = Ry(pitch)), so Eq. 5 is exact
-            rp = math.radians(_u(rng, R["pitch_deg"]))
-            rot_right = rot_left @ camera.rotation_matrix(rp)
-            right = tuple(np.asarray(left) + rot_left @ t)
-            _, _, _, t = _relative(rot_left, left, rot_right, right)
-            pitch, yaw, roll = rp, 0.0, 0.0
-            baseline = float(np.linalg.norm(t))
-            cfg = {
-                "left_pose": {"position": list(left), "pitch": lp, "yaw": ly, "roll": lr},
-                "right_rotation": rot_right.tolist(),
-                "right_pose": {"position": [float(p) for p in right]},
-            }
-            if protocol == "cameras":
-                cfg["source_aspect"] = aspect
-        if protocol == "cvgl":
-            # as released: CARLA's right-camera values minus the fixed left
-            # camera's (x=2, y=0, z=1.4, pitch=-15 deg); baseline = tx
-            released = {"tx": x - CVGL_LEFT["x"], "ty": y_carla - CVGL_LEFT["y"],
-                        "tz": z - CVGL_LEFT["z"],
-                        "pitch": pitch_carla - (-CVGL_LEFT["pitch_deg"])}
-            released["baseline"] = released["tx"]
-        else:
-            released = released_extrinsics(rot_left, left, rot_right, right, baseline=baseline)
-        cfg["released"] = released
-        cfg.update({
-            "config_id": c, "town_id": town_id, "town": scenes.TOWNS[town_id],
-            "fov_deg": fov, "fx": fx, "fy": fy, "u0": u0, "v0": v0, "baseline": baseline,
-            "tx": float(t[0]), "ty": float(t[1]), "tz": float(t[2]),
-            "pitch": pitch, "yaw": yaw, "roll": roll,
-            "start_x": _u(rng, (0.0, scenes.make_town(town_id).period)),
-            "step": _u(rng, DRIVE["step_m"]), "sway_phase": _u(rng, (0.0, 2 * math.pi)),
-        })
+            cfg = _random_rig(rng, c, protocol, image_size)
+        cfg.update(_drive(rng, cfg["town_id"]))
         configs.append(cfg)
     return tuple(configs)
+
+
+def _cvgl_rig(rng, c, image_size):
+    """Configuration ``c`` of the cvgl protocol: the right camera drawn in
+    CARLA's conventions (again while |tx| < ``CVGL_MIN_BASELINE``), the left
+    one fixed."""
+    W = H = image_size
+    town_id = 0 if c < CVGL_CONFIGS // 2 else 1
+    pitch_left = math.radians(CVGL_LEFT["pitch_deg"])
+    left = (CVGL_LEFT["x"], CVGL_LEFT["y"], CVGL_LEFT["z"])
+    rot_left = camera.rotation_matrix(pitch_left)
+    while True:
+        fov = _u(rng, CVGL_RANGES["fov_deg"])
+        x = _u(rng, CVGL_RANGES["x_m"])
+        y_carla = _u(rng, CVGL_RANGES["y_carla_m"])
+        z = _u(rng, CVGL_RANGES["z_m"])
+        pitch_carla = _u(rng, CVGL_RANGES["pitch_carla_deg"])
+        right = (x, -y_carla, z)
+        rot_right = camera.rotation_matrix(math.radians(-pitch_carla))
+        pitch, yaw, roll, t = _relative(rot_left, left, rot_right, right)
+        if abs(t[0]) >= CVGL_MIN_BASELINE:
+            break
+    fx = fy = float(camera.focal_from_fov(math.radians(fov), W))
+    # as released: CARLA's right-camera values minus the fixed left
+    # camera's (x=2, y=0, z=1.4, pitch=-15 deg); baseline = tx
+    released = {"tx": x - CVGL_LEFT["x"], "ty": y_carla - CVGL_LEFT["y"],
+                "tz": z - CVGL_LEFT["z"], "pitch": pitch_carla - (-CVGL_LEFT["pitch_deg"])}
+    released["baseline"] = released["tx"]
+    cfg = {
+        "carla": {"fov_deg": fov, "x": x, "y": y_carla, "z": z, "pitch_deg": pitch_carla},
+        "left_pose": {"position": list(left), "pitch": pitch_left, "yaw": 0.0, "roll": 0.0},
+        "right_pose": {"position": list(right), "pitch": -math.radians(pitch_carla),
+                       "yaw": 0.0, "roll": 0.0},
+        "released": released,
+    }
+    cfg.update(_rig_entries(c, town_id, fov, (fx, fy, W / 2, H / 2), float(t[0]), t,
+                            (pitch, yaw, roll)))
+    return cfg
+
+
+def _random_rig(rng, c, protocol, image_size):
+    """Configuration ``c`` of the random and cameras protocols: intrinsics,
+    the left camera's mounting, and the right camera relative to it (a pitch
+    only, so Eq. 5 is exact)."""
+    W = H = image_size
+    R = RANDOM_RANGES
+    town_id = c % len(scenes.TOWNS)
+    fov = _u(rng, R["fov_deg"])
+    fx = float(camera.focal_from_fov(math.radians(fov), W))
+    # cameras: a source image of width / height ``aspect`` squashed
+    # to the square input keeps fx and multiplies fy by the aspect
+    aspect = float(rng.choice(CAMERA_ASPECTS)) if protocol == "cameras" else 1.0
+    fy = fx * aspect * (1.0 + _u(rng, R["aspect_jitter"]))
+    u0 = W / 2 + _u(rng, R["principal_offset_fraction"]) * W
+    v0 = H / 2 + _u(rng, R["principal_offset_fraction"]) * H
+    left = (_u(rng, R["left_x_m"]), _u(rng, R["left_y_m"]), _u(rng, R["left_z_m"]))
+    lp, ly, lr = (math.radians(_u(rng, R[k])) for k in
+                  ("left_pitch_deg", "left_yaw_deg", "left_roll_deg"))
+    rot_left = camera.rotation_matrix(lp, ly, lr)
+    lateral = _u(rng, R["baseline_m"])
+    t = np.array([_u(rng, R["tx_m"]), -lateral, _u(rng, R["tz_m"])])
+    # relative rotation: pitch only (R_rel = Ry(pitch)), so Eq. 5 is exact
+    rp = math.radians(_u(rng, R["pitch_deg"]))
+    rot_right = rot_left @ camera.rotation_matrix(rp)
+    right = tuple(np.asarray(left) + rot_left @ t)
+    _, _, _, t = _relative(rot_left, left, rot_right, right)
+    baseline = float(np.linalg.norm(t))
+    cfg = {
+        "left_pose": {"position": list(left), "pitch": lp, "yaw": ly, "roll": lr},
+        "right_rotation": rot_right.tolist(),
+        "right_pose": {"position": [float(p) for p in right]},
+    }
+    if protocol == "cameras":
+        cfg["source_aspect"] = aspect
+    cfg["released"] = released_extrinsics(rot_left, left, rot_right, right, baseline=baseline)
+    cfg.update(_rig_entries(c, town_id, fov, (fx, fy, u0, v0), baseline, t, (rp, 0.0, 0.0)))
+    return cfg
+
+
+def _rig_entries(c, town_id, fov, intrinsics, baseline, t, rotation):
+    """The entries every protocol's configuration has: its id and town, the
+    intrinsics (fx, fy, u0, v0), baseline, and the right camera's pose in the
+    left camera's frame (``t``, ``rotation``: pitch, yaw, roll)."""
+    fx, fy, u0, v0 = intrinsics
+    pitch, yaw, roll = rotation
+    return {
+        "config_id": c, "town_id": town_id, "town": scenes.TOWNS[town_id],
+        "fov_deg": fov, "fx": fx, "fy": fy, "u0": u0, "v0": v0, "baseline": baseline,
+        "tx": float(t[0]), "ty": float(t[1]), "tz": float(t[2]),
+        "pitch": pitch, "yaw": yaw, "roll": roll,
+    }
+
+
+def _drive(rng, town_id):
+    """A configuration's drive: where it starts along the town, its step per
+    frame and the phase of its sway (see ``pair_setup``)."""
+    return {"start_x": _u(rng, (0.0, scenes.make_town(town_id).period)),
+            "step": _u(rng, DRIVE["step_m"]), "sway_phase": _u(rng, (0.0, 2 * math.pi))}
 
 
 def configurations(protocol, seed, pairs, image_size):
