@@ -13,6 +13,7 @@ import pytest
 from cpl_keras import camera
 from cpl_keras.data import generate
 from cpl_keras.data.generate import generate_dataset
+from cpl_keras.data.pair import released_disparity
 from cpl_keras.data.protocols import PROTOCOLS
 from cpl_keras.data.storage import REQUIRED_LABELS, StereoFile
 
@@ -201,11 +202,11 @@ def test_released_disparity_is_the_raw_stereobm_mean():
     right = np.roll(left, -4, axis=1)
     raw = cv2.StereoBM_create(numDisparities=16, blockSize=15).compute(
         cv2.cvtColor(left, cv2.COLOR_RGB2GRAY), cv2.cvtColor(right, cv2.COLOR_RGB2GRAY))
-    value = generate.released_disparity(left, right)
+    value = released_disparity(left, right)
     assert value == pytest.approx(raw.mean())
     assert (raw == -16).any()                  # invalid pixels are part of the mean
     # too narrow for a match window: all invalid (OpenCV's output is undefined there)
-    assert generate.released_disparity(left[:20, :20], right[:20, :20]) == -16.0
+    assert released_disparity(left[:20, :20], right[:20, :20]) == -16.0
 
 
 def test_exception_mid_write_leaves_no_file(tmp_path, monkeypatch):

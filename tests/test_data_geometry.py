@@ -180,7 +180,7 @@ def test_projection_pixel_on_geometry_and_release_pixel_sky_flag(protocol):
 
 
 def test_projection_fallback_takes_the_nearest_pixel_inside_the_margin():
-    from cpl_keras.data.generate import choose_projection_pixel
+    from cpl_keras.data.pair import choose_projection_pixel
 
     cfg = {"fx": 30.0, "fy": 30.0, "u0": 16.0, "v0": 16.0}
     depth = np.full((32, 32), scenes.SKY_DISTANCE)
@@ -319,7 +319,7 @@ def test_projection_pixels_avoid_the_principal_row_and_column(protocol):
 
 
 def test_projection_fallback_avoids_the_principal_row_and_column():
-    from cpl_keras.data.generate import choose_projection_pixel
+    from cpl_keras.data.pair import choose_projection_pixel
 
     cfg = {"fx": 30.0, "fy": 30.0, "u0": 16.0, "v0": 16.0}
     depth = np.full((32, 32), scenes.SKY_DISTANCE)

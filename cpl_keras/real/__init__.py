@@ -26,7 +26,7 @@ import os
 import numpy as np
 
 from cpl_keras.camera import image_to_world
-from cpl_keras.data.generate import released_disparity  # noqa: F401  (the builders' label)
+from cpl_keras.data.pair import released_disparity  # noqa: F401  (the builders' label)
 from cpl_keras.data.storage import StereoWriter
 from cpl_keras.errors import Error
 
