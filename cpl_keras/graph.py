@@ -248,8 +248,29 @@ def layout(graph, measure=None):
         preds[t].append(s)
         succs[s].append(t)
     rank = _ranks(names, preds, succs)
+    layers, chains, links = _lanes(names, edges, rank)
+    layers = _order(layers, links)
 
-    # one dummy item per column an edge passes through
+    labels = {name: node_label(name, ops) for name in names}
+    size = _sizes(names, labels, layers, measure)
+    y = _rows(layers, links, size)
+    left, centre, right = _columns(layers, size)
+    boxes = {name: (centre[rank[name]] - size[name][0] / 2, y[name] - size[name][1] / 2,
+                    centre[rank[name]] + size[name][0] / 2, y[name] + size[name][1] / 2)
+             for name in names}
+    port = _ports(names, preds, chains, y, boxes)
+    routed = [{"source": s, "target": t, "detached": (s, t) in detached,
+               "points": _route(chains[s, t], rank[s], y, boxes, port[s, t], left, right)}
+              for s, t in edges]
+    height = max(b[3] for b in boxes.values())
+    return {"boxes": boxes, "labels": labels, "edges": routed, "size": (right[-1], height),
+            "kinds": {n: "op" if n in ops else "input" for n in names}}
+
+
+def _lanes(names, edges, rank):
+    """The columns' items: the nodes, and one lane item per column an edge
+    passes through. Returns the columns, each edge's chain of items (source,
+    lanes, target) and the links between consecutive items of the chains."""
     layers = [[] for _ in range(max(rank.values()) + 1)]
     for name in names:
         layers[rank[name]].append(name)
@@ -260,9 +281,12 @@ def layout(graph, measure=None):
             layers[r].append(item)
         links += list(zip(chain, chain[1:]))
         chains[s, t] = chain
-    layers = _order(layers, links)
+    return layers, chains, links
 
-    labels = {name: node_label(name, ops) for name in names}
+
+def _sizes(names, labels, layers, measure):
+    """Width and height of every item: a node's box fits its label, a lane is
+    ``LANE`` high and has no width."""
     size = {}
     for name in names:
         w, h = measure(labels[name])
@@ -270,15 +294,24 @@ def layout(graph, measure=None):
     for layer in layers:
         for item in layer:
             size.setdefault(item, (0.0, LANE))
+    return size
 
+
+def _gaps(layer, size):
+    """The least distances between the centres of consecutive items of a column."""
     def gap(a, b):
         real = sum(isinstance(i, str) for i in (a, b))
         return (size[a][1] + size[b][1]) / 2 + (ROW_GAP if real == 2 else ROW_GAP / 2)
+    return [gap(a, b) for a, b in zip(layer, layer[1:])]
 
-    # rows: start stacked, then pull each item towards its neighbours
+
+def _rows(layers, links, size):
+    """Every item's y (its centre), the top of the drawing at 0: the items
+    start stacked, then each is pulled towards its neighbours (sweeps to and
+    fro over the columns), their gaps kept."""
     y = {}
     for layer in layers:
-        y.update(zip(layer, _place([0.0] * len(layer), [gap(a, b) for a, b in zip(layer, layer[1:])])))
+        y.update(zip(layer, _place([0.0] * len(layer), _gaps(layer, size))))
     neighbours = {}
     for a, b in links:
         neighbours.setdefault(a, []).append(b)
@@ -289,11 +322,14 @@ def layout(graph, measure=None):
             layer = layers[r]
             desired = [sum(y[n] for n in neighbours.get(i, ())) / len(neighbours[i])
                        if neighbours.get(i) else y[i] for i in layer]
-            y.update(zip(layer, _place(desired, [gap(a, b) for a, b in zip(layer, layer[1:])])))
+            y.update(zip(layer, _place(desired, _gaps(layer, size))))
     top = min(y[i] - size[i][1] / 2 for i in y)
-    y = {i: v - top for i, v in y.items()}
+    return {i: v - top for i, v in y.items()}
 
-    # columns
+
+def _columns(layers, size):
+    """The left side, centre and right side (x) of every column: as wide as
+    its widest box, ``COLUMN_GAP`` between them."""
     widths = [max(size[i][0] for i in layer) if layer else 0.0 for layer in layers]
     left, x = [], 0.0
     for width in widths:
@@ -301,38 +337,40 @@ def layout(graph, measure=None):
         x += width + COLUMN_GAP
     centre = [lx + w / 2 for lx, w in zip(left, widths)]
     right = [lx + w for lx, w in zip(left, widths)]
-    boxes = {name: (centre[rank[name]] - size[name][0] / 2, y[name] - size[name][1] / 2,
-                    centre[rank[name]] + size[name][0] / 2, y[name] + size[name][1] / 2)
-             for name in names}
+    return left, centre, right
 
-    # ports: a target's inputs end top to bottom in the order they arrive
+
+def _ports(names, preds, chains, y, boxes):
+    """Where each edge ends on its target's left side (y): a target's inputs
+    end top to bottom in the order they arrive."""
     port = {}
     for name in names:
         incoming = sorted(preds[name], key=lambda s: (y[chains[s, name][-2]], preds[name].index(s)))
         x0, y0, x1, y1 = boxes[name]
         for k, s in enumerate(incoming):
             port[s, name] = y0 + (y1 - y0) * (k + 1) / (len(incoming) + 1)
-    routed = []
-    for s, t in edges:
-        chain = chains[s, t]
-        points = [(boxes[s][2], y[s])]
-        if boxes[s][2] < right[rank[s]]:
-            points.append((right[rank[s]], y[s]))
-        for r, item in enumerate(chain[1:], rank[s] + 1):
-            arrive = port[s, t] if item == t else y[item]
-            points += _curve(points[-1], (left[r], arrive))
-            if item == t:  # (exactly on the box's side)
-                if boxes[t][0] > left[r] + 1e-9:
-                    points.append((boxes[t][0], arrive))
-                else:
-                    points[-1] = (boxes[t][0], arrive)
+    return port
+
+
+def _route(chain, first, y, boxes, arrive_at, left, right):
+    """The polyline of the edge along ``chain`` (its source, in column
+    ``first``, its lanes, its target, where it ends at height ``arrive_at``):
+    straight through each column, curved in the gaps between them."""
+    s, t = chain[0], chain[-1]
+    points = [(boxes[s][2], y[s])]
+    if boxes[s][2] < right[first]:
+        points.append((right[first], y[s]))
+    for r, item in enumerate(chain[1:], first + 1):
+        arrive = arrive_at if item == t else y[item]
+        points += _curve(points[-1], (left[r], arrive))
+        if item == t:  # (exactly on the box's side)
+            if boxes[t][0] > left[r] + 1e-9:
+                points.append((boxes[t][0], arrive))
             else:
-                points.append((right[r], arrive))
-        routed.append({"source": s, "target": t, "detached": (s, t) in detached,
-                       "points": points})
-    height = max(b[3] for b in boxes.values())
-    return {"boxes": boxes, "labels": labels, "edges": routed, "size": (right[-1], height),
-            "kinds": {n: "op" if n in ops else "input" for n in names}}
+                points[-1] = (boxes[t][0], arrive)
+        else:
+            points.append((right[r], arrive))
+    return points
 
 
 def draw_graph(graph, path, title):
