@@ -6,7 +6,9 @@ Modules (numpy only, no deep-learning backend is imported):
 * ``textures``  photographic materials from scikit-image, with mip levels
 * ``scenes``    the procedural towns ``Town01`` and ``Town02``
 * ``render``    a vectorised numpy ray caster (depth = xCam, Eq. 4a)
-* ``protocols`` the ``cvgl`` and ``random`` stereo-rig protocols
+* ``shading``   the ray caster's materials, sunlight, shadows and haze
+* ``protocols`` the ``cvgl``, ``random`` and ``cameras`` stereo-rig protocols
+* ``pair``      one stereo pair: its two images and its labels
 * ``generate``  ``generate_dataset`` and the CLI
   (``python -m cpl_keras.data.generate --pairs N --out data/cvgl.h5``)
 
