@@ -103,32 +103,19 @@ def build_parser():
 
 def demo_dataset():
     """The demonstration dataset, generated on first use."""
-    from cpl_keras.data.storage import DatasetError
     from cpl_keras.cache import cache_dir
+    from cpl_keras.data.storage import DatasetError
 
     try:
-        from cpl_keras.data.generate import GENERATOR_VERSION as version
-    except ImportError:
-        version = "none"
-    # the format version in the name: a cached file of an older format is
-    # regenerated, never refused
-    path = os.path.join(
-        cache_dir(),
-        f"demo-cvgl-{DEMO['pairs']}-{DEMO['image_size']}px-s{DEMO['seed']}-v{version}.h5"
-    )
-    if os.path.exists(path):
-        return path
-    try:
-        from cpl_keras.data.generate import generate_dataset
+        from cpl_keras.data.generate import cached_dataset
     except ImportError:
         raise DatasetError("the data generator (cpl_keras.data.generate) is not available; "
                            "pass --data") from None
-    os.makedirs(os.path.dirname(path), exist_ok=True)
-    print(f"Generating the demonstration dataset ({DEMO['pairs']} pairs) into {path}",
-          file=sys.stderr)
     try:
-        return generate_dataset(path, protocol="cvgl", pairs=DEMO["pairs"], seed=DEMO["seed"],
-                                image_size=DEMO["image_size"])
+        return cached_dataset(
+            cache_dir(), protocol="cvgl", pairs=DEMO["pairs"], seed=DEMO["seed"],
+            image_size=DEMO["image_size"], prefix="demo-",
+            log=lambda line: print(f"Demonstration dataset: {line}", file=sys.stderr))
     except (OSError, ValueError) as error:
         raise DatasetError(f"cannot generate the demonstration dataset: {error}") from None
 
@@ -197,8 +184,8 @@ def main(argv=None):
 
 
 def _train(args, demo, seed, epochs, backbone, run_dir, command):
-    from cpl_keras.data.storage import DatasetError
-    from cpl_keras.training import TrainingError, summary_line, train
+    from cpl_keras.errors import Error
+    from cpl_keras.training import summary_line, train
 
     try:
         data = demo_dataset() if demo else args.data
@@ -215,7 +202,7 @@ def _train(args, demo, seed, epochs, backbone, run_dir, command):
             time_budget_s=args.time_budget, verbose=0 if args.quiet else 1,
             command=command,
         )
-    except (DatasetError, TrainingError, OSError) as error:
+    except (Error, OSError) as error:  # (DatasetError, TrainingError, RunError, ...)
         return cli.fail(PROG, error)
     if summary.get("finished_before"):
         # nothing trained, no file changed

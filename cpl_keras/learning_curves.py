@@ -30,7 +30,7 @@ import numpy as np
 from cpl_keras import cli, runs
 from cpl_keras.baselines.average import load_statistics
 from cpl_keras.camera import PARAMETERS
-from cpl_keras.data.generate import GENERATOR_VERSION, generate_dataset
+from cpl_keras.data.generate import cached_dataset
 from cpl_keras.data.storage import StereoFile
 from cpl_keras.datasets import load_split, targets_from_labels
 from cpl_keras.errors import Error
@@ -300,11 +300,9 @@ def run_experiment(*, data_dir, runs_dir, out_dir, pairs, backbone, image_size=1
     os.makedirs(data_dir, exist_ok=True)
     run_dirs, loads = [], {}
     for protocol, split, variant in EXPERIMENT_RUNS:
-        data = os.path.join(data_dir, f"{protocol}-{pairs}-{image_size}px-v{GENERATOR_VERSION}.h5")
-        if not os.path.exists(data):
-            print(f"generating {data}", file=sys.stderr)
-            generate_dataset(data, protocol=protocol, pairs=pairs, seed=seed + (protocol == "random"),
-                             image_size=image_size)
+        data = cached_dataset(data_dir, protocol=protocol, pairs=pairs,
+                              seed=seed + (protocol == "random"), image_size=image_size,
+                              log=lambda line: print(line, file=sys.stderr))
         name = f"{protocol}-{variant}-{backbone}"
         run_dir = os.path.join(runs_dir, name)
         run_dirs.append(run_dir)
@@ -313,7 +311,7 @@ def run_experiment(*, data_dir, runs_dir, out_dir, pairs, backbone, image_size=1
         start = time.time()
         summary = train(data, variant=variant, run_dir=run_dir, epochs=max_epochs,
                         backbone=backbone, split=split, seed=seed, patience=patience,
-                        verbose=verbose, command=f"python -m cpl_keras.learning_curves --experiment")
+                        verbose=verbose, command="python -m cpl_keras.learning_curves --experiment")
         loads[name] = os.getloadavg()[2] if time.time() - start > 600 else os.getloadavg()[1]
         print(f"{name}: {summary['epochs_run']} epochs, {summary['stopped']}", file=sys.stderr)
     run_dirs = [r for r in run_dirs if os.path.exists(os.path.join(r, "log.csv"))]

@@ -21,7 +21,7 @@ from cpl_keras.data.storage import DatasetError, StereoFile
 from cpl_keras.datasets import SPLITS, make_split, targets_from_labels
 from cpl_keras.errors import Error
 from cpl_keras.models import BACKBONES, variants
-from cpl_keras.models.variants import DISENTANGLE
+from cpl_keras.models.variants import ALPHA_RATE, DISENTANGLE
 
 #: config.json keys that must match for a run directory to be resumed.
 RESUME_KEYS = (
@@ -189,21 +189,12 @@ def plan_run(data, *, variant, run_dir, epochs=200, batch_size=16, learning_rate
     devices = _device_count() if data_parallel else 1
     run_batch = -(-batch_size // devices) * devices
 
-    build = {
-        "backbone": backbone, "image_size": [height, width], "as_released": bool(as_released),
-        "floors": dict(RELEASED_FLOORS if as_released else FLOORS),
-        "bounded_pitch_head": (not as_released) if bounded_pitch_head is None
-        else bool(bounded_pitch_head),
-        "positive_focal_head": (not as_released) if positive_focal_head is None
-        else bool(positive_focal_head),
-        "disentangle": disentangle, "seed": int(seed),
-        "disparity_ceiling": _disparity_ceiling(disparity_ceiling, spec, as_released,
-                                                targets["disparity"][indices["train"]]),
-    }
-    if spec.loss_mode(as_released) == "projection-adaptive":
-        from cpl_keras.losses import ALPHA_RATE
-
-        build["alpha_rate"] = float(ALPHA_RATE if alpha_rate is None else alpha_rate)
+    build = _build_arguments(
+        spec, backbone=backbone, image_size=[height, width], as_released=as_released,
+        bounded_pitch_head=bounded_pitch_head, positive_focal_head=positive_focal_head,
+        disentangle=disentangle, seed=seed, alpha_rate=alpha_rate,
+        disparity_ceiling=_disparity_ceiling(disparity_ceiling, spec, as_released,
+                                             targets["disparity"][indices["train"]]))
     run_dir = os.path.abspath(os.fspath(run_dir))
     config = {
         "variant": variant,
@@ -234,6 +225,26 @@ def plan_run(data, *, variant, run_dir, epochs=200, batch_size=16, learning_rate
     }
     _check_run_dir(run_dir, config, keep_ceiling=disparity_ceiling == "auto")
     return {"config": config, "targets": targets, "split": indices, "workers": int(workers)}
+
+
+def _build_arguments(spec, *, backbone, image_size, as_released, bounded_pitch_head,
+                     positive_focal_head, disentangle, seed, alpha_rate, disparity_ceiling):
+    """config.json's ``build``: ``models.build_model``'s keyword arguments
+    (the heads as released when ``as_released``, unless set; the adaptive
+    weights' pace for MTL-CPL-A)."""
+    build = {
+        "backbone": backbone, "image_size": image_size, "as_released": bool(as_released),
+        "floors": dict(RELEASED_FLOORS if as_released else FLOORS),
+        "bounded_pitch_head": (not as_released) if bounded_pitch_head is None
+        else bool(bounded_pitch_head),
+        "positive_focal_head": (not as_released) if positive_focal_head is None
+        else bool(positive_focal_head),
+        "disentangle": disentangle, "seed": int(seed),
+        "disparity_ceiling": disparity_ceiling,
+    }
+    if spec.loss_mode(as_released) == "projection-adaptive":
+        build["alpha_rate"] = float(ALPHA_RATE if alpha_rate is None else alpha_rate)
+    return build
 
 
 def _disparity_ceiling(setting, spec, as_released, train_disparities):

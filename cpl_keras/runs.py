@@ -47,7 +47,7 @@ from cpl_keras.errors import Error
 from cpl_keras.files import (  # noqa: F401
     atomic_path, commit, read_json, save_figure, write_json, write_text,
 )
-from cpl_keras.models.variants import VARIANT_ROWS
+from cpl_keras.models.variants import ALPHA_RATE, VARIANT_ROWS
 
 CONFIG = "config.json"
 MODEL = "model.keras"
@@ -300,11 +300,8 @@ def run_label(config):
     if config.target_scaling != "none":
         options += f", targets scaled by {config.target_scaling}"
     rate = config.build.get("alpha_rate")
-    if rate is not None:
-        from cpl_keras.losses import ALPHA_RATE
-
-        if rate != ALPHA_RATE:
-            options += f", alpha rate {rate:g}"
+    if rate is not None and rate != ALPHA_RATE:
+        options += f", alpha rate {rate:g}"
     return (f"{config.variant}{released}, {config.build['backbone']}, "
             f"{os.path.basename(config.data)}, split {config.split}{options}")
 
@@ -422,16 +419,21 @@ def read_predictions(run_dir, data_path, indices, names):
 
 
 def load_model(run):
-    """The run's best model (``keras.saving.load_model(..., safe_mode=True)``);
-    RunError when it has none or it is damaged."""
+    """The run's best model (``load_model_file``); RunError when it has none
+    or it is damaged."""
+    if not os.path.exists(run.model_path):
+        raise RunError(f"run directory {run.run_dir} has no weights (model.keras): a "
+                       f"published run holds only its stored predictions")
+    return load_model_file(run.model_path)
+
+
+def load_model_file(path):
+    """A saved model (``keras.saving.load_model(..., safe_mode=True)``, the
+    package's custom layers registered); RunError when it is damaged."""
     import keras
 
     import cpl_keras.models.factory  # noqa: F401  (registers the custom layers)
 
-    path = run.model_path
-    if not os.path.exists(path):
-        raise RunError(f"run directory {run.run_dir} has no weights (model.keras): a "
-                       f"published run holds only its stored predictions")
     if os.path.isfile(path) and not zipfile.is_zipfile(path):
         # (Keras reports a damaged archive as "File not found")
         raise RunError(f"cannot load {path}: the file is truncated or corrupt (not a complete "

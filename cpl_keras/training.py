@@ -106,13 +106,7 @@ def _finished_run(run_dir):
     if config.get("status") != "finished":
         return None
     path = os.path.join(run_dir, runs.MODEL)
-    model = None
-    if os.path.isfile(path):
-        import keras
-
-        import cpl_keras.models.factory  # noqa: F401  (registers the custom layers)
-
-        model = keras.saving.load_model(path, safe_mode=True)
+    model = runs.load_model_file(path) if os.path.isfile(path) else None
     return {
         "run_dir": run_dir, "status": config["status"], "stopped": config.get("stopped"),
         "epochs_run": config.get("epochs_run"), "best_epoch": config.get("best_epoch"),

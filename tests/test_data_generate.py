@@ -69,6 +69,25 @@ def test_same_seed_same_bytes_with_any_worker_count(tmp_path):
     assert not np.array_equal(left_a, right_a)
 
 
+def test_cached_dataset_is_made_once_under_its_versioned_name(tmp_path, monkeypatch):
+    made, lines = [], []
+    real = generate.generate_dataset
+    monkeypatch.setattr(generate, "generate_dataset",
+                        lambda out, **kw: made.append(out) or real(out, **kw))
+    kwargs = dict(protocol="cvgl", pairs=4, seed=2, image_size=32, workers=1, progress=False)
+    first = generate.cached_dataset(tmp_path / "cache", prefix="demo-", log=lines.append, **kwargs)
+    version = generate.GENERATOR_VERSION
+    assert os.path.basename(first) == f"demo-cvgl_4_32px_s2_v{version}.h5"
+    assert len(made) == 1 and len(lines) == 1 and first in lines[0]
+    with StereoFile(first) as data:
+        assert data.num_pairs == 4 and data.metadata["seed"] == 2
+    # the second call reuses the file; another seed is another file
+    assert generate.cached_dataset(tmp_path / "cache", prefix="demo-", **kwargs) == first
+    assert len(made) == 1
+    other = generate.cached_dataset(tmp_path / "cache", **dict(kwargs, seed=3))
+    assert os.path.basename(other) == f"cvgl_4_32px_s3_v{version}.h5" and len(made) == 2
+
+
 def test_different_seeds_give_different_images(tmp_path):
     a = generate_dataset(tmp_path / "a.h5", pairs=3, seed=0, image_size=24, workers=1,
                          progress=False)

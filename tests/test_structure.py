@@ -198,3 +198,38 @@ def test_every_error_of_the_package_is_an_errors_error():
     assert len(found) >= 8, found
     assert {name for name, ok in found.items() if not ok} == set()
     assert issubclass(Error, ValueError)
+
+
+#: The house's limits: a module a reader takes in at once, a function that
+#: reads top to bottom, and imports of the package's own modules at the top
+#: (inside a function only where a module imports Keras and the caller must
+#: start without it).
+MAX_MODULE_LINES = 500
+MAX_FUNCTION_LINES = 80
+MAX_OWN_FUNCTION_LEVEL_IMPORTS = 10
+
+
+def oversized(limit_module=MAX_MODULE_LINES, limit_function=MAX_FUNCTION_LINES):
+    """``[(what, lines)]``: modules over ``limit_module`` lines and functions
+    (from ``def`` to their last line) over ``limit_function``."""
+    found = []
+    for module, path in _modules().items():
+        with open(path) as f:
+            text = f.read()
+        if len(text.splitlines()) > limit_module:
+            found.append((module, len(text.splitlines())))
+        for node in ast.walk(ast.parse(text)):
+            if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef)):
+                lines = node.end_lineno - node.lineno + 1
+                if lines > limit_function:
+                    found.append((f"{module}.{node.name}", lines))
+    return found
+
+
+def test_modules_and_functions_stay_readable():
+    assert oversized() == []
+    own = [(m, n) for m, n in function_level_imports() if n.startswith("cpl_keras")]
+    assert len(own) <= MAX_OWN_FUNCTION_LEVEL_IMPORTS, own
+    # and the check can fail: tighter limits find the longest module and function
+    assert any("." in what for what, _ in oversized(limit_function=40))
+    assert any(lines > 300 for _, lines in oversized(limit_module=300))

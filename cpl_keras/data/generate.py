@@ -243,6 +243,30 @@ def generate_dataset(out, *, protocol="cvgl", pairs, seed=0, image_size=112, wor
     return _generate(out, protocol, pairs, seed, image_size, workers, progress)
 
 
+def dataset_name(protocol, pairs, seed, image_size, prefix=""):
+    """The file name of a generated dataset,
+    ``<prefix><protocol>_<pairs>_<size>px_s<seed>_v<generator version>.h5``.
+    The generator's version is in the name, so a file of an older generator
+    is never reused (it would be refused): a new one is made beside it."""
+    return f"{prefix}{protocol}_{pairs}_{image_size}px_s{seed}_v{GENERATOR_VERSION}.h5"
+
+
+def cached_dataset(folder, *, protocol, pairs, seed, image_size, prefix="", workers=None,
+                   progress=True, log=None):
+    """The dataset ``dataset_name(...)`` in ``folder``, generated first when it
+    is not there (``log(line)`` says so). Every dataset the project makes for
+    itself (the demonstration run, the reproduction, the learning curves)
+    comes through here. Returns its path."""
+    path = os.path.join(folder, dataset_name(protocol, pairs, seed, image_size, prefix))
+    if not os.path.exists(path):
+        os.makedirs(folder, exist_ok=True)
+        if log:
+            log(f"generating {pairs} {protocol} pairs at {image_size}px -> {path}")
+        generate_dataset(path, protocol=protocol, pairs=pairs, seed=seed, image_size=image_size,
+                         workers=workers, progress=progress)
+    return path
+
+
 # ---------------------------------------------------------------------------
 # Cost of a dataset
 # ---------------------------------------------------------------------------

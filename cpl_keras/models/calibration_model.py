@@ -70,7 +70,7 @@ class CalibrationModel(keras.Model):
         learning rate whatever the gradient's scale, moves ``log alpha_i``
         ``alpha_rate`` times as fast as an ordinary weight. 1 is Eq. 9
         trained like every other weight (models saved before the rate
-        existed); see ``losses.ALPHA_RATE``."""
+        existed); see ``variants.ALPHA_RATE``."""
         return float(self.calibration.get("alpha_rate", 1.0))
 
     def log_variance_values(self):

@@ -89,7 +89,7 @@ def build_model(variant, *, backbone="inception_v3", image_size=112, as_released
             pixel heads u, v) or ``"partial"`` (they reach every head the
             camera graph reads). CPL variants as the paper writes them only.
         alpha_rate: how fast MTL-CPL-A's adaptive weights move (default
-            ``losses.ALPHA_RATE``; 1 is Eq. 9 trained like every other weight,
+            ``variants.ALPHA_RATE``; 1 is Eq. 9 trained like every other weight,
             see ``CalibrationModel``).
         disparity_ceiling: the largest disparity (px) the CPL variants' exp
             head can output (``layers.PositiveDisparity``; default
@@ -111,7 +111,7 @@ def build_model(variant, *, backbone="inception_v3", image_size=112, as_released
     if positive_focal_head is None:
         positive_focal_head = not as_released
     if alpha_rate is None:
-        alpha_rate = losses.ALPHA_RATE
+        alpha_rate = variants.ALPHA_RATE
     if isinstance(alpha_rate, bool) or not (isinstance(alpha_rate, numbers.Real)
                                             and math.isfinite(alpha_rate) and alpha_rate > 0):
         raise ValueError(f"alpha rate must be a positive number, got {alpha_rate!r}")

@@ -45,6 +45,18 @@ MIN_IMAGE_SIZE = {"inception_v3": 75, "small": 16, "small_resnet": 16}
 #: How the X, Y, Z terms of the camera projection loss reach the heads
 #: (``factory.build_model``).
 DISENTANGLE = ("exact", "partial")
+#: How many times an ordinary weight's pace the adaptive weights' log alpha_i
+#: move (``CalibrationModel.alpha_rate``; here, beside the variants, so that
+#: planning and the run records read it without importing Keras). Adam moves every weight by about
+#: the learning rate a step, so with rate 1 log alpha_i changes by at most
+#: lr x steps an epoch: 0.04 at the CPU scale's 40 steps an epoch (measured:
+#: 0.038-0.055 in every epoch of every logged run), too slow to follow
+#: Eq. 9's optimum alpha_i = 1 / L_i while L_i falls by orders of magnitude
+#: (after 10 epochs alpha_i L_i spanned 0.09-1.26 instead of 1). At rate 10
+#: log alpha_i can move 0.4 an epoch at 40 steps, 3 at 315 (8,000 pairs);
+#: at the paper's 5,000 steps an epoch rate 1 would already do.
+#: ``--alpha-rate 1`` trains Eq. 9 as the paper writes it.
+ALPHA_RATE = 10.0
 
 SPECS = (
     Variant("baseline", "MTL-Baseline", 2, "mae", "mae", 1e-3, "direct", False,

@@ -11,7 +11,7 @@ import time
 
 from cpl_keras import cli, evaluation, predictions, report, runs
 from cpl_keras.cache import enable_compile_cache
-from cpl_keras.data.generate import GENERATOR_VERSION, generate_dataset
+from cpl_keras.data.generate import cached_dataset
 from cpl_keras.data.storage import StereoFile
 from cpl_keras.real import build
 from cpl_keras.reproduce.jobs import train_all
@@ -36,14 +36,8 @@ def make_datasets(config, data_dir, seed, real_roots=None):
     for protocol, pairs in (("cvgl", config["pairs"]), ("random", config["random_pairs"])):
         if protocol not in needed:
             continue
-        # the format version in the name: a file of an older generator is
-        # never reused (it would be refused), a new one is made beside it
-        path = os.path.join(data_dir, f"{protocol}_{pairs}_{size}px_s{seed}_v{GENERATOR_VERSION}.h5")
-        if not os.path.exists(path):
-            log(f"generating {pairs} {protocol} pairs at {size}px -> {path}")
-            generate_dataset(path, protocol=protocol, pairs=pairs, seed=seed, image_size=size,
-                             workers=config["workers"], progress=True)
-        paths[protocol] = path
+        paths[protocol] = cached_dataset(data_dir, protocol=protocol, pairs=pairs, seed=seed,
+                                         image_size=size, workers=config["workers"], log=log)
     # every real rig, through the one builder of ``python -m cpl_keras.real.build all``
     paths["real"] = build.build_all(
         real_set_folder(config, data_dir, seed), roots=real_roots, stems=config["real_sets"],
