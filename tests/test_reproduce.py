@@ -462,12 +462,14 @@ def test_parallel_training_makes_the_same_runs(tiny_run, tmp_path):
     """``--jobs 2``: runs trained two at a time, each in a spawned process,
     end as the same run trained here; a run that fails stops the rest with
     one error naming its directory."""
-    from cpl_keras import runs, training
+    from cpl_keras import parallel, runs, training
 
     data = tiny_run["data"]
     pending = [(f"cvgl/{name}", data, _tiny_plan(tmp_path / name, seed))
                for name, seed in (("a", 0), ("b", 1))]
-    reproduce.train_parallel(pending, jobs=2, backbone="small", epochs=1)
+    finished = []
+    parallel.train_parallel(pending, 2, on_finished=lambda label, _: finished.append(label))
+    assert sorted(finished) == ["cvgl/a", "cvgl/b"]
     for name in ("a", "b"):
         assert runs.read_config(str(tmp_path / name))["status"] == "finished"
 
@@ -483,5 +485,5 @@ def test_parallel_training_makes_the_same_runs(tiny_run, tmp_path):
     bad = [("cvgl/bad", missing, _tiny_plan(tmp_path / "bad")),
            ("cvgl/c", data, _tiny_plan(tmp_path / "c"))]
     with pytest.raises(training.TrainingError, match="bad: training ended with exit status 2"):
-        reproduce.train_parallel(bad, jobs=1, backbone="small", epochs=1)
+        parallel.train_parallel(bad, 1)
     assert not (tmp_path / "c").exists()  # nothing started after the failure

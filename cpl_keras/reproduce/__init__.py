@@ -41,7 +41,8 @@ from their last epoch):
    or datasets.
 
 The package: ``presets`` (the settings and the runs they make), ``jobs``
-(training, in processes of their own with ``--jobs``), ``pipeline`` (the
+(training each run and publishing it; with ``--jobs`` in processes of their
+own, ``cpl_keras.parallel``), ``pipeline`` (the
 stages and the rebuild), ``page`` (REPORT.md), ``cli`` (the command line).
 """
 
@@ -52,9 +53,8 @@ import os
 os.environ.setdefault("KERAS_BACKEND", "jax")
 
 from cpl_keras.reproduce.cli import add_arguments, main, resolve_args, run  # noqa: E402
-from cpl_keras.reproduce.jobs import (  # noqa: E402
-    SLOW_VARIANTS, publish_run, published_record, train_all, train_parallel,
-)
+from cpl_keras.models.variants import SLOW_VARIANTS  # noqa: E402
+from cpl_keras.reproduce.jobs import publish_run, published_record, train_all  # noqa: E402
 from cpl_keras.reproduce.page import scale_text, write_report  # noqa: E402
 from cpl_keras.reproduce.pipeline import (  # noqa: E402
     SUMMARY, make_datasets, read_summary, rebuild, rebuild_command, reproduce,
@@ -71,5 +71,5 @@ __all__ = [
     "add_arguments", "cpu_cost", "default_folders", "gpu_sized", "has_accelerator", "main",
     "make_datasets", "publish_run", "published_record", "read_summary", "rebuild",
     "rebuild_command", "reproduce", "resolve_args", "run", "run_jobs", "run_stems",
-    "scale_text", "settings", "train_all", "train_parallel", "write_report",
+    "scale_text", "settings", "train_all", "write_report",
 ]

@@ -4,18 +4,9 @@ ends (and restored from its published record on another machine)."""
 
 from __future__ import annotations
 
-import multiprocessing
-import multiprocessing.connection
 import os
-import signal
-import sys
-import threading
-import time
 
-from cpl_keras import cli, evaluation, planning, runs, training
-from cpl_keras.cache import enable_compile_cache
-from cpl_keras.data.storage import DatasetError
-from cpl_keras.models.variants import SLOW_VARIANTS
+from cpl_keras import evaluation, parallel, planning, runs, training
 from cpl_keras.reproduce.presets import PROG, log, run_jobs
 
 # ---------------------------------------------------------------------------
@@ -67,7 +58,14 @@ def train_all(config, paths, runs_dir, seed, jobs=1, out_dir=None):
         pending.append((f"{key}/{name}", paths[protocol], plan,
                         (record, _real_paths(key, paths)) if record else None))
     if jobs > 1 and len(pending) > 1:
-        train_parallel(pending, jobs, config["backbone"], config["epochs"])
+        publish = {label: record for label, _, _, record in pending}
+
+        def on_finished(label, plan):
+            if publish[label]:
+                publish_run(plan["run_dir"], *publish[label])
+
+        parallel.train_parallel([(label, data, plan) for label, data, plan, _ in pending],
+                                jobs, on_finished=on_finished, log=log, prog=PROG)
         return trained
     for label, data, plan, publish in pending:
         log(f"training {label} ({config['backbone']}, up to {config['epochs']} epochs)")
@@ -100,83 +98,3 @@ def publish_run(run_dir, record, real_paths):
     runs.publish_run_dir(run_dir, record)
     runs.publish_files(run_dir, os.path.dirname(record), os.path.basename(record))
     log(f"published {record}")
-
-
-def _exit_with_parent(parent, every=2.0):
-    """End this process (status 143, as by SIGTERM) once ``parent`` is gone:
-    a reproduction killed outright leaves no training behind."""
-    def watch():
-        while os.getppid() == parent:
-            time.sleep(every)
-        os._exit(143)
-
-    threading.Thread(target=watch, daemon=True, name="exit-with-parent").start()
-
-
-def _train_job(data, plan, parent):
-    """A training run in a process of its own (``train_parallel``): quiet; the
-    exit status says how it ended (0 trained, 1 no epoch completed, 2 an
-    error, printed on one line, 130 interrupted, 143 its parent gone; a
-    killed run resumes from its last completed epoch)."""
-    _exit_with_parent(parent)
-    enable_compile_cache()
-    try:
-        with cli.interruptible():
-            summary = training.train(data, verbose=0, **plan)
-    except KeyboardInterrupt:  # the last completed epoch is checkpointed
-        sys.exit(130)
-    except (training.TrainingError, DatasetError, OSError) as error:
-        print(f"{PROG}: error: {plan['run_dir']}: {error}", file=sys.stderr)
-        sys.exit(2)
-    log(training.summary_line(summary))
-    sys.exit(0 if summary["best_epoch"] is not None else 1)
-
-
-def train_parallel(pending, jobs, backbone, epochs):
-    """Train ``pending`` runs (``(label, data, plan[, publish])``: ``publish``
-    is None or ``publish_run``'s record and real sets, used when the run
-    ends) ``jobs`` at a time,
-    each in a fresh process (spawned: JAX does not survive a fork); the slow
-    variants first. Ctrl-C (or SIGINT to this process) interrupts every
-    running run, which resumes from its last epoch next time; a run that
-    fails stops the others and raises ``TrainingError``."""
-    context = multiprocessing.get_context("spawn")
-    pending = [tuple(job) + (None,) * (4 - len(job)) for job in pending]
-    # the slow variants first, so that the short runs fill the other processes meanwhile
-    queue = sorted(pending, key=lambda job: job[2]["variant"] not in SLOW_VARIANTS)
-    running = {}
-    failure = None
-    try:
-        while (queue and failure is None) or running:
-            while queue and failure is None and len(running) < jobs:
-                label, data, plan, publish = queue.pop(0)
-                log(f"training {label} ({backbone}, up to {epochs} epochs; "
-                     f"{jobs} runs at a time)")
-                process = context.Process(target=_train_job, args=(data, plan, os.getpid()),
-                                          name=label)
-                process.start()
-                running[process.sentinel] = (label, plan, process, publish)
-            ready = multiprocessing.connection.wait(list(running), timeout=5)
-            for sentinel in ready:
-                label, plan, process, publish = running.pop(sentinel)
-                process.join()
-                if process.exitcode == 0 and publish:
-                    publish_run(plan["run_dir"], *publish)
-                if process.exitcode != 0 and failure is None:
-                    failure = (f"{plan['run_dir']}: training ended with exit status "
-                               f"{process.exitcode}")
-                    for _, _, other, _ in running.values():
-                        other.terminate()  # SIGTERM: resumes from its last epoch
-    except KeyboardInterrupt:
-        for _, _, process, _ in running.values():
-            if process.is_alive():
-                os.kill(process.pid, signal.SIGINT)
-        for _, _, process, _ in running.values():
-            process.join(timeout=60)
-            if process.is_alive():
-                process.terminate()
-        raise
-    if failure is not None:
-        raise training.TrainingError(failure)
-
-
