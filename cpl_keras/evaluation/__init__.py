@@ -18,9 +18,9 @@ kinds (Markdown, CSV, JSON, plots). Runs are read through
 """
 
 from cpl_keras.evaluation.predict import (
-    EvaluationError, evaluation_indices, forget_model, load_model, load_run, model_image_shape,
-    open_dataset, predict_images, predict_run, published, run_predictions, store_predictions,
-    truth_targets,
+    EvaluationError, evaluation_indices, forget_model, load_model, load_run, load_table_runs,
+    model_image_shape, open_dataset, predict_images, predict_run, published, run_predictions,
+    store_predictions, truth_targets,
 )
 from cpl_keras.evaluation.seeds import SPREAD, SPREAD_METRICS, aggregate_seeds
 from cpl_keras.evaluation.table1 import (
@@ -44,6 +44,7 @@ __all__ = [
     "is_rectified",
     "load_model",
     "load_run",
+    "load_table_runs",
     "make_table",
     "make_table2",
     "model_image_shape",

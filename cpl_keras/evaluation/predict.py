@@ -27,6 +27,20 @@ class EvaluationError(runs.RunError):
     """A run directory, dataset or argument cannot be evaluated (one line)."""
 
 
+def load_table_runs(run_dirs):
+    """The runs of one table (``runs.Run``), one per row: EvaluationError when
+    none is given or two are runs of the same row."""
+    if not run_dirs:
+        raise EvaluationError("no runs given (--runs RUN_DIR ...)")
+    loaded, seen = [], {}
+    for run in map(load_run, run_dirs):
+        if run.row in seen:
+            raise EvaluationError(f"two runs for {run.row}: {seen[run.row]} and {run.run_dir}")
+        seen[run.row] = run.run_dir
+        loaded.append(run)
+    return loaded
+
+
 def model_image_shape(model):
     """(height, width) the model takes."""
     shape = model.inputs[0].shape

@@ -26,8 +26,8 @@ from cpl_keras.baselines import geometric as geo
 from cpl_keras.baselines.average import average_predictions
 from cpl_keras.camera import TARGETS
 from cpl_keras.evaluation.predict import (
-    EvaluationError, _same_file, evaluation_indices, forget_model, load_run, open_dataset,
-    published, run_predictions, truth_targets,
+    EvaluationError, _same_file, evaluation_indices, forget_model, load_run, load_table_runs,
+    open_dataset, published, run_predictions, truth_targets,
 )
 from cpl_keras.metrics import jsonable
 from cpl_keras.models.variants import MODEL_ROWS, VARIANT_ROWS
@@ -131,15 +131,7 @@ def table_rows(number, run_dirs, data_path=None, geometric=True, geometric_max=N
     """
     if number not in (1, 2):
         raise EvaluationError(f"unknown table {number}; choose 1 or 2")
-    if not run_dirs:
-        raise EvaluationError("no runs given (--runs RUN_DIR ...)")
-    loaded = [load_run(r) for r in run_dirs]
-    rows_seen = {}
-    for run in loaded:
-        row = run.row
-        if row in rows_seen:
-            raise EvaluationError(f"two runs for {row}: {rows_seen[row]} and {run.run_dir}")
-        rows_seen[row] = run.run_dir
+    loaded = load_table_runs(run_dirs)
     if number == 2 and data_path is None:
         raise EvaluationError("table 2 needs --data REAL.h5")
     reference = loaded[0]

@@ -39,7 +39,7 @@ from cpl_keras import metrics
 from cpl_keras.baselines import geometric as geo
 from cpl_keras.camera import TARGETS, fov_from_focal
 from cpl_keras.evaluation.predict import (
-    EvaluationError, evaluation_indices, forget_model, load_run, open_dataset, published,
+    EvaluationError, evaluation_indices, forget_model, load_table_runs, open_dataset, published,
     run_predictions, truth_targets,
 )
 from cpl_keras.evaluation.table1 import (
@@ -185,17 +185,9 @@ def table2_rigs(run_dirs, data_paths, geometric=True, geometric_max=None, progre
     ``num_pairs`` and ``rows``: row name -> ``source``, ``as_released``,
     ``indices``, ``truth``, ``pred``, ``defined``; Geometric also ``priors``,
     ``statuses``, ``degenerate``), everything ``table2_from_rigs`` scores."""
-    if not run_dirs:
-        raise EvaluationError("no runs given (--runs RUN_DIR ...)")
-    if not data_paths:
+    if run_dirs and not data_paths:
         raise EvaluationError("table 2 needs --data REAL.h5 (or a folder of real sets)")
-    loaded = [load_run(r) for r in run_dirs]
-    seen = {}
-    for run in loaded:
-        row = run.row
-        if row in seen:
-            raise EvaluationError(f"two runs for {row}: {seen[row]} and {run.run_dir}")
-        seen[row] = run.run_dir
+    loaded = load_table_runs(run_dirs)
     paths = expand_data_paths(data_paths)
     try:
         rigs = [_rig_rows(loaded, path, geometric, geometric_max, progress) for path in paths]
