@@ -17,6 +17,7 @@ import sys
 os.environ.setdefault("KERAS_BACKEND", "jax")
 
 from cpl_keras import cli  # noqa: E402
+from cpl_keras.augment import AUGMENTATIONS  # noqa: E402
 from cpl_keras.datasets import SPLITS  # noqa: E402
 from cpl_keras.models import BACKBONES, VARIANTS  # noqa: E402
 from cpl_keras.models.variants import DISENTANGLE  # noqa: E402
@@ -96,6 +97,9 @@ def build_parser():
                         help="seconds of training the run may take: no epoch is started that "
                         "would overrun them (judged by the last epoch's length); the run "
                         "then ends as finished with its best epoch (default: no limit)")
+    parser.add_argument("--augment", choices=("none",) + AUGMENTATIONS, default="none",
+                        help="photometric augmentation of the training batches (exposure, grey, "
+                             "blur, noise, JPEG; labels unchanged; not the paper's, default none)")
     parser.add_argument("--quiet", action="store_true",
                         help="no per-epoch lines or progress bar (the summary line stays)")
     return parser
@@ -200,6 +204,7 @@ def _train(args, demo, seed, epochs, backbone, run_dir, command):
             alpha_rate=args.alpha_rate, disparity_ceiling=args.disparity_ceiling,
             bn_recompute_batches=args.bn_recompute_batches, target_scaling=args.target_scaling,
             time_budget_s=args.time_budget, verbose=0 if args.quiet else 1,
+            augment=None if args.augment == "none" else args.augment,
             command=command,
         )
     except (Error, OSError) as error:  # (DatasetError, TrainingError, RunError, ...)

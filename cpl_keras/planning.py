@@ -16,6 +16,7 @@ import os
 import numpy as np
 
 from cpl_keras import runs
+from cpl_keras.augment import AUGMENTATIONS
 from cpl_keras.camera import FLOORS, RELEASED_FLOORS
 from cpl_keras.data.storage import DatasetError, StereoFile
 from cpl_keras.datasets import SPLITS, make_split, targets_from_labels
@@ -27,7 +28,7 @@ from cpl_keras.models.variants import ALPHA_RATE, DISENTANGLE
 RESUME_KEYS = (
     "variant", "build", "data", "split", "seed", "batch_size", "learning_rate", "epochs",
     "data_parallel", "patience", "test_fraction", "val_fraction",
-    "bn_recompute_batches", "target_scaling",
+    "bn_recompute_batches", "target_scaling", "augment",
 )
 #: Per-output MAE as the paper sums it ("none"), or each divided by the
 #: target's training standard deviation ("std": standardised targets).
@@ -48,7 +49,7 @@ class TrainingError(Error):
 
 def _check_arguments(*, variant, backbone, split, epochs, batch_size, workers, patience, seed,
                      as_released, bn_recompute_batches, disentangle, target_scaling,
-                     learning_rate, alpha_rate, time_budget_s, disparity_ceiling):
+                     learning_rate, alpha_rate, time_budget_s, disparity_ceiling, augment):
     """``plan_run``'s checks of its arguments (TrainingError, one line);
     returns the variant's spec and the BatchNorm recompute batches."""
     try:
@@ -109,6 +110,9 @@ def _check_arguments(*, variant, backbone, split, epochs, batch_size, workers, p
     )):
         raise TrainingError(f"time budget must be a positive number of seconds, "
                             f"got {time_budget_s!r}")
+    if augment is not None and augment not in AUGMENTATIONS:
+        raise TrainingError(f"unknown augmentation {augment!r}; choose one of "
+                            f"{', '.join(AUGMENTATIONS)}")
     return spec, bn_recompute_batches
 
 
@@ -157,7 +161,7 @@ def plan_run(data, *, variant, run_dir, epochs=200, batch_size=16, learning_rate
              workers=1, disentangle="exact", bounded_pitch_head=None,
              positive_focal_head=None, alpha_rate=None, disparity_ceiling="auto",
              bn_recompute_batches=None, target_scaling="none", time_budget_s=None,
-             command=None):
+             augment=None, command=None):
     """Check the dataset and the arguments; return the run's plan (a dict:
     ``config``, what config.json will hold; ``targets``; ``split``;
     ``workers``).
@@ -170,6 +174,8 @@ def plan_run(data, *, variant, run_dir, epochs=200, batch_size=16, learning_rate
     ``disparity_ceiling``: the CPL disparity head's largest output in px
     (``"auto"``: ``DISPARITY_CEILING_FACTOR`` times the largest training
     label; None: ``layers.MAX_OUTPUT``, the bound of runs made before it).
+    ``augment``: None, or ``"photometric"`` for the training batches
+    (``cpl_keras.augment``; not the paper's).
     Raises ``DatasetError`` or ``TrainingError`` with a one-line message.
     Writes nothing.
     """
@@ -178,7 +184,7 @@ def plan_run(data, *, variant, run_dir, epochs=200, batch_size=16, learning_rate
         workers=workers, patience=patience, seed=seed, as_released=as_released,
         bn_recompute_batches=bn_recompute_batches, disentangle=disentangle,
         target_scaling=target_scaling, learning_rate=learning_rate, alpha_rate=alpha_rate,
-        time_budget_s=time_budget_s, disparity_ceiling=disparity_ceiling)
+        time_budget_s=time_budget_s, disparity_ceiling=disparity_ceiling, augment=augment)
     dataset = _read_dataset(data, image_size=image_size, split=split, seed=seed,
                             test_fraction=test_fraction, val_fraction=val_fraction,
                             as_released=as_released, batch_size=batch_size)
@@ -216,6 +222,7 @@ def plan_run(data, *, variant, run_dir, epochs=200, batch_size=16, learning_rate
         "bn_recompute_batches": int(bn_recompute_batches),
         "target_scaling": target_scaling,
         "time_budget_s": None if time_budget_s is None else float(time_budget_s),
+        "augment": augment,
         "data_parallel": bool(data_parallel),
         "num_devices": devices,
         "device_batch_size": run_batch,

@@ -11,6 +11,7 @@ import threading
 import keras
 import numpy as np
 
+from cpl_keras.augment import AUGMENTATIONS, photometric
 from cpl_keras.camera import TARGETS
 from cpl_keras.data.storage import StereoFile
 from cpl_keras.datasets import targets_from_labels
@@ -49,11 +50,15 @@ class StereoSequence(keras.utils.PyDataset):
             batches of a gzip-compressed file read at about 190 pairs/s
             on one core, slower than the compact backbone trains; the
             batches are the same either way.
+        augment: None (the images as stored) or ``"photometric"``
+            (``cpl_keras.augment.photometric``, drawn from the seed, the
+            epoch and the batch index: the same batch whenever it is
+            served).
     """
 
     def __init__(self, path, indices, targets=None, batch_size=16, shuffle=False,
                  seed=0, multiple_of=1, workers=1, use_multiprocessing=False,
-                 max_queue_size=10, in_memory="auto"):
+                 max_queue_size=10, in_memory="auto", augment=None):
         super().__init__(workers=workers, use_multiprocessing=use_multiprocessing,
                          max_queue_size=max_queue_size)
         self.path = os.path.abspath(os.fspath(path))
@@ -88,6 +93,10 @@ class StereoSequence(keras.utils.PyDataset):
             in_memory = len(self._unique) * pair_bytes <= IN_MEMORY_LIMIT
         self.in_memory = bool(in_memory)
         self._images = None
+        if augment is not None and augment not in AUGMENTATIONS:
+            raise ValueError(f"augment must be None or one of {', '.join(AUGMENTATIONS)}, "
+                             f"got {augment!r}")
+        self.augment = augment
 
     # -- keras.utils.PyDataset -------------------------------------------
     @property
@@ -107,6 +116,9 @@ class StereoSequence(keras.utils.PyDataset):
             left, right = left_all[rows], right_all[rows]
         else:
             left, right = self._stereo_file().read_pairs(batch)
+        if self.augment == "photometric":
+            left, right = photometric(left, right,
+                                      np.random.default_rng([self.seed, self.epoch, index]))
         x = {"left_image": left.astype(np.float32), "right_image": right.astype(np.float32)}
         y = {name: values[batch][:, None] for name, values in self.targets.items()}
         return x, y

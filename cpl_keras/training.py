@@ -174,7 +174,7 @@ def _run_locked(plan, model, config, run_dir, verbose):
     common = dict(targets=plan["targets"], batch_size=config["device_batch_size"],
                   multiple_of=multiple, workers=plan["workers"])
     train_seq = StereoSequence(config["data"], plan["split"]["train"], shuffle=True,
-                               seed=config["seed"], **common)
+                               seed=config["seed"], augment=config.get("augment"), **common)
     val_seq = StereoSequence(config["data"], plan["split"]["val"], shuffle=False, **common)
 
     from cpl_keras.checkpointing import RunState

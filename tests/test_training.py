@@ -739,8 +739,9 @@ FLAG_CASES = {
                     lambda c: c["build"]["positive_focal_head"] is False
                     and c["build"]["alpha_rate"] == 3.0),
     "baseline steps": (["--target-scaling", "std", "--steps-per-execution", "2",
-                        "--bn-recompute-batches", "0", "--split", "held-out-config"], "baseline",
-                       lambda c: c["target_scaling"] == "std"
+                        "--bn-recompute-batches", "0", "--split", "held-out-config",
+                        "--augment", "photometric"], "baseline",
+                       lambda c: c["target_scaling"] == "std" and c["augment"] == "photometric"
                        and c["build"]["disparity_ceiling"] is None
                        and c["bn_recompute_batches"] == 0 and c["split"] == "held-out-config"),
 }
