@@ -3,7 +3,6 @@ tables that are what its published predictions give (rebuilt here, without
 weights or datasets), and every decimal figure a report quotes is a cell of
 the tables (or of the run table) it speaks about."""
 
-import os
 import re
 import shutil
 import subprocess

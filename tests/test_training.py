@@ -193,7 +193,6 @@ def test_killed_run_resumes_and_ends_like_an_uninterrupted_run(
     run_dir = str(tmp_path / "run")
     args = [*RESUME_ARGS, "--data", dataset, "--run-dir", run_dir]
     state = os.path.join(run_dir, "backup", "state.json")
-    log = os.path.join(run_dir, "log.csv")
 
     def epochs_done():
         with open(state) as f:
@@ -380,9 +379,8 @@ def _bad_files(tmp_path):
         "missing": ([str(tmp_path / "nope.h5")], "dataset not found"),
         "not hdf5": ([str(not_h5)], "not an HDF5 file"),
         "no label": ([no_label], "missing label(s) tz"),
-        "wrong size": ([nan.replace("nan", "small")], "below the minimum"),
-        "mismatch": ([no_label.replace("no_label", "small"), "--image-size", "32"],
-                     "images are 8x8"),
+        "wrong size": ([small], "below the minimum"),
+        "mismatch": ([small, "--image-size", "32"], "images are 8x8"),
         "nan": ([nan], "label 'fx' has 1 non-finite"),
     }
 
