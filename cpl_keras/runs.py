@@ -133,25 +133,30 @@ class RunConfig:
     goes); everything that reads a run takes this record instead, so a key
     is named in one place. Keys not named here stay in ``other``."""
 
+    # What was trained, on what: the variant, models.build_model's keyword
+    # arguments, the dataset file, its protocol, the split and the seed.
     variant: str
     build: dict
     data: str
+    protocol: str | None = None
     split: str | None = None
     seed: int | None = None
-    protocol: str | None = None
-    command: str | None = None
-    run_dir: str | None = None
+    num_train: int | None = None
+    num_val: int | None = None
+    # How: the options that differ between runs, and the command line.
     learning_rate: float | None = None
     target_scaling: str = "none"
     epochs: int | None = None
-    num_train: int | None = None
-    num_val: int | None = None
+    command: str | None = None
+    run_dir: str | None = None
+    # How it ended (None while it runs).
     status: str | None = None
     stopped: str | None = None
     epochs_run: int | None = None
     best_epoch: int | None = None
     best_val_loss: float | None = None
     wall_time_s: float | None = None
+    # Every other key of config.json, as written.
     other: dict = dataclasses.field(default_factory=dict)
 
     @classmethod
