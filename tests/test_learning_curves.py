@@ -12,23 +12,18 @@ from cpl_keras import learning_curves
 from cpl_keras.camera import PARAMETERS
 from cpl_keras.data.storage import StereoFile
 from cpl_keras.datasets import load_split, targets_from_labels
-from cpl_keras.training import train
 
-from test_datasets import write_stereo_fixture
 
 
 @pytest.fixture(scope="module")
-def tiny(tmp_path_factory):
-    return str(write_stereo_fixture(tmp_path_factory.mktemp("data") / "tiny.h5", n=40,
-                                    image_size=32))
+def tiny(stereo40):
+    return stereo40
 
 
 @pytest.fixture(scope="module")
-def tiny_run(tiny, tmp_path_factory):
-    run_dir = str(tmp_path_factory.mktemp("runs") / "cpl-a")
-    train(tiny, variant="cpl-a", run_dir=run_dir, epochs=3, batch_size=5, backbone="small",
-          seed=0, verbose=0)
-    return run_dir
+def tiny_run(variant_run):
+    """The session's MTL-CPL-A run on ``tiny`` (2 epochs, batches of 5)."""
+    return variant_run("cpl-a")["run_dir"]
 
 
 def test_curves_are_the_logged_validation_mae_over_mean_abs_truth(tiny, tiny_run):
@@ -118,7 +113,10 @@ def _nmae_sum(model, x, y):
                for n in PARAMETERS)
 
 
-@pytest.mark.parametrize("variant", ["baseline", "cpl-u", "cpl-a", "deep-homo"])
+# Deep-Homo's fit is the heaviest case (its step costs 15-18x the compact
+# tower's): it runs in the full suite, not under -m "not slow".
+@pytest.mark.parametrize("variant", ["baseline", "cpl-u", "cpl-a",
+                                     pytest.param("deep-homo", marks=pytest.mark.slow)])
 def test_a_tiny_run_learns_and_its_pitch_stays_bounded(variant, tiny):
     """Sixteen pairs fitted for 80 steps: the error on them must fall by a
     clear factor, and every pitch prediction stays a plausible angle.

@@ -3,7 +3,9 @@ the bounded pitch head, the adaptive weights' start and floor, the exact
 disentangling of Eq. 7, per-quantity divisor floors, BatchNorm statistics
 that belong to the weights, local random seeding and sample weights."""
 
+import json
 import math
+import os
 import random
 
 import jax
@@ -15,15 +17,13 @@ from keras import ops
 from cpl_keras import TARGETS, build_model, camera, compile_model, losses
 from cpl_keras.models.batchnorm import batchnorm_layers, recompute_batchnorm_statistics
 
-from test_datasets import write_stereo_fixture
 from test_models import SIZE, batch
 
 
 @pytest.fixture(scope="module")
-def tiny_cvgl(tmp_path_factory):
+def tiny_cvgl(stereo40):
     # 40 pairs -> 25 training pairs: five equal batches of 5
-    return str(write_stereo_fixture(tmp_path_factory.mktemp("data") / "tiny.h5", n=40,
-                                    image_size=32))
+    return stereo40
 
 
 # ---------------------------------------------------------------------------
@@ -245,30 +245,36 @@ def test_recomputed_batchnorm_statistics_are_the_batch_averages():
                                rtol=1e-3, atol=1e-4)
 
 
-def test_deep_homo_saved_by_training_has_statistics_of_its_weights(tmp_path, tiny_cvgl):
+def test_deep_homo_saved_by_training_has_statistics_of_its_weights(tmp_path, tiny_cvgl,
+                                                                  variant_run):
+    """The session's Deep-Homo run (the default: statistics recomputed after
+    every epoch) saves its BatchNorm's population statistics of the saved
+    weights; a run without the recompute (as released) lags behind them."""
+    from cpl_keras.datasets import load_split
+    from cpl_keras.sequence import StereoSequence
     from cpl_keras.training import train
 
-    def first_bn_mean(bn_batches):
-        summary = train(tiny_cvgl, variant="deep-homo", run_dir=str(tmp_path / f"r{bn_batches}"),
-                        epochs=1, batch_size=5, image_size=None, backbone="small", seed=0,
-                        bn_recompute_batches=bn_batches, verbose=0)
-        model = keras.saving.load_model(str(tmp_path / f"r{bn_batches}" / "model.keras"),
-                                        safe_mode=True)
+    def first_bn_mean(run_dir):
+        model = keras.saving.load_model(os.path.join(run_dir, "model.keras"), safe_mode=True)
         bn = model.get_layer("batch_norm1")
         conv = keras.Model(model.inputs, bn.input)
-        from cpl_keras.datasets import load_split
-        from cpl_keras.sequence import StereoSequence
-
-        split = load_split(str(tmp_path / f"r{bn_batches}" / "split.npz"))
+        split = load_split(os.path.join(run_dir, "split.npz"))
         seq = StereoSequence(tiny_cvgl, split["train"], batch_size=5)
         means = [conv.predict(seq[i][0], verbose=0).mean(axis=(0, 1, 2)) for i in range(len(seq))]
         seq.close()
-        assert summary["status"] == "finished"
         return ops.convert_to_numpy(bn.moving_mean), np.mean(means, axis=0)
 
-    recomputed, truth = first_bn_mean(1000)
+    shared = variant_run("deep-homo")
+    assert shared["summary"]["status"] == "finished"
+    assert json.loads(open(os.path.join(shared["run_dir"], "config.json")).read())[
+        "bn_recompute_batches"] >= 5  # every one of the 5 training batches
+    recomputed, truth = first_bn_mean(shared["run_dir"])
     np.testing.assert_allclose(recomputed, truth, rtol=0.05, atol=1e-3 * np.abs(truth).max())
-    lagging, truth = first_bn_mean(0)  # Keras's moving average, as released
+    lagged = str(tmp_path / "r0")  # Keras's moving average, as released
+    summary = train(tiny_cvgl, variant="deep-homo", run_dir=lagged, epochs=1, batch_size=5,
+                    backbone="small", seed=0, bn_recompute_batches=0, verbose=0)
+    assert summary["status"] == "finished"
+    lagging, truth = first_bn_mean(lagged)
     assert np.abs(lagging - truth).max() > 0.3 * np.abs(truth).max()
 
 

@@ -28,8 +28,8 @@ TINY = dict(backbone="small", epochs=2, batch_size=5, verbose=0)
 
 
 @pytest.fixture(scope="module")
-def dataset(tmp_path_factory):
-    return write_stereo_fixture(tmp_path_factory.mktemp("data") / "tiny.h5", n=40, image_size=32)
+def dataset(stereo40):
+    return stereo40
 
 
 def read_log(run_dir):
@@ -57,7 +57,9 @@ def cli(*args, cache, env=None):
 # Every variant: the whole run directory, a model that reloads and agrees
 # ---------------------------------------------------------------------------
 @pytest.mark.parametrize("variant", ["baseline", "cpl-u", "cpl-a", "deep-homo"])
-def test_every_variant_writes_the_run_directory(variant, dataset, tmp_path):
+def test_every_variant_writes_the_run_directory(variant, dataset, variant_run, tmp_path):
+    """The shared run of each variant (conftest's VARIANT_RUN: these
+    settings, seed 1) on this module's dataset."""
     import keras
 
     import cpl_keras.models.factory  # noqa: F401  (registers the custom objects)
@@ -66,8 +68,7 @@ def test_every_variant_writes_the_run_directory(variant, dataset, tmp_path):
     from cpl_keras.datasets import load_split
     from cpl_keras.training import train
 
-    run_dir = str(tmp_path / "run")
-    summary = train(dataset, variant=variant, run_dir=run_dir, seed=1, **TINY)
+    run_dir, summary = variant_run(variant)["run_dir"], variant_run(variant)["summary"]
     for name in RUN_FILES:
         assert os.path.isfile(os.path.join(run_dir, name)), name
     assert summary["status"] == "finished" and summary["epochs_run"] == 2
@@ -109,6 +110,9 @@ def test_every_variant_writes_the_run_directory(variant, dataset, tmp_path):
         # A run directory of the older config.json layouts (as_released also
         # at the top level; no disparity ceiling) still loads and resumes.
         from cpl_keras import runs
+
+        run_dir = str(tmp_path / "run")
+        shutil.copytree(variant_run(variant)["run_dir"], run_dir)
 
         assert (config["build"]["disparity_ceiling"] is None) == (variant == "baseline")
         old_build = {k: v for k, v in config["build"].items() if k != "disparity_ceiling"}
