@@ -18,6 +18,7 @@ import numpy as np
 from cpl_keras import runs
 from cpl_keras.augment import AUGMENTATIONS
 from cpl_keras.camera import FLOORS, RELEASED_FLOORS
+from cpl_keras.data.mix import training_rigs
 from cpl_keras.data.storage import DatasetError, StereoFile
 from cpl_keras.datasets import SPLITS, make_split, targets_from_labels
 from cpl_keras.errors import Error
@@ -126,6 +127,7 @@ def _read_dataset(data, *, image_size, split, seed, test_fraction, val_fraction,
         height, width, _ = f.image_shape
         num_pairs = f.num_pairs
         protocol = f.metadata.get("protocol")
+        rigs = training_rigs(f.metadata)
     if image_size is not None and (height, width) != (image_size, image_size):
         raise TrainingError(
             f"{data}: images are {height}x{width}, but --image-size is {image_size}"
@@ -152,7 +154,7 @@ def _read_dataset(data, *, image_size, split, seed, test_fraction, val_fraction,
             f"pairs of {data}); use --batch-size {len(indices['train'])} or less"
         )
     return {"data": data, "height": height, "width": width, "num_pairs": num_pairs,
-            "protocol": protocol, "targets": targets, "indices": indices}
+            "protocol": protocol, "rigs": rigs, "targets": targets, "indices": indices}
 
 
 def plan_run(data, *, variant, run_dir, epochs=200, batch_size=16, learning_rate=None,
@@ -208,6 +210,7 @@ def plan_run(data, *, variant, run_dir, epochs=200, batch_size=16, learning_rate
         "data": data,
         "num_pairs": num_pairs,
         "protocol": protocol,
+        "training_rigs": dataset["rigs"],
         "split": split,
         "test_fraction": test_fraction,
         "val_fraction": val_fraction,

@@ -139,6 +139,9 @@ class RunConfig:
     build: dict
     data: str
     protocol: str | None = None
+    # the real rigs among the training pairs (a mixed or real training set):
+    # Table 2 never scores the run on them
+    training_rigs: list = dataclasses.field(default_factory=list)
     split: str | None = None
     seed: int | None = None
     num_train: int | None = None

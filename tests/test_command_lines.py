@@ -53,10 +53,10 @@ def _main_functions():
     import importlib.util
 
     from cpl_keras import calibrate, graph, learning_curves, reproduce
-    from cpl_keras.data import generate
+    from cpl_keras.data import generate, mix
     from cpl_keras.real import build
 
-    mains = {"reproduce": reproduce.main, "data.generate": generate.main,
+    mains = {"reproduce": reproduce.main, "data.generate": generate.main, "data.mix": mix.main,
              "calibrate": calibrate.main, "graph": graph.main, "real.build": build.main,
              "learning_curves": learning_curves.main}
     for script in ("train.py", "evaluate.py"):

@@ -111,10 +111,21 @@ def score_masked(truth, pred, defined, width):
         str(k): float(p) for k, p in zip(metrics.FOV_THRESHOLDS_DEG, curve)}, "field": field}
 
 
+def _check_never_trained_on(loaded, rig, data_path):
+    """Leave one rig out: EvaluationError when a run's training pairs
+    include pairs of ``rig`` (a real or mixed training set records its rigs)."""
+    for run in loaded:
+        if rig in run.config.training_rigs:
+            raise EvaluationError(
+                f"{run.run_dir} was trained on pairs of the rig '{rig}' ({data_path}); "
+                f"Table 2 scores a model only on rigs it never saw in training")
+
+
 def _rig_rows(loaded, data_path, geometric, geometric_max, progress):
     """Truth, predictions and definedness of every row on one rig."""
     reference = loaded[0]
     with open_dataset(data_path) as data:
+        _check_never_trained_on(loaded, rig_name(data.metadata, data_path), data_path)
         indices, description = evaluation_indices(reference, data_path, data.num_pairs)
         labels, metadata = data.labels, data.metadata
         width, n = data.image_shape[1], len(indices)
