@@ -7,7 +7,9 @@ and the expensive things several test files need, made once per session:
   and learning-curve tests train on;
 * ``variant_run(name)``: one run of each variant on ``stereo40``, trained at
   first use (the run-directory tests and the learning curves read the same
-  MTL-CPL-A run instead of training it twice).
+  MTL-CPL-A run instead of training it twice);
+* ``real32``: every shipped real rig built at 32 px, one crop per pair (the
+  Table 2 tests and the leave-one-rig-out test).
 
 Each is read only: a test that changes a run copies it first.
 
@@ -71,3 +73,15 @@ def variant_run(stereo40, tmp_path_factory):
         return made[variant]
 
     return get
+
+
+@pytest.fixture(scope="session")
+def real32(tmp_path_factory):
+    """A folder of the shipped real sets (chessboard 13 pairs, Middlebury 1,
+    OAK-D 12) at 32x32, ``real.build all --crops 1``. Read only."""
+    from cpl_keras.real import build
+
+    real = tmp_path_factory.mktemp("real32")
+    assert build.main(["all", "--out-dir", str(real), "--crops", "1", "--image-size",
+                       str(TINY_SIZE)]) == 0
+    return real

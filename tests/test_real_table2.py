@@ -13,14 +13,8 @@ SIZE = 32
 
 
 @pytest.fixture(scope="module")
-def setup(tiny_run, tmp_path_factory):
-    root = tmp_path_factory.mktemp("t2")
-    run = tiny_run["run"]
-    real = root / "real"
-    real.mkdir()
-    assert build.main(["all", "--out-dir", str(real), "--crops", "1", "--image-size",
-                       str(SIZE)]) == 0
-    return {"run": str(run), "real": real}
+def setup(tiny_run, real32):
+    return {"run": str(tiny_run["run"]), "real": real32}
 
 
 def test_table2_per_rig_and_pooled(setup, tmp_path, capsys):
