@@ -1,8 +1,10 @@
 """One pair of the synthetic stereo dataset: its two images and its labels.
 
 Each pair is rendered by ``cpl_keras.data.render`` in a town of
-``cpl_keras.data.scenes`` with a rig from ``cpl_keras.data.protocols``, and
-labelled with the paper's 13 targets:
+``cpl_keras.data.scenes`` with a rig from ``cpl_keras.data.protocols`` (in
+the ``wild`` protocol under its configuration's sun, haze and white
+balance, which change the images only), and labelled with the paper's 13
+targets:
 
 * the intrinsics fx, fy, u0, v0 and the extrinsics pitch, tx, ty, tz of the
   right camera relative to the left one (see ``protocols``),
@@ -128,6 +130,9 @@ def render_pair(protocol, seed, pairs, image_size, index):
     town, cfg, right = s["town"], s["config"], s["right"]
     left_img, _ = render.render(town, s["left"])
     right_img, right_depth = render.render(town, right)
+    if s["white_balance"] is not None:         # wild: one gain per channel, both images
+        left_img = white_balance(left_img, s["white_balance"])
+        right_img = white_balance(right_img, s["white_balance"])
     (u, v), fallback = choose_projection_pixel(cfg, right_depth, s["uv_candidates"], s["margin"],
                                                s["principal_point"])
     # the depth of exactly (u, v), cast on its own (also for non-integer pixels)
@@ -151,6 +156,12 @@ def render_pair(protocol, seed, pairs, image_size, index):
     labels.update(u_released=float(u_rel), v_released=float(v_rel),
                   sky_at_release_pixel=int(sky), projection_fallback=int(fallback))
     return left_img, right_img, labels
+
+
+def white_balance(image, gains):
+    """A uint8 RGB image with each channel multiplied by its gain (rounded, clipped)."""
+    out = image.astype(np.float32) * np.asarray(gains, np.float32)
+    return np.clip(out + 0.5, 0, 255).astype(np.uint8)
 
 
 def _ray_distance(cfg, xCam, u, v):

@@ -75,6 +75,19 @@ only for the as-released labels.
     configuration). Rendering the square image with those intrinsics is
     exactly the squashed source image, without its resampling.
 
+``wild`` (the ``cameras`` rigs under randomised light and colour)
+    The configurations, poses, drives, projection pixels and labels of
+    ``cameras`` for the same (seed, pairs, image size), and per
+    configuration an appearance (``WILD_APPEARANCE``, the ``appearance``
+    entry of the configuration): the sun's direction (15-75 deg above the
+    horizon, any azimuth), the haze distance (150-1500 m, log-uniform), the
+    haze colour (a blend of a cool grey-blue and a warm grey) and a gain per
+    colour channel (0.85-1.15, white balance) that both images share. The
+    appearance is drawn from its own generator, seeded from (seed,
+    configuration), so the geometry draws are those of ``cameras`` and
+    ``cameras`` itself is unchanged. Only the images, and the StereoBM
+    disparity computed from them, differ from ``cameras``.
+
 Frames: configuration c owns a contiguous run of pair indices (a drive); frame
 k of it puts the vehicle at x = start + k * step along the main street, with a
 slow lateral sway. Everything about pair i is a function of (seed, i) only.
@@ -82,6 +95,7 @@ slow lateral sway. Everything about pair i is a function of (seed, i) only.
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 import math
 
@@ -91,7 +105,7 @@ from cpl_keras import camera
 from cpl_keras.data import scenes
 from cpl_keras.data.render import View
 
-PROTOCOLS = ("cvgl", "random", "cameras")
+PROTOCOLS = ("cvgl", "random", "cameras", "wild")
 
 CVGL_CONFIGS = 50
 CVGL_LEFT = {"x": 2.0, "y": 0.0, "z": 1.4, "pitch_deg": 15.0}
@@ -113,6 +127,17 @@ RANDOM_RANGES = {
 #: 16:9, KITTI's 1242x375, square, and portrait 3:4 and 9:16. Each is
 #: squashed to the square model input as inference does.
 CAMERA_ASPECTS = (4 / 3, 3 / 2, 16 / 10, 16 / 9, 1242 / 375, 1.0, 3 / 4, 9 / 16)
+#: The ``wild`` protocol's appearance per configuration: the sun's elevation
+#: above the horizon and azimuth (degrees from the street's x axis towards
+#: its left, y), the haze distance (metres, drawn log-uniform), the haze
+#: colour ``(1 - b) cool + b warm`` with b in ``haze_blend``, and the white
+#: balance, a gain per colour channel shared by the left and right image.
+WILD_APPEARANCE = {
+    "sun_elevation_deg": (15.0, 75.0), "sun_azimuth_deg": (-180.0, 180.0),
+    "haze_m": (150.0, 1500.0), "haze_colour_cool": (0.66, 0.72, 0.80),
+    "haze_colour_warm": (0.80, 0.77, 0.70), "haze_blend": (0.0, 1.0),
+    "white_balance_gain": (0.85, 1.15),
+}
 #: Projection pixels lie at least this fraction of the image from the border.
 PROJECTION_MARGIN_FRACTION = 0.125
 #: How the projection pixel is chosen (see the module docstring).
@@ -138,8 +163,11 @@ def ranges(protocol):
     check_protocol(protocol)
     base = CVGL_RANGES if protocol == "cvgl" else RANDOM_RANGES
     out = {k: list(v) if isinstance(v, tuple) else v for k, v in base.items()}
-    if protocol == "cameras":
+    if protocol in ("cameras", "wild"):
         out["source_aspects"] = list(CAMERA_ASPECTS)
+    if protocol == "wild":
+        out["appearance"] = {k: list(v) for k, v in WILD_APPEARANCE.items()}
+        out["appearance"]["haze_m_drawn"] = "log-uniform"
     out.update({f"drive_{k}": list(v) if isinstance(v, tuple) else v for k, v in DRIVE.items()})
     out["projection_margin_fraction"] = PROJECTION_MARGIN_FRACTION
     out["projection_rule"] = PROJECTION_RULE
@@ -200,7 +228,11 @@ def _u(rng, lo_hi):
 @functools.lru_cache(maxsize=8)
 def _configurations(protocol, seed, pairs, image_size):
     """The configuration table of a dataset, drawn from (seed, protocol):
-    configuration after configuration, its rig, then its drive."""
+    configuration after configuration, its rig, then its drive. ``wild``:
+    the ``cameras`` table, each configuration with its ``appearance``."""
+    if protocol == "wild":
+        return tuple(dict(cfg, appearance=_appearance(seed, cfg["config_id"]))
+                     for cfg in _configurations("cameras", seed, pairs, image_size))
     rng = np.random.default_rng([seed, PROTOCOLS.index(protocol)])
     configs = []
     for c in range(num_configs(protocol, pairs)):
@@ -311,6 +343,35 @@ def _drive(rng, town_id):
             "step": _u(rng, DRIVE["step_m"]), "sway_phase": _u(rng, (0.0, 2 * math.pi))}
 
 
+def _appearance(seed, c):
+    """Configuration ``c``'s appearance in the ``wild`` protocol, drawn from
+    its own generator (seed, ``wild``, c): the sun (unit vector, world frame),
+    the haze distance and colour, and the white balance (JSON-able)."""
+    A = WILD_APPEARANCE
+    rng = np.random.default_rng([seed, PROTOCOLS.index("wild"), c])
+    elevation = _u(rng, A["sun_elevation_deg"])
+    azimuth = _u(rng, A["sun_azimuth_deg"])
+    haze = math.exp(_u(rng, tuple(math.log(h) for h in A["haze_m"])))
+    blend = _u(rng, A["haze_blend"])
+    gains = [_u(rng, A["white_balance_gain"]) for _ in range(3)]
+    el, az = math.radians(elevation), math.radians(azimuth)
+    sun = [math.cos(el) * math.cos(az), math.cos(el) * math.sin(az), math.sin(el)]
+    colour = [(1 - blend) * cool + blend * warm
+              for cool, warm in zip(A["haze_colour_cool"], A["haze_colour_warm"])]
+    return {"sun": sun, "sun_elevation_deg": elevation, "sun_azimuth_deg": azimuth,
+            "haze_m": haze, "haze_blend": blend, "haze_colour": colour,
+            "white_balance": gains}
+
+
+def appearance_town(town, appearance):
+    """``town`` lit as ``appearance`` says: its sun, haze and haze colour
+    replaced (``dataclasses.replace``: the layout's arrays are shared, the
+    cached town is left as it is)."""
+    return dataclasses.replace(town, sun=np.asarray(appearance["sun"], np.float64),
+                               haze=float(appearance["haze_m"]),
+                               haze_colour=np.asarray(appearance["haze_colour"], np.float32))
+
+
 def configurations(protocol, seed, pairs, image_size):
     """The configuration table (list of JSON-able dicts) of a dataset."""
     return [dict(c) for c in _configurations(protocol, int(seed), int(pairs), int(image_size))]
@@ -334,6 +395,9 @@ def pair_setup(protocol, seed, pairs, image_size, index):
     c, frame = config_of_pair(protocol, pairs, index)
     cfg = configs[c]
     town = scenes.make_town(cfg["town_id"])
+    appearance = cfg.get("appearance")
+    if appearance is not None:
+        town = appearance_town(town, appearance)
     vehicle = np.array([
         math.fmod(cfg["start_x"] + frame * cfg["step"], town.period),
         DRIVE["sway_m"] * math.sin(0.07 * frame + cfg["sway_phase"]),
@@ -355,7 +419,8 @@ def pair_setup(protocol, seed, pairs, image_size, index):
     candidates = projection_candidates(W, H, cfg["u0"], cfg["v0"])
     return {"config": cfg, "frame_index": frame, "town": town, "left": left, "right": right,
             "uv_candidates": candidates, "margin": margin, "release_uv": release_pixel(W, H),
-            "principal_point": (cfg["u0"], cfg["v0"])}
+            "principal_point": (cfg["u0"], cfg["v0"]),
+            "white_balance": None if appearance is None else appearance["white_balance"]}
 
 
 def projection_candidates(width, height, u0, v0):
