@@ -7,7 +7,8 @@ Modules (numpy only, no deep-learning backend is imported):
 * ``scenes``    the procedural towns ``Town01`` and ``Town02``
 * ``render``    a vectorised numpy ray caster (depth = xCam, Eq. 4a)
 * ``shading``   the ray caster's materials, sunlight, shadows and haze
-* ``protocols`` the ``cvgl``, ``random`` and ``cameras`` stereo-rig protocols
+* ``protocols`` the ``cvgl``, ``random``, ``cameras`` and ``wild`` stereo-rig
+  protocols
 * ``pair``      one stereo pair: its two images and its labels
 * ``generate``  ``generate_dataset`` and the CLI
   (``python -m cpl_keras.data.generate --pairs N --out data/cvgl.h5``)

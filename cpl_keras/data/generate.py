@@ -396,8 +396,9 @@ def _parser():
     )
     p.add_argument("--protocol", default="cvgl", choices=PROTOCOLS,
                    help="cvgl: the paper's 50 rigs; random: realistic rigs; cameras: random "
-                   "rigs with real cameras' aspect ratios squashed to the square input "
-                   "(default cvgl)")
+                   "rigs with real cameras' aspect ratios squashed to the square input; "
+                   "wild: the cameras rigs under a sun, haze and white balance drawn per "
+                   "rig (default cvgl)")
     p.add_argument("--pairs", type=int, required=True, help="number of stereo pairs")
     p.add_argument("--out", help="output HDF5 file (may be left out with --preview)")
     p.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
