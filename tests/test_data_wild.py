@@ -62,8 +62,9 @@ def test_wild_configurations_are_the_cameras_ones_with_an_appearance(wild_and_ca
                                    cool + look["haze_blend"] * (warm - cool))
         gains = np.array(look["white_balance"])
         assert gains.shape == (3,)
-        assert np.all((gains >= ranges["white_balance_gain"][0])
-                      & (gains <= ranges["white_balance_gain"][1]))
+        t, g = ranges["white_balance_temperature"][1], ranges["white_balance_tint"][1]
+        assert gains[0] - 1 == pytest.approx(1 - gains[2]) and abs(gains[0] - 1) <= t
+        assert abs(gains[1] - 1) <= g
     assert looks[0] != looks[1]
     for key in ("sun", "haze_m", "haze_colour", "white_balance"):
         assert looks[0][key] != looks[1][key], key

@@ -82,7 +82,8 @@ only for the as-released labels.
     entry of the configuration): the sun's direction (15-75 deg above the
     horizon, any azimuth), the haze distance (150-1500 m, log-uniform), the
     haze colour (a blend of a cool grey-blue and a warm grey) and a gain per
-    colour channel (0.85-1.15, white balance) that both images share. The
+    colour channel that both images share (white balance: red 1 + t and blue
+    1 - t with t in -0.15..0.15, green 1 + g with g in -0.04..0.04). The
     appearance is drawn from its own generator, seeded from (seed,
     configuration), so the geometry draws are those of ``cameras`` and
     ``cameras`` itself is unchanged. Only the images, and the StereoBM
@@ -136,7 +137,9 @@ WILD_APPEARANCE = {
     "sun_elevation_deg": (15.0, 75.0), "sun_azimuth_deg": (-180.0, 180.0),
     "haze_m": (150.0, 1500.0), "haze_colour_cool": (0.66, 0.72, 0.80),
     "haze_colour_warm": (0.80, 0.77, 0.70), "haze_blend": (0.0, 1.0),
-    "white_balance_gain": (0.85, 1.15),
+    # white balance as cameras get it wrong: along the blue-amber axis (red
+    # gain 1 + t, blue 1 - t), with a small green-magenta tint (green 1 + g)
+    "white_balance_temperature": (-0.15, 0.15), "white_balance_tint": (-0.04, 0.04),
 }
 #: Projection pixels lie at least this fraction of the image from the border.
 PROJECTION_MARGIN_FRACTION = 0.125
@@ -353,7 +356,9 @@ def _appearance(seed, c):
     azimuth = _u(rng, A["sun_azimuth_deg"])
     haze = math.exp(_u(rng, tuple(math.log(h) for h in A["haze_m"])))
     blend = _u(rng, A["haze_blend"])
-    gains = [_u(rng, A["white_balance_gain"]) for _ in range(3)]
+    temperature = _u(rng, A["white_balance_temperature"])
+    tint = _u(rng, A["white_balance_tint"])
+    gains = [1.0 + temperature, 1.0 + tint, 1.0 - temperature]
     el, az = math.radians(elevation), math.radians(azimuth)
     sun = [math.cos(el) * math.cos(az), math.cos(el) * math.sin(az), math.sin(el)]
     colour = [(1 - blend) * cool + blend * warm
