@@ -14,7 +14,8 @@ rig trains on the synthetic set mixed (``cpl_keras.data.mix``) with the crops
 of every OTHER real rig, and is scored on that rig only: a rig used in any
 form in training is never a test rig (Table 2 refuses it anyway). Runs
 resume where they stopped (the same command again); every finished model's
-Table 2 goes to ``--out/<model>/`` and ``--out/summary.md`` collects the
+Table 2 goes to ``--out/<model>/``, its log, curves and config to
+``--out/runs/``, and ``--out/summary.md`` collects the
 field's metrics per rig with the targets.
 """
 
@@ -64,6 +65,18 @@ def plan(args, rigs):
             mix_datasets(data, [args.synthetic] + others)
         models.append((f"without-{rig}", data, [rig]))
     return models
+
+
+def publish(run_dir, target, name):
+    """The run's log, curves and config (no weights; the dataset and run
+    directory without this machine's paths) as ``target/<name>_*``."""
+    from cpl_keras import runs
+    from cpl_keras.files import write_json
+
+    runs.publish_files(run_dir, target, name)
+    config = runs.read_config(run_dir)
+    write_json(os.path.join(target, f"{name}_config.json"),
+               dict(config, data=os.path.basename(config["data"]), run_dir=name))
 
 
 def summary_rows(name, table, row):
@@ -116,6 +129,7 @@ def main(argv=None):
                         time_budget_s=args.time_budget, verbose=2)
         if summary["status"] != "finished":
             raise SystemExit(f"{run_dir}: {summary['status']} ({summary.get('stopped')})")
+        publish(run_dir, os.path.join(args.out, "runs"), name)
         table = evaluation.make_table2([run_dir], [rigs[r] for r in tested], geometric=False)
         report.write_outputs(os.path.join(args.out, name), "table2", table,
                              "python bench/leave_one_rig_out.py " + " ".join(argv or sys.argv[1:]))

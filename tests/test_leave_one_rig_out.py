@@ -34,6 +34,11 @@ def test_each_rig_is_scored_by_a_model_that_never_saw_it(tiny_run, real32, tmp_p
         assert config["training_rigs"] == [r for r in rigs if r != rig]
         with StereoFile(runs / f"mix_without_{rig}.h5") as f:
             assert f.metadata["rigs"] == config["training_rigs"]
+        published = json.loads((out / "runs" / f"without-{rig}_config.json").read_text())
+        assert published["training_rigs"] == config["training_rigs"]
+        assert published["data"] == f"mix_without_{rig}.h5"
+        assert (out / "runs" / f"without-{rig}_log.csv").read_text() == \
+            (runs / f"without-{rig}" / "log.csv").read_text()
         table = json.loads((out / f"without-{rig}" / "table2.json").read_text())
         assert list(table["rigs"]) == [rig]
     summary = (out / "summary.md").read_text()
