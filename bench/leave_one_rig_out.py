@@ -59,6 +59,8 @@ def plan(args, rigs):
 
     models = []
     for rig in sorted(rigs):
+        if args.only and rig not in args.only:
+            continue
         data = os.path.join(args.runs_dir, f"mix_without_{rig}.h5")
         if not os.path.exists(data):
             others = [rigs[r] for r in sorted(rigs) if r != rig]
@@ -106,6 +108,9 @@ def main(argv=None):
     parser.add_argument("--runs-dir", required=True, help="folder for the runs and mixed sets")
     parser.add_argument("--with-real-crops", action="store_true",
                         help="one model per rig, trained with the other rigs' crops")
+    parser.add_argument("--only", nargs="+", metavar="RIG",
+                        help="with --with-real-crops: train only the models that leave out "
+                        "these rigs (the rest of a later run resumes them)")
     parser.add_argument("--variant", choices=sorted(ROW), default="baseline")
     parser.add_argument("--backbone", default="small_resnet")
     parser.add_argument("--epochs", type=int, default=60)
