@@ -12,7 +12,10 @@ Without ``--with-real-crops`` one model trains on the synthetic set alone and
 is scored on every real set of ``--real-dir``. With it, one model per real
 rig trains on the synthetic set mixed (``cpl_keras.data.mix``) with the crops
 of every OTHER real rig, and is scored on that rig only: a rig used in any
-form in training is never a test rig (Table 2 refuses it anyway). Runs
+form in training is never a test rig (Table 2 refuses it anyway). The
+training split is held-out-config, or with the real crops the paper's
+frame-level split (held-out-config can put a whole real rig, one
+configuration, into its test part, so that it is never trained on). Runs
 resume where they stopped (the same command again); every finished model's
 Table 2 goes to ``--out/<model>/``, its log, curves and config to
 ``--out/runs/``, and ``--out/summary.md`` collects the
@@ -112,6 +115,10 @@ def main(argv=None):
                         help="with --with-real-crops: train only the models that leave out "
                         "these rigs (the rest of a later run resumes them)")
     parser.add_argument("--variant", choices=sorted(ROW), default="baseline")
+    parser.add_argument("--split", choices=("paper", "held-out-config"),
+                        help="the training run's split (default held-out-config; with "
+                        "--with-real-crops paper: a real rig can be one configuration, the "
+                        "chessboard's 260 crops, which held-out-config would hold out whole)")
     parser.add_argument("--backbone", default="small_resnet")
     parser.add_argument("--epochs", type=int, default=60)
     parser.add_argument("--augment", default="photometric")
@@ -128,8 +135,9 @@ def main(argv=None):
              "hFoV error, deg | hFoV within 5 deg | targets met |", "|---|---|---|---|---|---|---|---|"]
     for name, data, tested in plan(args, rigs):
         run_dir = os.path.join(args.runs_dir, name)
+        split = args.split or ("paper" if args.with_real_crops else "held-out-config")
         summary = train(data, variant=args.variant, run_dir=run_dir, backbone=args.backbone,
-                        epochs=args.epochs, split="held-out-config", seed=args.seed,
+                        epochs=args.epochs, split=split, seed=args.seed,
                         augment=None if args.augment == "none" else args.augment,
                         time_budget_s=args.time_budget, verbose=2)
         if summary["status"] != "finished":
