@@ -27,6 +27,13 @@ one pair determines and which are scale priors (``scale_free``,
 ``scale_priors``), what every field means (``fields``), and whether the run
 is the demonstration model (then also warned about).
 
+``--aspect square`` (the default) takes the pixels as square, as real
+cameras' are: fy = fx in the input image's pixels, the network's own fy
+kept as ``network_fy``. The network sees the pair squashed to a square, so
+its fy must guess the image's aspect ratio from content, and on real rigs it
+did worse than fx (docs/evaluation.md, "Models for real cameras");
+``--aspect model`` reports the network's fy.
+
 ``--folder DIR`` calibrates every pair of one rig (``find_pairs``) and
 prints ``{"rig": ..., "pairs": [...]}``: the rig's parameters are the
 medians over the pairs (the disparity, which belongs to each pair's scene,
@@ -216,11 +223,18 @@ def load(run_dir):
     return run, runs.load_model(run)
 
 
-def calibrate_pair(left_path, right_path, run_dir, warn=None, loaded=None):
+#: How fy is reported: "square" pixels (fy = fx), or the "model"'s fy head.
+ASPECTS = ("square", "model")
+
+
+def calibrate_pair(left_path, right_path, run_dir, warn=None, loaded=None, aspect="square"):
     """The calibration of one pair as a JSON-ready dict; ``warn(line)`` is
     called with each warning (a grey image, a prediction outside the
     training labels' range, a large spread, the demonstration model).
-    ``loaded``: ``load(run_dir)``'s result, when already loaded."""
+    ``loaded``: ``load(run_dir)``'s result, when already loaded; ``aspect``
+    one of ``ASPECTS`` (the module doc)."""
+    if aspect not in ASPECTS:
+        raise CalibrationError(f"unknown aspect {aspect!r}; choose one of {', '.join(ASPECTS)}")
     warn = warn or (lambda line: None)
     left, right = read_pair(left_path, right_path)
     run, model = loaded or load(run_dir)
@@ -236,6 +250,10 @@ def calibrate_pair(left_path, right_path, run_dir, warn=None, loaded=None):
     released = run.as_released
     windows = crop_windows(width, height)
     raw, per_window = predict_windows(model, left, right, windows, released)
+    network_fy = per_window[0]["fy"]
+    if aspect == "square":                      # fy = fx on the input images (and every crop)
+        for one in per_window:
+            one["fy"] = one["fx"]
     values = per_window[0]                      # the whole image
     if not all(math.isfinite(v) for v in values.values()):
         raise CalibrationError("the model predicted non-finite values")
@@ -243,7 +261,7 @@ def calibrate_pair(left_path, right_path, run_dir, warn=None, loaded=None):
     _check_ranges(raw[0], ranges, warn)
     spread = {name: float(np.std([v[name] for v in per_window], ddof=1))
               for name in PARAMETERS + ("X", "Y", "Z")}
-    for name in ("fx", "fy"):
+    for name in ("fx", "fy") if aspect == "model" else ("fx",):   # (square: fy is fx)
         if spread[name] > SPREAD_WARNING * abs(values[name]):
             warn(f"warning: {name} changes by {spread[name]:.4g} px (std) between crops of the "
                  f"pair, over {100 * SPREAD_WARNING:.0f} % of its value {values[name]:.4g}: "
@@ -268,6 +286,7 @@ def calibrate_pair(left_path, right_path, run_dir, warn=None, loaded=None):
                        "note": SCALE_NOTE},
         "scale_priors": list(SCALE_PRIORS), "fields": dict(FIELDS),
         "demonstration_model": demo,
+        "aspect": aspect, "network_fy": network_fy, "aspect_note": ASPECT_NOTES[aspect],
         "training": {
             "protocol": training_protocol(run), "split": run.config.split,
             "as_released": released, "label_ranges": ranges,
@@ -325,7 +344,7 @@ def find_pairs(folder):
     return pairs
 
 
-def calibrate_rig(folder, run_dir, warn=None):
+def calibrate_rig(folder, run_dir, warn=None, aspect="square"):
     """Every pair of ``folder`` (``find_pairs``) calibrated by the run, and
     the rig's calibration from them: each parameter but the disparity (the
     scene's) is the median over the pairs, with its spread over the pairs.
@@ -343,7 +362,7 @@ def calibrate_rig(folder, run_dir, warn=None):
     for left, right in pairs:
         name = os.path.basename(left)
         results.append(calibrate_pair(
-            left, right, run_dir, loaded=loaded,
+            left, right, run_dir, loaded=loaded, aspect=aspect,
             warn=lambda line, name=name: warn_once(
                 line if "demonstration model" in line else f"{name}: {line}")))
     sizes = sorted({(r["image_width"], r["image_height"]) for r in results})
@@ -356,7 +375,7 @@ def calibrate_rig(folder, run_dir, warn=None):
     parameters = {name: float(np.median(v)) for name, v in per_pair.items()}
     spread = {name: float(np.std(v, ddof=1)) if len(v) > 1 else 0.0
               for name, v in per_pair.items()}
-    for name in ("fx", "fy"):
+    for name in ("fx", "fy") if aspect == "model" else ("fx",):
         if spread[name] > SPREAD_WARNING * abs(parameters[name]):
             warn(f"warning: {name} changes by {spread[name]:.4g} px (std) between the "
                  f"{len(results)} pairs, over {100 * SPREAD_WARNING:.0f} % of its median "
@@ -371,6 +390,7 @@ def calibrate_rig(folder, run_dir, warn=None):
         "units": {name: UNITS[name] for name in RIG_PARAMETERS},
         "scale_priors": [n for n in SCALE_PRIORS if n in RIG_PARAMETERS],
         "demonstration_model": results[0]["demonstration_model"],
+        "aspect": aspect, "aspect_note": ASPECT_NOTES[aspect],
     }
     return {"rig": rig, "pairs": results}
 
@@ -380,6 +400,11 @@ SCALE_PRIORS = ("baseline", "tx", "ty", "tz", "X", "Y", "Z")
 SCALE_NOTE = ("one pair fixes the focal length, principal point, pitch and the ratio "
               "baseline / depth (disparity / fx); the metres of baseline, tx, ty, tz and "
               "X, Y, Z come from the scene scale seen in training (scale priors)")
+ASPECT_NOTES = {
+    "square": "square pixels: fy = fx (px of the input images); network_fy is the network's "
+              "own fy, which guesses the aspect ratio of the squashed image from content",
+    "model": "fy is the network's fy head (the pair squashed to the model's square input)",
+}
 SPREAD_METHOD = (f"standard deviation over the whole image and {{}} crops of "
                  f"{int(100 * TTA_FRACTION[0])}-{int(100 * TTA_FRACTION[1])} % of each side, "
                  "each mapped back to the full image's pixels")
@@ -394,6 +419,9 @@ def main(argv=None):
                         "right/ folders) as one rig: each parameter the median over the pairs, "
                         "with its spread over them (instead of LEFT RIGHT)")
     parser.add_argument("--run", required=True, help="run directory of a trained model")
+    parser.add_argument("--aspect", choices=ASPECTS, default="square",
+                        help="square: fy = fx, as on real cameras' square pixels (default); "
+                        "model: the network's fy")
     parser.add_argument("--json-out", help="also write the JSON to this file")
     parser.add_argument("--opencv-yaml", metavar="FILE",
                         help="also write the calibration as OpenCV's stereo YAML (M1, D1, M2, "
@@ -419,10 +447,11 @@ def main(argv=None):
             print(f"{PROG}: {line}", file=sys.stderr)
 
         if args.folder:
-            result = calibrate_rig(args.folder, args.run, warn=warn)
+            result = calibrate_rig(args.folder, args.run, warn=warn, aspect=args.aspect)
             calibration = result["rig"]
         else:
-            result = calibration = calibrate_pair(args.left, args.right, args.run, warn=warn)
+            result = calibration = calibrate_pair(args.left, args.right, args.run, warn=warn,
+                                                  aspect=args.aspect)
         text = json.dumps(result, indent=2, allow_nan=False)
         if args.json_out:
             runs.write_text(args.json_out, text + "\n")

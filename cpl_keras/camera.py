@@ -204,6 +204,19 @@ def fov_from_focal(focal, size):
     return 2.0 * np.arctan2(np.asarray(size, dtype=np.float64), 2.0 * np.asarray(focal, dtype=np.float64))
 
 
+def square_pixel_fy(fx, source_width, source_height, input_width, input_height):
+    """fy for a camera with square pixels (fx = fy on its own images), in the
+    pixels of the model's input: the source image, ``source_width`` x
+    ``source_height``, resized to ``input_width`` x ``input_height`` scales
+    the two focal lengths by ``input_width / source_width`` and
+    ``input_height / source_height``, so ``fy = fx * (input_height /
+    source_height) / (input_width / source_width)``. Real cameras have square
+    pixels; a squashed image's fy is then known from fx and the sizes."""
+    scale_x = np.asarray(input_width, np.float64) / np.asarray(source_width, np.float64)
+    scale_y = np.asarray(input_height, np.float64) / np.asarray(source_height, np.float64)
+    return np.asarray(fx, np.float64) * scale_y / scale_x
+
+
 # ---------------------------------------------------------------------------
 # Forward model: image -> camera -> world (Eqs. 4a-5c)
 # ---------------------------------------------------------------------------

@@ -48,7 +48,11 @@ def test_calibrate_scales_back_to_input_pixels(setup, tmp_path, capsys):
     raw = evaluation.predict_images(model, resize(left), resize(right))
     p = printed["parameters"]
     assert p["fx"] == pytest.approx(raw["fx"][0] * 64 / SIZE, rel=1e-4)
-    assert p["fy"] == pytest.approx(raw["fy"][0] * 40 / SIZE, rel=1e-4)
+    # square pixels (the default): fy = fx on the input images; the network's
+    # fy, scaled back by H / S, is kept beside it
+    assert printed["aspect"] == "square" and p["fy"] == p["fx"]
+    assert printed["network_fy"] == pytest.approx(raw["fy"][0] * 40 / SIZE, rel=1e-4)
+    assert printed["spread"]["fy"] == printed["spread"]["fx"]
     assert p["u0"] == pytest.approx((raw["u0"][0] + 0.5) * 64 / SIZE - 0.5, rel=1e-4, abs=1e-4)
     assert p["v0"] == pytest.approx((raw["v0"][0] + 0.5) * 40 / SIZE - 0.5, rel=1e-4, abs=1e-4)
     assert p["baseline"] == pytest.approx(raw["baseline"][0], rel=1e-4, abs=1e-6)
@@ -56,6 +60,15 @@ def test_calibrate_scales_back_to_input_pixels(setup, tmp_path, capsys):
         np.degrees(fov_from_focal(p["fx"], 64)), rel=1e-6)
     assert printed["fov_vertical_deg"] == pytest.approx(
         np.degrees(fov_from_focal(p["fy"], 40)), rel=1e-6)
+    # the network's fy with --aspect model
+    assert calibrate.main([str(root / "left.png"), str(root / "right.png"), "--run",
+                           setup["run"], "--aspect", "model"]) == 0
+    model_fy = json.loads(capsys.readouterr().out)
+    assert model_fy["aspect"] == "model"
+    assert model_fy["parameters"]["fy"] == pytest.approx(raw["fy"][0] * 40 / SIZE, rel=1e-4)
+    assert model_fy["parameters"]["fx"] == p["fx"]
+    assert model_fy["fov_vertical_deg"] == pytest.approx(
+        np.degrees(fov_from_focal(model_fy["parameters"]["fy"], 40)), rel=1e-6)
 
 
 def _fails(args, capsys, match, out=None):

@@ -109,3 +109,20 @@ def test_pixel_and_disparity_inverses_by_hand():
     assert (u, v) == pytest.approx((60.0, 40.0))
     assert camera.disparity_from_depth(100.0, 0.5, 5.0) == pytest.approx(10.0)
     assert np.isfinite(camera.fov_from_focal(0.0, 112)) and camera.fov_from_focal(0.0, 112) == pytest.approx(math.pi)
+
+
+def test_square_pixel_fy_of_a_crop_and_resize():
+    """A square-pixel camera (fx = fy = 500 px) cropped to 300 x 200 and
+    resized to 100 x 100: fx becomes 500 / 3, fy 500 / 2 (by hand), and
+    square_pixel_fy recovers fy from fx and the sides alone, as the real
+    crops' labels have it (crop_resize_intrinsics)."""
+    from cpl_keras.real import crop_resize_intrinsics
+
+    fx = 500.0 * 100 / 300
+    assert camera.square_pixel_fy(fx, 300, 200, 100, 100) == pytest.approx(500.0 * 100 / 200)
+    # a 1242 x 375 KITTI image squashed to 112 x 112: fy = fx * 1242 / 375
+    assert camera.square_pixel_fy(1.0, 1242, 375, 112, 112) == pytest.approx(1242 / 375)
+    # no squash, no change; arrays broadcast
+    np.testing.assert_allclose(camera.square_pixel_fy([10.0, 20.0], 64, 48, 32, 24), [10.0, 20.0])
+    cfx, cfy, *_ = crop_resize_intrinsics(451.0, 451.0, 320.0, 240.0, 17, 30, 410, 260, 112, 112)
+    assert camera.square_pixel_fy(cfx, 410, 260, 112, 112) == pytest.approx(cfy)

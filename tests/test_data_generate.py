@@ -27,7 +27,7 @@ def _read(path):
 
 
 def test_public_names():
-    assert PROTOCOLS == ("cvgl", "random", "cameras", "wild")
+    assert PROTOCOLS == ("cvgl", "random", "cameras", "wild", "zoom")
 
 
 def test_cameras_protocol_squashes_real_aspect_ratios_into_fy():

@@ -88,3 +88,29 @@ def test_wild_appearance_is_drawn_per_configuration_and_changes_no_town():
     np.testing.assert_array_equal(town.sun, sun)
     np.testing.assert_array_equal(town.haze_colour, colour)
     assert protocols.pair_setup("cameras", 1, 16, 16, 0)["white_balance"] is None
+
+
+def test_zoom_is_wild_with_the_fov_drawn_from_10_to_120_degrees():
+    """zoom: wild's rigs and appearance, the horizontal fov from its wider
+    range at the same draw (so the fov maps affinely from wild's), fx from
+    the fov (Eq. focal_from_fov) and fy keeping the rig's fy / fx."""
+    pairs, size = 8 * 300, 112
+    wild = protocols.configurations("wild", 3, pairs, size)
+    zoom = protocols.configurations("zoom", 3, pairs, size)
+    assert len(zoom) == len(wild) == 300
+    lo, hi = protocols.ZOOM_FOV_DEG
+    assert (lo, hi) == (10.0, 120.0)
+    w_lo, w_hi = protocols.CAMERA_RIG_FOV_DEG["wild"]
+    changed = {"fov_deg", "fx", "fy"}
+    for z, w in zip(zoom, wild):
+        assert {k: v for k, v in z.items() if k not in changed} == \
+            {k: v for k, v in w.items() if k not in changed}
+        # the same uniform draw on the wider interval
+        share = (w["fov_deg"] - w_lo) / (w_hi - w_lo)
+        assert z["fov_deg"] == pytest.approx(lo + share * (hi - lo))
+        assert z["fx"] == pytest.approx(size / 2 / np.tan(np.radians(z["fov_deg"]) / 2))
+        assert z["fy"] / z["fx"] == pytest.approx(w["fy"] / w["fx"])
+    fov = np.array([z["fov_deg"] for z in zoom])
+    assert fov.min() < 15 and fov.max() > 115 and np.mean(fov < 40) > 0.2
+    ranges = protocols.ranges("zoom")
+    assert ranges["fov_deg"] == [10.0, 120.0] and protocols.ranges("wild")["fov_deg"] == [40.0, 120.0]

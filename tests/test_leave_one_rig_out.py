@@ -51,3 +51,15 @@ def test_each_rig_is_scored_by_a_model_that_never_saw_it(tiny_run, real32, tmp_p
     rows = [line for line in summary.splitlines() if line.startswith("| ") and "without-" in line]
     assert len(rows) == 1 and rows[0].startswith("| oakd | without-oakd | 12 |")
     assert rows[0].endswith("| no |") or rows[0].endswith("| yes |")
+    # fy from square pixels, by hand from the stored predictions of fx and the
+    # crops' sides (fy / fx of a square-pixel crop is its width / height)
+    from cpl_keras import evaluation
+    with StereoFile(real32 / "oakd.h5") as f:
+        labels = f.labels
+        run = evaluation.load_run(str(runs / "without-oakd"))
+        fx = evaluation.predict_run(evaluation.load_model(run), f, np.arange(12))
+    expected = np.median(np.abs(fx["fx"] * labels["crop_width"] / labels["crop_height"]
+                                / labels["fy"] - 1.0))
+    assert f"| {expected:.3f} |" in rows[0]
+    assert script.square_pixel_fy_error(str(runs / "without-oakd"), str(real32 / "oakd.h5")) == \
+        pytest.approx(expected, rel=1e-5)

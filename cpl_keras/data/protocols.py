@@ -89,6 +89,15 @@ only for the as-released labels.
     ``cameras`` itself is unchanged. Only the images, and the StereoBM
     disparity computed from them, differ from ``cameras``.
 
+``zoom`` (the ``wild`` rigs with the fields of view of zoom and long lenses)
+    As ``wild``, but the horizontal fov is drawn from ``ZOOM_FOV_DEG``
+    (10-120 deg) instead of 40-120: real cameras, and crops of their images,
+    go down to 10-30 deg, which ``cameras`` never renders. Every other draw
+    is that of ``cameras`` and ``wild`` for the same (seed, pairs, image
+    size) (the same generator, the fov drawn from a wider interval at the
+    same step), so fx, fy and the disparity are the only labels that differ
+    from ``wild``, and the appearance per configuration is ``wild``'s.
+
 Frames: configuration c owns a contiguous run of pair indices (a drive); frame
 k of it puts the vehicle at x = start + k * step along the main street, with a
 slow lateral sway. Everything about pair i is a function of (seed, i) only.
@@ -106,7 +115,11 @@ from cpl_keras import camera
 from cpl_keras.data import scenes
 from cpl_keras.data.render import View
 
-PROTOCOLS = ("cvgl", "random", "cameras", "wild")
+PROTOCOLS = ("cvgl", "random", "cameras", "wild", "zoom")
+#: Protocols whose rigs are those of ``cameras`` (and whose appearance is
+#: drawn per configuration): the protocol -> its horizontal fov range (deg).
+CAMERA_RIG_FOV_DEG = {"cameras": (40.0, 120.0), "wild": (40.0, 120.0), "zoom": (10.0, 120.0)}
+ZOOM_FOV_DEG = CAMERA_RIG_FOV_DEG["zoom"]
 
 CVGL_CONFIGS = 50
 CVGL_LEFT = {"x": 2.0, "y": 0.0, "z": 1.4, "pitch_deg": 15.0}
@@ -166,9 +179,10 @@ def ranges(protocol):
     check_protocol(protocol)
     base = CVGL_RANGES if protocol == "cvgl" else RANDOM_RANGES
     out = {k: list(v) if isinstance(v, tuple) else v for k, v in base.items()}
-    if protocol in ("cameras", "wild"):
+    if protocol in CAMERA_RIG_FOV_DEG:
         out["source_aspects"] = list(CAMERA_ASPECTS)
-    if protocol == "wild":
+        out["fov_deg"] = list(CAMERA_RIG_FOV_DEG[protocol])
+    if protocol in ("wild", "zoom"):
         out["appearance"] = {k: list(v) for k, v in WILD_APPEARANCE.items()}
         out["appearance"]["haze_m_drawn"] = "log-uniform"
     out.update({f"drive_{k}": list(v) if isinstance(v, tuple) else v for k, v in DRIVE.items()})
@@ -232,11 +246,10 @@ def _u(rng, lo_hi):
 def _configurations(protocol, seed, pairs, image_size):
     """The configuration table of a dataset, drawn from (seed, protocol):
     configuration after configuration, its rig, then its drive. ``wild``:
-    the ``cameras`` table, each configuration with its ``appearance``."""
-    if protocol == "wild":
-        return tuple(dict(cfg, appearance=_appearance(seed, cfg["config_id"]))
-                     for cfg in _configurations("cameras", seed, pairs, image_size))
-    rng = np.random.default_rng([seed, PROTOCOLS.index(protocol)])
+    the ``cameras`` table, each configuration with its ``appearance``;
+    ``zoom``: the same with the fov drawn from its own range."""
+    rigs = "cameras" if protocol in CAMERA_RIG_FOV_DEG else protocol
+    rng = np.random.default_rng([seed, PROTOCOLS.index(rigs)])
     configs = []
     for c in range(num_configs(protocol, pairs)):
         if protocol == "cvgl":
@@ -244,6 +257,8 @@ def _configurations(protocol, seed, pairs, image_size):
         else:
             cfg = _random_rig(rng, c, protocol, image_size)
         cfg.update(_drive(rng, cfg["town_id"]))
+        if protocol in ("wild", "zoom"):
+            cfg["appearance"] = _appearance(seed, c)
         configs.append(cfg)
     return tuple(configs)
 
@@ -293,11 +308,11 @@ def _random_rig(rng, c, protocol, image_size):
     W = H = image_size
     R = RANDOM_RANGES
     town_id = c % len(scenes.TOWNS)
-    fov = _u(rng, R["fov_deg"])
+    fov = _u(rng, CAMERA_RIG_FOV_DEG.get(protocol, R["fov_deg"]))
     fx = float(camera.focal_from_fov(math.radians(fov), W))
     # cameras: a source image of width / height ``aspect`` squashed
     # to the square input keeps fx and multiplies fy by the aspect
-    aspect = float(rng.choice(CAMERA_ASPECTS)) if protocol == "cameras" else 1.0
+    aspect = float(rng.choice(CAMERA_ASPECTS)) if protocol in CAMERA_RIG_FOV_DEG else 1.0
     fy = fx * aspect * (1.0 + _u(rng, R["aspect_jitter"]))
     u0 = W / 2 + _u(rng, R["principal_offset_fraction"]) * W
     v0 = H / 2 + _u(rng, R["principal_offset_fraction"]) * H
@@ -318,7 +333,7 @@ def _random_rig(rng, c, protocol, image_size):
         "right_rotation": rot_right.tolist(),
         "right_pose": {"position": [float(p) for p in right]},
     }
-    if protocol == "cameras":
+    if protocol in CAMERA_RIG_FOV_DEG:
         cfg["source_aspect"] = aspect
     cfg["released"] = released_extrinsics(rot_left, left, rot_right, right, baseline=baseline)
     cfg.update(_rig_entries(c, town_id, fov, (fx, fy, u0, v0), baseline, t, (rp, 0.0, 0.0)))
