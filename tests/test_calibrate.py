@@ -329,3 +329,36 @@ def test_folder_and_pair_arguments_are_one_or_the_other(setup, tmp_path, capsys)
     assert calibrate.main(["--folder", str(tmp_path), "--run", setup["run"],
                            "--json-out", str(out)]) == 2
     assert "no stereo pairs" in capsys.readouterr().err and not out.exists()
+
+
+@pytest.mark.parametrize("rig, pair", [("chessboard", "01"), ("oakd", "desk")])
+def test_a_shipped_real_pair_calibrates_with_spreads_warnings_and_both_exports(
+        setup, rig, pair, tmp_path, capsys):
+    """A real pair as a user gives it (the shipped chessboard 640 x 480 and
+    OAK-D pairs, grey): the grey warning, spreads for every value, fy = fx
+    (square pixels) with the network's fy beside it, and the two YAML files
+    OpenCV reads back with the printed intrinsics."""
+    from cpl_keras.real import chessboard, oakd
+
+    folder = {"chessboard": chessboard.DATA_DIR, "oakd": oakd.DATA_DIR}[rig]
+    left, right = next((l, r) for l, r in calibrate.find_pairs(folder)
+                       if pair in os.path.basename(l))
+    opencv, ros = tmp_path / "stereo.yml", tmp_path / "ros"
+    assert calibrate.main([left, right, "--run", setup["run"], "--opencv-yaml", str(opencv),
+                           "--ros-yaml", str(ros)]) == 0
+    captured = capsys.readouterr()
+    result = json.loads(captured.out)
+    assert (result["image_width"], result["image_height"]) == (640, 480)
+    assert "is grey" in captured.err
+    p = result["parameters"]
+    assert p["fy"] == p["fx"] and np.isfinite(result["network_fy"])
+    assert all(np.isfinite(v) and v >= 0 for v in result["spread"].values())
+    fs = cv2.FileStorage(str(opencv), cv2.FILE_STORAGE_READ)
+    np.testing.assert_allclose(fs.getNode("M1").mat(),
+                               [[p["fx"], 0, p["u0"]], [0, p["fy"], p["v0"]], [0, 0, 1]])
+    assert fs.getNode("image_height").real() == 480
+    fs.release()
+    for side in ("left", "right"):
+        fs = cv2.FileStorage(str(ros / f"{side}.yaml"), cv2.FILE_STORAGE_READ)
+        assert fs.isOpened() and fs.getNode("image_width").real() == 640
+        fs.release()
