@@ -63,3 +63,37 @@ def test_each_rig_is_scored_by_a_model_that_never_saw_it(tiny_run, real32, tmp_p
     assert f"| {expected:.3f} |" in rows[0]
     assert script.square_pixel_fy_error(str(runs / "without-oakd"), str(real32 / "oakd.h5")) == \
         pytest.approx(expected, rel=1e-5)
+
+
+def test_calibrate_held_out_writes_each_rigs_calibration_against_its_truth(tiny_run, tmp_path):
+    """bench/calibrate_held_out.py with a without-oakd run only: the OAK-D
+    rig's 12 whole pairs calibrated as calibrate --folder does, the row's
+    errors worked out from the written JSON and the true 451.03 px, the YAML
+    read back by OpenCV, the other rigs skipped."""
+    import cv2
+
+    spec = importlib.util.spec_from_file_location(
+        "calibrate_held_out", os.path.join(BENCH, "calibrate_held_out.py"))
+    script = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(script)
+    runs, out = tmp_path / "runs", tmp_path / "out"
+    runs.mkdir()
+    os.symlink(tiny_run["run"], runs / "without-oakd")
+    assert script.main(["--runs-dir", str(runs), "--out", str(out)]) == 0
+    assert sorted(os.listdir(out)) == ["oakd.json", "oakd_opencv.yml", "oakd_ros",
+                                       "oakd_warnings.txt", "summary.md"]
+    result = json.loads((out / "oakd.json").read_text())
+    rig = result["rig"]
+    assert rig["num_pairs"] == 12 and rig["folder"] == "oakd_stereo"
+    assert all("/" not in p["left"] for p in result["pairs"])
+    fx = rig["parameters"]["fx"]
+    assert rig["parameters"]["fy"] == fx       # square pixels
+    row = [l for l in (out / "summary.md").read_text().splitlines() if l.startswith("| oakd")]
+    assert len(row) == 1
+    assert f"| 451.0 / {fx:.1f} ({abs(fx / 451.03 - 1):.3f}) |" in row[0]
+    assert "| 640 x 480 |" in row[0]
+    warnings = (out / "oakd_warnings.txt").read_text().splitlines()
+    assert any("is grey" in w for w in warnings) and row[0].endswith(f"| {len(warnings)} |")
+    fs = cv2.FileStorage(str(out / "oakd_opencv.yml"), cv2.FILE_STORAGE_READ)
+    assert fs.getNode("M1").mat()[0, 0] == pytest.approx(fx)
+    fs.release()

@@ -1,0 +1,117 @@
+"""Calibrate each shipped real rig, as a user would, with the model that
+never saw it: ``python -m cpl_keras.calibrate --folder`` on the rig's whole
+images (640 x 480 chessboard and OAK-D pairs, the 741 x 500 Middlebury
+Motorcycle pair), against the rig's true calibration at full resolution.
+
+    python bench/calibrate_held_out.py --runs-dir runs/zoom-crops \\
+        --out paper_results/real-cameras/zoom-with-crops/calibrate [--aspect square]
+
+``--runs-dir`` holds ``without-<rig>`` runs (``bench/leave_one_rig_out.py
+--with-real-crops``). For each rig it writes what calibrate writes (the JSON
+without this machine's paths, the OpenCV and ROS YAML files, the warnings)
+and one table, ``--out/summary.md``: the rig's fx, fy and horizontal field of
+view, true and calibrated, the relative errors, the spreads over the pairs,
+and the warnings calibrate printed.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import os
+import sys
+import tempfile
+
+os.environ.setdefault("KERAS_BACKEND", "jax")
+sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."))
+
+
+def truths():
+    """rig -> (its folder of pairs or a function writing one, true fx, fy at full resolution)."""
+    from cpl_keras.real import chessboard, middlebury, oakd
+
+    def board():
+        rig = chessboard.calibrate()["rig"]
+        return chessboard.DATA_DIR, rig["fx"], rig["fy"]
+
+    def oak():
+        cal = oakd.load_calibration()
+        return oakd.DATA_DIR, cal["fx"], cal["fy"]
+
+    def motorcycle():
+        import cv2
+
+        left, right, _, cal = middlebury.load_motorcycle()
+        folder = tempfile.mkdtemp(prefix="motorcycle-")
+        for side, image in (("left", left), ("right", right)):
+            cv2.imwrite(os.path.join(folder, f"motorcycle_{side}.png"),
+                        cv2.cvtColor(image, cv2.COLOR_RGB2BGR))
+        return folder, cal["focal"], cal["focal"]
+
+    return {"chessboard": board, "middlebury": motorcycle, "oakd": oak}
+
+
+def without_paths(result, folder_name):
+    """calibrate's JSON without this machine's paths (file names only)."""
+    rig = dict(result["rig"], folder=folder_name, run=os.path.basename(result["rig"]["run"]))
+    pairs = [dict(p, left=os.path.basename(p["left"]), right=os.path.basename(p["right"]),
+                  run=os.path.basename(p["run"])) for p in result["pairs"]]
+    return {"rig": rig, "pairs": pairs}
+
+
+def main(argv=None):
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--runs-dir", required=True, help="folder of without-<rig> runs")
+    parser.add_argument("--out", required=True, help="folder for the calibrations and summary.md")
+    parser.add_argument("--aspect", default="square", choices=("square", "model"))
+    args = parser.parse_args(argv)
+
+    import numpy as np
+
+    from cpl_keras import exports
+    from cpl_keras.calibrate import calibrate_rig
+    from cpl_keras.files import write_json, write_text
+
+    os.makedirs(args.out, exist_ok=True)
+    lines = ["| rig | pairs | image | fx true / calibrated (rel. error) | fy true / calibrated "
+             "(rel. error) | network fy (rel. error) | hFoV true / calibrated | fx spread over "
+             "pairs | warnings |", "|---|---|---|---|---|---|---|---|---|"]
+    for rig, truth in truths().items():
+        run_dir = os.path.join(args.runs_dir, f"without-{rig}")
+        if not os.path.isdir(run_dir):
+            print(f"{rig}: no run {run_dir}, skipped", flush=True)
+            continue
+        folder, fx, fy = truth()
+        warnings = []
+        result = calibrate_rig(folder, run_dir, warn=warnings.append, aspect=args.aspect)
+        calib = result["rig"]
+        write_json(os.path.join(args.out, f"{rig}.json"),
+                   without_paths(result, os.path.basename(folder.rstrip("/"))))
+        write_text(os.path.join(args.out, f"{rig}_warnings.txt"), "".join(
+            line + "\n" for line in warnings))
+        exports.write_opencv_yaml(os.path.join(args.out, f"{rig}_opencv.yml"), calib)
+        exports.write_ros_yaml(os.path.join(args.out, f"{rig}_ros"), calib)
+        p, width = calib["parameters"], calib["image_width"]
+        network_fy = float(np.median([pair["network_fy"] for pair in result["pairs"]]))
+        hfov = math.degrees(2 * math.atan2(width, 2 * fx))
+        lines.append(
+            f"| {rig} | {calib['num_pairs']} | {width} x {calib['image_height']} | "
+            f"{fx:.1f} / {p['fx']:.1f} ({abs(p['fx'] / fx - 1):.3f}) | "
+            f"{fy:.1f} / {p['fy']:.1f} ({abs(p['fy'] / fy - 1):.3f}) | "
+            f"{network_fy:.1f} ({abs(network_fy / fy - 1):.3f}) | "
+            f"{hfov:.1f} / {calib['fov_horizontal_deg']:.1f} deg | "
+            f"{calib['spread_over_pairs']['fx']:.1f} px | {len(warnings)} |")
+        print(lines[-1], flush=True)
+    text = ("# Calibrating each shipped rig with the model that never saw it\n\n"
+            f"`python bench/calibrate_held_out.py {' '.join(argv or sys.argv[1:])}`: "
+            "`calibrate --folder` on the rig's whole images, the rig's parameters the medians "
+            "over its pairs (network fy: the median of the network's own fy head over the "
+            "pairs).\n\n" + "\n".join(lines) + "\n")
+    write_text(os.path.join(args.out, "summary.md"), text)
+    print(text)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
