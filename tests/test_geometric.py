@@ -132,3 +132,39 @@ def test_rendered_random_rig_focal_and_pitch(rendered_pairs):
     assert all(np.all(np.isfinite(predictions[name])) for name in TARGETS)
     np.testing.assert_allclose(predictions["fx"][~real_focal],
                                geometric.default_priors(112, 112)["fx"])
+
+
+def test_estimate_pair_focal_on_a_realistic_rig_from_exact_correspondences(monkeypatch):
+    """The image-level entry point (estimate_pair: matching, F by RANSAC,
+    Bougnoux, the FOV check, recoverPose, the outputs) on a rig like the
+    generator's (a lateral baseline of 0.5 m with a few degrees of relative
+    rotation, vertical and forward offsets), fed the exact correspondences of
+    random points: fx, fy must be the rig's focal length (70 px, within 2 %;
+    the rendered-pair test above tolerates 85 % off) and pitch its pitch.
+    Only SIFT's detection is replaced (by the exact matches)."""
+    focal, pitch = 70.0, 0.06
+    left_pts, right_pts = _synthetic_matches(focal, pitch, 0.1, 0.03, (0.1, -0.5, 0.08), n=800)
+    assert len(left_pts) >= 200
+    monkeypatch.setattr(geometric, "match_points", lambda *a, **k: (left_pts, right_pts))
+    rng = np.random.default_rng(1)
+    image = (rng.random((H, W, 3)) * 255).astype(np.uint8)
+    params, status = geometric.estimate_pair(image, image[:, ::-1].copy())
+    assert not any(status[flag] for flag in ("few_matches", "imaginary_focal",
+                                              "implausible_focal", "pose_failed"))
+    assert params["fx"] == pytest.approx(focal, rel=0.02)
+    assert params["fy"] == pytest.approx(focal, rel=0.02)
+    assert params["pitch"] == pytest.approx(pitch, abs=0.005)
+
+
+def test_match_points_are_in_the_original_images_pixels():
+    """Matches found on the upsampled images come back in the input's pixels:
+    a texture point at left pixel u is at right pixel u + 6, so the matches
+    must differ by (6, 0), not by twice that (upsampled pixels)."""
+    rng = np.random.default_rng(0)
+    texture = (rng.random((H, W + 16)) * 255).astype(np.uint8)
+    texture = np.repeat(np.repeat(texture[::2, ::2], 2, 0), 2, 1)[:H, : W + 16]
+    left, right = texture[:, 6:6 + W], texture[:, :W]     # right(u + 6) = left(u)
+    pts_l, pts_r = geometric.match_points(left, right, upscale=2.0)
+    assert len(pts_l) >= 50
+    offset = np.median(pts_r - pts_l, axis=0)
+    assert offset == pytest.approx([6.0, 0.0], abs=0.1)
