@@ -797,3 +797,41 @@ def test_drive_split_flag_reaches_the_split(tiny_run, tmp_path, capsys):
                                  "--split", "drive"]) == 2
     assert "drive split of 40 pairs leaves the val set empty" in capsys.readouterr().err
     assert not (tmp_path / "run").exists()
+
+
+def test_target_scaling_and_steps_per_execution_reach_the_compiled_model(tiny_run, tmp_path,
+                                                                         monkeypatch):
+    """train.py --target-scaling std --steps-per-execution 2: the model is
+    compiled with two steps per call, and its validation loss is the sum of
+    the per-output MAEs each divided by the target's standard deviation over
+    the training split (worked out here), not their plain sum."""
+    from cpl_keras import models
+    from cpl_keras.camera import TARGETS
+    from cpl_keras.data.storage import StereoFile
+    from cpl_keras.datasets import load_split, targets_from_labels
+
+    compiled = []
+    compile_model = models.compile_model
+
+    def recording(model, **kwargs):
+        compiled.append(model)
+        return compile_model(model, **kwargs)
+
+    monkeypatch.setattr(models, "compile_model", recording)
+    run_dir = tmp_path / "run"
+    assert _train_script().main(["--variant", "baseline", "--backbone", "small", "--data",
+                                 tiny_run["data"], "--epochs", "1", "--batch-size", "4",
+                                 "--quiet", "--run-dir", str(run_dir), "--target-scaling", "std",
+                                 "--steps-per-execution", "2"]) == 0
+    assert len(compiled) == 1 and compiled[0].steps_per_execution == 2
+    with StereoFile(tiny_run["data"]) as f:
+        targets = targets_from_labels(f.labels)
+    train_pairs = load_split(str(run_dir / "split.npz"))["train"]
+    std = {name: float(np.std(np.asarray(targets[name], np.float64)[train_pairs]))
+           for name in TARGETS}
+    (row,) = read_log(run_dir)
+    scaled = sum(float(row[f"val_{name}_mae"]) / (std[name] if std[name] > 1e-6 else 1.0)
+                 for name in TARGETS)
+    plain = sum(float(row[f"val_{name}_mae"]) for name in TARGETS)
+    assert abs(scaled - plain) > 0.1 * plain  # (a test that can tell)
+    assert float(row["val_loss"]) == pytest.approx(scaled, rel=1e-4)
