@@ -92,10 +92,14 @@ def test_every_option_of_every_command_has_help_text(monkeypatch):
     assert not missing, missing
 
 
+#: subprocess functions that start a command and wait for it
+STARTS_AND_WAITS = ("run", "call", "check_call", "check_output")
+
+
 def test_every_subprocess_a_test_waits_for_has_a_timeout():
     """A hung command fails its test instead of blocking the suite:
-    ``subprocess.run`` and every ``communicate`` / ``wait`` in tests/ carry
-    a ``timeout``."""
+    ``subprocess.run`` (``call``, ``check_call``, ``check_output``) and every
+    ``communicate`` / ``wait`` in tests/ carry a ``timeout``."""
     import ast
     import glob
 
@@ -107,9 +111,9 @@ def test_every_subprocess_a_test_waits_for_has_a_timeout():
             if not (isinstance(node, ast.Call) and isinstance(node.func, ast.Attribute)):
                 continue
             name, base = node.func.attr, node.func.value
-            if name == "run" and getattr(base, "id", None) != "subprocess":
+            if name in STARTS_AND_WAITS and getattr(base, "id", None) != "subprocess":
                 continue
-            if name in ("run", "communicate", "wait") and \
+            if name in STARTS_AND_WAITS + ("communicate", "wait") and \
                     not any(k.arg == "timeout" for k in node.keywords):
                 missing.append(f"{os.path.basename(path)}:{node.lineno} {name}")
     assert not missing, missing
