@@ -397,9 +397,12 @@ def calibrate_rig(folder, run_dir, warn=None, aspect="square"):
 
 #: What calibrate's JSON says of the quantities a pair does not fix.
 SCALE_PRIORS = ("baseline", "tx", "ty", "tz", "X", "Y", "Z")
-SCALE_NOTE = ("one pair fixes the focal length, principal point, pitch and the ratio "
-              "baseline / depth (disparity / fx); the metres of baseline, tx, ty, tz and "
-              "X, Y, Z come from the scene scale seen in training (scale priors)")
+SCALE_NOTE = ("the pair's matches fix the disparity in pixels; for a rectified or nearly "
+              "rectified rig (parallel optical axes) they carry nothing of fx, fy, u0, v0 "
+              "(its fundamental matrix does not depend on them), so those come from how "
+              "scenes looked in training, as does baseline / depth = disparity / fx through "
+              "fx; the metres of baseline, tx, ty, tz and X, Y, Z come from the scene scale "
+              "seen in training (scale priors)")
 ASPECT_NOTES = {
     "square": "square pixels: fy = fx (px of the input images); network_fy is the network's "
               "own fy, which guesses the aspect ratio of the squashed image from content",
