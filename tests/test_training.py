@@ -190,6 +190,43 @@ def _ends_like(run_dir, returncode, out, err, uninterrupted):
     assert not [n for n in os.listdir(os.path.join(run_dir, "backup")) if n.endswith(".h5")]
 
 
+def _on_a_terminal(*args, cache, err_path):
+    """train.py as ``cli`` runs it, its stdout a pseudo-terminal (so it draws
+    its progress bar) and its stderr ``err_path``; returns the process, the
+    thread that reads the terminal into ``seen`` (a list of text chunks)
+    and ``seen``. The reader drains the terminal, so the child never blocks."""
+    import pty
+    import threading
+
+    environment = dict(os.environ, KERAS_BACKEND="jax", JAX_COMPILATION_CACHE_DIR=cache,
+                       JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS="0")
+    master, slave = pty.openpty()
+    with open(err_path, "w") as err:
+        process = subprocess.Popen([sys.executable, os.path.join(REPO, "train.py"), *args],
+                                   cwd=REPO, env=environment, stdin=subprocess.DEVNULL,
+                                   stdout=slave, stderr=err)
+    os.close(slave)
+    seen = []
+
+    def read():
+        try:
+            while chunk := os.read(master, 4096):
+                seen.append(chunk.decode(errors="replace"))
+        except OSError:  # (EIO: the child has closed the terminal)
+            pass
+        finally:
+            os.close(master)
+
+    reader = threading.Thread(target=read, daemon=True)
+    reader.start()
+    return process, reader, seen
+
+
+#: The progress bar train.py draws on a terminal after a training batch:
+#: "epoch 2/4 [====................] 1/5 0s left  loss ...".
+BAR = re.compile(r"epoch (\d+)/\d+ \[[=.]+\] (\d+)/(\d+)")
+
+
 @pytest.mark.slow
 @pytest.mark.parametrize("when", ["after an epoch's commit", "in the middle of an epoch"])
 def test_killed_run_resumes_and_ends_like_an_uninterrupted_run(
@@ -202,25 +239,46 @@ def test_killed_run_resumes_and_ends_like_an_uninterrupted_run(
         with open(state) as f:
             return json.load(f)["epoch"]
 
-    process = cli(*args, cache=xla_cache)
     if when == "after an epoch's commit":
+        process = cli(*args, cache=xla_cache)
         # as reported: killed as soon as log.csv has two epoch rows
         assert _wait_for(lambda: len(read_log(run_dir)) >= 2)
+        process.send_signal(signal.SIGKILL)
+        process.wait(timeout=300)
     else:
-        # epoch N has been committed; a quarter of an epoch later (the
-        # uninterrupted run's epoch time) the run is inside epoch N + 1
-        walls = [float(row["wall_time_s"]) for row in read_log(uninterrupted["run_dir"])]
-        epoch_s = min(b - a for a, b in zip(walls, walls[1:]))
-        assert _wait_for(lambda: epochs_done() >= 1)
-        committed = epochs_done()
-        time.sleep(epoch_s / 4)
-    process.send_signal(signal.SIGKILL)
-    process.wait(timeout=300)
+        # Killed inside the training of epoch N + 1 (N >= 1): the progress bar
+        # of a batch of epoch N + 1 is drawn only after epoch N's commit and
+        # its publishing (RunState's on_epoch_end, before the epoch line).
+        loud = [a for a in args if a != "--quiet"]
+        process, reader, seen = _on_a_terminal(*loud, cache=xla_cache,
+                                               err_path=tmp_path / "killed.err")
+        try:
+            deadline = time.time() + 120
+            while True:  # (the first bar of epoch 2 or later; then kill at once)
+                bar = next((m for m in BAR.finditer("".join(seen)) if int(m.group(1)) >= 2),
+                           None)
+                if bar or process.poll() is not None or time.time() > deadline:
+                    break
+                time.sleep(0.005)
+        finally:
+            process.send_signal(signal.SIGKILL)
+            process.wait(timeout=300)
+            reader.join(timeout=30)
+        assert bar is not None, ("".join(seen), (tmp_path / "killed.err").read_text())
+        training, batch, steps = (int(g) for g in bar.groups())
+        assert 1 <= batch < steps, bar.group(0)  # mid-epoch: batches of it still to train
+        committed = training - 1
     done = epochs_done()
     assert 1 <= done < 4, f"the run must be killed mid-training ({when})"
     assert len(read_log(run_dir)) == done
-    if when == "in the middle of an epoch":  # no epoch was committed after the one seen
-        assert done == committed, (done, committed, epoch_s)
+    if when == "in the middle of an epoch":
+        # epoch N committed, N + 1 not; N's publishing complete: log.csv has
+        # its N rows (above) and curves.png was drawn after N's state.json
+        assert done == committed, (done, bar.group(0))
+        curves = os.path.join(run_dir, "curves.png")
+        assert os.path.isfile(curves), "killed before epoch N's curves.png was published"
+        assert os.stat(curves).st_mtime_ns >= os.stat(state).st_mtime_ns, \
+            "curves.png is older than epoch N's commit: killed during its publishing"
 
     process = cli(*args, cache=xla_cache)
     out, err = process.communicate(timeout=180)
