@@ -48,7 +48,7 @@ def test_each_rig_is_scored_by_a_model_that_never_saw_it(tiny_run, real32, tmp_p
     table = json.loads((out / "without-oakd" / "table2.json").read_text())
     assert list(table["rigs"]) == ["oakd"]
     summary = (out / "summary.md").read_text()
-    rows = [line for line in summary.splitlines() if line.startswith("| ") and "without-" in line]
+    rows = [line for line in summary.splitlines() if line.startswith("| oakd | ")]
     assert len(rows) == 1 and rows[0].startswith("| oakd | without-oakd | 12 |")
     assert rows[0].endswith("| no |") or rows[0].endswith("| yes |")
     # fy from square pixels, by hand from the stored predictions of fx and the
@@ -63,6 +63,20 @@ def test_each_rig_is_scored_by_a_model_that_never_saw_it(tiny_run, real32, tmp_p
     assert f"| {expected:.3f} |" in rows[0]
     assert script.square_pixel_fy_error(str(runs / "without-oakd"), str(real32 / "oakd.h5")) == \
         pytest.approx(expected, rel=1e-5)
+    # the model's own test split, per source of its training file: the counts
+    # add up to the split's test part, the rendered row's fx error by hand
+    test = load_split(runs / "without-oakd" / "split.npz")["test"]
+    own = [line for line in summary.split("own test split")[1].splitlines()
+           if line.startswith("| without-oakd |")]
+    counts = {line.split(" | ")[1]: int(line.split(" | ")[2]) for line in own}
+    assert sum(counts.values()) == len(test) and "rendered" in counts
+    assert set(counts) <= {"rendered", "chessboard", "middlebury"}
+    with StereoFile(runs / "mix_without_oakd.h5") as f:
+        pred = evaluation.predict_run(evaluation.load_model(run), f, test)
+        rendered = f.labels["source_index"][test] == 0
+        fx_true = f.labels["fx"][test]
+    fx_error = np.median(np.abs(pred["fx"][rendered] / fx_true[rendered] - 1.0))
+    assert f"| without-oakd | rendered | {rendered.sum()} | {fx_error:.3f} |" in own[0]
 
 
 def test_calibrate_held_out_writes_each_rigs_calibration_against_its_truth(tiny_run, tmp_path):
