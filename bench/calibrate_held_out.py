@@ -89,9 +89,10 @@ def main(argv=None):
         write_json(os.path.join(args.out, f"{rig}.json"),
                    without_paths(result, os.path.basename(folder.rstrip("/"))))
         write_text(os.path.join(args.out, f"{rig}_warnings.txt"), "".join(
-            line + "\n" for line in warnings))
-        exports.write_opencv_yaml(os.path.join(args.out, f"{rig}_opencv.yml"), calib)
-        exports.write_ros_yaml(os.path.join(args.out, f"{rig}_ros"), calib)
+            line.replace(os.path.join(folder, ""), "") + "\n" for line in warnings))
+        published = dict(calib, run=os.path.basename(calib["run"]))   # no machine paths
+        exports.write_opencv_yaml(os.path.join(args.out, f"{rig}_opencv.yml"), published)
+        exports.write_ros_yaml(os.path.join(args.out, f"{rig}_ros"), published)
         p, width = calib["parameters"], calib["image_width"]
         network_fy = float(np.median([pair["network_fy"] for pair in result["pairs"]]))
         hfov = math.degrees(2 * math.atan2(width, 2 * fx))
