@@ -148,3 +148,34 @@ def test_best_marks_smallest_magnitude_and_ties():
     table = {"rows": {"A": row(-1.9), "B": row(0.09), "C": row(-0.09), "D": row(None)}}
     best = report.best_rows(table, "nmae_signed")
     assert best["fx"] == {"B", "C"}
+
+
+def test_forward_pass_sees_one_batch_shape_and_drops_the_filled_rows(tiny):
+    """predict_images gives the model full batches only (a set of 7 and of 3
+    pairs at batch 4: every call 4 pairs, so one compilation), and its
+    outputs are the model's on each pair alone: the filled-up rows change
+    nothing and are dropped."""
+    model = evaluation.load_model(evaluation.load_run(tiny["run"]))
+    with StereoFile(tiny["data"]) as f:
+        left, right = f.read_pairs(np.arange(7))
+    seen, call = [], model.predict_on_batch
+
+    def recording(inputs):
+        seen.append(inputs["left_image"].shape[0])
+        return call(inputs)
+
+    model.predict_on_batch = recording
+    seven = evaluation.predict_images(model, left, right, batch_size=4)
+    three = evaluation.predict_images(model, left[4:], right[4:], batch_size=4)
+    assert seen == [4, 4, 4]
+    del model.predict_on_batch
+    for i in range(7):  # each pair through the model on its own
+        alone = model.predict_on_batch({"left_image": left[i:i + 1].astype(np.float32),
+                                        "right_image": right[i:i + 1].astype(np.float32)})
+        alone = dict(zip(model.output_names, alone))
+        for name in PARAMETERS:
+            value = float(np.asarray(alone[name]).reshape(-1)[0])
+            assert seven[name].shape == (7,) and three[name].shape == (3,)
+            assert seven[name][i] == pytest.approx(value, rel=1e-5, abs=1e-5)
+            if i >= 4:
+                assert three[name][i - 4] == seven[name][i]
