@@ -14,7 +14,8 @@ and the expensive things several test files need, made once per session:
 Each is read only: a test that changes a run copies it first.
 
 Tests marked ``slow`` (the quick reproduction, InceptionV3 builds, data
-parallelism, kill-and-resume) are left out by ``pytest -m "not slow"``.
+parallelism, kill-and-resume, every train.py flag, the documented commands,
+the benchmark scripts) are left out by ``pytest -m "not slow"``.
 """
 
 import os

@@ -25,6 +25,7 @@ def _script(name):
 diagnose = _script("diagnose_inference_mode")
 
 
+@pytest.mark.slow
 def test_every_statistics_row_is_reported(tiny_run, capsys):
     diagnose.main(["--run", tiny_run["run"], "--batches", "2", "--draws", "1",
                    "--epoch-order", "0"])

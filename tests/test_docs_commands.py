@@ -98,6 +98,7 @@ CHEAP = {"cpl_keras.data.generate": ["--pairs", "6", "--image-size", "32", "--wo
          "cpl_keras.real.build": ["--image-size", "32", "--crops", "1"]}
 
 
+@pytest.mark.slow
 def test_the_cheap_documented_commands_run_in_a_fresh_directory(tmp_path):
     """Every README and docs command of the data generator and the real-set
     builder that is not a template runs as printed (at tiny scale) from an

@@ -245,6 +245,7 @@ def test_recomputed_batchnorm_statistics_are_the_batch_averages():
                                rtol=1e-3, atol=1e-4)
 
 
+@pytest.mark.slow
 def test_deep_homo_saved_by_training_has_statistics_of_its_weights(tmp_path, tiny_cvgl,
                                                                   variant_run):
     """The session's Deep-Homo run (the default: statistics recomputed after

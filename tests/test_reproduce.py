@@ -458,6 +458,7 @@ def _tiny_plan(run_dir, seed=0, variant="baseline"):
                 split="paper", as_released=False, seed=seed, patience=5)
 
 
+@pytest.mark.slow
 def test_parallel_training_makes_the_same_runs(tiny_run, tmp_path):
     """``--jobs 2``: runs trained two at a time, each in a spawned process,
     end as the same run trained here; a run that fails stops the rest with

@@ -807,6 +807,7 @@ FLAG_CASES = {
 }
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("case", list(FLAG_CASES))
 def test_every_training_flag_reaches_the_run(case, tiny_run, tmp_path):
     """The train.py options at tiny scale (several per run): the run
