@@ -894,3 +894,29 @@ def test_target_scaling_and_steps_per_execution_reach_the_compiled_model(tiny_ru
     plain = sum(float(row[f"val_{name}_mae"]) for name in TARGETS)
     assert abs(scaled - plain) > 0.1 * plain  # (a test that can tell)
     assert float(row["val_loss"]) == pytest.approx(scaled, rel=1e-4)
+
+
+@pytest.mark.parametrize("setting", [None, "2.5"])
+def test_compile_cache_keeps_every_program_unless_told_otherwise(setting, tmp_path):
+    """enable_compile_cache: the directory from $JAX_COMPILATION_CACHE_DIR,
+    programs kept whatever their compile time (0 s), and a
+    $JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS the user set left as set; a
+    small program compiled after it lands in the directory. In a process of
+    its own: the setting is global to JAX."""
+    code = ("import jax, jax.numpy as jnp\n"
+            "from cpl_keras.cache import enable_compile_cache\n"
+            "print(enable_compile_cache())\n"
+            "print(jax.config.jax_persistent_cache_min_compile_time_secs)\n"
+            "jax.jit(lambda x: jnp.sin(x) * 3)(jnp.ones(7)).block_until_ready()\n")
+    env = dict(os.environ, KERAS_BACKEND="jax", JAX_COMPILATION_CACHE_DIR=str(tmp_path / "xla"))
+    env.pop("JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS", None)
+    if setting is not None:
+        env["JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS"] = setting
+    done = subprocess.run([sys.executable, "-c", code], cwd=REPO, env=env, capture_output=True,
+                          text=True, timeout=120)
+    assert done.returncode == 0, done.stderr[-2000:]
+    directory, minimum = done.stdout.split()
+    assert directory == str(tmp_path / "xla")
+    assert float(minimum) == (0.0 if setting is None else 2.5)
+    kept = os.listdir(tmp_path / "xla") if os.path.isdir(tmp_path / "xla") else []
+    assert bool(kept) == (setting is None), kept
