@@ -1,13 +1,13 @@
 """Deep-Homo's training step with each convolution path of ``PatchConv2D``.
 
 Deep-Homo dominates the ``cpu`` reproduction preset (its step costs 15-18
-compact-tower steps). This measures whether the convolution paths that sped
-up the InceptionV3 towers (``cpl_keras.models.backbones.PatchConv2D``) help
-it: the same network (same layers, names and weights) trained with XLA's own
-convolutions ("plain"), with ``PatchConv2D`` where it picks its
-tap-by-tap kernel gradient ("tap-gradient", the rule the towers use), and
-with every such convolution computed as one matrix product over image
-patches ("patches"). Rounds alternate the three models so that a machine's
+compact-tower steps). Its convolutions are
+``cpl_keras.models.backbones.PatchConv2D`` layers; this measures what their
+paths gain: the same network (same layers, names and weights) trained with
+XLA's own convolutions ("plain"), with the paths ``PatchConv2D`` picks (the
+default: a kernel gradient of matrix products, one per kernel row, on the
+larger maps; "tap-gradient"), and with every such convolution computed as
+one matrix product over image patches ("patches"). Rounds alternate the three models so that a machine's
 load falls on all alike. It prints the best and median step time of each,
 the step's arithmetic (multiply-adds of the convolutions and dense layers,
 times 2 for FLOP, times 3 for forward plus both gradients) and the rate
@@ -37,22 +37,22 @@ from cpl_keras.models import backbones  # noqa: E402
 
 
 def build(path, size, x, y):
-    """Deep-Homo with its Conv2D layers as given by ``path`` ("plain",
-    "tap-gradient", "patches"; same layers and weights either way), compiled
+    """Deep-Homo with its PatchConv2D layers on the path ``path`` ("plain":
+    XLA's convolutions everywhere; "tap-gradient": the paths PatchConv2D
+    picks, the default; "patches": one matrix product over image patches where
+    it picks the tap gradient; same layers and weights either way), compiled
     and traced by one training step on ``x``, ``y``."""
-    original_conv, original_path = keras.layers.Conv2D, backbones.PatchConv2D.path
+    original_path = backbones.PatchConv2D.path
 
     def patches_everywhere(layer, shape):
         chosen = original_path(layer, shape)
         return "patches" if chosen == "tap-gradient" else chosen
 
-    if path != "plain":  # (the builder names keras.layers.Conv2D; swapped while it builds)
-        keras.layers.Conv2D = backbones.PatchConv2D
-    try:
-        model = models.build_model("deep-homo", image_size=[size, size], seed=0)
-    finally:
-        keras.layers.Conv2D = original_conv
-    if path == "patches":  # (the path is chosen when the step is traced)
+    model = models.build_model("deep-homo", image_size=[size, size], seed=0)
+    # (the path is chosen when the step is traced)
+    if path == "plain":
+        backbones.PatchConv2D.path = lambda layer, shape: "conv"
+    elif path == "patches":
         backbones.PatchConv2D.path = patches_everywhere
     try:
         paths = [(layer.name, layer.path(layer.input.shape)) for layer in model.layers

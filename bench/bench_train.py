@@ -104,6 +104,7 @@ def run(args):
         from cpl_keras.models import backbones
 
         backbones.with_patch_convolutions = lambda tower: tower
+        backbones.PatchConv2D.path = lambda layer, shape: "conv"  # (Deep-Homo's layers)
     model = build_model(args.variant, backbone=args.backbone, image_size=args.image_size, seed=0)
     compile_model(model, jit_compile=not args.no_jit and "auto",
                   steps_per_execution=args.steps_per_execution)

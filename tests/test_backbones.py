@@ -167,3 +167,26 @@ def test_inception_v3_at_112_takes_the_patch_paths_where_expected():
     assert {shape for path, shape in paths.values() if path == "patches"} == {(2, 2, 448)}
     assert {shape for path, shape in paths.values() if path == "tap-gradient"} == {
         (55, 55, 32), (53, 53, 32), (26, 26, 80)}
+
+
+def test_deep_homo_takes_the_kernel_gradient_path_on_its_larger_maps(monkeypatch):
+    """Deep-Homo's convolutions are PatchConv2D: at 112 x 112 the 3x3
+    convolutions with 64-128 input channels on the 112, 56 and 28 px maps
+    take the matrix-product kernel gradient, conv1_1 (two input channels)
+    and the 14 px pair stay XLA's; the weights are those the plain Conv2D
+    layers draw with the same seed."""
+    from cpl_keras.models import deep_homo
+
+    model = build_model("deep-homo", image_size=112, seed=4)
+    paths = {layer.name: layer.path(layer.input.shape) for layer in model.layers
+             if isinstance(layer, backbones.PatchConv2D)}
+    assert paths == {"conv1_1": "conv", "conv1_2": "tap-gradient",
+                     "conv2_1": "tap-gradient", "conv2_2": "tap-gradient",
+                     "conv3_1": "tap-gradient", "conv3_2": "tap-gradient",
+                     "conv4_1": "conv", "conv4_2": "conv"}
+    monkeypatch.setattr(deep_homo, "PatchConv2D", keras.layers.Conv2D)
+    plain = build_model("deep-homo", image_size=112, seed=4)
+    assert not any(isinstance(layer, backbones.PatchConv2D) for layer in plain.layers)
+    assert [w.path for w in model.weights] == [w.path for w in plain.weights]
+    for a, b in zip(model.get_weights(), plain.get_weights()):
+        np.testing.assert_array_equal(a, b)

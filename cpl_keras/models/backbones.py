@@ -94,10 +94,11 @@ TOWERS = {
 }
 
 
-#: PatchConv2D computes the kernel gradient tap by tap on output maps at least
-#: this large with at least this many input channels (measured at 112 x 112:
-#: faster for InceptionV3's stem, 32-80 channels; slower for its 11 x 11 maps
-#: and for small_resnet's 16-channel 28 x 28 maps).
+#: PatchConv2D computes the kernel gradient through matrix products on output
+#: maps at least this large with at least this many input channels (measured
+#: at 112 x 112: faster for InceptionV3's stem, 32-80 channels, and for
+#: Deep-Homo's 64-128 channel maps of 28-112 px; slower for InceptionV3's
+#: 11 x 11 maps and for small_resnet's 16-channel 28 x 28 maps).
 TAP_GRADIENT_MIN_SIDE = 24
 TAP_GRADIENT_MIN_CHANNELS = 32
 
@@ -120,11 +121,13 @@ class PatchConv2D(keras.layers.Conv2D):
     * ``"tap-gradient"``: a stride-1 convolution (odd kernel if "same") with
       an output map of at least ``TAP_GRADIENT_MIN_SIDE`` on both sides and
       at least ``TAP_GRADIENT_MIN_CHANNELS`` input channels (InceptionV3's
-      stem). The forward pass and the input gradient are XLA's convolutions
-      (a "valid" one computed as "same" and cropped); the kernel gradient,
-      which XLA:CPU computes as one convolution with a window the size of
-      the map, is one matrix product per kernel tap: shifted view^T @ output
-      gradient.
+      stem, Deep-Homo's larger maps). The forward pass and the input
+      gradient are XLA's convolutions (a "valid" one computed as "same" and
+      cropped); the kernel gradient, which XLA:CPU computes as one
+      convolution with a window the size of the map, is one matrix product
+      per kernel row: that row's shifted views side by side, transposed,
+      times the output gradient (per row rather than per tap: 376 against
+      408 ms for Deep-Homo's conv1_2, ``bench/bench_kernel_gradient.py``).
 
     Anything else (strides, dilation, groups, channels_first, or a kernel
     that fits a small map in either dimension) is plain ``Conv2D``: patches
@@ -190,9 +193,14 @@ class PatchConv2D(keras.layers.Conv2D):
                 upstream = args[0] if upstream is None else upstream
                 height, width = upstream.shape[1], upstream.shape[2]
                 flat_upstream = ops.reshape(upstream, (-1, self.filters))
+                views = self._views(self._padded(x), height, width)
+                # one product per kernel row: that row's column shifts side by
+                # side (kernel order: column, input channel), ^T @ the gradient
                 kernel_gradient = ops.reshape(ops.stack([
-                    ops.matmul(ops.transpose(ops.reshape(view, (-1, x.shape[-1]))), flat_upstream)
-                    for view in self._views(self._padded(x), height, width)]), ops.shape(k))
+                    ops.matmul(ops.transpose(ops.reshape(
+                        ops.concatenate(views[row * kernel_w:(row + 1) * kernel_w], axis=-1),
+                        (-1, kernel_w * x.shape[-1]))), flat_upstream)
+                    for row in range(kernel_h)]), ops.shape(k))
                 # the input gradient: a correlation with the flipped kernel, in and out swapped
                 flipped = ops.transpose(ops.flip(ops.flip(k, 0), 1), (0, 1, 3, 2))
                 if padding == "valid":

@@ -9,6 +9,12 @@ linear. Trained with the Euclidean distance between the 13-vectors
 
 The 13 values are split into named outputs so every variant has the same
 interface.
+
+The convolutions are ``PatchConv2D`` layers: ``Conv2D``'s layer, weights and
+outputs, with the kernel gradient of the 3x3 convolutions on the 112, 56 and
+28 px maps computed as matrix products (one per kernel row) instead of
+XLA:CPU's convolution with a window the size of the map, which took a third
+of the training step (docs/performance.md, Deep-Homo: 1.24x faster step).
 """
 
 from __future__ import annotations
@@ -17,6 +23,7 @@ import keras
 
 from cpl_keras.camera import TARGETS
 from cpl_keras.layers import stack_channels, take
+from cpl_keras.models.backbones import PatchConv2D
 
 
 def deep_homo_outputs(left, right, as_released=False):
@@ -29,7 +36,7 @@ def deep_homo_outputs(left, right, as_released=False):
     )([left, right])
     for pair, filters in enumerate((64, 64, 128, 128), start=1):
         for i in (1, 2):
-            x = keras.layers.Conv2D(
+            x = PatchConv2D(
                 filters, 3, padding="same", activation="relu", name=f"conv{pair}_{i}"
             )(x)
         x = keras.layers.BatchNormalization(name=f"batch_norm{pair}")(x)
