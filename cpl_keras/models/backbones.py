@@ -125,9 +125,12 @@ class PatchConv2D(keras.layers.Conv2D):
       gradient are XLA's convolutions (a "valid" one computed as "same" and
       cropped); the kernel gradient, which XLA:CPU computes as one
       convolution with a window the size of the map, is one matrix product
-      per kernel row: that row's shifted views side by side, transposed,
-      times the output gradient (per row rather than per tap: 376 against
-      408 ms for Deep-Homo's conv1_2, ``bench/bench_kernel_gradient.py``).
+      per kernel row: the padded input's rows for that kernel row,
+      transposed, times the output gradient shifted by each kernel column
+      (the shifts side by side, made once for all rows). For Deep-Homo's
+      conv1_2 that took 250 ms against 361 ms for the input's shifted views
+      side by side, 408 ms per tap and 476-844 ms for XLA's kernel
+      (``bench/bench_kernel_gradient.py``).
 
     Anything else (strides, dilation, groups, channels_first, or a kernel
     that fits a small map in either dimension) is plain ``Conv2D``: patches
@@ -191,16 +194,21 @@ class PatchConv2D(keras.layers.Conv2D):
         def convolution(x, k):
             def gradient(*args, upstream=None):
                 upstream = args[0] if upstream is None else upstream
-                height, width = upstream.shape[1], upstream.shape[2]
-                flat_upstream = ops.reshape(upstream, (-1, self.filters))
-                views = self._views(self._padded(x), height, width)
-                # one product per kernel row: that row's column shifts side by
-                # side (kernel order: column, input channel), ^T @ the gradient
-                kernel_gradient = ops.reshape(ops.stack([
-                    ops.matmul(ops.transpose(ops.reshape(
-                        ops.concatenate(views[row * kernel_w:(row + 1) * kernel_w], axis=-1),
-                        (-1, kernel_w * x.shape[-1]))), flat_upstream)
-                    for row in range(kernel_h)]), ops.shape(k))
+                height = upstream.shape[1]
+                # one product per kernel row: the padded input's rows for that
+                # kernel row (full padded width) ^T @ the output gradient
+                # shifted by each kernel column, the kernel_w shifts side by
+                # side: dW[i, j] = sum over n, y, x of
+                # padded[n, y + i, x + j] * upstream[n, y, x]
+                padded = self._padded(x)
+                shifted = ops.reshape(ops.concatenate([
+                    ops.pad(upstream, [[0, 0], [0, 0], [j, kernel_w - 1 - j], [0, 0]])
+                    for j in range(kernel_w)], axis=-1), (-1, kernel_w * self.filters))
+                kernel_gradient = ops.stack([
+                    ops.transpose(ops.reshape(ops.matmul(
+                        ops.transpose(ops.reshape(padded[:, i:i + height], (-1, x.shape[-1]))),
+                        shifted), (x.shape[-1], kernel_w, self.filters)), (1, 0, 2))
+                    for i in range(kernel_h)])
                 # the input gradient: a correlation with the flipped kernel, in and out swapped
                 flipped = ops.transpose(ops.flip(ops.flip(k, 0), 1), (0, 1, 3, 2))
                 if padding == "valid":
