@@ -20,6 +20,7 @@ process.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import os
 import statistics
 import sys
@@ -49,18 +50,17 @@ def build(path, size, x, y):
         return "patches" if chosen == "tap-gradient" else chosen
 
     model = models.build_model("deep-homo", image_size=[size, size], seed=0)
-    # (the path is chosen when the step is traced)
-    if path == "plain":
-        backbones.PatchConv2D.path = lambda layer, shape: "conv"
-    elif path == "patches":
-        backbones.PatchConv2D.path = patches_everywhere
-    try:
+    # (the paths are chosen when the step is traced)
+    with contextlib.ExitStack() as paths_chosen:
+        if path == "plain":
+            paths_chosen.enter_context(backbones.xla_layers_only())
+        elif path == "patches":
+            backbones.PatchConv2D.path = patches_everywhere
+            paths_chosen.callback(setattr, backbones.PatchConv2D, "path", original_path)
         paths = [(layer.name, layer.path(layer.input.shape)) for layer in model.layers
-                 if isinstance(layer, backbones.PatchConv2D)]
+                 if isinstance(layer, (backbones.PatchConv2D, backbones.TiledMaxPooling2D))]
         models.compile_model(model)
         model.train_on_batch(x, y)
-    finally:
-        backbones.PatchConv2D.path = original_path
     return model, paths
 
 

@@ -59,6 +59,45 @@ def kernel_gradient_shifted_gradient(x, g, k):
                       .reshape(c, 3, f).transpose(1, 0, 2) for i in range(3)])
 
 
+def kernel_gradient_nine_shifts(x, g, k):
+    """One product: the whole padded input, transposed, times the output
+    gradient shifted by each of the nine taps (side by side)."""
+    padded = jnp.pad(x, ((0, 0), (1, 1), (1, 1), (0, 0)))
+    c, f = x.shape[-1], g.shape[-1]
+    shifted = jnp.concatenate([jnp.pad(g, ((0, 0), (i, 2 - i), (j, 2 - j), (0, 0)))
+                               for i in range(3) for j in range(3)], -1)
+    return (padded.reshape(-1, c).T @ shifted.reshape(-1, 9 * f)).reshape(c, 3, 3, f) \
+        .transpose(1, 2, 0, 3)
+
+
+def kernel_gradient_both_shifted(x, g, k):
+    """Per kernel row, the whole padded input (no slice of it) times the
+    output gradient shifted by that row and by each kernel column."""
+    padded = jnp.pad(x, ((0, 0), (1, 1), (1, 1), (0, 0)))
+    c, f = x.shape[-1], g.shape[-1]
+    flat = padded.reshape(-1, c)
+    return jnp.stack([
+        (flat.T @ jnp.concatenate([jnp.pad(g, ((0, 0), (i, 2 - i), (j, 2 - j), (0, 0)))
+                                   for j in range(3)], -1).reshape(-1, 3 * f))
+        .reshape(c, 3, f).transpose(1, 0, 2) for i in range(3)])
+
+
+def kernel_gradient_tall(x, g, k):
+    """Per kernel row, the batch stacked into one tall image: the padded
+    input's rows i .. (a contiguous block of the stacked maps) times the
+    output gradient with two zero rows below each map, shifted by each
+    kernel column."""
+    padded = jnp.pad(x, ((0, 0), (1, 1), (1, 1), (0, 0)))
+    n, side, c, f = x.shape[0], x.shape[1], x.shape[-1], g.shape[-1]
+    rows = n * (side + 2) - 2
+    tall = padded.reshape(n * (side + 2), side + 2, c)
+    shifted = jnp.concatenate([jnp.pad(g, ((0, 0), (0, 2), (j, 2 - j), (0, 0)))
+                               for j in range(3)], -1)
+    shifted = shifted.reshape(n * (side + 2), side + 2, 3 * f)[:rows].reshape(-1, 3 * f)
+    return jnp.stack([(tall[i:i + rows].reshape(-1, c).T @ shifted)
+                      .reshape(c, 3, f).transpose(1, 0, 2) for i in range(3)])
+
+
 def kernel_gradient_im2col(x, g, k):
     views = _shifted(x, x.shape[1])
     patches = jnp.concatenate([view for row in views for view in row], -1)
@@ -93,6 +132,10 @@ def main(argv=None):
                            ("kernel gradient, per kernel row", kernel_gradient_rows),
                            ("kernel gradient, per row, gradient shifted",
                             kernel_gradient_shifted_gradient),
+                           ("kernel gradient, nine gradient shifts", kernel_gradient_nine_shifts),
+                           ("kernel gradient, per row, batch stacked", kernel_gradient_tall),
+                           ("kernel gradient, per row, gradient shifted both ways",
+                            kernel_gradient_both_shifted),
                            ("kernel gradient, im2col", kernel_gradient_im2col),
                            ("forward", forward), ("input gradient, XLA", input_gradient)):
         compiled = jax.jit(function)

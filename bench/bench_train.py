@@ -104,7 +104,8 @@ def run(args):
         from cpl_keras.models import backbones
 
         backbones.with_patch_convolutions = lambda tower: tower
-        backbones.PatchConv2D.path = lambda layer, shape: "conv"  # (Deep-Homo's layers)
+        # Deep-Homo's PatchConv2D and TiledMaxPooling2D, for the rest of the process
+        backbones.xla_layers_only().__enter__()
     model = build_model(args.variant, backbone=args.backbone, image_size=args.image_size, seed=0)
     compile_model(model, jit_compile=not args.no_jit and "auto",
                   steps_per_execution=args.steps_per_execution)

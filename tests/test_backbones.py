@@ -169,6 +169,50 @@ def test_inception_v3_at_112_takes_the_patch_paths_where_expected():
         (55, 55, 32), (53, 53, 32), (26, 26, 80)}
 
 
+# ---------------------------------------------------------------------------
+# TiledMaxPooling2D: non-overlapping max pooling as the maximum of strided views
+# ---------------------------------------------------------------------------
+
+@pytest.mark.parametrize("pool_size,shape", [
+    ((2, 2), (2, 8, 8, 3)), ((2, 2), (2, 9, 7, 3)), ((3, 3), (1, 9, 11, 2)),
+    ((2, 3), (2, 6, 9, 4)), ((1, 2), (1, 3, 4, 1))])
+def test_tiled_max_pooling_matches_max_pooling_values_and_gradients(pool_size, shape):
+    if keras.backend.backend() != "jax":
+        pytest.skip("gradients through jax.grad")
+    import jax
+
+    tiled = backbones.TiledMaxPooling2D(pool_size)
+    pool = keras.layers.MaxPooling2D(pool_size)
+    assert tiled.path(shape) == "views"
+    x = np.random.default_rng(0).standard_normal(shape).astype("float32")  # no ties
+    np.testing.assert_array_equal(np.asarray(tiled(x)), np.asarray(pool(x)))
+    weights = np.random.default_rng(1).standard_normal(pool(x).shape).astype("float32")
+
+    def gradient(layer):
+        return np.asarray(jax.grad(lambda inputs: keras.ops.sum(layer(inputs) * weights))(x))
+
+    np.testing.assert_array_equal(gradient(tiled), gradient(pool))
+
+
+def test_tiled_max_pooling_splits_a_tied_window_and_keeps_pooling_for_overlaps():
+    if keras.backend.backend() != "jax":
+        pytest.skip("gradients through jax.grad")
+    import jax
+
+    tiled = backbones.TiledMaxPooling2D(2)
+    x = np.array([[1.0, 1.0, 0.0, 5.0], [1.0, 1.0, 2.0, 0.0]], "float32")[None, :, :, None]
+    gradient = np.asarray(jax.grad(lambda inputs: keras.ops.sum(tiled(inputs)))(x))[0, :, :, 0]
+    np.testing.assert_array_equal(gradient, [[0.25, 0.25, 0, 1], [0.25, 0.25, 0, 0]])
+    shape = (1, 8, 8, 1)
+    assert backbones.TiledMaxPooling2D(3, strides=2).path(shape) == "pool"
+    assert backbones.TiledMaxPooling2D(2, padding="same").path(shape) == "pool"
+    assert backbones.TiledMaxPooling2D(2).path((1, None, None, 1)) == "pool"
+    with backbones.xla_layers_only():
+        assert tiled.path(shape) == "pool"
+        assert backbones.PatchConv2D(4, 3, padding="same").path((1, 30, 30, 64)) == "conv"
+    assert tiled.path(shape) == "views"
+
+
 def test_deep_homo_takes_the_kernel_gradient_path_on_its_larger_maps(monkeypatch):
     """Deep-Homo's convolutions are PatchConv2D: at 112 x 112 the 3x3
     convolutions with 64-128 input channels on the 112, 56 and 28 px maps
@@ -184,6 +228,9 @@ def test_deep_homo_takes_the_kernel_gradient_path_on_its_larger_maps(monkeypatch
                      "conv2_1": "tap-gradient", "conv2_2": "tap-gradient",
                      "conv3_1": "tap-gradient", "conv3_2": "tap-gradient",
                      "conv4_1": "conv", "conv4_2": "conv"}
+    assert {layer.name: layer.path(layer.input.shape) for layer in model.layers
+            if isinstance(layer, backbones.TiledMaxPooling2D)} == {
+        "max_pool1": "views", "max_pool2": "views", "max_pool3": "views"}
     monkeypatch.setattr(deep_homo, "PatchConv2D", keras.layers.Conv2D)
     plain = build_model("deep-homo", image_size=112, seed=4)
     assert not any(isinstance(layer, backbones.PatchConv2D) for layer in plain.layers)

@@ -230,6 +230,60 @@ class PatchConv2D(keras.layers.Conv2D):
         return convolution(inputs, kernel)
 
 
+@keras.saving.register_keras_serializable(package="cpl_keras")
+class TiledMaxPooling2D(keras.layers.MaxPooling2D):
+    """``MaxPooling2D`` whose windows tile the map, computed as the maximum of
+    the window's strided views where that is faster.
+
+    ``path`` is ``"views"`` when the windows do not overlap (``strides`` equal
+    to ``pool_size``, "valid" padding, channels last): the output is the
+    element-wise maximum of the pool_h x pool_w views
+    ``inputs[:, i::pool_h, j::pool_w]`` (cropped to whole windows, as "valid"
+    pooling drops the rest), reduced pairwise. The forward values are
+    ``MaxPooling2D``'s exactly; the gradient is the maximum's, which sends a
+    window's gradient to its largest input and splits it evenly between
+    inputs that tie (XLA's pooling gradient gives it all to one of them).
+    On Deep-Homo's first 2x2 pooling (16 x 112 x 112 x 64) the forward pass
+    and gradient took 18 ms against 151 ms for XLA's ``reduce_window`` and
+    its select-and-scatter gradient (docs/performance.md, Deep-Homo).
+    Anything else is ``MaxPooling2D`` as is (``"pool"``).
+    """
+
+    def path(self, input_shape):
+        """``"views"`` or ``"pool"`` for inputs of this shape."""
+        tiles = (tuple(self.strides) == tuple(self.pool_size) and self.padding == "valid"
+                 and self.data_format == "channels_last")
+        return "views" if tiles and None not in input_shape[1:3] else "pool"
+
+    def call(self, inputs):
+        if self.path(inputs.shape) == "pool":
+            return super().call(inputs)
+        pool_h, pool_w = self.pool_size
+        rows = inputs.shape[1] // pool_h * pool_h
+        columns = inputs.shape[2] // pool_w * pool_w
+        views = [inputs[:, i:rows:pool_h, j:columns:pool_w]
+                 for i in range(pool_h) for j in range(pool_w)]
+        while len(views) > 1:  # pairwise: a tree of depth log2(pool_h * pool_w)
+            views = [ops.maximum(views[k], views[k + 1]) if k + 1 < len(views) else views[k]
+                     for k in range(0, len(views), 2)]
+        return views[0]
+
+
+@contextlib.contextmanager
+def xla_layers_only():
+    """Within the block, ``PatchConv2D`` and ``TiledMaxPooling2D`` layers take
+    ``Conv2D``'s and ``MaxPooling2D``'s own computations (XLA's kernels), so a
+    benchmark can time the same network both ways. The path is chosen when a
+    step is traced: trace (compile) the model inside the block."""
+    conv_path, pool_path = PatchConv2D.path, TiledMaxPooling2D.path
+    PatchConv2D.path = lambda layer, shape: "conv"
+    TiledMaxPooling2D.path = lambda layer, shape: "pool"
+    try:
+        yield
+    finally:
+        PatchConv2D.path, TiledMaxPooling2D.path = conv_path, pool_path
+
+
 def with_patch_convolutions(tower):
     """``tower`` with each Conv2D for which ``PatchConv2D`` takes another path
     as a ``PatchConv2D`` (same names, same weights; ``tower`` itself when none

@@ -23,7 +23,7 @@ import keras
 
 from cpl_keras.camera import TARGETS
 from cpl_keras.layers import stack_channels, take
-from cpl_keras.models.backbones import PatchConv2D
+from cpl_keras.models.backbones import PatchConv2D, TiledMaxPooling2D
 
 
 def deep_homo_outputs(left, right, as_released=False):
@@ -41,7 +41,7 @@ def deep_homo_outputs(left, right, as_released=False):
             )(x)
         x = keras.layers.BatchNormalization(name=f"batch_norm{pair}")(x)
         if pair < 4:
-            x = keras.layers.MaxPooling2D(2, name=f"max_pool{pair}")(x)
+            x = TiledMaxPooling2D(2, name=f"max_pool{pair}")(x)
     x = keras.layers.Flatten(name="flatten")(x)
     x = keras.layers.Dropout(0.75, name="dropout")(x)
     x = keras.layers.Dense(1024, name="dense_1024")(x)
