@@ -59,6 +59,20 @@ def kernel_gradient_shifted_gradient(x, g, k):
                       .reshape(c, 3, f).transpose(1, 0, 2) for i in range(3)])
 
 
+def kernel_gradient_rows_padded(x, g, k):
+    """As ``kernel_gradient_shifted_gradient``, each kernel row's input rows
+    made by padding the input (its rows i - 1 .. i + side - 2, zero outside)
+    instead of slicing the padded input."""
+    side, c, f = x.shape[1], x.shape[-1], g.shape[-1]
+    shifted = jnp.concatenate([jnp.pad(g, ((0, 0), (0, 0), (j, 2 - j), (0, 0)))
+                               for j in range(3)], -1).reshape(-1, 3 * f)
+    rows = [jnp.pad(x[:, :side - 1], ((0, 0), (1, 0), (1, 1), (0, 0))),
+            jnp.pad(x, ((0, 0), (0, 0), (1, 1), (0, 0))),
+            jnp.pad(x[:, 1:], ((0, 0), (0, 1), (1, 1), (0, 0)))]
+    return jnp.stack([(row.reshape(-1, c).T @ shifted).reshape(c, 3, f).transpose(1, 0, 2)
+                      for row in rows])
+
+
 def kernel_gradient_nine_shifts(x, g, k):
     """One product: the whole padded input, transposed, times the output
     gradient shifted by each of the nine taps (side by side)."""
@@ -132,6 +146,7 @@ def main(argv=None):
                            ("kernel gradient, per kernel row", kernel_gradient_rows),
                            ("kernel gradient, per row, gradient shifted",
                             kernel_gradient_shifted_gradient),
+                           ("kernel gradient, per row, input rows padded", kernel_gradient_rows_padded),
                            ("kernel gradient, nine gradient shifts", kernel_gradient_nine_shifts),
                            ("kernel gradient, per row, batch stacked", kernel_gradient_tall),
                            ("kernel gradient, per row, gradient shifted both ways",
