@@ -58,7 +58,7 @@ def build(path, size, x, y):
             backbones.PatchConv2D.path = patches_everywhere
             paths_chosen.callback(setattr, backbones.PatchConv2D, "path", original_path)
         paths = [(layer.name, layer.path(layer.input.shape)) for layer in model.layers
-                 if isinstance(layer, (backbones.PatchConv2D, backbones.TiledMaxPooling2D))]
+                 if isinstance(layer, (backbones.PatchConv2D, backbones.ViewMaxPooling2D))]
         models.compile_model(model)
         model.train_on_batch(x, y)
     return model, paths

@@ -168,8 +168,8 @@ def run(args):
     if args.plain_conv:
         from cpl_keras.models import backbones
 
-        backbones.with_patch_convolutions = lambda tower: tower
-        # Deep-Homo's PatchConv2D and TiledMaxPooling2D, for the rest of the process
+        backbones.with_faster_layers = lambda tower: tower
+        # Deep-Homo's PatchConv2D and ViewMaxPooling2D, for the rest of the process
         backbones.xla_layers_only().__enter__()
     model = build_model(args.variant, backbone=args.backbone, image_size=args.image_size, seed=0)
     compile_model(model)

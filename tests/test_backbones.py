@@ -139,7 +139,7 @@ def test_patch_convolutions_change_neither_weights_nor_outputs(monkeypatch):
     tower = patched.get_layer("left_small_resnet")
     assert {layer.name: layer.path(layer.input.shape) for layer in tower.layers
             if isinstance(layer, backbones.PatchConv2D)} == {"stage4_b_conv": "patches"}
-    monkeypatch.setattr(backbones, "with_patch_convolutions", lambda tower: tower)
+    monkeypatch.setattr(backbones, "with_faster_layers", lambda tower: tower)
     plain = build_model("cpl-a", backbone="small_resnet", image_size=size, seed=3)
     assert not any(isinstance(layer, backbones.PatchConv2D)
                    for layer in plain.get_layer("left_small_resnet").layers)
@@ -159,7 +159,7 @@ def test_inception_v3_at_112_takes_the_patch_paths_where_expected():
     (patches); the stem's three stride-1 3x3 convolutions on 53 x 53 and 24 x 24 maps
     get tap gradients; the 1x3, 3x1 and 1x7 kernels fit their maps in one dimension
     and stay Conv2D."""
-    tower = backbones.with_patch_convolutions(
+    tower = backbones.with_faster_layers(
         backbones.TOWERS["inception_v3"](112, 112, "tower"))
     paths = {layer.name: (layer.path(layer.input.shape), tuple(layer.input.shape[1:]))
              for layer in tower.layers if isinstance(layer, backbones.PatchConv2D)}
@@ -167,50 +167,62 @@ def test_inception_v3_at_112_takes_the_patch_paths_where_expected():
     assert {shape for path, shape in paths.values() if path == "patches"} == {(2, 2, 448)}
     assert {shape for path, shape in paths.values() if path == "tap-gradient"} == {
         (55, 55, 32), (53, 53, 32), (26, 26, 80)}
+    # the four 3x3, stride-2 max-poolings (the stem's two, mixed3's and
+    # mixed8's) take views; no MaxPooling2D is left
+    pools = [tuple(layer.input.shape[1:]) for layer in tower.layers
+             if isinstance(layer, backbones.ViewMaxPooling2D)
+             and layer.path(layer.input.shape) == "views"]
+    assert pools == [(53, 53, 64), (24, 24, 192), (11, 11, 288), (5, 5, 768)]
+    assert not any(type(layer) is keras.layers.MaxPooling2D for layer in tower.layers)
 
 
 # ---------------------------------------------------------------------------
-# TiledMaxPooling2D: non-overlapping max pooling as the maximum of strided views
+# ViewMaxPooling2D: max pooling as the maximum of strided views
 # ---------------------------------------------------------------------------
 
 @pytest.mark.parametrize("pool_size,shape", [
     ((2, 2), (2, 8, 8, 3)), ((2, 2), (2, 9, 7, 3)), ((3, 3), (1, 9, 11, 2)),
-    ((2, 3), (2, 6, 9, 4)), ((1, 2), (1, 3, 4, 1))])
-def test_tiled_max_pooling_matches_max_pooling_values_and_gradients(pool_size, shape):
+    ((2, 3), (2, 6, 9, 4)), ((1, 2), (1, 3, 4, 1)), ((3, 3, 2), (2, 9, 9, 3)),
+    ((3, 3, 2), (2, 8, 10, 3)), ((3, 2, 1), (1, 5, 6, 2))])
+def test_view_max_pooling_matches_max_pooling_values_and_gradients(pool_size, shape):
+    """Tiling and overlapping windows (pool, stride), with the last rows or
+    columns that no window reaches."""
     if keras.backend.backend() != "jax":
         pytest.skip("gradients through jax.grad")
     import jax
 
-    tiled = backbones.TiledMaxPooling2D(pool_size)
-    pool = keras.layers.MaxPooling2D(pool_size)
-    assert tiled.path(shape) == "views"
+    strides = pool_size[2] if len(pool_size) == 3 else None
+    by_views = backbones.ViewMaxPooling2D(pool_size[:2], strides=strides)
+    pool = keras.layers.MaxPooling2D(pool_size[:2], strides=strides)
+    assert by_views.path(shape) == "views"
     x = np.random.default_rng(0).standard_normal(shape).astype("float32")  # no ties
-    np.testing.assert_array_equal(np.asarray(tiled(x)), np.asarray(pool(x)))
+    np.testing.assert_array_equal(np.asarray(by_views(x)), np.asarray(pool(x)))
     weights = np.random.default_rng(1).standard_normal(pool(x).shape).astype("float32")
 
     def gradient(layer):
         return np.asarray(jax.grad(lambda inputs: keras.ops.sum(layer(inputs) * weights))(x))
 
-    np.testing.assert_array_equal(gradient(tiled), gradient(pool))
+    # (an input in several windows sums their gradients, maybe in another order)
+    np.testing.assert_allclose(gradient(by_views), gradient(pool), rtol=1e-6, atol=1e-6)
 
 
-def test_tiled_max_pooling_splits_a_tied_window_and_keeps_pooling_for_overlaps():
+def test_view_max_pooling_splits_a_tied_window_and_keeps_pooling_for_same_padding():
     if keras.backend.backend() != "jax":
         pytest.skip("gradients through jax.grad")
     import jax
 
-    tiled = backbones.TiledMaxPooling2D(2)
+    by_views = backbones.ViewMaxPooling2D(2)
     x = np.array([[1.0, 1.0, 0.0, 5.0], [1.0, 1.0, 2.0, 0.0]], "float32")[None, :, :, None]
-    gradient = np.asarray(jax.grad(lambda inputs: keras.ops.sum(tiled(inputs)))(x))[0, :, :, 0]
+    gradient = np.asarray(jax.grad(lambda inputs: keras.ops.sum(by_views(inputs)))(x))[0, :, :, 0]
     np.testing.assert_array_equal(gradient, [[0.25, 0.25, 0, 1], [0.25, 0.25, 0, 0]])
     shape = (1, 8, 8, 1)
-    assert backbones.TiledMaxPooling2D(3, strides=2).path(shape) == "pool"
-    assert backbones.TiledMaxPooling2D(2, padding="same").path(shape) == "pool"
-    assert backbones.TiledMaxPooling2D(2).path((1, None, None, 1)) == "pool"
+    assert backbones.ViewMaxPooling2D(3, strides=2).path(shape) == "views"
+    assert backbones.ViewMaxPooling2D(2, padding="same").path(shape) == "pool"
+    assert backbones.ViewMaxPooling2D(2).path((1, None, None, 1)) == "pool"
     with backbones.xla_layers_only():
-        assert tiled.path(shape) == "pool"
+        assert by_views.path(shape) == "pool"
         assert backbones.PatchConv2D(4, 3, padding="same").path((1, 30, 30, 64)) == "conv"
-    assert tiled.path(shape) == "views"
+    assert by_views.path(shape) == "views"
 
 
 def test_deep_homo_takes_the_kernel_gradient_path_on_its_larger_maps(monkeypatch):
@@ -229,7 +241,7 @@ def test_deep_homo_takes_the_kernel_gradient_path_on_its_larger_maps(monkeypatch
                      "conv3_1": "tap-gradient", "conv3_2": "tap-gradient",
                      "conv4_1": "conv", "conv4_2": "conv"}
     assert {layer.name: layer.path(layer.input.shape) for layer in model.layers
-            if isinstance(layer, backbones.TiledMaxPooling2D)} == {
+            if isinstance(layer, backbones.ViewMaxPooling2D)} == {
         "max_pool1": "views", "max_pool2": "views", "max_pool3": "views"}
     monkeypatch.setattr(deep_homo, "PatchConv2D", keras.layers.Conv2D)
     plain = build_model("deep-homo", image_size=112, seed=4)

@@ -26,7 +26,9 @@ Speed, not arithmetic: where XLA:CPU's convolution kernels are slow for a
 shape, the towers' convolutions are ``PatchConv2D`` layers that compute the
 same function with the same weights through matrix products over image
 patches: a 3x3 convolution on InceptionV3's 2 x 2 maps (about 20x faster) and
-the kernel gradients of its stem (docs/performance.md).
+the kernel gradients of its stem; and its max-poolings are
+``ViewMaxPooling2D`` layers, whose gradient is element-wise instead of
+XLA's select-and-scatter (docs/performance.md).
 """
 
 from __future__ import annotations
@@ -231,37 +233,36 @@ class PatchConv2D(keras.layers.Conv2D):
 
 
 @keras.saving.register_keras_serializable(package="cpl_keras")
-class TiledMaxPooling2D(keras.layers.MaxPooling2D):
-    """``MaxPooling2D`` whose windows tile the map, computed as the maximum of
-    the window's strided views where that is faster.
+class ViewMaxPooling2D(keras.layers.MaxPooling2D):
+    """``MaxPooling2D`` computed as the element-wise maximum of the windows'
+    strided views where that is faster.
 
-    ``path`` is ``"views"`` when the windows do not overlap (``strides`` equal
-    to ``pool_size``, "valid" padding, channels last): the output is the
-    element-wise maximum of the pool_h x pool_w views
-    ``inputs[:, i::pool_h, j::pool_w]`` (cropped to whole windows, as "valid"
-    pooling drops the rest), reduced pairwise. The forward values are
-    ``MaxPooling2D``'s exactly; the gradient is the maximum's, which sends a
-    window's gradient to its largest input and splits it evenly between
-    inputs that tie (XLA's pooling gradient gives it all to one of them).
-    On Deep-Homo's first 2x2 pooling (16 x 112 x 112 x 64) the forward pass
-    and gradient took 18 ms against 151 ms for XLA's ``reduce_window`` and
-    its select-and-scatter gradient (docs/performance.md, Deep-Homo).
-    Anything else is ``MaxPooling2D`` as is (``"pool"``).
+    ``path`` is ``"views"`` for "valid" padding, channels last and a known
+    map size: the output is the maximum of the pool_h x pool_w views
+    ``inputs[:, i::stride_h, j::stride_w]`` (each cut to the output's size),
+    reduced pairwise, and its gradient is that of the maximum, element-wise,
+    instead of XLA's select-and-scatter. The forward values are
+    ``MaxPooling2D``'s exactly; the gradient differs only where a window's
+    largest inputs tie (the maximum splits the window's gradient evenly
+    between them, XLA's pooling gives it all to one). Forward and gradient
+    together, jitted: Deep-Homo's first 2x2 pooling (16 x 112 x 112 x 64)
+    18 ms against 151 ms; InceptionV3's first 3x3, stride-2 pooling (16 x 53
+    x 53 x 64) 3.3 ms against 34 ms (docs/performance.md). Other padding is
+    ``MaxPooling2D`` as is (``"pool"``).
     """
 
     def path(self, input_shape):
         """``"views"`` or ``"pool"`` for inputs of this shape."""
-        tiles = (tuple(self.strides) == tuple(self.pool_size) and self.padding == "valid"
-                 and self.data_format == "channels_last")
-        return "views" if tiles and None not in input_shape[1:3] else "pool"
+        views = self.padding == "valid" and self.data_format == "channels_last"
+        return "views" if views and None not in input_shape[1:3] else "pool"
 
     def call(self, inputs):
         if self.path(inputs.shape) == "pool":
             return super().call(inputs)
-        pool_h, pool_w = self.pool_size
-        rows = inputs.shape[1] // pool_h * pool_h
-        columns = inputs.shape[2] // pool_w * pool_w
-        views = [inputs[:, i:rows:pool_h, j:columns:pool_w]
+        (pool_h, pool_w), (stride_h, stride_w) = self.pool_size, self.strides
+        rows = (inputs.shape[1] - pool_h) // stride_h * stride_h + 1
+        columns = (inputs.shape[2] - pool_w) // stride_w * stride_w + 1
+        views = [inputs[:, i:i + rows:stride_h, j:j + columns:stride_w]
                  for i in range(pool_h) for j in range(pool_w)]
         while len(views) > 1:  # pairwise: a tree of depth log2(pool_h * pool_w)
             views = [ops.maximum(views[k], views[k + 1]) if k + 1 < len(views) else views[k]
@@ -271,37 +272,43 @@ class TiledMaxPooling2D(keras.layers.MaxPooling2D):
 
 @contextlib.contextmanager
 def xla_layers_only():
-    """Within the block, ``PatchConv2D`` and ``TiledMaxPooling2D`` layers take
+    """Within the block, ``PatchConv2D`` and ``ViewMaxPooling2D`` layers take
     ``Conv2D``'s and ``MaxPooling2D``'s own computations (XLA's kernels), so a
     benchmark can time the same network both ways. The path is chosen when a
     step is traced: trace (compile) the model inside the block."""
-    conv_path, pool_path = PatchConv2D.path, TiledMaxPooling2D.path
+    conv_path, pool_path = PatchConv2D.path, ViewMaxPooling2D.path
     PatchConv2D.path = lambda layer, shape: "conv"
-    TiledMaxPooling2D.path = lambda layer, shape: "pool"
+    ViewMaxPooling2D.path = lambda layer, shape: "pool"
     try:
         yield
     finally:
-        PatchConv2D.path, TiledMaxPooling2D.path = conv_path, pool_path
+        PatchConv2D.path, ViewMaxPooling2D.path = conv_path, pool_path
 
 
-def with_patch_convolutions(tower):
+def with_faster_layers(tower):
     """``tower`` with each Conv2D for which ``PatchConv2D`` takes another path
-    as a ``PatchConv2D`` (same names, same weights; ``tower`` itself when none
-    does).
+    as a ``PatchConv2D`` and each MaxPooling2D that ``ViewMaxPooling2D``
+    computes from views as one (same names, same weights; ``tower`` itself
+    when there is none).
 
     The clone is made without drawing from any random generator, so the
     layers built after it initialise as they would without it.
     """
-    def needs_patches(layer):
-        return (type(layer) is keras.layers.Conv2D
-                and PatchConv2D.from_config(layer.get_config()).path(layer.input.shape) != "conv")
+    def faster(layer):
+        """The faster class for ``layer``, or None."""
+        if type(layer) is keras.layers.Conv2D:
+            patch = PatchConv2D.from_config(layer.get_config())
+            return PatchConv2D if patch.path(layer.input.shape) != "conv" else None
+        if type(layer) is keras.layers.MaxPooling2D:
+            pool = ViewMaxPooling2D.from_config(layer.get_config())
+            return ViewMaxPooling2D if pool.path(layer.input.shape) != "pool" else None
+        return None
 
     def clone(layer):
-        config = layer.get_config()
-        return (PatchConv2D if needs_patches(layer) else type(layer)).from_config(config)
+        return (faster(layer) or type(layer)).from_config(layer.get_config())
 
     with _random_state_kept():  # new layers draw their initialisers' seeds
-        if not any(needs_patches(layer) for layer in tower.layers):
+        if not any(faster(layer) for layer in tower.layers):
             return tower
         patched = keras.models.clone_model(tower, clone_function=clone)
     patched.set_weights(tower.get_weights())
@@ -327,8 +334,8 @@ def stereo_features(left, right, backbone):
     """Two towers (one per image), flattened and concatenated."""
     height, width = left.shape[1], left.shape[2]
     make_tower = TOWERS[backbone]
-    left_features = with_patch_convolutions(make_tower(height, width, f"left_{backbone}"))(left)
-    right_features = with_patch_convolutions(make_tower(height, width, f"right_{backbone}"))(right)
+    left_features = with_faster_layers(make_tower(height, width, f"left_{backbone}"))(left)
+    right_features = with_faster_layers(make_tower(height, width, f"right_{backbone}"))(right)
     left_features = keras.layers.Flatten(name="left_flatten")(left_features)
     right_features = keras.layers.Flatten(name="right_flatten")(right_features)
     return keras.layers.Concatenate(name="stereo_features")([left_features, right_features])

@@ -14,7 +14,7 @@ The convolutions are ``PatchConv2D`` layers: ``Conv2D``'s layer, weights and
 outputs, with the kernel gradient of the 3x3 convolutions on the 112, 56 and
 28 px maps computed as matrix products (one per kernel row) instead of
 XLA:CPU's convolution with a window the size of the map, which took a third
-of the training step; the 2x2 max-poolings are ``TiledMaxPooling2D``
+of the training step; the 2x2 max-poolings are ``ViewMaxPooling2D``
 layers, ``MaxPooling2D``'s values with an element-wise gradient instead of
 XLA's select-and-scatter (docs/performance.md, Deep-Homo: together a 1.64x
 faster step).
@@ -26,7 +26,7 @@ import keras
 
 from cpl_keras.camera import TARGETS
 from cpl_keras.layers import stack_channels, take
-from cpl_keras.models.backbones import PatchConv2D, TiledMaxPooling2D
+from cpl_keras.models.backbones import PatchConv2D, ViewMaxPooling2D
 
 
 def deep_homo_outputs(left, right, as_released=False):
@@ -44,7 +44,7 @@ def deep_homo_outputs(left, right, as_released=False):
             )(x)
         x = keras.layers.BatchNormalization(name=f"batch_norm{pair}")(x)
         if pair < 4:
-            x = TiledMaxPooling2D(2, name=f"max_pool{pair}")(x)
+            x = ViewMaxPooling2D(2, name=f"max_pool{pair}")(x)
     x = keras.layers.Flatten(name="flatten")(x)
     x = keras.layers.Dropout(0.75, name="dropout")(x)
     x = keras.layers.Dense(1024, name="dense_1024")(x)
