@@ -205,7 +205,7 @@ def _train(args, demo, seed, epochs, backbone, run_dir, command):
             bn_recompute_batches=args.bn_recompute_batches, target_scaling=args.target_scaling,
             time_budget_s=args.time_budget, verbose=0 if args.quiet else 1,
             augment=None if args.augment == "none" else args.augment,
-            command=command,
+            command=command, return_model=False,
         )
     except (Error, OSError) as error:  # (DatasetError, TrainingError, RunError, ...)
         return cli.fail(PROG, error)

@@ -9,6 +9,9 @@ XLA's compile time.
 from __future__ import annotations
 
 import os
+import sys
+
+from cpl_keras.backend import keras_backend
 
 
 def cache_dir():
@@ -32,14 +35,20 @@ def enable_compile_cache():
     with this against 100 and 103 s with JAX's default, from an empty cache
     (docs/performance.md). Returns the directory, or None on other backends.
     """
-    import keras
-
-    if keras.backend.backend() != "jax":
+    if keras_backend() != "jax":
         return None
-    import jax
-
     path = os.environ.get("JAX_COMPILATION_CACHE_DIR") or os.path.join(cache_dir(), "xla")
+    keep_all = "JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS" not in os.environ
+    jax = sys.modules.get("jax")
+    if jax is None:
+        # Not imported yet (a finished run's train.py never imports it): JAX
+        # reads these when it is, here and in the processes started from here.
+        os.environ["JAX_COMPILATION_CACHE_DIR"] = path
+        if keep_all:
+            os.environ["JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS"] = "0"
+        return path
     jax.config.update("jax_compilation_cache_dir", path)
-    if "JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS" not in os.environ:
+    if keep_all:
         jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
     return path
+

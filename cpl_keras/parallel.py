@@ -3,7 +3,9 @@
 ``train_parallel(pending, processes)`` trains ``(label, data, options)``
 runs (``options``: ``training.train``'s keyword arguments) ``processes`` at
 a time, each in a fresh, spawned process (JAX does not survive a fork), the
-slow variants first. Ctrl-C (or SIGINT to this process) interrupts every
+slow variants first, and never two runs of one model at once while another
+run could go instead: the second then loads the first's compiled programs
+from the compile cache (``cpl_keras.cache``) instead of compiling them too. Ctrl-C (or SIGINT to this process) interrupts every
 running run, each of which resumes from its last completed epoch next
 time; a run that fails stops the others and raises ``TrainingError``; a
 process whose parent is gone ends itself. ``on_finished(label, options)``
@@ -74,6 +76,19 @@ def _interrupt(running):
             process.terminate()
 
 
+def model_key(options):
+    """What makes two runs' compiled programs the same: the model (variant,
+    as released, backbone) trained at the same batch size."""
+    return tuple(options.get(k) for k in ("variant", "as_released", "backbone", "batch_size"))
+
+
+def next_job(queue, running_keys):
+    """The index in ``queue`` of the first job whose model (``model_key``) no
+    running process has (its programs are being compiled there), or 0."""
+    return next((i for i, (_, _, options) in enumerate(queue)
+                 if model_key(options) not in running_keys), 0)
+
+
 def train_parallel(pending, processes, *, on_finished=None, log=_log, prog="cpl_keras"):
     """Train the ``pending`` runs (``(label, data, options)``) ``processes``
     at a time (see the module doc). ``log(line)`` says what starts and ends
@@ -86,7 +101,8 @@ def train_parallel(pending, processes, *, on_finished=None, log=_log, prog="cpl_
     try:
         while (queue and failure is None) or running:
             while queue and failure is None and len(running) < processes:
-                label, data, options = queue.pop(0)
+                label, data, options = queue.pop(
+                    next_job(queue, {model_key(o) for _, o, _ in running.values()}))
                 log(f"training {label} ({options.get('backbone', 'inception_v3')}, up to "
                     f"{options.get('epochs', 200)} epochs; {processes} runs at a time)")
                 process = context.Process(target=_train_job, name=label,

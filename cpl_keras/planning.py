@@ -17,6 +17,7 @@ import numpy as np
 
 from cpl_keras import runs
 from cpl_keras.augment import AUGMENTATIONS
+from cpl_keras.backend import keras_backend
 from cpl_keras.camera import FLOORS, RELEASED_FLOORS
 from cpl_keras.data.mix import training_rigs
 from cpl_keras.data.storage import DatasetError, StereoFile
@@ -231,7 +232,7 @@ def plan_run(data, *, variant, run_dir, epochs=200, batch_size=16, learning_rate
         "device_batch_size": run_batch,
         "command": command,
         "run_dir": run_dir,
-        "keras_backend": _backend(),
+        "keras_backend": keras_backend(),
     }
     _check_run_dir(run_dir, config, keep_ceiling=disparity_ceiling == "auto")
     return {"config": config, "targets": targets, "split": indices, "workers": int(workers)}
@@ -266,12 +267,6 @@ def _disparity_ceiling(setting, spec, as_released, train_disparities):
     if setting == "auto":
         return round(DISPARITY_CEILING_FACTOR * float(np.max(train_disparities)), 3)
     return None if setting is None else float(setting)
-
-
-def _backend():
-    import keras
-
-    return keras.backend.backend()
 
 
 def _device_count():

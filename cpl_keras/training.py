@@ -41,7 +41,7 @@ from cpl_keras.planning import TrainingError, plan_run
 # ---------------------------------------------------------------------------
 # Training
 # ---------------------------------------------------------------------------
-def train(data, *, steps_per_execution=1, verbose=1, **options):
+def train(data, *, steps_per_execution=1, verbose=1, return_model=True, **options):
     """Train a variant on the dataset file ``data``; returns the summary dict.
 
     ``options`` are ``planning.plan_run``'s keyword arguments (``variant``
@@ -54,7 +54,10 @@ def train(data, *, steps_per_execution=1, verbose=1, **options):
     ``epochs_run``, ``run_dir``, ``status``, ``stopped`` (why training
     ended early, or None) and ``model`` (the trained model, best weights).
     A run that has already ended is left untouched (``finished_before``:
-    True in its summary; its model.keras keeps its optimizer state).
+    True in its summary; its model.keras keeps its optimizer state); with
+    ``return_model=False`` it is read without importing Keras and the
+    summary's ``model`` is None (train.py: a finished run's command returns
+    at once).
     ``steps_per_execution``: training steps per compiled call (Keras's).
     ``verbose``: 0 prints nothing, 1 one short line per epoch (the loss, the
     validation loss and key validation MAEs; every metric is in log.csv)
@@ -67,11 +70,11 @@ def train(data, *, steps_per_execution=1, verbose=1, **options):
         raise TrainingError(
             f"steps per execution must be a positive integer, got {steps_per_execution!r}")
     plan = plan_run(data, **options)
-    import keras
-
-    finished = _finished_run(plan["config"]["run_dir"])
+    finished = _finished_run(plan["config"]["run_dir"], return_model)
     if finished is not None:
         return finished
+    import keras
+
     _replace_failed_run(plan["config"]["run_dir"])
     scope = contextlib.nullcontext()
     if plan["config"]["data_parallel"]:
@@ -98,19 +101,19 @@ def _replace_failed_run(run_dir):
     shutil.rmtree(run_dir)
 
 
-def _finished_run(run_dir):
+def _finished_run(run_dir, load_model=True):
     """The summary of the run in ``run_dir`` if it has finished, read without
     changing a file; else None. ``finished_before`` is True in it;
-    ``model`` is model.keras, loaded."""
+    ``model`` is model.keras, loaded (None without ``load_model``)."""
     config = runs.read_config(run_dir, {}) if os.path.isdir(run_dir) else {}
     if config.get("status") != "finished":
         return None
     path = os.path.join(run_dir, runs.MODEL)
-    model = runs.load_model_file(path) if os.path.isfile(path) else None
+    model = runs.load_model_file(path) if load_model and os.path.isfile(path) else None
     return {
         "run_dir": run_dir, "status": config["status"], "stopped": config.get("stopped"),
         "epochs_run": config.get("epochs_run"), "best_epoch": config.get("best_epoch"),
-        "best_val_loss": config.get("best_val_loss"), "has_model": model is not None,
+        "best_val_loss": config.get("best_val_loss"), "has_model": os.path.isfile(path),
         "finished_before": True, "model": model,
     }
 

@@ -9,7 +9,18 @@ and the expensive things several test files need, made once per session:
   first use (the run-directory tests and the learning curves read the same
   MTL-CPL-A run instead of training it twice);
 * ``real32``: every shipped real rig built at 32 px, one crop per pair (the
-  Table 2 tests and the leave-one-rig-out test).
+  Table 2 tests and the leave-one-rig-out test);
+* ``early(name)``: the result of one of the ``EARLY`` commands (the quick
+  reproduction, the uninterrupted run the kill-and-resume tests compare
+  with, the data-parallel run): whole commands that only tests late in the
+  run read, queued when a selected test needs them and run one after
+  another in the background from the end of collection on, at a lower
+  priority. The tests leave one of the two cores mostly idle (they run one
+  at a time, and their floor is XLA's compile time, one thread), so these
+  commands run in that idle time instead of holding the suite up
+  (docs/performance.md, "The suite on an idle AMD EPYC");
+* ``train_cache``: the XLA compile cache of the suite's train.py processes
+  of the small backbone, warm from the uninterrupted run.
 
 Each is read only: a test that changes a run copies it first.
 
@@ -19,6 +30,11 @@ the benchmark scripts) are left out by ``pytest -m "not slow"``.
 """
 
 import os
+import shutil
+import subprocess
+import sys
+import tempfile
+import threading
 
 import pytest
 
@@ -47,14 +63,25 @@ def tiny_run(tmp_path_factory):
     return {"root": root, "data": str(data), "run": str(run)}
 
 
-@pytest.fixture(scope="session")
-def stereo40(tmp_path_factory):
-    """``write_stereo_fixture(n=40, image_size=32)``: random images, labels of
-    4 configurations. A path; read it, never write into it."""
-    from test_datasets import write_stereo_fixture
+_folders = []
 
-    return write_stereo_fixture(tmp_path_factory.mktemp("stereo40") / "tiny.h5", n=40,
-                                image_size=32)
+
+def stereo40_file():
+    """``write_stereo_fixture(n=40, image_size=32)`` (random images, labels of
+    4 configurations), written once per session: the ``stereo40`` fixture's
+    file, and the data of the ``EARLY`` training commands."""
+    if not _folders:
+        from test_datasets import write_stereo_fixture
+
+        _folders.append(tempfile.mkdtemp(prefix="cpl_keras_stereo40_"))
+        write_stereo_fixture(os.path.join(_folders[0], "tiny.h5"), n=40, image_size=32)
+    return os.path.join(_folders[0], "tiny.h5")
+
+
+@pytest.fixture(scope="session")
+def stereo40():
+    """``stereo40_file()``: a path; read it, never write into it."""
+    return stereo40_file()
 
 
 @pytest.fixture(scope="session")
@@ -86,3 +113,188 @@ def real32(tmp_path_factory):
     assert build.main(["all", "--out-dir", str(real), "--crops", "1", "--image-size",
                        str(TINY_SIZE)]) == 0
     return real
+
+
+# ---------------------------------------------------------------------------
+# Whole commands started early
+# ---------------------------------------------------------------------------
+REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+
+
+def quick_reproduction_args(root):
+    """``evaluate.py``'s arguments for the quick reproduction into ``root``:
+    one run at a time, its default (at this scale faster than two at a time,
+    and with less work: docs/performance.md; ``--jobs`` has tests of its own)."""
+    return ["--reproduce", "--quick", "--out", os.path.join(root, "out"),
+            "--data-dir", os.path.join(root, "data"), "--runs-dir", os.path.join(root, "runs")]
+
+
+#: train.py's arguments for the run that the kill-and-resume tests compare with.
+RESUME_ARGS = ["--variant", "baseline", "--backbone", "small", "--epochs", "4",
+               "--batch-size", "5", "--patience", "10", "--quiet"]
+
+
+def train_py(*args, cache, env=None):
+    """``(argv, environment)`` of train.py with ``args`` and its XLA compile
+    cache in ``cache`` (every program kept)."""
+    environment = dict(os.environ, KERAS_BACKEND="jax", **(env or {}))
+    environment["JAX_COMPILATION_CACHE_DIR"] = cache
+    environment["JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS"] = "0"
+    return [sys.executable, os.path.join(REPO, "train.py"), *args], environment
+
+
+def _uninterrupted(root):
+    return train_py(*RESUME_ARGS, "--data", stereo40_file(), "--run-dir",
+                    os.path.join(root, "run"), cache=os.path.join(root, "xla"))
+
+
+def _data_parallel(root):
+    return train_py("--variant", "cpl-u", "--data", stereo40_file(), "--backbone", "small",
+                    "--epochs", "2", "--batch-size", "5", "--data-parallel", "--run-dir",
+                    os.path.join(root, "run"), "--quiet", cache=os.path.join(root, "xla"),
+                    env={"XLA_FLAGS": "--xla_force_host_platform_device_count=2"})
+
+
+#: name -> (the fixture whose tests need it, ``(argv, environment)`` given
+#: the command's folder), in the order they run (the short ones first).
+EARLY = {
+    "uninterrupted": ("uninterrupted", _uninterrupted),
+    "data_parallel": ("data_parallel_run", _data_parallel),
+    # its compile cache a folder of its own (CPL_KERAS_CACHE), not the user's: the
+    # processes of the tests that run meanwhile use that one
+    "quick": ("quick", lambda root: ([sys.executable, "evaluate.py",
+                                      *quick_reproduction_args(root)],
+                                     dict(os.environ, KERAS_BACKEND="jax",
+                                          CPL_KERAS_CACHE=os.path.join(root, "cache")))),
+}
+
+
+#: The ``EARLY`` commands' niceness: below the tests, which wait for their
+#: results only at the end, if ever.
+NICENESS = 10
+
+
+class EarlyCommand:
+    """One command of ``EARLY``, to run in a folder of its own; ``result()``
+    waits for it and returns ``subprocess.CompletedProcess`` (its output goes
+    to files, so a chatty command never blocks on a full pipe)."""
+
+    def __init__(self, name):
+        self.name = name
+        self.folder = tempfile.mkdtemp(prefix=f"cpl_keras_early_{name}_")
+        self.argv, self.environment = EARLY[name][1](self.folder)
+        self.process, self._result = None, None
+        self.started = threading.Event()
+
+    def start(self):
+        self._out = open(os.path.join(self.folder, "stdout.txt"), "w")
+        self._err = open(os.path.join(self.folder, "stderr.txt"), "w")
+        self.process = subprocess.Popen(self.argv, cwd=REPO, env=self.environment,
+                                        stdin=subprocess.DEVNULL, stdout=self._out,
+                                        stderr=self._err, text=True)
+        try:  # a lower priority: it fills the cores the tests leave idle, and no more
+            os.setpriority(os.PRIO_PROCESS, self.process.pid, NICENESS)
+        except (AttributeError, OSError):  # (no such call here, or the process has ended)
+            pass
+        self.started.set()
+
+    def result(self, timeout=900):
+        if not self.started.wait(timeout=timeout):
+            raise TimeoutError(f"{self.name}: not started within {timeout} s")
+        if self._result is None:
+            returncode = self.process.wait(timeout=timeout)
+            for f in (self._out, self._err):
+                f.close()
+            with open(self._out.name) as out, open(self._err.name) as err:
+                self._result = subprocess.CompletedProcess(self.argv, returncode, out.read(),
+                                                           err.read())
+        return self._result
+
+    def stop(self):
+        if self.process is not None and self.process.poll() is None:
+            self.process.kill()
+            self.process.wait(timeout=60)
+        shutil.rmtree(self.folder, ignore_errors=True)
+
+
+class EarlyQueue:
+    """The ``EARLY`` commands that the selected tests need, run one after
+    another by a background thread from the end of collection on (one at a
+    time: several at once would crowd out the tests that run meanwhile)."""
+
+    def __init__(self):
+        self.commands, self.stopping, self.thread = {}, False, None
+        self.lock = threading.Lock()  # (no command starts once stop() has begun)
+
+    def start(self, names):
+        for name in names:
+            self.commands[name] = EarlyCommand(name)
+        self.thread = threading.Thread(target=self._run, daemon=True, name="early-commands")
+        self.thread.start()
+
+    def _run(self):
+        for command in list(self.commands.values()):
+            with self.lock:
+                if self.stopping:
+                    return
+                command.start()
+            try:
+                command.process.wait(timeout=900)
+            except subprocess.TimeoutExpired:  # (its test fails on it)
+                pass
+
+    def get(self, name):
+        """The command ``name``, queued or, where it was not, run now."""
+        if name not in self.commands:
+            self.commands[name] = EarlyCommand(name)
+            self.commands[name].start()
+        return self.commands[name]
+
+    def stop(self):
+        with self.lock:
+            self.stopping = True
+        for command in self.commands.values():
+            command.stop()
+
+
+_early = EarlyQueue()
+
+
+def pytest_collection_finish(session):
+    """Queue each ``EARLY`` command that a selected test needs."""
+    _early.start([name for name, (fixture, _) in EARLY.items()
+                  if any(fixture in getattr(item, "fixturenames", ()) for item in session.items)])
+
+
+def pytest_sessionfinish(session):
+    _early.stop()
+    for folder in _folders:
+        shutil.rmtree(folder, ignore_errors=True)
+
+
+def started_early(name):
+    """Whether the ``EARLY`` command ``name`` was queued at collection."""
+    return name in _early.commands
+
+
+@pytest.fixture(scope="session")
+def train_cache(early, tmp_path_factory):
+    """The XLA compile cache of the suite's train.py processes of the small
+    backbone on ``stereo40``-like data (batch 5): that of the uninterrupted
+    run (``RESUME_ARGS``) once it has ended, where it was queued (its
+    programs are theirs, so they load instead of compiling), else an empty
+    folder. One process writes to it at a time."""
+    if started_early("uninterrupted"):
+        return os.path.join(early("uninterrupted")[0], "xla")
+    return str(tmp_path_factory.mktemp("xla"))
+
+
+@pytest.fixture(scope="session")
+def early():
+    """``early(name)`` -> ``(folder, subprocess.CompletedProcess)`` of the
+    ``EARLY`` command ``name`` (started now if it was not yet). Read only."""
+    def get(name):
+        command = _early.get(name)
+        return command.folder, command.result()
+
+    return get

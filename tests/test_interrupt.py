@@ -78,13 +78,13 @@ def test_interruptible_raises_once_and_remembers():
 
 
 @pytest.mark.slow
-def test_ctrl_c_stops_training_resumably(tmp_path):
+def test_ctrl_c_stops_training_resumably(tmp_path, train_cache):
     data = write_stereo_fixture(tmp_path / "tiny.h5", n=40, image_size=32)
     run_dir = str(tmp_path / "run")
     args = ["train.py", "--variant", "baseline", "--backbone", "small", "--epochs", "6",
             "--batch-size", "5", "--patience", "10", "--quiet", "--data", str(data),
             "--run-dir", run_dir]
-    cache = str(tmp_path / "xla")
+    cache = train_cache  # (warm: the same programs as the kill-and-resume runs)
     state = os.path.join(run_dir, "backup", "state.json")
 
     def epochs_done():

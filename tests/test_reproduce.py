@@ -8,9 +8,11 @@ import os
 import shutil
 import subprocess
 import sys
+from pathlib import Path
 
 import numpy as np
 import pytest
+from conftest import quick_reproduction_args
 
 import evaluate
 from cpl_keras import reproduce
@@ -31,16 +33,15 @@ def rebuild(directory):
 
 
 @pytest.fixture(scope="module")
-def quick(tmp_path_factory):
+def quick(early):
     """One quick reproduction, shared by the tests of this module (read it;
-    a test that moves its folders puts them back)."""
-    root = tmp_path_factory.mktemp("quick")
-    args = ["--reproduce", "--quick", "--jobs", "2", "--out", str(root / "out"), "--data-dir",
-            str(root / "data"), "--runs-dir", str(root / "runs")]
-    result = run(*args)
+    a test that moves its folders puts them back). It starts as soon as the
+    tests are collected (conftest's ``early``)."""
+    folder, result = early("quick")
     assert result.returncode == 0, result.stderr[-3000:]
+    root = Path(folder)
     return {"root": root, "out": root / "out", "data": root / "data", "runs": root / "runs",
-            "args": args}
+            "args": quick_reproduction_args(folder)}
 
 
 def _contents(directory):
@@ -456,6 +457,27 @@ def test_presets_resolve():
 def _tiny_plan(run_dir, seed=0, variant="baseline"):
     return dict(variant=variant, run_dir=str(run_dir), epochs=1, batch_size=8, backbone="small",
                 split="paper", as_released=False, seed=seed, patience=5)
+
+
+def test_two_runs_of_one_model_do_not_compile_side_by_side():
+    """The next job is the first whose model no running process is compiling
+    (so the later one loads its programs from the compile cache), else the
+    first; the slow variants' order is otherwise kept."""
+    from cpl_keras import parallel
+
+    def job(variant, released=False):
+        return (variant, "data.h5", dict(variant=variant, as_released=released,
+                                         backbone="small", batch_size=16))
+
+    queue = [job("deep-homo"), job("deep-homo"), job("cpl-u"), job("cpl-a"),
+             job("cpl-a", released=True)]
+    assert parallel.next_job(queue, set()) == 0
+    running = {parallel.model_key(queue[0][2])}
+    assert parallel.next_job(queue, running) == 2
+    running.add(parallel.model_key(queue[2][2]))
+    assert parallel.next_job(queue[3:], running) == 0
+    assert parallel.next_job(queue[:2], running) == 0  # nothing else to run: the first
+    assert parallel.model_key(queue[3][2]) != parallel.model_key(queue[4][2])
 
 
 @pytest.mark.slow

@@ -18,6 +18,7 @@ import h5py
 import numpy as np
 import pytest
 
+from conftest import RESUME_ARGS, train_py
 from test_datasets import write_stereo_fixture
 
 REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
@@ -38,19 +39,17 @@ def read_log(run_dir):
 
 
 @pytest.fixture(scope="module")
-def xla_cache(tmp_path_factory):
-    return str(tmp_path_factory.mktemp("xla"))
+def xla_cache(train_cache):
+    """The XLA compile cache of this module's train.py processes (conftest's
+    ``train_cache``)."""
+    return train_cache
 
 
 def cli(*args, cache, env=None):
     """Run train.py in a subprocess, with its XLA compilation cache in ``cache``."""
-    environment = dict(os.environ, KERAS_BACKEND="jax", **(env or {}))
-    environment["JAX_COMPILATION_CACHE_DIR"] = cache
-    environment["JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS"] = "0"
-    return subprocess.Popen(
-        [sys.executable, os.path.join(REPO, "train.py"), *args],
-        cwd=REPO, env=environment, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
-    )
+    argv, environment = train_py(*args, cache=cache, env=env)
+    return subprocess.Popen(argv, cwd=REPO, env=environment, stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True)
 
 
 # ---------------------------------------------------------------------------
@@ -129,8 +128,6 @@ def test_every_variant_writes_the_run_directory(variant, dataset, variant_run, t
 # ---------------------------------------------------------------------------
 # Faults
 # ---------------------------------------------------------------------------
-RESUME_ARGS = ["--variant", "baseline", "--backbone", "small", "--epochs", "4",
-               "--batch-size", "5", "--patience", "10", "--quiet"]
 #: train.py's line on a run that has already finished.
 FINISHED = "already finished, left as it is: "
 #: config.json entries that differ between two runs of one command.
@@ -150,13 +147,13 @@ def _wait_for(condition, timeout=90):
 
 
 @pytest.fixture(scope="module")
-def uninterrupted(dataset, tmp_path_factory, xla_cache):
-    """The run of RESUME_ARGS made in one go, through train.py: its exit
-    status, stdout and run directory."""
-    run_dir = str(tmp_path_factory.mktemp("straight") / "run")
-    process = cli(*RESUME_ARGS, "--data", dataset, "--run-dir", run_dir, cache=xla_cache)
-    out, err = process.communicate(timeout=180)
-    return {"returncode": process.returncode, "out": out, "err": err, "run_dir": run_dir}
+def uninterrupted(early):
+    """The run of RESUME_ARGS on ``stereo40`` made in one go, through
+    train.py (started early, conftest's ``EARLY``): its exit status, stdout,
+    stderr and run directory."""
+    folder, result = early("uninterrupted")
+    return {"returncode": result.returncode, "out": result.stdout, "err": result.stderr,
+            "run_dir": os.path.join(folder, "run")}
 
 
 def _ends_like(run_dir, returncode, out, err, uninterrupted):
@@ -410,14 +407,19 @@ def test_early_stopping_ends_the_run_and_model_keras_holds_the_best_epoch(
     rows = (run_dir / "log.csv").read_text().strip().splitlines()
     assert len(rows) == 1 + 4
 
+@pytest.fixture(scope="module")
+def data_parallel_run(early):
+    """``train.py --data-parallel`` of MTL-CPL-U on ``stereo40`` on two
+    (forced) host devices, batch 5, two epochs (started early, conftest's
+    ``EARLY``): ``(run directory, subprocess.CompletedProcess)``."""
+    folder, result = early("data_parallel")
+    return os.path.join(folder, "run"), result
+
+
 @pytest.mark.slow
-def test_data_parallel_on_two_devices_with_uneven_batches(dataset, tmp_path, xla_cache):
-    run_dir = str(tmp_path / "run")
-    process = cli("--variant", "cpl-u", "--data", dataset, "--backbone", "small",
-                  "--epochs", "2", "--batch-size", "5", "--data-parallel", "--run-dir", run_dir,
-                  "--quiet", cache=xla_cache, env={"XLA_FLAGS": "--xla_force_host_platform_device_count=2"})
-    out, err = process.communicate(timeout=120)
-    assert process.returncode == 0, err
+def test_data_parallel_on_two_devices_with_uneven_batches(data_parallel_run):
+    run_dir, process = data_parallel_run
+    assert process.returncode == 0, process.stderr
     with open(os.path.join(run_dir, "config.json")) as f:
         config = json.load(f)
     # 25 training pairs, batch 5 -> 6 (2 devices): 5 batches, the last one padded.
@@ -500,7 +502,7 @@ def test_bad_arguments_from_the_shell(tmp_path, xla_cache):
 def test_finished_run_is_left_untouched(tiny_run, tmp_path, xla_cache):
     """The same command on a finished run (a copy of the shared tiny run)
     changes no file (model.keras keeps its optimizer state) and says so in
-    one line, exit 0."""
+    one line, exit 0, without importing Keras or JAX (it returns at once)."""
     run_dir = str(tmp_path / "run")
     shutil.copytree(tiny_run["run"], run_dir)
     assert json.loads(open(os.path.join(run_dir, "config.json")).read())["status"] == "finished"
@@ -522,6 +524,15 @@ def test_finished_run_is_left_untouched(tiny_run, tmp_path, xla_cache):
     assert process.returncode == 0, err
     assert out.startswith(FINISHED) and len(out.strip().splitlines()) == 1, out
     assert "Traceback" not in err
+    assert snapshot() == before
+    # train.py's main, then what it imported
+    code = ("import runpy, sys\n"
+            "status = runpy.run_path('train.py')['main'](sys.argv[1:])\n"
+            "print(status, 'keras' in sys.modules, 'jax' in sys.modules, file=sys.stderr)\n")
+    done = subprocess.run([sys.executable, "-c", code, *args], cwd=REPO, capture_output=True,
+                          text=True, timeout=120, env=dict(os.environ, KERAS_BACKEND="jax"))
+    assert done.stdout.startswith(FINISHED) and done.stderr.split() == ["0", "False", "False"], \
+        done.stderr[-2000:]
     assert snapshot() == before
 
 
@@ -896,16 +907,20 @@ def test_target_scaling_and_steps_per_execution_reach_the_compiled_model(tiny_ru
     assert float(row["val_loss"]) == pytest.approx(scaled, rel=1e-4)
 
 
+@pytest.mark.parametrize("jax_first", [True, False], ids=["jax imported", "jax not yet"])
 @pytest.mark.parametrize("setting", [None, "2.5"])
-def test_compile_cache_keeps_every_program_unless_told_otherwise(setting, tmp_path):
+def test_compile_cache_keeps_every_program_unless_told_otherwise(setting, jax_first, tmp_path):
     """enable_compile_cache: the directory from $JAX_COMPILATION_CACHE_DIR,
     programs kept whatever their compile time (0 s), and a
     $JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS the user set left as set; a
-    small program compiled after it lands in the directory. In a process of
-    its own: the setting is global to JAX."""
-    code = ("import jax, jax.numpy as jnp\n"
-            "from cpl_keras.cache import enable_compile_cache\n"
-            "print(enable_compile_cache())\n"
+    small program compiled after it lands in the directory; alike whether
+    JAX was imported before it or is after it (nor does it import Keras). In
+    a process of its own: the setting is global to JAX."""
+    enable = ("from cpl_keras.cache import enable_compile_cache\n"
+              "print(enable_compile_cache())\n"
+              "import sys; assert 'keras' not in sys.modules\n")
+    code = (("import jax, jax.numpy as jnp\n" + enable) if jax_first else
+            (enable + "import jax, jax.numpy as jnp\n")) + (
             "print(jax.config.jax_persistent_cache_min_compile_time_secs)\n"
             "jax.jit(lambda x: jnp.sin(x) * 3)(jnp.ones(7)).block_until_ready()\n")
     env = dict(os.environ, KERAS_BACKEND="jax", JAX_COMPILATION_CACHE_DIR=str(tmp_path / "xla"))
