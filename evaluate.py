@@ -135,4 +135,4 @@ def _evaluate(args, command, progress):
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    cli.run(main, PROG)

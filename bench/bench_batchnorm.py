@@ -95,4 +95,6 @@ def main(argv=None):
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    from cpl_keras import cli
+
+    cli.run(main, 'bench/bench_batchnorm.py')

@@ -116,4 +116,6 @@ def main(argv=None):
 
 
 if __name__ == "__main__":
-    main()
+    from cpl_keras import cli
+
+    cli.run(main, 'bench/bench_conv_shapes.py')

@@ -59,4 +59,6 @@ def main():
 
 
 if __name__ == "__main__":
-    main()
+    from cpl_keras import cli
+
+    cli.run(main, 'bench/bench_generate.py')

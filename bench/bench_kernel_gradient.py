@@ -169,4 +169,6 @@ def main(argv=None):
 
 
 if __name__ == "__main__":
-    main()
+    from cpl_keras import cli
+
+    cli.run(main, 'bench/bench_kernel_gradient.py')

@@ -119,4 +119,6 @@ def compare_flags(rounds, settings):
 
 
 if __name__ == "__main__":
-    main()
+    from cpl_keras import cli
+
+    cli.run(main, 'bench/bench_xla_bf16.py')

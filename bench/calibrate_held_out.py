@@ -115,4 +115,6 @@ def main(argv=None):
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    from cpl_keras import cli
+
+    cli.run(main, 'bench/calibrate_held_out.py')

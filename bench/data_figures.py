@@ -78,4 +78,6 @@ def main(argv=None):
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    from cpl_keras import cli
+
+    cli.run(main, 'bench/data_figures.py')

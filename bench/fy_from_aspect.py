@@ -61,4 +61,6 @@ def main(argv=None):
 
 
 if __name__ == "__main__":
-    main()
+    from cpl_keras import cli
+
+    cli.run(main, 'bench/fy_from_aspect.py')

@@ -5,7 +5,7 @@
 #   bash bench/paper_gpu.sh --fetch-wheels      # here, once: the wheels the GPU machine
 #                                               # lacks (Keras, namex, optree) into .whl/
 #   bash bench/paper_gpu.sh "$OUT"              # there (device run, carry [".whl"])
-#   bash bench/paper_gpu.sh /tmp/dry --dry-run  # here: every step of the plan, tiny
+#   bash bench/paper_gpu.sh runs/dry --dry-run  # here: every step of the plan, tiny
 #
 # The plan (cpl_keras/reproduce/presets.py, PRESETS["paper-gpu"]): 20,000 cvgl pairs
 # rendered on every CPU core of the machine, the real sets, MTL-CPL-A then
@@ -65,7 +65,7 @@ fi
 start=$(date +%s)
 set +e
 timeout -s INT -k 30 "$limit" python3 -m cpl_keras.reproduce "${args[@]}" 2>&1 \
-    | tee "$out/reproduce.log"
+    | tee -i "$out/reproduce.log"
 status=${PIPESTATUS[0]}
 set -e
 echo "reproduce: exit $status after $(( $(date +%s) - start )) s" | tee -a "$out/machine.txt"

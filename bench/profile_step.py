@@ -259,4 +259,6 @@ def main(argv=None):
 
 
 if __name__ == "__main__":
-    main()
+    from cpl_keras import cli
+
+    cli.run(main, 'bench/profile_step.py')

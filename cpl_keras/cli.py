@@ -19,10 +19,17 @@
   exception still stops at the next ``check_interrupt()`` (training checks
   between batches); the command then prints one line (with how to resume) and
   exits 130.
+* ``run(main, prog)``: every command's one exit path (``if __name__ ==
+  "__main__": cli.run(main, PROG)``): ``main()``'s exit status, or after a
+  Ctrl-C that ``main`` did not handle one line and 130. An interrupted
+  process ends at once (``os._exit``) without the interpreter's teardown:
+  that teardown, with XLA's compilation threads still at work, is where a
+  Ctrl-C used to end in a segmentation fault (exit 139).
 """
 
 from __future__ import annotations
 
+import _thread
 import argparse
 import contextlib
 import math
@@ -31,6 +38,10 @@ import shlex
 import signal
 import sys
 import threading
+import time
+
+from cpl_keras import files
+from cpl_keras.errors import Error
 
 
 def one_line(error):
@@ -136,6 +147,13 @@ class Interrupted(KeyboardInterrupt):
 
 
 _pending = threading.Event()
+#: Whether this process has printed its "interrupted" line (``interrupted``).
+_announced = threading.Event()
+#: Seconds ``run`` gives a command to end by itself after a Ctrl-C before it
+#: ends the process (``_watchdog``).
+GRACE_S = 5.0
+#: Seconds between deliveries of a Ctrl-C that could not be raised yet.
+REDELIVER_S = 0.2
 
 
 def check_interrupt():
@@ -143,6 +161,35 @@ def check_interrupt():
     (for loops that a swallowed exception would otherwise carry on)."""
     if _pending.is_set():
         raise Interrupted()
+
+
+def _in_import(frame):
+    """Whether ``frame`` (where the main thread was when a signal came) is
+    inside an import: an exception raised there can leave a native module
+    half initialised (jaxlib then crashed with a segmentation fault)."""
+    while frame is not None:
+        if frame.f_code.co_filename.startswith("<frozen importlib"):
+            return True
+        frame = frame.f_back
+    return False
+
+
+def _handler(signum, frame):
+    """SIGINT: remembered for ``check_interrupt()``, raised as ``Interrupted``
+    unless the main thread is inside an import (then ``run``'s watchdog
+    delivers it again a moment later)."""
+    _pending.set()
+    if not _in_import(frame):
+        raise Interrupted()
+
+
+def _unraisable(report, chain):
+    # A SIGINT that lands in a callback whose exceptions Python ignores
+    # (a garbage-collection callback of JAX, say) would print a traceback
+    # and be lost; it stays pending for check_interrupt() (and ``run``'s
+    # watchdog delivers it again).
+    if not isinstance(report.exc_value, Interrupted):
+        chain(report)
 
 
 @contextlib.contextmanager
@@ -154,36 +201,106 @@ def interruptible():
     if threading.current_thread() is not threading.main_thread():
         yield
         return
-
-    def handler(signum, frame):
-        _pending.set()
-        raise Interrupted()
-
     if signal.getsignal(signal.SIGINT) is signal.SIG_IGN:
         # started with Ctrl-C ignored (nohup, a background job of a script)
         yield
         return
-    def unraisable(report, chain=sys.unraisablehook):
-        # A SIGINT that lands in a callback whose exceptions Python ignores
-        # (a garbage-collection callback of JAX, say) would print a
-        # traceback and be lost; it stays pending for check_interrupt().
-        if not isinstance(report.exc_value, Interrupted):
-            chain(report)
 
-    _pending.clear()
-    previous = signal.signal(signal.SIGINT, handler)
+    def unraisable(report, chain=sys.unraisablehook):
+        _unraisable(report, chain)
+
+    outermost = signal.getsignal(signal.SIGINT) is not _handler
+    if outermost:
+        _pending.clear()
+    # (a block inside another, train.py's inside ``run``'s, keeps a Ctrl-C
+    # that came before it pending)
+    previous = signal.signal(signal.SIGINT, _handler)
     previous_hook, sys.unraisablehook = sys.unraisablehook, unraisable
     try:
         yield
     finally:
         signal.signal(signal.SIGINT, previous)
         sys.unraisablehook = previous_hook
-        _pending.clear()
+        if outermost:
+            _pending.clear()
+
+
+def _watchdog(prog, note):
+    """``run``'s guard thread. After a Ctrl-C it delivers the interrupt to the
+    main thread again every ``REDELIVER_S`` while the command runs (one that
+    a callback swallowed, or that came during an import), and after
+    ``GRACE_S`` (a main thread stuck in a long native call, such as an XLA
+    compilation) it ends the process itself: the command's line, the
+    temporary files of unfinished atomic writes removed, exit 130."""
+    while True:
+        _pending.wait()
+        deadline = time.monotonic() + GRACE_S
+        while _pending.is_set() and time.monotonic() < deadline:
+            time.sleep(REDELIVER_S)
+            if _pending.is_set():
+                _thread.interrupt_main()
+        if _pending.is_set():
+            break
+    files.remove_unfinished()
+    if not _announced.is_set():
+        interrupted(prog, note=note)
+    _exit_interrupted()
+
+
+def _exit_interrupted():
+    """End the process now with status 130, stdout and stderr flushed."""
+    for stream in (sys.stdout, sys.stderr):
+        try:
+            stream.flush()
+        except (OSError, ValueError):
+            pass
+    os._exit(INTERRUPTED)
+
+
+def run(main, prog, note=None):
+    """Run a command's ``main()`` and end the process with its exit status:
+    the one exit path of every command of the package and of bench/.
+
+    A ``KeyboardInterrupt`` that ``main`` let through prints
+    ``interrupted(prog, note=note)``'s line; an ``errors.Error`` or
+    ``OSError`` (a missing or malformed file, a bad argument) its one-line
+    message, exit status 2. Whenever the status is 130 (an interruption,
+    handled here or by ``main``), further Ctrl-Cs are ignored and the
+    process ends with ``os._exit(130)`` once stdout and stderr are flushed:
+    Python's teardown would wait on, or crash in, the XLA work a compiling
+    command still has in flight (a segmentation fault, exit 139). Files are
+    written atomically (``cpl_keras.files``), so an interrupted command has
+    none half-written to clean up. A Ctrl-C is delivered again while the
+    command runs on, and ``GRACE_S`` after it the process ends all the same
+    (``_watchdog``). Any other status leaves through ``sys.exit``."""
+    if threading.current_thread() is threading.main_thread() and \
+            signal.getsignal(signal.SIGINT) is not signal.SIG_IGN:
+        threading.Thread(target=_watchdog, args=(prog, note), daemon=True,
+                         name="cpl_keras-ctrl-c").start()
+    try:
+        with interruptible():
+            status = main()
+    except KeyboardInterrupt:
+        _ignore_interrupts()
+        status = INTERRUPTED if _announced.is_set() else interrupted(prog, note=note)
+    except (Error, OSError) as error:  # (a missing or bad file: one line, 2)
+        status = fail(prog, error)
+    if status == INTERRUPTED:
+        _ignore_interrupts()
+        _exit_interrupted()
+    sys.exit(status)
+
+
+def _ignore_interrupts():
+    """From here on a Ctrl-C is ignored (the process is already ending)."""
+    if threading.current_thread() is threading.main_thread():
+        signal.signal(signal.SIGINT, signal.SIG_IGN)
 
 
 def interrupted(prog, resume=None, note=None):
     """Print ``<prog>: interrupted`` on one line on stderr, with how to resume
     (``resume``: the command) or another ``note``; return 130."""
+    _announced.set()
     line = f"{prog}: interrupted"
     if resume:
         line += f"; to resume, run the same command again: {resume}"

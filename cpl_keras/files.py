@@ -34,6 +34,20 @@ def commit(tmp, path):
     os.replace(tmp, path)
 
 
+#: The temporary files of the atomic writes now in progress (``remove_unfinished``).
+_unfinished = set()
+
+
+def remove_unfinished():
+    """Remove the temporary files of every atomic write still in progress (a
+    process about to end at once, ``cli.run`` after a Ctrl-C)."""
+    for tmp in list(_unfinished):
+        try:
+            os.remove(tmp)
+        except OSError:
+            pass
+
+
 @contextlib.contextmanager
 def atomic_path(*paths):
     """Yield temporary paths (one per ``path``, the same extension) to write
@@ -42,6 +56,7 @@ def atomic_path(*paths):
     files are removed and the final files left as they were. With one path,
     yields one temporary path; with several, a list."""
     tmps = [_partial(os.fspath(p)) for p in paths]
+    _unfinished.update(tmps)
     try:
         yield tmps[0] if len(tmps) == 1 else tmps
         for tmp, path in zip(tmps, paths):
@@ -50,6 +65,7 @@ def atomic_path(*paths):
         for tmp in tmps:
             if os.path.exists(tmp):
                 os.remove(tmp)
+        _unfinished.difference_update(tmps)
 
 
 def write_text(path, text):

@@ -12,7 +12,6 @@ extension, drawn with matplotlib, so no graphviz is needed).
 from __future__ import annotations
 
 import os
-import sys
 
 from cpl_keras import camera, cli, models, runs
 from cpl_keras.models import BACKBONES, variants
@@ -463,4 +462,4 @@ def main(argv=None, prog=PROG):
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    cli.run(main, PROG)

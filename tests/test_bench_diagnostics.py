@@ -63,3 +63,19 @@ def test_fy_from_aspect_reports_the_runs_errors(tiny_run, capsys):
         out = evaluation.predict_images(runs.load_model(run), *f.read_pairs(test))
     fy = np.median(np.abs(out["fy"] - truth["fy"][test]) / truth["fy"][test])
     assert f"fy {fy:.3f}," in line
+
+
+@pytest.mark.parametrize("script", ["diagnose_heads.py", "bench_batchnorm.py"])
+def test_a_missing_data_file_is_one_line_and_exit_2(script, tmp_path):
+    """The documented bench commands on a fresh clone (no data/ yet): one
+    line that names the file, exit status 2 (``cli.run``), not a traceback."""
+    import subprocess
+    import sys
+
+    missing = tmp_path / "cvgl-8000-112px-v2.1.h5"
+    done = subprocess.run([sys.executable, os.path.join(BENCH, script), "--data", str(missing)],
+                          env=dict(os.environ, KERAS_BACKEND="jax"), text=True,
+                          capture_output=True, timeout=120)
+    assert done.returncode == 2, done.stderr
+    assert done.stderr.strip().splitlines() == [
+        f"bench/{script}: error: dataset not found: {missing}"], done.stderr

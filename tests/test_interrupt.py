@@ -198,3 +198,124 @@ def test_ctrl_c_during_evaluate_is_one_line(tiny_run, tmp_path, moment):
     lines = [line for line in err.splitlines() if "interrupted" in line]
     assert lines == ["evaluate.py: interrupted; nothing was written"], err
     assert not out.exists() or not any(out.iterdir())
+
+
+def _interrupt_at(args, moment, cache):
+    """Start ``args`` with an empty compile cache of its own (so that it
+    compiles), send Ctrl-C after ``moment`` seconds; (exit status, stderr)."""
+    env = dict(os.environ, KERAS_BACKEND="jax", CPL_KERAS_CACHE=cache,
+               JAX_COMPILATION_CACHE_DIR=os.path.join(cache, "xla"))
+    process = subprocess.Popen([sys.executable, *args], cwd=REPO, env=env, text=True,
+                               stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                               start_new_session=True)
+    time.sleep(moment)
+    try:
+        _ctrl_c(process)
+    except ProcessLookupError:
+        pass
+    try:
+        _, err = process.communicate(timeout=120)
+    finally:
+        if process.poll() is None:
+            process.kill()
+    return process.returncode, err
+
+
+@pytest.mark.slow
+def test_ctrl_c_of_evaluate_at_twenty_moments_exits_130_with_one_line(tiny_run, tmp_path):
+    """Ctrl-C at 20 moments from start-up to the end of compilation: exit
+    130 and one line every time, nothing written. (Python's teardown with
+    XLA's compilation still in flight crashed 4 of 10 such interrupts with
+    a segmentation fault, exit -11 / 139; ``cli.run`` ends an interrupted
+    process with ``os._exit(130)``.) Two at a time, on 2 cores."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    moments = [0.4 + 0.35 * i for i in range(20)]  # 0.4 .. 7.05 s
+
+    def one(i):
+        out = tmp_path / f"out{i}"
+        status, err = _interrupt_at(["evaluate.py", "--run", tiny_run["run"], "--data",
+                                     tiny_run["data"], "--out", str(out)],
+                                    moments[i], str(tmp_path / f"cache{i}"))
+        return i, status, err, sorted(os.listdir(out)) if out.exists() else []
+
+    with ThreadPoolExecutor(2) as pool:
+        results = list(pool.map(one, range(len(moments))))
+    interrupted = 0
+    for i, status, err, written in results:
+        if status == 0 and "wrote" in err:  # finished before the moment came
+            continue
+        interrupted += 1
+        assert status == 130, f"at {moments[i]:.2f} s: exit {status}: {err}"
+        assert "Traceback" not in err and "Segmentation" not in err, err
+        lines = [line for line in err.strip().splitlines() if "interrupted" in line]
+        assert lines == ["evaluate.py: interrupted; nothing was written"], err
+        assert written == [], f"at {moments[i]:.2f} s it wrote {written}"
+    assert interrupted >= 15, f"only {interrupted} of 20 were interrupted before they ended"
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("moment", [2.5, 4.5])
+def test_ctrl_c_of_a_benchmark_while_it_compiles_exits_130_with_one_line(tmp_path, moment):
+    """The benchmark scripts go through the same exit path (``cli.run``):
+    no traceback, no crash."""
+    status, err = _interrupt_at(["bench/bench_variants.py", "--variants", "baseline",
+                                 "--image-size", "32", "--rounds", "50"],
+                                moment, str(tmp_path / "cache"))
+    assert status == 130, err
+    assert "Traceback" not in err, err
+    assert [line for line in err.splitlines() if "interrupted" in line] == [
+        "bench/bench_variants.py: interrupted"], err
+
+
+def test_every_command_leaves_through_cli_run():
+    """One exit path: the ``__main__`` block of every module of the package,
+    of bench/ and of the top-level commands calls ``cli.run`` (a bare
+    ``sys.exit(main())`` is what crashed on Ctrl-C)."""
+    import glob
+    import re
+
+    files = (glob.glob(os.path.join(REPO, "cpl_keras", "**", "*.py"), recursive=True)
+             + glob.glob(os.path.join(REPO, "bench", "*.py"))
+             + [os.path.join(REPO, name) for name in ("train.py", "evaluate.py")])
+    checked = 0
+    for path in files:
+        with open(path) as f:
+            text = f.read()
+        block = re.search(r'\nif __name__ == "__main__":\n((?:    .*\n|\n)+)', text)
+        if not block:
+            continue
+        checked += 1
+        assert "cli.run(" in block.group(1), f"{os.path.relpath(path, REPO)}: {block.group(1)}"
+    assert checked >= 25
+
+
+def test_cli_run_exit_statuses(tmp_path):
+    """``cli.run``: main's status; a KeyboardInterrupt -> one line and 130;
+    a package error or OSError -> one line and 2."""
+    script = tmp_path / "command.py"
+    script.write_text(
+        "import sys\n"
+        "from cpl_keras import cli\n"
+        "from cpl_keras.errors import Error\n"
+        "def main():\n"
+        "    what = sys.argv[1]\n"
+        "    if what == 'ok': return 0\n"
+        "    if what == 'ctrl-c': raise KeyboardInterrupt\n"
+        "    if what == 'error': raise Error('dataset not found: x.h5')\n"
+        "    if what == 'oserror': open('/nonexistent/x')\n"
+        "    return 3\n"
+        "cli.run(main, 'prog')\n")
+    env = dict(os.environ, PYTHONPATH=REPO)
+    expected = {"ok": (0, []), "ctrl-c": (130, ["prog: interrupted"]),
+                "error": (2, ["prog: error: dataset not found: x.h5"]),
+                "oserror": (2, None), "other": (3, [])}
+    for what, (status, lines) in expected.items():
+        done = subprocess.run([sys.executable, str(script), what], env=env, text=True,
+                              capture_output=True, timeout=60)
+        assert done.returncode == status, (what, done.stderr)
+        err = done.stderr.strip().splitlines()
+        if lines is None:
+            assert len(err) == 1 and err[0].startswith("prog: error: "), done.stderr
+        else:
+            assert err == lines, (what, done.stderr)

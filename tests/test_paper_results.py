@@ -4,6 +4,7 @@ weights or datasets), and every decimal figure a report quotes is a cell of
 the tables (or of the run table) it speaks about."""
 
 import json
+import os
 import math
 import re
 import shutil
@@ -13,7 +14,8 @@ from pathlib import Path
 
 import pytest
 
-RESULTS = Path(__file__).resolve().parent.parent / "paper_results"
+REPO = str(Path(__file__).resolve().parent.parent)
+RESULTS = Path(REPO) / "paper_results"
 #: Every committed reproduction: a folder with its reproduce.json.
 REPRODUCTIONS = sorted(p.parent for p in RESULTS.glob("**/reproduce.json"))
 #: A decimal figure as the reports write it: 0.012, -1.849, 4.6 (not 2 or 1,000).
@@ -121,3 +123,48 @@ def test_the_figure_check_catches_a_figure_not_in_the_tables(tmp_path):
     quoted = _quoted("CPL-A gets 0.012 (spread 0.003) against 0.013; `x 9.99` [a](v1.5.md)")
     assert quoted == ["0.012", "0.003", "0.013"]
     assert [f for f in quoted if f not in cells] == ["0.013"]
+
+
+#: An absolute path of a machine: a POSIX root folder of user or temporary
+#: data, a Windows drive, or a home folder's shorthand.
+MACHINE_PATH = re.compile(
+    r"(?:^|[\s\"'`=(\[,:])(/(?:tmp|root|home|work|Users|var|private|mnt|opt|srv|scratch|data)/"
+    r"|[A-Za-z]:\\\\|~/\.cache/\S*pytest)")
+
+
+def _tracked(*folders):
+    done = subprocess.run(["git", "ls-files", *folders], cwd=REPO, text=True,
+                          capture_output=True, timeout=60)
+    if done.returncode != 0:
+        pytest.skip("not a git checkout")
+    return [name for name in done.stdout.splitlines() if name]
+
+
+def test_no_tracked_result_or_doc_names_a_machine_path():
+    """paper_results/ and docs/ are read on other machines: no file of them
+    (text files, and the strings of the stored .npz predictions) holds an
+    absolute path of the machine that wrote it."""
+    import numpy as np
+
+    found = []
+    for name in _tracked("paper_results", "docs"):
+        path = os.path.join(REPO, name)
+        if name.endswith(".png"):
+            continue
+        if name.endswith(".npz"):
+            with np.load(path, allow_pickle=False) as stored:
+                texts = [str(v) for key in stored.files if stored[key].dtype.kind in "US"
+                         for v in stored[key].ravel()]
+        else:
+            with open(path, encoding="utf-8", errors="replace") as f:
+                texts = f.read().splitlines()
+        found += [f"{name}: {text.strip()[:120]}" for text in texts if MACHINE_PATH.search(text)]
+    assert not found, "\n".join(found)
+
+
+def test_the_machine_path_scan_catches_one():
+    for text in ("--data /tmp/d/cvgl_1000.h5", '"data": "/home/me/cvgl.h5"',
+                 "CPL_KERAS_CACHE=/root/.cache/x", r"C:\\Users\\me"):
+        assert MACHINE_PATH.search(text), text
+    for text in ("--data data/cvgl.h5", "runs/dry", "paper_results/cpu/runs", "km/h"):
+        assert not MACHINE_PATH.search(text), text

@@ -94,9 +94,13 @@ def test_no_import_cycle_in_the_package():
 #: Third-party modules heavy enough to import only where they are used.
 HEAVY = {"keras", "jax", "jaxlib", "matplotlib", "cv2", "h5py", "skimage", "scipy", "PIL"}
 #: Imports inside functions that are there by design: the lazy attributes of
-#: ``cpl_keras`` and ``cpl_keras.models`` (Keras on first use), and the data
+#: ``cpl_keras`` and ``cpl_keras.models`` (Keras, or numpy, on first use), and the data
 #: generator's worker task taken from the imported module, not ``__main__``.
 LAZY_BY_DESIGN = {("cpl_keras", "cpl_keras.models"), ("cpl_keras.models", "importlib"),
+                  # (numpy, through the camera model: ``from cpl_keras import cli``,
+                  # every command's first import, stays a few milliseconds, so its
+                  # Ctrl-C guard is in place at once)
+                  ("cpl_keras", "cpl_keras.camera"),
                   ("cpl_keras.data.generate", "cpl_keras.data.generate")}
 
 

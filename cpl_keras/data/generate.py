@@ -447,4 +447,4 @@ def _main(args, command_line):
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    cli.run(main, PROG)

@@ -3,9 +3,10 @@
 The names the command lines offer (``VARIANTS``, ``BACKBONES``, from
 ``variants``) come without Keras, so that arguments are checked before it
 is imported; ``build_model``, ``compile_model``, ``CalibrationModel`` and
-``LOSS_MODES`` import it on first use. Importing ``cpl_keras.models.factory``
-(which they bring along) registers every custom function and layer, so a
-saved model loads with ``keras.saving.load_model(path, safe_mode=True)``.
+``LOSS_MODES`` import it on first use. Importing this package alone does not
+register the custom functions and layers with Keras; ``cpl_keras.saving``
+does (``cpl_keras.load_model(path)``, or ``import cpl_keras.saving`` before
+``keras.saving.load_model(path, safe_mode=True)``).
 """
 
 from cpl_keras.models.variants import BACKBONES, VARIANTS

@@ -54,7 +54,6 @@ import glob
 import json
 import math
 import os
-import sys
 
 import numpy as np
 
@@ -391,4 +390,4 @@ def main(argv=None):
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    cli.run(main, 'python -m cpl_keras.real.chessboard')

@@ -1,8 +1,8 @@
 """``python -m cpl_keras.reproduce``: the reproduction's command line."""
 
-import sys
-
-from cpl_keras.reproduce.cli import main
+from cpl_keras.reproduce.cli import PROG, main
 
 if __name__ == "__main__":
-    sys.exit(main())
+    from cpl_keras import cli
+
+    cli.run(main, PROG)

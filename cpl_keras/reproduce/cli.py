@@ -4,7 +4,6 @@
 from __future__ import annotations
 
 import os
-import sys
 
 from cpl_keras import cli
 from cpl_keras.data.storage import DatasetError
@@ -159,5 +158,5 @@ def main(argv=None):
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    cli.run(main, PROG)
 
