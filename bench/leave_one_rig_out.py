@@ -17,8 +17,9 @@ training split is held-out-config, or with the real crops the paper's
 frame-level split (held-out-config can put a whole real rig, one
 configuration, into its test part, so that it is never trained on). Runs
 resume where they stopped (the same command again); every finished model's
-Table 2 goes to ``--out/<model>/``, its log, curves and config to
-``--out/runs/``, and ``--out/summary.md`` collects the
+Table 2 goes to ``--out/<model>/`` (and its record on those rigs into its run
+directory, ``real_cameras.json``, which calibrate reports), its log, curves
+and config to ``--out/runs/``, and ``--out/summary.md`` collects the
 field's metrics per rig with the targets.
 
 fy is scored twice: the network's fy head (Table 2), and fy from square
@@ -184,7 +185,7 @@ def main(argv=None):
     parser.add_argument("--seed", type=int, default=0)
     args = parser.parse_args(argv)
 
-    from cpl_keras import evaluation, report
+    from cpl_keras import evaluation, real_record, report
     from cpl_keras.training import train
 
     os.makedirs(args.runs_dir, exist_ok=True)
@@ -205,8 +206,10 @@ def main(argv=None):
             raise SystemExit(f"{run_dir}: {summary['status']} ({summary.get('stopped')})")
         publish(run_dir, os.path.join(args.out, "runs"), name)
         table = evaluation.make_table2([run_dir], [rigs[r] for r in tested], geometric=False)
-        report.write_outputs(os.path.join(args.out, name), "table2", table,
-                             "python bench/leave_one_rig_out.py " + " ".join(argv or sys.argv[1:]))
+        command = "python bench/leave_one_rig_out.py " + " ".join(argv or sys.argv[1:])
+        report.write_outputs(os.path.join(args.out, name), "table2", table, command)
+        # the run's own record on the rigs it never saw, for calibrate to say
+        real_record.write_record(run_dir, table, command=command)
         square_fy = {r: square_pixel_fy_error(run_dir, rigs[r]) for r in tested}
         lines += summary_rows(name, table, ROW[args.variant], square_fy)
         own += own_test_rows(name, run_dir)
@@ -227,4 +230,6 @@ def main(argv=None):
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    from cpl_keras import cli
+
+    cli.run(main, 'bench/leave_one_rig_out.py')

@@ -1,7 +1,8 @@
 """Calibrate a stereo pair of image files with a trained run.
 
     python -m cpl_keras.calibrate LEFT.png RIGHT.png --run RUN_DIR [--json-out FILE]
-        [--opencv-yaml FILE] [--ros-yaml DIR]
+        [--opencv-yaml FILE] [--ros-yaml DIR] [--colmap DIR]
+        [--baseline METRES] [--focal PX|exif]
     python -m cpl_keras.calibrate --folder DIR --run RUN_DIR [...]
 
 Prints JSON with the 10 camera parameters, the point X, Y, Z and the
@@ -25,7 +26,17 @@ protocol, split and training label ranges, in the model's input units), the
 spread of each value over crops of the pair (``spread``), which quantities
 one pair determines and which are scale priors (``scale_free``,
 ``scale_priors``), what every field means (``fields``), and whether the run
-is the demonstration model (then also warned about).
+is the demonstration model (then also warned about). One line on stderr,
+and ``real_camera_record`` in the JSON, give the run's record on real
+cameras (``cpl_keras.real_record``): the real rigs it was scored on without
+having seen them, with its median relative fx error beside the Average
+row's, or that it was never validated on one.
+
+Known values replace the network's guesses (``cpl_keras.priors``):
+``--baseline METRES`` scales the metric quantities, ``--focal PX`` (or
+``exif``: a JPEG's 35 mm equivalent) sets fx, fy and the depth through
+them; ``priors`` and ``from_prior`` in the JSON say which values came from
+them.
 
 ``--aspect square`` (the default) takes the pixels as square, as real
 cameras' are: fy = fx in the input image's pixels, the network's own fy
@@ -57,27 +68,13 @@ os.environ.setdefault("KERAS_BACKEND", "jax")
 
 import numpy as np  # noqa: E402
 
-from cpl_keras import cli, runs  # noqa: E402
+from cpl_keras import cli, priors as known, real_record, runs  # noqa: E402
 from cpl_keras.camera import PARAMETERS, UNITS, fov_from_focal  # noqa: E402
+from cpl_keras.image_pairs import (  # noqa: E402,F401  (their former home)
+    IMAGE_SUFFIXES, CalibrationError, find_pairs, is_grey, read_image, read_pair)
 from cpl_keras.real import crop_resize_coordinate  # noqa: E402
 
 PROG = "python -m cpl_keras.calibrate"
-
-
-class CalibrationError(Error):
-    """Bad input to calibrate (one-line message)."""
-
-
-def read_image(path):
-    """A uint8 RGB image from ``path`` (CalibrationError if unreadable)."""
-    import cv2
-
-    if not os.path.isfile(path):
-        raise CalibrationError(f"image not found: {path}")
-    image = cv2.imread(os.fspath(path), cv2.IMREAD_COLOR)
-    if image is None:
-        raise CalibrationError(f"cannot read {path} as an image")
-    return cv2.cvtColor(image, cv2.COLOR_BGR2RGB)
 
 
 def to_input_pixels(values, width, height, size_w, size_h):
@@ -140,12 +137,6 @@ def from_window(values, window, size_w, size_h):
     return out
 
 
-def is_grey(image):
-    """Whether the RGB ``image`` has no colour (its three channels equal)."""
-    return bool(np.array_equal(image[..., 0], image[..., 1])
-                and np.array_equal(image[..., 1], image[..., 2]))
-
-
 def is_demonstration(run):
     """Whether ``run`` is train.py's demonstration run (trained without --data
     on the cached demonstration dataset)."""
@@ -172,19 +163,6 @@ def label_ranges(stats):
         return None
     return {name: [stats["min"][name], stats["max"][name]] for name in stats["targets"]
             if name in stats["min"] and name in stats["max"]}
-
-
-def read_pair(left_path, right_path):
-    """The two images of a pair, checked to be a pair (CalibrationError)."""
-    left, right = read_image(left_path), read_image(right_path)
-    if left.shape != right.shape:
-        raise CalibrationError(
-            f"left and right images differ in size: {left.shape[1]}x{left.shape[0]} "
-            f"and {right.shape[1]}x{right.shape[0]}")
-    if np.array_equal(left, right):
-        raise CalibrationError("left and right images are identical: a stereo pair needs two "
-                               "views")
-    return left, right
 
 
 def predict_windows(model, left, right, windows, released):
@@ -227,12 +205,14 @@ def load(run_dir):
 ASPECTS = ("square", "model")
 
 
-def calibrate_pair(left_path, right_path, run_dir, warn=None, loaded=None, aspect="square"):
+def calibrate_pair(left_path, right_path, run_dir, warn=None, loaded=None, aspect="square",
+                   priors=None):
     """The calibration of one pair as a JSON-ready dict; ``warn(line)`` is
     called with each warning (a grey image, a prediction outside the
     training labels' range, a large spread, the demonstration model).
     ``loaded``: ``load(run_dir)``'s result, when already loaded; ``aspect``
-    one of ``ASPECTS`` (the module doc)."""
+    one of ``ASPECTS`` (the module doc); ``priors``: a ``priors.Priors``
+    of known values (its ``focal_source`` "exif": the left image's EXIF)."""
     if aspect not in ASPECTS:
         raise CalibrationError(f"unknown aspect {aspect!r}; choose one of {', '.join(ASPECTS)}")
     warn = warn or (lambda line: None)
@@ -254,6 +234,11 @@ def calibrate_pair(left_path, right_path, run_dir, warn=None, loaded=None, aspec
     if aspect == "square":                      # fy = fx on the input images (and every crop)
         for one in per_window:
             one["fy"] = one["fx"]
+    priors = _resolve_priors(known.Priors() if priors is None else priors, left_path, width,
+                             height)
+    network_baseline = per_window[0]["baseline"]
+    if priors:                                  # what the user knows, in place of the guess
+        per_window = [known.apply(one, priors, aspect) for one in per_window]
     values = per_window[0]                      # the whole image
     if not all(math.isfinite(v) for v in values.values()):
         raise CalibrationError("the model predicted non-finite values")
@@ -296,7 +281,25 @@ def calibrate_pair(left_path, right_path, run_dir, warn=None, loaded=None, aspec
     if released:
         result["notes"] = ["run trained as released: pitch converted from degrees; disparity "
                            "is the release's StereoBM mean label, not a pixel disparity"]
+    return _with_record_and_priors(result, run, priors, network_baseline)
+
+
+def _with_record_and_priors(result, run, priors, network_baseline):
+    """``result`` with the run's real-camera record and what came from the
+    user's known values (``network_baseline``: the network's, before)."""
+    result["real_camera_record"] = real_record.summarise(run)
+    result["priors"] = known.describe(priors, factor=(
+        priors.baseline_m / network_baseline if priors.baseline_m else None))
+    result["from_prior"] = known.from_prior(priors)
     return result
+
+
+def _resolve_priors(priors, left_path, width, height):
+    """``priors`` with an EXIF focal length read from the left image."""
+    if priors.focal_source != "exif":
+        return priors
+    focal, source = known.exif_focal_px(left_path, width, height)
+    return known.Priors(baseline_m=priors.baseline_m, focal_px=focal, focal_source=source)
 
 
 # ---------------------------------------------------------------------------
@@ -306,45 +309,7 @@ def calibrate_pair(left_path, right_path, run_dir, warn=None, loaded=None, aspec
 RIG_PARAMETERS = tuple(name for name in PARAMETERS if name != "disparity")
 RIG_METHOD = ("median over the pairs; spread_over_pairs: standard deviation over the pairs "
               "(n - 1 in the denominator)")
-IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".ppm", ".pgm")
-
-
-def find_pairs(folder):
-    """The stereo pairs of ``folder``, sorted: image files whose names differ
-    only by ``left`` -> ``right`` (any case: ``left01.jpg``/``right01.jpg``,
-    ``desk_left.png``/``desk_right.png``), or files of the same name in
-    ``folder/left`` and ``folder/right``. CalibrationError when there is
-    none, or when a left image has no right one."""
-    if not os.path.isdir(folder):
-        raise CalibrationError(f"not a directory: {folder}")
-    pairs, unmatched = [], []
-    sides = [os.path.join(folder, side) for side in ("left", "right")]
-    if all(os.path.isdir(side) for side in sides):
-        names = sorted(n for n in os.listdir(sides[0]) if n.lower().endswith(IMAGE_SUFFIXES))
-        for name in names:
-            right = os.path.join(sides[1], name)
-            (pairs if os.path.isfile(right) else unmatched).append(
-                (os.path.join(sides[0], name), right))
-    else:
-        names = set(os.listdir(folder))
-        for name in sorted(names):
-            lower = name.lower()
-            if "left" not in lower or not lower.endswith(IMAGE_SUFFIXES):
-                continue
-            at = lower.index("left")
-            match = [n for n in names if n.lower() == lower[:at] + "right" + lower[at + 4:]]
-            pair = (os.path.join(folder, name),
-                    os.path.join(folder, match[0]) if match else None)
-            (pairs if match else unmatched).append(pair)
-    if unmatched:
-        raise CalibrationError(f"{unmatched[0][0]} has no right image in {folder}")
-    if not pairs:
-        raise CalibrationError(f"no stereo pairs in {folder} (names with left/right, or "
-                               "left/ and right/ folders of the same names)")
-    return pairs
-
-
-def calibrate_rig(folder, run_dir, warn=None, aspect="square"):
+def calibrate_rig(folder, run_dir, warn=None, aspect="square", priors=None):
     """Every pair of ``folder`` (``find_pairs``) calibrated by the run, and
     the rig's calibration from them: each parameter but the disparity (the
     scene's) is the median over the pairs, with its spread over the pairs.
@@ -362,7 +327,7 @@ def calibrate_rig(folder, run_dir, warn=None, aspect="square"):
     for left, right in pairs:
         name = os.path.basename(left)
         results.append(calibrate_pair(
-            left, right, run_dir, loaded=loaded, aspect=aspect,
+            left, right, run_dir, loaded=loaded, aspect=aspect, priors=priors,
             warn=lambda line, name=name: warn_once(
                 line if "demonstration model" in line else f"{name}: {line}")))
     sizes = sorted({(r["image_width"], r["image_height"]) for r in results})
@@ -391,6 +356,10 @@ def calibrate_rig(folder, run_dir, warn=None, aspect="square"):
         "scale_priors": [n for n in SCALE_PRIORS if n in RIG_PARAMETERS],
         "demonstration_model": results[0]["demonstration_model"],
         "aspect": aspect, "aspect_note": ASPECT_NOTES[aspect],
+        "real_camera_record": results[0]["real_camera_record"],
+        "priors": {name: {k: v for k, v in said.items() if k != "scale_factor"}
+                   for name, said in results[0]["priors"].items()},
+        "from_prior": results[0]["from_prior"],
     }
     return {"rig": rig, "pairs": results}
 
@@ -413,6 +382,14 @@ SPREAD_METHOD = (f"standard deviation over the whole image and {{}} crops of "
                  "each mapped back to the full image's pixels")
 
 
+def focal_argument(text):
+    """argparse type of --focal: ``exif``, or a positive number of pixels;
+    ``(pixels or None, source)``."""
+    if text == "exif":
+        return None, "exif"
+    return cli.positive_float(text), "--focal"
+
+
 def main(argv=None):
     parser = cli.Parser(prog=PROG, description=__doc__.split("\n")[0])
     parser.add_argument("left", nargs="?", help="left image file (PNG, JPEG, ...)")
@@ -425,12 +402,22 @@ def main(argv=None):
     parser.add_argument("--aspect", choices=ASPECTS, default="square",
                         help="square: fy = fx, as on real cameras' square pixels (default); "
                         "model: the network's fy")
+    parser.add_argument("--baseline", type=cli.positive_float, metavar="METRES",
+                        help="the rig's known baseline: baseline, tx, ty, tz and X, Y, Z are "
+                        "scaled to it (the output names what came from it)")
+    parser.add_argument("--focal", type=focal_argument, metavar="PX|exif",
+                        help="the known focal length in pixels of the input images, or exif: "
+                        "the left image's 35 mm equivalent (JPEG EXIF); fx, fy and the depth "
+                        "X, Y, Z follow it")
     parser.add_argument("--json-out", help="also write the JSON to this file")
     parser.add_argument("--opencv-yaml", metavar="FILE",
                         help="also write the calibration as OpenCV's stereo YAML (M1, D1, M2, "
                         "D2, R, T; cv2.FileStorage reads it)")
     parser.add_argument("--ros-yaml", metavar="DIR",
                         help="also write ROS camera_info files DIR/left.yaml and DIR/right.yaml")
+    parser.add_argument("--colmap", metavar="DIR",
+                        help="also write COLMAP's DIR/cameras.txt (PINHOLE, the left and right "
+                        "cameras)")
     args = parser.parse_args(argv)
     if args.folder and (args.left or args.right):
         parser.error("give LEFT RIGHT or --folder DIR, not both")
@@ -444,17 +431,22 @@ def main(argv=None):
                     raise CalibrationError(f"output directory does not exist: {directory}")
                 if os.path.isdir(path):
                     raise CalibrationError(f"{flag} is a directory: {path}")
-        if args.ros_yaml and os.path.exists(args.ros_yaml) and not os.path.isdir(args.ros_yaml):
-            raise CalibrationError(f"--ros-yaml is a file, not a directory: {args.ros_yaml}")
+        for flag, folder in (("--ros-yaml", args.ros_yaml), ("--colmap", args.colmap)):
+            if folder and os.path.exists(folder) and not os.path.isdir(folder):
+                raise CalibrationError(f"{flag} is a file, not a directory: {folder}")
+        focal, source = args.focal or (None, None)
+        priors = known.Priors(baseline_m=args.baseline, focal_px=focal, focal_source=source)
         def warn(line):
             print(f"{PROG}: {line}", file=sys.stderr)
 
         if args.folder:
-            result = calibrate_rig(args.folder, args.run, warn=warn, aspect=args.aspect)
+            result = calibrate_rig(args.folder, args.run, warn=warn, aspect=args.aspect,
+                                   priors=priors)
             calibration = result["rig"]
         else:
             result = calibration = calibrate_pair(args.left, args.right, args.run, warn=warn,
-                                                  aspect=args.aspect)
+                                                  aspect=args.aspect, priors=priors)
+        warn(calibration["real_camera_record"]["line"])
         text = json.dumps(result, indent=2, allow_nan=False)
         if args.json_out:
             runs.write_text(args.json_out, text + "\n")
@@ -462,6 +454,8 @@ def main(argv=None):
             exports.write_opencv_yaml(args.opencv_yaml, calibration)
         if args.ros_yaml:
             exports.write_ros_yaml(args.ros_yaml, calibration)
+        if args.colmap:
+            exports.write_colmap_cameras(args.colmap, calibration)
     except (Error, OSError) as error:  # (CalibrationError, RunError, DatasetError, ...)
         return cli.fail(PROG, error)
     print(text)
@@ -469,4 +463,4 @@ def main(argv=None):
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    cli.run(main, PROG)

@@ -1,6 +1,6 @@
-"""A calibration written for other tools: OpenCV's stereo YAML and ROS
-``camera_info`` YAML (``python -m cpl_keras.calibrate ... --opencv-yaml FILE
---ros-yaml DIR``).
+"""A calibration written for other tools: OpenCV's stereo YAML, ROS
+``camera_info`` YAML and COLMAP's ``cameras.txt`` (``python -m
+cpl_keras.calibrate ... --opencv-yaml FILE --ros-yaml DIR --colmap DIR``).
 
 Both describe the pair as calibrate found it, in the input images' pixels:
 one pinhole camera model ``K = [[fx, 0, u0], [0, fy, v0], [0, 0, 1]]`` for
@@ -17,6 +17,9 @@ none), and the right camera's pose from ``pitch`` and ``(tx, ty, tz)``
   ``camera_matrix``, ``distortion_model: plumb_bob`` with zero
   coefficients, ``rectification_matrix`` identity and ``projection_matrix
   = [K | 0]`` for the left camera and ``K [R | T]`` for the right one.
+* COLMAP (``write_colmap_cameras``): ``cameras.txt`` with the left and
+  right cameras as PINHOLE models, ``cx, cy`` moved by half a pixel to
+  COLMAP's pixel centres.
 """
 
 from __future__ import annotations
@@ -97,3 +100,47 @@ def write_ros_yaml(directory, result):
         write_text(path, ros_camera_info(result, side))
         paths.append(path)
     return paths
+
+
+#: COLMAP puts the centre of the top-left pixel at (0.5, 0.5); this project
+#: (and OpenCV) at (0, 0).
+COLMAP_PIXEL_OFFSET = 0.5
+
+
+def colmap_cameras(result):
+    """The text of COLMAP's ``cameras.txt``: cameras 1 (left) and 2 (right),
+    model PINHOLE (``fx fy cx cy``, no distortion), in the input images'
+    pixels with COLMAP's pixel centres (``cx = u0 + 0.5``)."""
+    p = result["parameters"]
+    width, height = int(result["image_width"]), int(result["image_height"])
+    params = " ".join(repr(float(v)) for v in (
+        p["fx"], p["fy"], p["u0"] + COLMAP_PIXEL_OFFSET, p["v0"] + COLMAP_PIXEL_OFFSET))
+    return ("# Camera list with one line of data per camera:\n"
+            "#   CAMERA_ID, MODEL, WIDTH, HEIGHT, PARAMS[]\n"
+            "# Number of cameras: 2\n"
+            f"# cpl_keras.calibrate, run {result['run']}: 1 = left, 2 = right\n"
+            f"1 PINHOLE {width} {height} {params}\n"
+            f"2 PINHOLE {width} {height} {params}\n")
+
+
+def write_colmap_cameras(directory, result):
+    """Write ``directory/cameras.txt`` (created if missing); returns its path."""
+    os.makedirs(directory, exist_ok=True)
+    path = os.path.join(directory, "cameras.txt")
+    write_text(path, colmap_cameras(result))
+    return path
+
+
+def read_colmap_cameras(path):
+    """COLMAP's ``cameras.txt`` as ``{camera_id: (model, width, height,
+    params)}`` (what COLMAP's own ``read_cameras_text`` reads)."""
+    cameras = {}
+    with open(path) as f:
+        for line in f:
+            line = line.strip()
+            if not line or line.startswith("#"):
+                continue
+            fields = line.split()
+            cameras[int(fields[0])] = (fields[1], int(fields[2]), int(fields[3]),
+                                       tuple(float(v) for v in fields[4:]))
+    return cameras

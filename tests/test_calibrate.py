@@ -362,3 +362,151 @@ def test_a_shipped_real_pair_calibrates_with_spreads_warnings_and_both_exports(
         fs = cv2.FileStorage(str(ros / f"{side}.yaml"), cv2.FILE_STORAGE_READ)
         assert fs.isOpened() and fs.getNode("image_width").real() == 640
         fs.release()
+
+
+# ---------------------------------------------------------------------------
+# What calibrate knows of real cameras, known priors, COLMAP
+# ---------------------------------------------------------------------------
+def _pair_args(setup):
+    root = setup["root"]
+    return [str(root / "left.png"), str(root / "right.png"), "--run", setup["run"]]
+
+
+def test_the_real_camera_record_is_said_in_one_line_and_in_the_json(setup, tmp_path, capsys):
+    """A run never scored on a real camera says so (a warning line and
+    ``real_camera_record``); with a record in its run directory
+    (``real_record.write_record``) the line gives each held-out rig's
+    relative fx error beside the Average row's."""
+    from cpl_keras import real_record
+
+    assert calibrate.main(_pair_args(setup)) == 0
+    captured = capsys.readouterr()
+    record = json.loads(captured.out)["real_camera_record"]
+    assert record["validated"] is False and record["rigs"] == {}
+    lines = [line for line in captured.err.splitlines() if "real-camera record" in line]
+    assert len(lines) == 1 and "never validated on a real camera" in lines[0]
+    assert lines[0].startswith(f"{calibrate.PROG}: warning: ")
+
+    run = tmp_path / "run"
+    shutil.copytree(setup["run"], run)
+    row = "MTL-Baseline"
+    table = {"rigs": {"middlebury": {"rows": {
+        row: {"num_pairs": 5, "field": {"relative_fx_median": 0.58,
+                                         "hfov_error_deg_median": 12.5}},
+        "Average": {"num_pairs": 5, "field": {"relative_fx_median": 0.30,
+                                               "hfov_error_deg_median": 8.0}}}}}}
+    real_record.write_record(str(run), table, command="test")
+    args = _pair_args(setup)
+    args[args.index("--run") + 1] = str(run)
+    assert calibrate.main(args) == 0
+    captured = capsys.readouterr()
+    record = json.loads(captured.out)["real_camera_record"]
+    assert record["validated"] is True
+    assert record["rigs"]["middlebury"] == {"pairs": 5, "relative_fx_error": 0.58,
+                                            "average_relative_fx_error": 0.30,
+                                            "hfov_error_deg": 12.5}
+    line = next(line for line in captured.err.splitlines() if "real-camera record" in line)
+    assert "middlebury 0.58 (Average 0.30)" in line and "warning" in line
+    assert "no better than the Average row on 1 of 1" in line
+
+
+def test_a_known_baseline_scales_the_metric_values_and_says_so(setup, capsys):
+    assert calibrate.main(_pair_args(setup)) == 0
+    plain = json.loads(capsys.readouterr().out)
+    assert calibrate.main(_pair_args(setup) + ["--baseline", "0.12"]) == 0
+    known = json.loads(capsys.readouterr().out)
+    factor = 0.12 / plain["parameters"]["baseline"]
+    assert known["parameters"]["baseline"] == pytest.approx(0.12, rel=1e-9)
+    for name in ("tx", "ty", "tz"):
+        assert known["parameters"][name] == pytest.approx(
+            plain["parameters"][name] * factor, rel=1e-6, abs=1e-12)
+    for name in ("X", "Y", "Z"):
+        assert known["point"][name] == pytest.approx(plain["point"][name] * factor, rel=1e-6,
+                                                     abs=1e-12)
+    for name in ("fx", "fy", "u0", "v0", "disparity", "pitch"):
+        assert known["parameters"][name] == pytest.approx(plain["parameters"][name], rel=1e-9)
+    assert known["priors"]["baseline_m"]["value"] == 0.12
+    assert known["priors"]["baseline_m"]["scale_factor"] == pytest.approx(factor)
+    assert set(known["from_prior"]) == {"baseline", "tx", "ty", "tz", "X", "Y", "Z"}
+    assert plain["priors"] == {} and plain["from_prior"] == []
+
+
+def test_a_known_focal_sets_fx_fy_and_moves_the_depth_by_eq_4a(setup, capsys):
+    """The same projection pixel (u, v) and disparity with the known fx: the
+    depth is xCam = fx b / d (Eq. 4a) with it; u0, v0, b, d, pitch and t
+    stay as the network gave them."""
+    from cpl_keras import camera
+
+    assert calibrate.main(_pair_args(setup)) == 0
+    plain = json.loads(capsys.readouterr().out)
+    assert calibrate.main(_pair_args(setup) + ["--focal", "50"]) == 0
+    known = json.loads(capsys.readouterr().out)
+    p, q = plain["parameters"], known["parameters"]
+    assert (q["fx"], q["fy"]) == (50.0, 50.0)
+    for name in ("u0", "v0", "baseline", "disparity", "pitch", "tx", "ty", "tz"):
+        assert q[name] == pytest.approx(p[name], rel=1e-9)
+
+    def pixel_and_depth(result):
+        r = dict(result["parameters"], **result["point"])
+        u, v, _ = camera.world_to_image(r["X"], r["Y"], r["Z"], r["fx"], r["fy"], r["u0"],
+                                        r["v0"], r["baseline"], r["pitch"], r["tx"], r["ty"],
+                                        r["tz"])
+        xcam = camera.world_to_camera(r["X"], r["Y"], r["Z"], r["pitch"], r["tx"], r["ty"],
+                                      r["tz"])[0]
+        return float(u), float(v), float(xcam)
+
+    u, v, _ = pixel_and_depth(plain)
+    u_known, v_known, xcam_known = pixel_and_depth(known)
+    assert (u_known, v_known) == pytest.approx((u, v), rel=1e-5, abs=1e-5)
+    assert xcam_known == pytest.approx(50.0 * p["baseline"] / p["disparity"], rel=1e-5)
+    assert known["fov_horizontal_deg"] == pytest.approx(np.degrees(fov_from_focal(50.0, 64)))
+    assert known["scale_free"]["baseline_over_depth"] == pytest.approx(p["disparity"] / 50.0)
+    assert known["priors"]["focal_px"]["source"] == "--focal"
+    assert set(known["from_prior"]) == {"fx", "fy", "X", "Y", "Z"}
+    assert known["spread"]["fx"] == 0.0
+
+
+def test_focal_from_a_jpegs_exif_35mm_equivalent(setup, tmp_path, capsys):
+    from PIL import Image
+
+    root = tmp_path
+    rgb = cv2.cvtColor(cv2.imread(str(setup["root"] / "left.png")), cv2.COLOR_BGR2RGB)
+    rgb_right = cv2.cvtColor(cv2.imread(str(setup["root"] / "right.png")), cv2.COLOR_BGR2RGB)
+    exif = Image.Exif()
+    exif.get_ifd(0x8769)[0xA405] = 28                    # FocalLengthIn35mmFilm, mm
+    Image.fromarray(rgb).save(root / "left.jpg", exif=exif, quality=95)
+    Image.fromarray(rgb_right).save(root / "right.jpg", quality=95)
+    args = [str(root / "left.jpg"), str(root / "right.jpg"), "--run", setup["run"]]
+    assert calibrate.main(args + ["--focal", "exif"]) == 0
+    known = json.loads(capsys.readouterr().out)
+    expected = 28 * np.hypot(64, 40) / np.hypot(36, 24)
+    assert known["parameters"]["fx"] == pytest.approx(expected, rel=1e-9)
+    assert "EXIF FocalLengthIn35mmFilm 28 mm" in known["priors"]["focal_px"]["source"]
+    # a JPEG without the tag: one line, exit 2, nothing printed on stdout
+    status = calibrate.main([str(root / "right.jpg"), str(root / "left.jpg"), "--run",
+                             setup["run"], "--focal", "exif"])
+    captured = capsys.readouterr()
+    assert status == 2 and captured.out == ""
+    assert captured.err.strip().endswith("has no 35 mm equivalent focal length in its EXIF "
+                                         "(FocalLengthIn35mmFilm); give --focal PX")
+
+
+def test_colmap_cameras_txt_reads_back(setup, tmp_path, capsys):
+    from cpl_keras import exports
+
+    out = tmp_path / "colmap"
+    assert calibrate.main(_pair_args(setup) + ["--colmap", str(out)]) == 0
+    result = json.loads(capsys.readouterr().out)
+    cameras = exports.read_colmap_cameras(out / "cameras.txt")
+    p = result["parameters"]
+    expected = (p["fx"], p["fy"], p["u0"] + 0.5, p["v0"] + 0.5)
+    assert sorted(cameras) == [1, 2]
+    for camera_id in (1, 2):
+        model, width, height, params = cameras[camera_id]
+        assert (model, width, height) == ("PINHOLE", 64, 40)
+        assert params == pytest.approx(expected, rel=1e-12)
+    # a file where the folder should be: one line, exit 2
+    blocker = tmp_path / "file"
+    blocker.write_text("x")
+    assert calibrate.main(_pair_args(setup) + ["--colmap", str(blocker)]) == 2
+    assert "--colmap is a file, not a directory" in capsys.readouterr().err
