@@ -16,11 +16,7 @@ import sys
 
 os.environ.setdefault("KERAS_BACKEND", "jax")
 
-from cpl_keras import cli  # noqa: E402
-from cpl_keras.augment import AUGMENTATIONS  # noqa: E402
-from cpl_keras.datasets import SPLITS  # noqa: E402
-from cpl_keras.models import BACKBONES, VARIANTS  # noqa: E402
-from cpl_keras.models.variants import DISENTANGLE  # noqa: E402
+from cpl_keras import cli  # noqa: E402  (first, and light: the Ctrl-C guard starts at once)
 
 #: The demonstration run (no --data): dataset and training settings chosen to
 #: finish in about five minutes on a 2-core CPU.
@@ -38,6 +34,11 @@ def disparity_ceiling(text):
 
 
 def build_parser():
+    from cpl_keras.augment import AUGMENTATIONS
+    from cpl_keras.datasets import SPLITS
+    from cpl_keras.models import BACKBONES, VARIANTS
+    from cpl_keras.models.variants import DISENTANGLE
+
     parser = cli.Parser(
         prog=PROG,
         description="Train a camera calibration network (Butt & Taj) on a stereo dataset.",
@@ -87,9 +88,17 @@ def build_parser():
                         metavar="auto|none|PX",
                         help="CPL: the exp disparity head's largest output (auto, default: twice "
                         "the largest training label; none: 1e5 px, the bound before; or pixels)")
+    parser.add_argument("--bn-statistics", choices=("fixed", "epoch"),
+                        help="BatchNorm statistics before each validation: fixed (default), the "
+                        "same training pairs every epoch, population variance; epoch, the first "
+                        "batches of each epoch's order (this project's default before)")
     parser.add_argument("--bn-recompute-batches", type=cli.non_negative_int,
-                        help="training batches for recomputing BatchNorm statistics before "
-                        "each validation (default 16; 0 = Keras's moving averages, as released)")
+                        help="training batches of that recompute (default 64 fixed, 16 epoch; "
+                        "0 = Keras's moving averages, as released)")
+    parser.add_argument("--monitor", choices=("nmae", "loss"),
+                        help="what early stopping and the kept epoch follow: nmae (default), the "
+                        "sum of the ten parameters' validation NMAEs; loss, the validation loss "
+                        "(the paper's; as released)")
     parser.add_argument("--target-scaling", choices=("none", "std"), default="none",
                         help="MTL-Baseline: divide each output's MAE by the target's training "
                         "standard deviation (std; not the paper's) or not (none, default)")
@@ -202,7 +211,8 @@ def _train(args, demo, seed, epochs, backbone, run_dir, command):
             bounded_pitch_head=False if args.linear_pitch_head else None,
             positive_focal_head=False if args.linear_focal_head else None,
             alpha_rate=args.alpha_rate, disparity_ceiling=args.disparity_ceiling,
-            bn_recompute_batches=args.bn_recompute_batches, target_scaling=args.target_scaling,
+            bn_recompute_batches=args.bn_recompute_batches, bn_statistics=args.bn_statistics,
+            monitor=args.monitor, target_scaling=args.target_scaling,
             time_budget_s=args.time_budget, verbose=0 if args.quiet else 1,
             augment=None if args.augment == "none" else args.augment,
             command=command, return_model=False,
@@ -224,4 +234,4 @@ def _train(args, demo, seed, epochs, backbone, run_dir, command):
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    cli.run(main, PROG)

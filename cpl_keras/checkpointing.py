@@ -37,12 +37,21 @@ class RunState(keras.callbacks.Callback):
     """
 
     def __init__(self, run_dir, patience, sequence, bn_recompute_batches=0,
-                 time_budget_s=None):
+                 time_budget_s=None, bn_sequence=None, nmae_scale=None):
         super().__init__()
         self.run_dir = run_dir
         # wall-clock seconds of training the run may take (None: no limit)
         self.time_budget_s = time_budget_s
         self.bn_recompute_batches = int(bn_recompute_batches)
+        # The BatchNorm statistics before every validation: over every batch
+        # of ``bn_sequence`` (the same training pairs every epoch, population
+        # variance), or, without it, over the first ``bn_recompute_batches``
+        # batches of the epoch's order (average batch variance).
+        self.bn_sequence = bn_sequence
+        # What early stopping and the kept epoch follow: with ``nmae_scale``
+        # (name -> the training split's mean |y| of each camera parameter)
+        # the sum of the validation NMAEs (``nmae_scores``), else val_loss.
+        self.nmae_scale = nmae_scale
         self.backup = os.path.join(run_dir, runs.BACKUP)
         self.state_path = os.path.join(run_dir, runs.STATE)
         self.patience = patience
@@ -81,7 +90,12 @@ class RunState(keras.callbacks.Callback):
     def on_test_begin(self, logs=None):
         # Validation (and so the checkpoints and the saved model) runs in
         # inference mode: give it BatchNorm statistics of these weights.
-        if self.bn_recompute_batches:
+        if self.bn_sequence is not None:
+            recompute_batchnorm_statistics(
+                self.model, (self.bn_sequence[i] for i in range(len(self.bn_sequence))),
+                population=True,
+            )
+        elif self.bn_recompute_batches:
             count = min(self.bn_recompute_batches, len(self.sequence))
             recompute_batchnorm_statistics(
                 self.model, (self.sequence[i] for i in range(count))
@@ -108,6 +122,7 @@ class RunState(keras.callbacks.Callback):
             self.model.stop_training = True
 
     def on_epoch_end(self, epoch, logs=None):
+        keras_logs = logs
         if self.nan is not None:
             self.state["stopped"] = (
                 f"non-finite training loss at epoch {self.nan['epoch'] + 1}, "
@@ -117,7 +132,14 @@ class RunState(keras.callbacks.Callback):
             return
         logs = {k: float(np.asarray(v)) for k, v in (logs or {}).items()}
         state = self.state
-        val = logs.get("val_loss", logs.get("loss"))
+        if self.nmae_scale is not None:
+            scores = nmae_scores(logs, self.nmae_scale)
+            logs.update(scores)
+            if keras_logs is not None:
+                keras_logs.update(scores)  # (for the epoch line, a later callback)
+            val = logs.get("val_nmae", logs.get("val_loss", logs.get("loss")))
+        else:
+            val = logs.get("val_loss", logs.get("loss"))
         improved = val is not None and math.isfinite(val) and (
             state["best"] is None or val < state["best"]
         )
@@ -129,8 +151,9 @@ class RunState(keras.callbacks.Callback):
         else:
             state["wait"] += 1
             if state["wait"] >= self.patience and epoch > 0:
+                monitored = "val_nmae" if self.nmae_scale is not None else "val_loss"
                 state["stopped"] = (
-                    f"early stopping: no improvement of val_loss for {self.patience} epochs"
+                    f"early stopping: no improvement of {monitored} for {self.patience} epochs"
                 )
                 self.model.stop_training = True
         alphas = self.model.adaptive_weights() or {}
@@ -169,6 +192,25 @@ class RunState(keras.callbacks.Callback):
                 if os.path.exists(path):
                     os.remove(path)
         publish_run_files(self.run_dir, self.state)
+
+
+def nmae_scores(logs, scale):
+    """The validation NMAEs of an epoch's ``logs``: ``val_nmae_<name>``, the
+    validation MAE of each camera parameter divided by ``scale[name]`` (the
+    training split's mean |y|, fixed for the run), and ``val_nmae``, their
+    sum: the tables' measure, on one scale for every variant and with no
+    weight that moves (MTL-CPL-A's val_loss is weighted by that epoch's
+    alpha_i). Each term is logged, so a swing names its cause."""
+    scores = {}
+    for name, value in scale.items():
+        # (the per-output MAE loss of MTL-Baseline is logged as its _loss;
+        # with target scaling, the unscaled MAE is its _mae metric)
+        mae = logs.get(f"val_{name}_mae", logs.get(f"val_{name}_loss"))
+        if mae is not None:
+            scores[f"val_nmae_{name}"] = float(mae) / float(value)
+    if scores:
+        scores["val_nmae"] = float(sum(scores.values()))
+    return scores
 
 
 def publish_run_files(run_dir, state):

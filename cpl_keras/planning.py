@@ -30,15 +30,30 @@ from cpl_keras.models.variants import ALPHA_RATE, DISENTANGLE
 RESUME_KEYS = (
     "variant", "build", "data", "split", "seed", "batch_size", "learning_rate", "epochs",
     "data_parallel", "patience", "test_fraction", "val_fraction",
-    "bn_recompute_batches", "target_scaling", "augment",
+    "bn_recompute_batches", "bn_statistics", "monitor", "target_scaling", "augment",
 )
 #: Per-output MAE as the paper sums it ("none"), or each divided by the
 #: target's training standard deviation ("std": standardised targets).
 TARGET_SCALINGS = ("none", "std")
-#: Training batches over which BatchNorm's moving statistics are recomputed
-#: before every validation (0: keep Keras's moving averages, the default as
-#: released).
-BN_RECOMPUTE_BATCHES = 16
+#: Where BatchNorm's statistics come from before every validation (with
+#: ``bn_recompute_batches`` > 0; 0 keeps Keras's moving averages, as released):
+#: "fixed", the same training pairs every epoch (the first of a permutation of
+#: the training split seeded by the run's seed), the variance that of all of
+#: them together (population); "epoch", the first batches of each epoch's
+#: shuffled order, the variance averaged over batches (this project's default
+#: before; paper_results/faithful-2000 measured its draw swinging the
+#: validation loss 16-43 with the same weights).
+BN_STATISTICS = ("fixed", "epoch")
+#: Training batches of that recompute, by ``bn_statistics``: 64 batches of 16
+#: are 1,024 pairs (Wu & Johnson 2021 use 10^3-10^4 samples), capped at the
+#: training split.
+BN_RECOMPUTE_BATCHES = {"fixed": 64, "epoch": 16}
+#: What early stopping and the kept epoch follow: "nmae", the sum over the ten
+#: camera parameters of the validation MAE divided by the training split's
+#: mean |y| (``checkpointing.nmae_scores``: weights that do not move, every
+#: variant on the same scale); "loss", the validation loss (the paper's; for
+#: MTL-CPL-A it is weighted by that epoch's alpha_i, a moving objective).
+MONITORS = ("nmae", "loss")
 #: The CPL disparity head's ceiling, ``disparity_ceiling="auto"``: this many
 #: times the largest disparity label of the training split
 #: (``layers.PositiveDisparity`` says why).
@@ -50,10 +65,12 @@ class TrainingError(Error):
 
 
 def _check_arguments(*, variant, backbone, split, epochs, batch_size, workers, patience, seed,
-                     as_released, bn_recompute_batches, disentangle, target_scaling,
-                     learning_rate, alpha_rate, time_budget_s, disparity_ceiling, augment):
+                     as_released, bn_recompute_batches, bn_statistics, monitor, disentangle,
+                     target_scaling, learning_rate, alpha_rate, time_budget_s,
+                     disparity_ceiling, augment):
     """``plan_run``'s checks of its arguments (TrainingError, one line);
-    returns the variant's spec and the BatchNorm recompute batches."""
+    returns the variant's spec, the BatchNorm recompute batches, their
+    statistics mode and the monitored quantity (defaults filled in)."""
     try:
         spec = variants.get(variant)
     except ValueError as error:
@@ -68,8 +85,17 @@ def _check_arguments(*, variant, backbone, split, epochs, batch_size, workers, p
     for name, value in (("patience", patience), ("seed", seed)):
         if isinstance(value, bool) or not (isinstance(value, (int, np.integer)) and value >= 0):
             raise TrainingError(f"{name} must be a non-negative integer, got {value!r}")
+    if bn_statistics is None:
+        bn_statistics = "epoch" if as_released else "fixed"
+    if bn_statistics not in BN_STATISTICS:
+        raise TrainingError(f"unknown BatchNorm statistics {bn_statistics!r}; choose one of "
+                            f"{', '.join(BN_STATISTICS)}")
+    if monitor is None:
+        monitor = "loss" if as_released else "nmae"
+    if monitor not in MONITORS:
+        raise TrainingError(f"unknown monitor {monitor!r}; choose one of {', '.join(MONITORS)}")
     if bn_recompute_batches is None:
-        bn_recompute_batches = 0 if as_released else BN_RECOMPUTE_BATCHES
+        bn_recompute_batches = 0 if as_released else BN_RECOMPUTE_BATCHES[bn_statistics]
     if isinstance(bn_recompute_batches, bool) or not (
         isinstance(bn_recompute_batches, (int, np.integer)) and bn_recompute_batches >= 0
     ):
@@ -115,7 +141,7 @@ def _check_arguments(*, variant, backbone, split, epochs, batch_size, workers, p
     if augment is not None and augment not in AUGMENTATIONS:
         raise TrainingError(f"unknown augmentation {augment!r}; choose one of "
                             f"{', '.join(AUGMENTATIONS)}")
-    return spec, bn_recompute_batches
+    return spec, bn_recompute_batches, bn_statistics, monitor
 
 
 def _read_dataset(data, *, image_size, split, seed, test_fraction, val_fraction, as_released,
@@ -163,8 +189,8 @@ def plan_run(data, *, variant, run_dir, epochs=200, batch_size=16, learning_rate
              seed=0, data_parallel=False, patience=5, test_fraction=0.3, val_fraction=0.1,
              workers=1, disentangle="exact", bounded_pitch_head=None,
              positive_focal_head=None, alpha_rate=None, disparity_ceiling="auto",
-             bn_recompute_batches=None, target_scaling="none", time_budget_s=None,
-             augment=None, command=None):
+             bn_recompute_batches=None, bn_statistics=None, monitor=None,
+             target_scaling="none", time_budget_s=None, augment=None, command=None):
     """Check the dataset and the arguments; return the run's plan (a dict:
     ``config``, what config.json will hold; ``targets``; ``split``;
     ``workers``).
@@ -179,13 +205,23 @@ def plan_run(data, *, variant, run_dir, epochs=200, batch_size=16, learning_rate
     label; None: ``layers.MAX_OUTPUT``, the bound of runs made before it).
     ``augment``: None, or ``"photometric"`` for the training batches
     (``cpl_keras.augment``; not the paper's).
+    ``bn_statistics`` (``BN_STATISTICS``), ``bn_recompute_batches`` and
+    ``monitor`` (``MONITORS``): the BatchNorm statistics validation runs
+    with, and what early stopping follows (None: "fixed" over 64 batches and
+    "nmae"; as released: Keras's moving averages and "loss").
     Raises ``DatasetError`` or ``TrainingError`` with a one-line message.
     Writes nothing.
     """
-    spec, bn_recompute_batches = _check_arguments(
+    # (settings left at their defaults: a run directory resumes with its own)
+    defaulted = tuple(key for key, value in (("bn_statistics", bn_statistics),
+                                             ("monitor", monitor),
+                                             ("bn_recompute_batches", bn_recompute_batches))
+                      if value is None)
+    spec, bn_recompute_batches, bn_statistics, monitor = _check_arguments(
         variant=variant, backbone=backbone, split=split, epochs=epochs, batch_size=batch_size,
         workers=workers, patience=patience, seed=seed, as_released=as_released,
-        bn_recompute_batches=bn_recompute_batches, disentangle=disentangle,
+        bn_recompute_batches=bn_recompute_batches, bn_statistics=bn_statistics,
+        monitor=monitor, disentangle=disentangle,
         target_scaling=target_scaling, learning_rate=learning_rate, alpha_rate=alpha_rate,
         time_budget_s=time_budget_s, disparity_ceiling=disparity_ceiling, augment=augment)
     dataset = _read_dataset(data, image_size=image_size, split=split, seed=seed,
@@ -206,35 +242,21 @@ def plan_run(data, *, variant, run_dir, epochs=200, batch_size=16, learning_rate
                                              targets["disparity"][indices["train"]]))
     run_dir = os.path.abspath(os.fspath(run_dir))
     config = {
-        "variant": variant,
-        "build": build,
-        "data": data,
-        "num_pairs": num_pairs,
-        "protocol": protocol,
-        "training_rigs": dataset["rigs"],
-        "split": split,
-        "test_fraction": test_fraction,
-        "val_fraction": val_fraction,
-        "num_train": len(indices["train"]),
-        "num_val": len(indices["val"]),
-        "num_test": len(indices["test"]),
-        "seed": int(seed),
-        "batch_size": int(batch_size),
+        "variant": variant, "build": build, "data": data, "num_pairs": num_pairs,
+        "protocol": protocol, "training_rigs": dataset["rigs"], "split": split,
+        "test_fraction": test_fraction, "val_fraction": val_fraction,
+        "num_train": len(indices["train"]), "num_val": len(indices["val"]),
+        "num_test": len(indices["test"]), "seed": int(seed), "batch_size": int(batch_size),
         "learning_rate": None if learning_rate is None else float(learning_rate),
-        "epochs": int(epochs),
-        "patience": int(patience),
-        "bn_recompute_batches": int(bn_recompute_batches),
-        "target_scaling": target_scaling,
+        "epochs": int(epochs), "patience": int(patience),
+        "bn_recompute_batches": int(bn_recompute_batches), "bn_statistics": bn_statistics,
+        "monitor": monitor, "target_scaling": target_scaling,
         "time_budget_s": None if time_budget_s is None else float(time_budget_s),
-        "augment": augment,
-        "data_parallel": bool(data_parallel),
-        "num_devices": devices,
-        "device_batch_size": run_batch,
-        "command": command,
-        "run_dir": run_dir,
+        "augment": augment, "data_parallel": bool(data_parallel), "num_devices": devices,
+        "device_batch_size": run_batch, "command": command, "run_dir": run_dir,
         "keras_backend": keras_backend(),
     }
-    _check_run_dir(run_dir, config, keep_ceiling=disparity_ceiling == "auto")
+    _check_run_dir(run_dir, config, keep_ceiling=disparity_ceiling == "auto", keep=defaulted)
     return {"config": config, "targets": targets, "split": indices, "workers": int(workers)}
 
 
@@ -275,10 +297,13 @@ def _device_count():
     return len(keras.distribution.list_devices())
 
 
-def _check_run_dir(run_dir, config, keep_ceiling=False):
+def _check_run_dir(run_dir, config, keep_ceiling=False, keep=()):
     """A run directory is new, empty, or holds the same run (to resume).
     With ``keep_ceiling`` (``disparity_ceiling="auto"``) a run is resumed
-    with its own disparity ceiling (a run of before the ceiling: None)."""
+    with its own disparity ceiling (a run of before the ceiling: None), and
+    with its own value of each config key of ``keep`` (settings left at
+    their defaults, whose defaults have changed since: the BatchNorm
+    statistics and the monitor)."""
     if not os.path.exists(run_dir):
         return
     if not os.path.isdir(run_dir):
@@ -300,6 +325,9 @@ def _check_run_dir(run_dir, config, keep_ceiling=False):
         return  # (replaced by the next run: ``_replace_failed_run``)
     if keep_ceiling:
         config["build"]["disparity_ceiling"] = old["build"]["disparity_ceiling"]
+    for key in keep:
+        if key in old:
+            config[key] = old[key]
     config = runs.normalise_config(config)
     for key in RESUME_KEYS:
         if old.get(key) != config.get(key):

@@ -2,7 +2,8 @@
 
 Keras's own progress bar prints every logged metric on every line (14 to 30
 of them here, 350 to 700 characters), which wraps into a wall of text in a
-terminal. ``EpochLines`` prints the loss, the validation loss and the
+terminal. ``EpochLines`` prints the loss, the validation loss (or the
+monitored ``val_nmae``) and the
 validation MAE of three key parameters (fx, baseline as ``b``, pitch), one
 line per epoch of at most ``WIDTH`` characters; ``log.csv`` keeps every
 metric. On a terminal a progress bar with the running loss is redrawn in
@@ -52,7 +53,9 @@ def val_mae(logs, name):
 def epoch_line(epoch, epochs, logs, seconds, best=False):
     """The line of a finished epoch (``epoch`` 1-based)."""
     parts = [f"epoch {epoch}/{epochs}", _duration(seconds)]
-    for key in ("loss", "val_loss"):
+    # (the monitored sum of validation NMAEs in place of the validation
+    # loss, when the run follows it: log.csv has both)
+    for key in ("loss", "val_nmae" if "val_nmae" in logs else "val_loss"):
         if key in logs:
             parts.append(f"{key} {number(logs[key])}")
     maes = [f"{short} {number(v)}" for name, short in KEY_MAES

@@ -88,8 +88,9 @@ def relative(path, start):
 # ---------------------------------------------------------------------------
 def normalise_config(config):
     """``config`` with each fact once: the top-level ``as_released`` of the
-    older layout moved into ``build``, and a build of before the disparity
-    ceiling given its None (a new dict; the argument is kept)."""
+    older layout moved into ``build``, a build of before the disparity
+    ceiling given its None, and a run of before ``bn_statistics`` and
+    ``monitor`` given what it ran with (a new dict; the argument is kept)."""
     config = dict(config)
     build = dict(config.get("build") or {})
     if "as_released" in config:
@@ -97,6 +98,10 @@ def normalise_config(config):
     # (runs from before the disparity head's ceiling: the head's old bound)
     build.setdefault("disparity_ceiling", None)
     config["build"] = build
+    # (runs from before the fixed BatchNorm statistics and the NMAE monitor:
+    # the per-epoch draw and the validation loss)
+    config.setdefault("bn_statistics", "epoch")
+    config.setdefault("monitor", "loss")
     return config
 
 

@@ -396,7 +396,7 @@ def test_early_stopping_ends_the_run_and_model_keras_holds_the_best_epoch(
     monkeypatch.setattr(RunState, "on_epoch_end", scripted_val_loss)
     run_dir = tmp_path / "run"
     summary = train(dataset, variant="baseline", run_dir=str(run_dir), epochs=6, batch_size=8,
-                    backbone="small", verbose=0, patience=2)
+                    backbone="small", verbose=0, patience=2, monitor="loss")
     assert (summary["epochs_run"], summary["best_epoch"]) == (4, 2)
     assert summary["stopped"] == "early stopping: no improvement of val_loss for 2 epochs"
     assert summary["status"] == "finished" and summary["best_val_loss"] == 2.0
@@ -691,18 +691,20 @@ def test_epoch_lines_are_short_and_log_csv_keeps_every_metric(dataset, tmp_path,
     assert [line.split("  ")[0] for line in lines[:2]] == ["epoch 1/2", "epoch 2/2"]
     assert lines[2].startswith("best epoch ") and len(lines) == 3
     assert all(len(line) <= progress.WIDTH for line in lines[:2]), lines
-    assert all(key in lines[0] for key in ("loss ", "val_loss ", "val MAE fx ", " b ", " pitch "))
+    # (the monitored sum of validation NMAEs in place of the validation loss)
+    assert all(key in lines[0] for key in ("loss ", "val_nmae ", "val MAE fx ", " b ", " pitch "))
     # log.csv: every metric of every epoch, epochs numbered from 1
     with open(os.path.join(run_dir, "log.csv")) as f:
         header = next(csv.reader(f))
     expected = {"epoch", "loss", "val_loss", "wall_time_s", "load_average"}
     expected |= {f"{prefix}{name}_mae" for prefix in ("", "val_") for name in TARGETS}
     expected |= {f"alpha_{name}" for name in TARGETS}
+    expected |= {"val_nmae"} | {f"val_nmae_{name}" for name in PARAMETERS}
     assert set(header) == expected and len(header) > 40
     rows = read_log(run_dir)
     assert [int(row["epoch"]) for row in rows] == [1, 2]
-    assert float(rows[1]["val_loss"]) == pytest.approx(
-        float(lines[1].split("val_loss ")[1].split()[0]), rel=1e-3)
+    assert float(rows[1]["val_nmae"]) == pytest.approx(
+        float(lines[1].split("val_nmae ")[1].split()[0]), rel=1e-3)
     # curves.png names the run and how far it got
     config = runs.read_config(run_dir)
     state = runs.read_json(os.path.join(run_dir, runs.STATE))
@@ -935,3 +937,124 @@ def test_compile_cache_keeps_every_program_unless_told_otherwise(setting, jax_fi
     assert float(minimum) == (0.0 if setting is None else 2.5)
     kept = os.listdir(tmp_path / "xla") if os.path.isdir(tmp_path / "xla") else []
     assert bool(kept) == (setting is None), kept
+
+
+# ---------------------------------------------------------------------------
+# Steady validation: fixed BatchNorm statistics, the NMAE monitor
+# ---------------------------------------------------------------------------
+def test_the_nmae_monitor_keeps_the_epoch_of_the_lowest_validation_nmae(dataset, tmp_path):
+    """The default monitor: log.csv has val_nmae_<p> = val MAE of p / the
+    training split's mean |p| and val_nmae their sum; the kept epoch is the
+    lowest val_nmae's, whatever val_loss did; config.json says so."""
+    from cpl_keras.camera import PARAMETERS
+    from cpl_keras.datasets import load_split, targets_from_labels
+    from cpl_keras.data.storage import StereoFile
+    from cpl_keras.training import train
+
+    run_dir = str(tmp_path / "run")
+    summary = train(dataset, variant="cpl-u", run_dir=run_dir, epochs=3, batch_size=5,
+                    backbone="small", verbose=0, patience=10, seed=2)
+    rows = read_log(run_dir)
+    split = load_split(os.path.join(run_dir, "split.npz"))
+    with StereoFile(dataset) as f:
+        targets = targets_from_labels(f.labels)
+    for row in rows:
+        parts = {}
+        for name in PARAMETERS:
+            scale = float(np.mean(np.abs(targets[name][split["train"]].astype(np.float64))))
+            parts[name] = float(row[f"val_{name}_mae"]) / (scale if scale > 1e-9 else 1.0)
+            assert float(row[f"val_nmae_{name}"]) == pytest.approx(parts[name], rel=1e-6)
+        assert float(row["val_nmae"]) == pytest.approx(sum(parts.values()), rel=1e-6)
+    scores = [float(row["val_nmae"]) for row in rows]
+    assert summary["best_epoch"] == 1 + int(np.argmin(scores))
+    with open(os.path.join(run_dir, "config.json")) as f:
+        config = json.load(f)
+    assert config["monitor"] == "nmae" and config["bn_statistics"] == "fixed"
+    assert config["best_score"] == pytest.approx(min(scores), rel=1e-6)
+    best_row = rows[summary["best_epoch"] - 1]
+    assert config["best_val_loss"] == pytest.approx(float(best_row["val_loss"]), rel=1e-6)
+
+
+def test_fixed_batchnorm_statistics_do_not_depend_on_the_epoch(dataset, tmp_path):
+    """With ``bn_statistics="fixed"`` validation sees the same statistics for
+    the same weights at every epoch (the same training pairs, population
+    variance); the first batches of each epoch's order ("epoch", the
+    earlier default) change with the epoch."""
+    import keras
+
+    from cpl_keras import models
+    from cpl_keras.checkpointing import RunState
+    from cpl_keras.models.batchnorm import batchnorm_layers
+    from cpl_keras.planning import plan_run
+    from cpl_keras.sequence import StereoSequence
+    from cpl_keras.training import batchnorm_pairs
+
+    plan = plan_run(dataset, variant="baseline", run_dir=str(tmp_path / "r"), backbone="small",
+                    batch_size=5, bn_recompute_batches=2)
+    config = plan["config"]
+    pairs = batchnorm_pairs(plan, config)
+    assert len(pairs) == 10 and set(pairs) <= set(plan["split"]["train"])
+    np.testing.assert_array_equal(pairs, batchnorm_pairs(plan, config))
+    other_seed = batchnorm_pairs(plan, dict(config, seed=config["seed"] + 1))
+    assert not np.array_equal(pairs, other_seed)
+    capped = batchnorm_pairs(plan, dict(config, bn_recompute_batches=1000))
+    assert len(capped) == len(plan["split"]["train"]) // 5 * 5
+    # shuffled, so that each batch mixes frames as training's do (file order
+    # put neighbouring frames of one drive together)
+    assert not np.array_equal(capped, np.sort(capped))
+
+    model = models.build_model("baseline", backbone="small_resnet", image_size=32)
+    train_seq = StereoSequence(dataset, plan["split"]["train"], targets=plan["targets"],
+                               batch_size=5, shuffle=True, seed=0)
+    fixed = StereoSequence(dataset, pairs, targets=plan["targets"], batch_size=5)
+    layer = batchnorm_layers(model)[0]
+
+    def statistics(state, epoch):
+        train_seq.set_epoch(epoch)
+        state.set_model(model)
+        state.on_test_begin()
+        return [np.array(keras.ops.convert_to_numpy(v))
+                for v in (layer.moving_mean, layer.moving_variance)]
+
+    steady = RunState(str(tmp_path / "a"), 5, train_seq, 2, bn_sequence=fixed)
+    for a, b in zip(statistics(steady, 0), statistics(steady, 7)):
+        np.testing.assert_array_equal(a, b)
+    drawn = RunState(str(tmp_path / "b"), 5, train_seq, 2)
+    first, later = statistics(drawn, 0), statistics(drawn, 7)
+    assert not np.allclose(first[0], later[0])
+
+
+def test_nmae_scores_read_either_mae_name_and_sum_the_parameters():
+    from cpl_keras.checkpointing import nmae_scores
+
+    logs = {"val_fx_mae": 2.0, "val_baseline_loss": 6.0, "val_loss": 9.0}
+    scores = nmae_scores(logs, {"fx": 4.0, "baseline": 3.0, "pitch": 1.0})
+    assert scores == {"val_nmae_fx": 0.5, "val_nmae_baseline": 2.0, "val_nmae": 2.5}
+    assert nmae_scores({"val_loss": 1.0}, {"fx": 1.0}) == {}
+
+
+def test_a_run_made_before_the_new_defaults_resumes_with_its_own(dataset, tmp_path):
+    """A run directory of before ``bn_statistics`` and ``monitor`` (its
+    config.json has neither) is resumed with what it ran with, unless the
+    call names other settings."""
+    from cpl_keras.planning import TrainingError, plan_run
+    from cpl_keras.training import train
+
+    run_dir = str(tmp_path / "old")
+    train(dataset, variant="baseline", run_dir=run_dir, epochs=1, batch_size=5,
+          backbone="small", verbose=0, bn_statistics="epoch", monitor="loss")
+    path = os.path.join(run_dir, "config.json")
+    with open(path) as f:
+        config = json.load(f)
+    for key in ("bn_statistics", "monitor", "best_score"):
+        config.pop(key)
+    config["bn_recompute_batches"] = 16
+    with open(path, "w") as f:
+        json.dump(config, f)
+    plan = plan_run(dataset, variant="baseline", run_dir=run_dir, epochs=1, batch_size=5,
+                    backbone="small")
+    assert (plan["config"]["bn_statistics"], plan["config"]["monitor"],
+            plan["config"]["bn_recompute_batches"]) == ("epoch", "loss", 16)
+    with pytest.raises(TrainingError, match="holds a different run .monitor"):
+        plan_run(dataset, variant="baseline", run_dir=run_dir, epochs=1, batch_size=5,
+                 backbone="small", monitor="nmae")

@@ -21,6 +21,7 @@ def training_arguments(config, run_dir, variant, split, released, run_seed):
         as_released=released, seed=run_seed, patience=config["patience"],
         time_budget_s=config.get("run_budget_s"),
         disparity_ceiling=config.get("disparity_ceiling", "auto"),
+        bn_statistics=config.get("bn_statistics"), monitor=config.get("monitor"),
     )
 
 
