@@ -1,0 +1,189 @@
+"""Table 1's verdicts under two rules: the seed spread and a paired bootstrap.
+
+For each split of a reproduction folder (``cvgl``: the paper's frame-level
+split, ``cvgl_drive``: the drive split) and each pair of MTL variants, every
+column is decided only where the seed-spread rule of the reports and a
+paired bootstrap of every seed's test pairs agree
+(``cpl_keras.evaluation.verdicts``). Writes ``verdicts.md`` and
+``verdicts.json`` in the folder.
+
+    python bench/verdicts.py                      # paper_results/cpu-8000
+    python bench/verdicts.py --folder paper_results/cpu-8000 --resamples 2000
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import glob
+import os
+import sys
+
+sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."))
+
+#: The splits: predictions-file prefix and title.
+SPLITS = {"cvgl": "paper split (frame-level)",
+          "cvgl_drive": "drive split (no adjacent frame in training)"}
+#: The pairs compared, as (A, B) variants.
+PAIRS = (("cpl-a", "baseline"), ("cpl-u", "baseline"), ("cpl-a", "cpl-u"))
+
+
+def load_rows(folder, split, variant):
+    """``{seed: raw}`` and the row's name for one variant of a split, from
+    the folder's predictions files (``cpl_keras.predictions.load``)."""
+    from cpl_keras import predictions
+    from cpl_keras.evaluation import EvaluationError
+
+    pattern = os.path.join(folder, "runs", f"{split}_{variant}-s*{predictions.SUFFIX}")
+    items = [predictions.load(path) for path in sorted(glob.glob(pattern))]
+    items = [item for item in items if item["table"] == f"table1_{split}"]
+    if not items:
+        raise EvaluationError(f"no predictions of {variant} on {split} in {folder}/runs")
+    files = [os.path.relpath(item["path"], folder) for item in items]
+    return {item["seed"]: item["raw"] for item in items}, items[0]["row"], files
+
+
+def check_against_table(folder, split, name_a, name_b, verdicts):
+    """EvaluationError unless both rows' NMAE per seed is the committed table's."""
+    from cpl_keras.evaluation import EvaluationError
+    from cpl_keras.files import read_json
+
+    table = read_json(os.path.join(folder, f"table1_{split}.json"))
+    if table is None:
+        return
+    for v in verdicts:
+        for interval in v.per_seed:
+            for row, ours in ((name_a, interval.nmae_a), (name_b, interval.nmae_b)):
+                cell = table["rows"][row]["per_seed"][str(interval.seed)]["targets"]
+                stored = cell[v.parameter]["nmae"]
+                if abs(stored - ours) > 1e-9 * max(1.0, abs(stored)):
+                    raise EvaluationError(f"{row} seed {interval.seed} {v.column}: NMAE "
+                                          f"{ours} is not the table's {stored}")
+
+
+def short(row):
+    """``MTL-CPL-A`` -> ``CPL-A`` (the README's short names)."""
+    return row.replace("MTL-", "")
+
+
+def answer_text(answer, name_a, name_b):
+    """A rule's answer as a cell: ``<row> lower``, or ``=`` (undecided)."""
+    from cpl_keras.evaluation import verdicts as rules
+
+    return {rules.A_LOWER: f"{name_a} lower", rules.B_LOWER: f"{name_b} lower"}.get(answer, "=")
+
+
+def summary(verdicts, field="verdict"):
+    """``{"A lower": [columns], "B lower": [...], "undecided": [...]}``."""
+    from cpl_keras.evaluation import verdicts as rules
+
+    return {answer: [v.column for v in verdicts if getattr(v, field) == answer]
+            for answer in (rules.A_LOWER, rules.B_LOWER, rules.UNDECIDED)}
+
+
+def same_quantity_note(same):
+    """One sentence on the columns that are the same quantity in the labels."""
+    parts = [" = ".join(group) for group in same["identical"]]
+    constant = ", ".join(f"{c} = {v:g}" for c, v in same["constant"].items())
+    return ("Same quantity in the test labels (to 1e-9, every pair of every seed): "
+            + ("; ".join(parts) or "none") + (f"; constant: {constant}" if constant else "")
+            + ". Their verdicts are not independent evidence.")
+
+
+def pair_markdown(name_a, name_b, verdicts):
+    """Markdown lines: one pair's table, a row per column."""
+    a, b = short(name_a), short(name_b)
+    lines = [f"### {name_a} (A) vs {name_b} (B)", "",
+             (f"| column | {a} | {b} | seed spread | bootstrap, seeds "
+              f"{', '.join(str(i.seed) for i in verdicts[0].per_seed)} | bootstrap | verdict |"),
+             "|---|---|---|---|---|---|---|"]
+    for v in verdicts:
+        seeds = ", ".join({"A lower": "A", "B lower": "B"}.get(i.answer, "=") for i in v.per_seed)
+        lines.append(f"| {v.column} | {v.mean_a:.3f} ± {v.spread_a:.3f} | {v.mean_b:.3f} ± "
+                     f"{v.spread_b:.3f} | {answer_text(v.spread_rule, a, b)} | {seeds} | "
+                     f"{answer_text(v.bootstrap_rule, a, b)} | "
+                     f"**{answer_text(v.verdict, a, b)}** |")
+    counts = summary(verdicts)
+    lines += ["", (f"Both rules: {a} lower on {len(counts['A lower'])} "
+                   f"({', '.join(counts['A lower']) or 'none'}), {b} lower on "
+                   f"{len(counts['B lower'])} ({', '.join(counts['B lower']) or 'none'}), "
+                   f"undecided on {len(counts['undecided'])}."), ""]
+    return lines
+
+
+#: The two rules and the verdict, as verdicts.json states them.
+RULES = {"seed_spread": "|mean A - mean B| > SD A + SD B over the seeds "
+                        "(report.differences_beyond_spread)",
+         "bootstrap": "per seed, the paired percentile interval of NMAE(A) - NMAE(B) over "
+                      "resampled test pairs excludes 0; a side when every seed gives it",
+         "verdict": "the rules' answer where they agree, else undecided"}
+
+
+def header(resamples, level, seed):
+    """verdicts.md's title and the rules in words."""
+    return ["# Table 1 verdicts under two rules", "",
+            ("A column is decided only where both rules agree. Seed spread: the two means "
+             "over the seeds differ by more than the sum of their sample SDs (the rule of "
+             "README.md and REPORT.md). Bootstrap: for each seed, its test pairs resampled "
+             f"{resamples} times (the same pairs for both rows), NMAE(A) - NMAE(B) "
+             "(NMAE = MAE / mean|y| over the resampled pairs); a seed gives a side when its "
+             f"{level:.0%} percentile interval excludes 0, the rule when every seed gives "
+             "the same side. `=`: undecided. Cells: NMAE, mean ± sample SD over the seeds. "
+             f"`python bench/verdicts.py` (bootstrap seed {seed})."), ""]
+
+
+def decide_split(folder, split, resamples, seed):
+    """One split's JSON entry and Markdown lines: every pair of ``PAIRS``."""
+    from cpl_keras.evaluation import verdicts as rules
+
+    title = SPLITS[split]
+    entry = {"title": title, "table": f"table1_{split}.json", "pairs": {}}
+    md = [f"## {title[0].upper() + title[1:]}", ""]
+    for variant_a, variant_b in PAIRS:
+        rows_a, name_a, files_a = load_rows(folder, split, variant_a)
+        rows_b, name_b, files_b = load_rows(folder, split, variant_b)
+        if "same_quantity" not in entry:
+            same = rules.same_quantities([rows_b[s]["truth"] for s in sorted(rows_b)])
+            entry["same_quantity"] = same
+            md += [same_quantity_note(same), ""]
+        verdicts = rules.compare(rows_a, rows_b, resamples=resamples, bootstrap_seed=seed)
+        check_against_table(folder, split, name_a, name_b, verdicts)
+        entry["pairs"][f"{name_a} vs {name_b}"] = {
+            "a": name_a, "b": name_b, "files": files_a + files_b,
+            "verdict": summary(verdicts), "seed_spread": summary(verdicts, "spread_rule"),
+            "bootstrap": summary(verdicts, "bootstrap_rule"),
+            "columns": [dataclasses.asdict(v) for v in verdicts]}
+        md += pair_markdown(name_a, name_b, verdicts)
+        print(f"{split} {name_a} vs {name_b}: {summary(verdicts)}")
+    return entry, md
+
+
+def main(argv=None):
+    """Decide every split's pairs and write verdicts.md and verdicts.json."""
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--folder", default="paper_results/cpu-8000",
+                        help="a reproduction folder (its runs/ and table1_*.json)")
+    parser.add_argument("--resamples", type=int, default=2000, help="bootstrap resamples")
+    parser.add_argument("--seed", type=int, default=0, help="the bootstrap Generator's seed")
+    args = parser.parse_args(argv)
+
+    from cpl_keras.evaluation import verdicts as rules
+    from cpl_keras.files import write_json, write_text
+    from cpl_keras.metrics import jsonable
+
+    md = header(args.resamples, rules.LEVEL, args.seed)
+    out = {"rules": RULES, "resamples": args.resamples, "level": rules.LEVEL,
+           "bootstrap_seed": args.seed, "splits": {}}
+    for split in SPLITS:
+        out["splits"][split], lines = decide_split(args.folder, split, args.resamples,
+                                                   args.seed)
+        md += lines
+    write_json(os.path.join(args.folder, "verdicts.json"), jsonable(out))
+    write_text(os.path.join(args.folder, "verdicts.md"), "\n".join(md).rstrip() + "\n")
+    return 0
+
+
+if __name__ == "__main__":
+    from cpl_keras import cli
+
+    cli.run(main, "bench/verdicts.py")

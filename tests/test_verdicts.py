@@ -1,0 +1,121 @@
+"""Verdicts under both rules (``cpl_keras.evaluation.verdicts``), on
+synthetic predictions whose answers are known."""
+
+import numpy as np
+import pytest
+
+from cpl_keras.camera import PARAMETERS
+from cpl_keras.evaluation import EvaluationError
+from cpl_keras.evaluation import verdicts as v
+
+N = 400
+
+
+def labels(seed, n=N):
+    """Test labels shaped like cvgl's: fx = fy, b = tx, u0 = v0 = 56."""
+    rng = np.random.default_rng(100 + seed)
+    focal, base = rng.uniform(40, 60, n), rng.uniform(80, 100, n)
+    return {"fx": focal, "fy": focal.copy(), "u0": np.full(n, 56.0), "v0": np.full(n, 56.0),
+            "baseline": base, "disparity": rng.uniform(100, 900, n), "tx": base.copy(),
+            "ty": rng.uniform(1, 4, n), "tz": rng.uniform(10, 40, n),
+            "pitch": rng.uniform(0.1, 0.7, n)}
+
+
+def row(seed, error, noise=False, indices=None):
+    """One run of ``seed``: every prediction off by ``error`` x |y| (NMAE =
+    ``error`` exactly), or by a random multiple of it (``noise``)."""
+    truth = labels(seed)
+    rng = np.random.default_rng(1000 * seed + int(error * 1e6))
+    pred = {}
+    for name, y in truth.items():
+        size = rng.exponential(1.0, N) if noise else np.ones(N)
+        sign = rng.choice([-1.0, 1.0], N) if noise else np.ones(N)
+        pred[name] = y + error * np.abs(y) * size * sign
+    return {"indices": np.arange(N) if indices is None else indices, "truth": truth,
+            "pred": pred, "defined": {k: np.ones(N, bool) for k in truth}}
+
+
+def rows(errors, noise=False):
+    return {s: row(s, e, noise) for s, e in enumerate(errors)}
+
+
+def by_column(result):
+    return {c.column: c for c in result}
+
+
+def test_a_clearly_better_is_decided_by_both_rules():
+    result = v.compare(rows((0.010, 0.011, 0.012), noise=True),
+                       rows((0.050, 0.052, 0.048), noise=True), resamples=300)
+    assert [c.column for c in result] == list(v.COLUMNS)
+    for c in result:
+        assert (c.spread_rule, c.bootstrap_rule, c.verdict) == (v.A_LOWER,) * 3, c
+        assert len(c.per_seed) == 3 and all(i.high < 0 for i in c.per_seed)
+    # The other way round, B is lower.
+    assert {c.verdict for c in v.compare(rows((0.05, 0.052, 0.048), noise=True),
+                                         rows((0.01, 0.011, 0.012), noise=True),
+                                         resamples=300)} == {v.B_LOWER}
+
+
+def test_seeds_that_disagree_leave_the_bootstrap_undecided():
+    result = v.compare(rows((0.01, 0.05, 0.01)), rows((0.05, 0.01, 0.05)), resamples=200)
+    for c in result:
+        assert [i.answer for i in c.per_seed] == [v.A_LOWER, v.B_LOWER, v.A_LOWER]
+        assert c.bootstrap_rule == v.UNDECIDED and c.verdict == v.UNDECIDED
+
+
+def test_rules_that_disagree_leave_the_column_undecided():
+    # Every seed's interval is below 0, but A's seeds spread wider than the gap.
+    result = v.compare(rows((0.002, 0.08, 0.002)), rows((0.05, 0.09, 0.05)), resamples=200)
+    for c in result:
+        assert (c.bootstrap_rule, c.spread_rule, c.verdict) == \
+            (v.A_LOWER, v.UNDECIDED, v.UNDECIDED)
+    # The means are apart beyond the spread, but seed 1 is a tie.
+    result = v.compare(rows((0.010, 0.011, 0.012)), rows((0.030, 0.011, 0.031)), resamples=200)
+    for c in result:
+        assert [i.answer for i in c.per_seed] == [v.A_LOWER, v.UNDECIDED, v.A_LOWER]
+        assert (c.spread_rule, c.bootstrap_rule, c.verdict) == \
+            (v.A_LOWER, v.UNDECIDED, v.UNDECIDED)
+
+
+def test_the_bootstrap_is_paired_seeded_and_matches_the_nmae():
+    a, b = rows((0.02, 0.021, 0.019), noise=True), rows((0.021, 0.02, 0.02), noise=True)
+    first, again = v.compare(a, b, resamples=200), v.compare(a, b, resamples=200)
+    assert first == again
+    other = v.compare(a, b, resamples=200, bootstrap_seed=1)
+    assert [c.per_seed for c in other] != [c.per_seed for c in first]
+    fx = by_column(first)["fx"].per_seed[0]
+    y, p = a[0]["truth"]["fx"], a[0]["pred"]["fx"]
+    assert fx.nmae_a == pytest.approx(np.mean(np.abs(p - y)) / np.mean(np.abs(y)), rel=1e-12)
+    assert fx.low <= fx.nmae_a - fx.nmae_b <= fx.high
+    # Identical rows: every paired resample's difference is exactly 0.
+    same = v.compare(a, a, resamples=50)
+    assert all(i.low == i.high == 0.0 and i.answer == v.UNDECIDED
+               for c in same for i in c.per_seed)
+
+
+def test_same_quantities_from_the_labels():
+    truths = [labels(s) for s in range(3)]
+    same = v.same_quantities(truths)
+    assert same == {"identical": [["fx", "fy"], ["b", "tx"]],
+                    "constant": {"u0": 56.0, "v0": 56.0}}
+    truths[2]["fy"] = truths[2]["fy"] + 1e-6
+    truths[1]["v0"] = truths[1]["v0"] + np.linspace(0, 1, N)
+    same = v.same_quantities(truths)
+    assert same == {"identical": [["b", "tx"]], "constant": {"u0": 56.0}}
+
+
+def test_different_test_pairs_raise_one_line():
+    a, b = rows((0.01, 0.01)), rows((0.02, 0.02))
+    b[1]["indices"] = np.arange(N) + 1
+    with pytest.raises(EvaluationError, match="seed 1") as error:
+        v.compare(a, b, resamples=20)
+    assert "\n" not in str(error.value)
+    b[1]["indices"] = np.arange(N - 1)
+    with pytest.raises(EvaluationError, match="different test pairs"):
+        v.seed_intervals(1, a[1], b[1], resamples=20)
+    with pytest.raises(EvaluationError, match="different seeds"):
+        v.compare(a, {0: b[0]}, resamples=20)
+
+
+def test_every_column_is_a_parameter():
+    assert [v.COLUMN_PARAMETER[c] for c in v.COLUMNS] == list(PARAMETERS)
