@@ -63,8 +63,11 @@ if [ "$mode" = "--dry-run" ]; then
     limit=${REPRODUCE_LIMIT:-1500}
 fi
 start=$(date +%s)
+# --foreground: the reproduction stays in the terminal's process group, so a
+# Ctrl-C reaches it (it stops with one line and exit 130, and what finished
+# is still packed below); tee -i outlives the Ctrl-C to log that line.
 set +e
-timeout -s INT -k 30 "$limit" python3 -m cpl_keras.reproduce "${args[@]}" 2>&1 \
+timeout --foreground -s INT -k 30 "$limit" python3 -m cpl_keras.reproduce "${args[@]}" 2>&1 \
     | tee -i "$out/reproduce.log"
 status=${PIPESTATUS[0]}
 set -e
