@@ -9,7 +9,10 @@ parameter (and the model's own loss) under:
 
 * ``saved``: the statistics saved with the model (those of its best epoch);
 * ``recompute K #i``: recomputed over K training batches, for ``--draws``
-  different random draws of K batches (what training does each epoch);
+  different random draws of K batches (what training did each epoch with
+  ``bn_statistics="epoch"``), and ``population K #i`` the same batches with
+  the population variance (with K = 64, what ``bn_statistics="fixed"``
+  recomputes, from a set of another seed);
 * ``recompute all``: recomputed over every training batch;
 * ``batch stats``: training-mode BatchNorm on each validation batch (no
   stored statistics at all).
@@ -78,6 +81,10 @@ def main(argv=None):
                         help="also recompute over the first K batches of these epochs' shuffled "
                              "order (0-based), as training did")
     parser.add_argument("--no-all", action="store_true", help="skip the all-batches recompute")
+    parser.add_argument("--variance", choices=("both", "average", "population"), default="both",
+                        help="the draws' variance: the average batch variance (training's "
+                        "bn_statistics=epoch), the population variance (bn_statistics=fixed, "
+                        "whose draws are fixed sets of other seeds), or both (default)")
     args = parser.parse_args(argv)
 
     from cpl_keras import runs
@@ -141,9 +148,10 @@ def main(argv=None):
     for epoch in args.epoch_order:
         recompute_batchnorm_statistics(model, first_batches(epoch, args.batches))
         report(f"epoch {epoch}'s first {args.batches}")
+    variances = {"both": (False, True), "average": (False,), "population": (True,)}
     for draw in range(args.draws):
         epoch = 1000 + args.seed * 100 + draw  # an order no training epoch used
-        for population in (False, True):
+        for population in variances[args.variance]:
             recompute_batchnorm_statistics(model, first_batches(epoch, args.batches),
                                            population=population)
             report(f"{'population' if population else 'recompute'} {args.batches} #{draw + 1}")
