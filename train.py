@@ -67,7 +67,16 @@ def build_parser():
     parser.add_argument("--run-dir", help="run directory (default runs/<variant>-<split>-s<seed>)")
     parser.add_argument("--seed", type=cli.non_negative_int, help="seed of split, shuffling and weights (default 0)")
     parser.add_argument("--data-parallel", action="store_true",
-                        help="data parallelism over all local devices")
+                        help="data parallelism over all local devices, or over every "
+                        "process's devices in a process group (docs/training.md)")
+    group = parser.add_argument_group(
+        "process group (with --data-parallel; or Keras's KERAS_DISTRIBUTION_JOB_ADDRESSES, "
+        "KERAS_DISTRIBUTION_NUM_PROCESSES, KERAS_DISTRIBUTION_PROCESS_ID)")
+    group.add_argument("--coordinator", metavar="HOST:PORT",
+                       help="process 0's address, the same on every process")
+    group.add_argument("--num-processes", type=cli.positive_int, help="processes in the group")
+    group.add_argument("--process-id", type=cli.non_negative_int,
+                       help="this process's index, 0 .. N-1 (0 writes the run directory)")
     parser.add_argument("--patience", type=cli.non_negative_int, default=5, help="early stopping patience")
     parser.add_argument("--workers", type=cli.positive_int, default=1, help="data reading threads")
     parser.add_argument("--steps-per-execution", type=cli.positive_int, default=1,
@@ -172,8 +181,10 @@ def _duration(seconds):
 
 
 def main(argv=None):
-    args = build_parser().parse_args(argv)
+    parser = build_parser()
+    args = parser.parse_args(argv)
     demo = args.data is None
+    _check_group_arguments(parser, args, demo)
     seed = args.seed if args.seed is not None else DEMO["seed"]
     epochs = args.epochs if args.epochs is not None else (DEMO["epochs"] if demo else 200)
     backbone = args.backbone or (DEMO["backbone"] if demo else "inception_v3")
@@ -194,6 +205,27 @@ def main(argv=None):
         # a kill's state: the last completed epoch is checkpointed; the same
         # command resumes after it
         return cli.interrupted(PROG, resume=command)
+
+
+def _check_group_arguments(parser, args, demo):
+    """--coordinator, --num-processes and --process-id: all three or none
+    (then Keras's variables, which they set, may describe the group)."""
+    from cpl_keras import distributed
+
+    flags = (args.coordinator, args.num_processes, args.process_id)
+    if any(flag is not None for flag in flags):
+        if any(flag is None for flag in flags):
+            parser.error("--coordinator, --num-processes and --process-id go together")
+        distributed.set_environment(*flags)
+    try:
+        group = distributed.group_from_environment()
+    except distributed.DistributedError as error:
+        parser.error(str(error))
+    if group is not None and not args.data_parallel:
+        parser.error("a process group (--coordinator or KERAS_DISTRIBUTION_*) trains with "
+                     "--data-parallel")
+    if group is not None and demo:
+        parser.error("a process group trains on --data (each process its own copy)")
 
 
 def _train(args, demo, seed, epochs, backbone, run_dir, command):

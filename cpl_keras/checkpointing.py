@@ -19,7 +19,7 @@ import time
 import keras
 import numpy as np
 
-from cpl_keras import cli, runs
+from cpl_keras import cli, distributed, runs
 from cpl_keras.models.batchnorm import recompute_batchnorm_statistics
 
 
@@ -37,9 +37,13 @@ class RunState(keras.callbacks.Callback):
     """
 
     def __init__(self, run_dir, patience, sequence, bn_recompute_batches=0,
-                 time_budget_s=None, bn_sequence=None, nmae_scale=None):
+                 time_budget_s=None, bn_sequence=None, nmae_scale=None, writes=True):
         super().__init__()
         self.run_dir = run_dir
+        # whether this process writes the run directory (in a process group,
+        # process 0 does; the others keep the same state in memory and
+        # follow its decision to stop: ``cpl_keras.distributed``)
+        self.writes = writes
         # wall-clock seconds of training the run may take (None: no limit)
         self.time_budget_s = time_budget_s
         self.bn_recompute_batches = int(bn_recompute_batches)
@@ -76,7 +80,8 @@ class RunState(keras.callbacks.Callback):
         model.load_weights(os.path.join(self.backup, ckpt + ".weights.h5"))
         # log.csv again from the state (atomically): a run begun by older code
         # has a 0-based log, renumbered from 1 here, before training goes on
-        write_log(os.path.join(self.run_dir, runs.LOG), self.state.get("rows", []))
+        if self.writes:
+            write_log(os.path.join(self.run_dir, runs.LOG), self.state.get("rows", []))
         return int(self.state["epoch"])
 
     # -- keras hooks ---------------------------------------------------
@@ -84,8 +89,8 @@ class RunState(keras.callbacks.Callback):
         if self.state["epoch"] == 0 and self.state["checkpoint"] is None:
             # Eq. 9's weights start balanced on the first training batch
             # (a resumed run has them in its checkpoint).
-            _, y = self.sequence[0]
-            self.model.initialise_adaptive_weights(y)
+            # (the whole first batch: in a process group each process holds a part)
+            self.model.initialise_adaptive_weights(self.sequence.batch_targets(0))
 
     def on_test_begin(self, logs=None):
         # Validation (and so the checkpoints and the saved model) runs in
@@ -128,7 +133,8 @@ class RunState(keras.callbacks.Callback):
                 f"non-finite training loss at epoch {self.nan['epoch'] + 1}, "
                 f"batch {self.nan['batch'] + 1}"
             )
-            self._commit(checkpoint=False)
+            if self.writes:
+                self._commit(checkpoint=False)
             return
         logs = {k: float(np.asarray(v)) for k, v in (logs or {}).items()}
         state = self.state
@@ -147,7 +153,9 @@ class RunState(keras.callbacks.Callback):
         if improved:
             state["best"], state["best_epoch"], state["wait"] = val, epoch, 0
             best_name = f"best-{epoch:04d}"
-            self.model.save_weights(os.path.join(self.backup, best_name + ".weights.h5"))
+            if self.writes:
+                with distributed.alone():
+                    self.model.save_weights(os.path.join(self.backup, best_name + ".weights.h5"))
         else:
             state["wait"] += 1
             if state["wait"] >= self.patience and epoch > 0:
@@ -166,12 +174,20 @@ class RunState(keras.callbacks.Callback):
             state["stopped"] = (f"time budget: another epoch would end after "
                                 f"{self.time_budget_s:g} s of training")
             self.model.stop_training = True
+        if distributed.current() is not None:
+            # process 0's clock decides the time budget for the whole group
+            state["stopped"] = distributed.broadcast("stop", state["stopped"])
+            self.model.stop_training = state["stopped"] is not None
         # the run's training time so far and the machine's load, per epoch
         logs.update(wall_time_s=round(state["wall_time_s"], 3),
                     load_average=round(os.getloadavg()[0], 2))
         state["rows"].append({"epoch": epoch, **logs})
         state["epoch"] = epoch + 1
-        self._commit(checkpoint=True, best_name=best_name)
+        if self.writes:
+            self._commit(checkpoint=True, best_name=best_name)
+        else:
+            self.state["checkpoint"] = f"epoch-{self.state['epoch']:04d}"
+            self.state["best_weights"] = best_name or self.state["best_weights"]
 
     # -- helpers -------------------------------------------------------
     def _commit(self, checkpoint, best_name=None):
@@ -180,7 +196,8 @@ class RunState(keras.callbacks.Callback):
         if checkpoint:
             name = f"epoch-{self.state['epoch']:04d}"
             # Model and optimizer variables (Keras saves both).
-            self.model.save_weights(os.path.join(self.backup, name + ".weights.h5"))
+            with distributed.alone():
+                self.model.save_weights(os.path.join(self.backup, name + ".weights.h5"))
             self.state["checkpoint"] = name
         if best_name is not None:
             self.state["best_weights"] = best_name

@@ -297,10 +297,31 @@ def _ignore_interrupts():
         signal.signal(signal.SIGINT, signal.SIG_IGN)
 
 
+#: Called (with no argument) when this process is interrupted, before its
+#: line: ``on_interrupt``.
+_interrupt_hooks = []
+
+
+def on_interrupt(callback):
+    """Call ``callback()`` when this process is interrupted (``interrupted``):
+    a process of a group tells its partners (``cpl_keras.distributed``)."""
+    _interrupt_hooks.append(callback)
+
+
+def terminate(signum, frame):
+    """A SIGTERM handler that stops the command as Ctrl-C does (set by a
+    process of a group, whose partners must hear of it: a scheduler's
+    SIGTERM then ends the whole group within seconds)."""
+    _handler(signal.SIGINT, frame)
+
+
 def interrupted(prog, resume=None, note=None):
     """Print ``<prog>: interrupted`` on one line on stderr, with how to resume
     (``resume``: the command) or another ``note``; return 130."""
+    first = not _announced.is_set()
     _announced.set()
+    for callback in _interrupt_hooks if first else ():
+        callback()
     line = f"{prog}: interrupted"
     if resume:
         line += f"; to resume, run the same command again: {resume}"

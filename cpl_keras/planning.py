@@ -15,7 +15,7 @@ import os
 
 import numpy as np
 
-from cpl_keras import runs
+from cpl_keras import distributed, runs
 from cpl_keras.augment import AUGMENTATIONS
 from cpl_keras.backend import keras_backend
 from cpl_keras.camera import FLOORS, RELEASED_FLOORS
@@ -233,6 +233,11 @@ def plan_run(data, *, variant, run_dir, epochs=200, batch_size=16, learning_rate
 
     devices = _device_count() if data_parallel else 1
     run_batch = -(-batch_size // devices) * devices
+    group = distributed.current()  # (a process group: joined by training.train)
+    processes = 1 if group is None else group.num_processes
+    if devices % processes:
+        raise TrainingError(f"{devices} devices do not split evenly over {processes} "
+                            f"processes; give every process as many devices")
 
     build = _build_arguments(
         spec, backbone=backbone, image_size=[height, width], as_released=as_released,
@@ -253,6 +258,7 @@ def plan_run(data, *, variant, run_dir, epochs=200, batch_size=16, learning_rate
         "monitor": monitor, "target_scaling": target_scaling,
         "time_budget_s": None if time_budget_s is None else float(time_budget_s),
         "augment": augment, "data_parallel": bool(data_parallel), "num_devices": devices,
+        "num_processes": processes,
         "device_batch_size": run_batch, "command": command, "run_dir": run_dir,
         "keras_backend": keras_backend(),
     }

@@ -26,18 +26,20 @@ from __future__ import annotations
 
 import contextlib
 import fcntl
+import hashlib
 import os
 import shutil
 import sys
 
 import numpy as np
 
-from cpl_keras import models, runs
+from cpl_keras import distributed, models, runs
 from cpl_keras.baselines.average import save_statistics, training_statistics
 from cpl_keras.camera import PARAMETERS
 from cpl_keras.data.storage import StereoFile
 from cpl_keras.datasets import load_split, save_split, targets_from_labels
-from cpl_keras.planning import TrainingError, plan_run
+from cpl_keras.errors import Error
+from cpl_keras.planning import RESUME_KEYS, TrainingError, plan_run
 
 # ---------------------------------------------------------------------------
 # Training
@@ -70,19 +72,71 @@ def train(data, *, steps_per_execution=1, verbose=1, return_model=True, **option
     ):
         raise TrainingError(
             f"steps per execution must be a positive integer, got {steps_per_execution!r}")
+    group = _join_group(options)  # (before any device is counted)
     plan = plan_run(data, **options)
     finished = _finished_run(plan["config"]["run_dir"], return_model)
+    if group is not None:
+        distributed.check_same("the run", group_fingerprint(plan, finished))
     if finished is not None:
         return finished
     import keras
 
-    _replace_failed_run(plan["config"]["run_dir"])
+    if distributed.is_chief():
+        _replace_failed_run(plan["config"]["run_dir"])
     scope = contextlib.nullcontext()
     if plan["config"]["data_parallel"]:
         devices = keras.distribution.list_devices()
-        scope = keras.distribution.DataParallel(devices=devices).scope()
+        # (across processes each one reads its own part of every batch:
+        # StereoSequence's ``process``; Keras shards only tf.data itself)
+        scope = keras.distribution.DataParallel(
+            devices=devices, auto_shard_dataset=group is None).scope()
     with scope:
-        return _run(plan, steps_per_execution, verbose)
+        if group is None:
+            return _run(plan, steps_per_execution, verbose)
+        try:
+            return _run(plan, steps_per_execution, verbose)
+        except Error:  # (one line already: a bad file, a disagreement)
+            raise
+        except Exception as error:  # a collective failed: a partner stopped or died
+            raise distributed.group_failure(error) from None
+
+
+def _join_group(options):
+    """The process group of Keras's ``KERAS_DISTRIBUTION_*`` variables,
+    joined (``distributed.join``), or None where they are not set."""
+    group = distributed.group_from_environment()
+    if group is None:
+        return None
+    if not options.get("data_parallel"):
+        raise TrainingError(f"{distributed.ENVIRONMENT[0]} and the others are set: training "
+                            f"over several processes needs --data-parallel (data_parallel=True)")
+    return distributed.join(group)
+
+
+def group_fingerprint(plan, finished):
+    """What every process of a group must agree on before training: the
+    settings, the dataset's labels and split, the step counts of an epoch,
+    and where the run stands (a run directory that one process sees and
+    another does not shows here)."""
+    config = plan["config"]
+    batch = config["device_batch_size"]
+    digest = hashlib.sha256()
+    for name in sorted(plan["targets"]):
+        digest.update(np.asarray(plan["targets"][name], np.float32).tobytes())
+    for part in ("train", "val", "test"):
+        digest.update(np.asarray(plan["split"][part], np.int64).tobytes())
+    state = runs.read_json(os.path.join(config["run_dir"], runs.STATE)) or {}
+    return {
+        "training steps per epoch": -(-config["num_train"] // batch),
+        "validation steps": -(-config["num_val"] // batch),
+        "devices": config["num_devices"],
+        **{key: config.get(key) for key in RESUME_KEYS if key != "data"},
+        "dataset pairs": config["num_pairs"],
+        "labels and split (sha256)": digest.hexdigest()[:16],
+        "run status": "finished" if finished is not None else (
+            runs.read_config(config["run_dir"], {}) or {}).get("status", "new"),
+        "epochs completed": int(state.get("epoch", 0)),
+    }
 
 
 def _failed_run(run_dir):
@@ -137,8 +191,12 @@ def _run(plan, steps_per_execution, verbose):
     )
     config["num_parameters"] = int(model.count_params())
 
-    # Nothing has been written so far; from here on the run directory exists.
+    # Nothing has been written so far; from here on the run directory exists
+    # (written by process 0 alone when several train together).
     run_dir = config["run_dir"]
+    if not distributed.is_chief():
+        distributed.barrier("run directory ready")
+        return _run_locked(plan, model, config, run_dir, verbose)
     os.makedirs(os.path.join(run_dir, runs.BACKUP), exist_ok=True)
     lock = _lock_run_dir(run_dir)
     try:  # (released however training ends: a Ctrl-C in a notebook, then train() again)
@@ -153,6 +211,59 @@ def _run_locked(plan, model, config, run_dir, verbose):
     finished = _finished_run(run_dir)  # (by the process this one waited for)
     if finished is not None:
         return finished
+    if distributed.is_chief():
+        _write_run_files(plan, config, run_dir)
+        distributed.barrier("run directory ready")
+
+    group = distributed.current()
+    common = dict(targets=plan["targets"], batch_size=config["device_batch_size"],
+                  multiple_of=config["num_devices"], workers=plan["workers"],
+                  process=None if group is None else (group.process_id, group.num_processes))
+    train_seq = StereoSequence(config["data"], plan["split"]["train"], shuffle=True,
+                               seed=config["seed"], augment=config.get("augment"), **common)
+    val_seq = StereoSequence(config["data"], plan["split"]["val"], shuffle=False, **common)
+
+    bn_seq = None
+    if config["bn_statistics"] == "fixed" and config["bn_recompute_batches"]:
+        bn_seq = StereoSequence(config["data"], batchnorm_pairs(plan, config), shuffle=False,
+                                **common)
+
+    from cpl_keras.checkpointing import RunState
+    from cpl_keras.progress import EpochLines
+
+    run_state = RunState(run_dir, config["patience"], train_seq, config["bn_recompute_batches"],
+                         time_budget_s=config.get("time_budget_s"), bn_sequence=bn_seq,
+                         nmae_scale=nmae_scale(plan) if config["monitor"] == "nmae" else None,
+                         writes=distributed.is_chief())
+    state = run_state.state
+    done = state.get("stopped") is not None or state["epoch"] >= config["epochs"]
+    try:
+        if not done:
+            initial_epoch = run_state.restore(model)
+            if initial_epoch:
+                print(f"Resuming {run_dir} after epoch {initial_epoch}", file=sys.stderr)
+            train_seq.set_epoch(initial_epoch)
+            # shuffle=False: the sequence shuffles itself, seeded per epoch; Keras's
+            # own shuffle of the batch order uses Python's unseeded global RNG.
+            callbacks = [run_state]
+            if verbose and distributed.is_chief():  # (Keras's bar: all 14-30 metrics a line)
+                callbacks.append(EpochLines(config["epochs"], run_state,
+                                            live=None if verbose == 1 else False))
+            model.fit(train_seq, validation_data=val_seq, epochs=config["epochs"],
+                      initial_epoch=initial_epoch, callbacks=callbacks, shuffle=False,
+                      verbose=0)
+    finally:  # (also on Ctrl-C: no reading threads left behind)
+        for sequence in (train_seq, val_seq, bn_seq):
+            if sequence is not None:
+                sequence.close()
+    summary = _finish(model, run_dir, config, run_state.state)
+    summary["model"] = model
+    return summary
+
+
+def _write_run_files(plan, config, run_dir):
+    """config.json (status "running"), split.npz and train_stats.json: what a
+    run directory holds from its start."""
     previous = runs.read_config(run_dir, {})
     for key in ("epochs_run", "best_epoch", "best_val_loss", "wall_time_s", "status", "stopped"):
         config[key] = previous.get(key)
@@ -174,49 +285,6 @@ def _run_locked(plan, model, config, run_dir, verbose):
         release_targets = targets_from_labels(data_file.labels, as_released=True)
     stats = training_statistics(plan["targets"], train_order, release_targets=release_targets)
     save_statistics(os.path.join(run_dir, runs.STATS), stats)
-
-    multiple = config["num_devices"]
-    common = dict(targets=plan["targets"], batch_size=config["device_batch_size"],
-                  multiple_of=multiple, workers=plan["workers"])
-    train_seq = StereoSequence(config["data"], plan["split"]["train"], shuffle=True,
-                               seed=config["seed"], augment=config.get("augment"), **common)
-    val_seq = StereoSequence(config["data"], plan["split"]["val"], shuffle=False, **common)
-
-    bn_seq = None
-    if config["bn_statistics"] == "fixed" and config["bn_recompute_batches"]:
-        bn_seq = StereoSequence(config["data"], batchnorm_pairs(plan, config), shuffle=False,
-                                **common)
-
-    from cpl_keras.checkpointing import RunState
-    from cpl_keras.progress import EpochLines
-
-    run_state = RunState(run_dir, config["patience"], train_seq, config["bn_recompute_batches"],
-                         time_budget_s=config.get("time_budget_s"), bn_sequence=bn_seq,
-                         nmae_scale=nmae_scale(plan) if config["monitor"] == "nmae" else None)
-    state = run_state.state
-    done = state.get("stopped") is not None or state["epoch"] >= config["epochs"]
-    try:
-        if not done:
-            initial_epoch = run_state.restore(model)
-            if initial_epoch:
-                print(f"Resuming {run_dir} after epoch {initial_epoch}", file=sys.stderr)
-            train_seq.set_epoch(initial_epoch)
-            # shuffle=False: the sequence shuffles itself, seeded per epoch; Keras's
-            # own shuffle of the batch order uses Python's unseeded global RNG.
-            callbacks = [run_state]
-            if verbose:  # (Keras's bar would print all 14-30 metrics on every line)
-                callbacks.append(EpochLines(config["epochs"], run_state,
-                                            live=None if verbose == 1 else False))
-            model.fit(train_seq, validation_data=val_seq, epochs=config["epochs"],
-                      initial_epoch=initial_epoch, callbacks=callbacks, shuffle=False,
-                      verbose=0)
-    finally:  # (also on Ctrl-C: no reading threads left behind)
-        for sequence in (train_seq, val_seq, bn_seq):
-            if sequence is not None:
-                sequence.close()
-    summary = _finish(model, run_dir, config, run_state.state)
-    summary["model"] = model
-    return summary
 
 
 def _lock_run_dir(run_dir):
@@ -281,7 +349,10 @@ def _finish(model, run_dir, config, state):
     """Best weights -> model.keras; final config.json; remove the checkpoint."""
     from cpl_keras.checkpointing import publish_run_files
 
-    publish_run_files(run_dir, state)
+    chief = distributed.is_chief()  # (in a group, process 0 writes; the others read)
+    if chief:
+        publish_run_files(run_dir, state)
+    distributed.barrier("best weights written")
     best = state.get("best_weights")
     if best:
         # The file holds the optimizer's variables too: a run resumed after a
@@ -291,8 +362,9 @@ def _finish(model, run_dir, config, state):
         if not model.optimizer.built:
             model.optimizer.build(model.trainable_variables)
         model.load_weights(os.path.join(run_dir, runs.BEST_WEIGHTS))
-        with runs.atomic_path(os.path.join(run_dir, runs.MODEL)) as tmp:
-            model.save(tmp)
+        if chief:
+            with runs.atomic_path(os.path.join(run_dir, runs.MODEL)) as tmp, distributed.alone():
+                model.save(tmp)
     nan = state.get("stopped") or ""
     failed = nan.startswith("non-finite")
     config.update(
@@ -305,11 +377,13 @@ def _finish(model, run_dir, config, state):
         status="failed" if failed else "finished",
         adaptive_weights=model.adaptive_weights(),
     )
-    runs.write_config(run_dir, config)
-    backup = os.path.join(run_dir, runs.BACKUP)
-    for name in os.listdir(backup):
-        if name.endswith(".weights.h5"):
-            os.remove(os.path.join(backup, name))
+    if chief:
+        runs.write_config(run_dir, config)
+        backup = os.path.join(run_dir, runs.BACKUP)
+        for name in os.listdir(backup):
+            if name.endswith(".weights.h5"):
+                os.remove(os.path.join(backup, name))
+    distributed.barrier("run finished")
     return {
         "run_dir": run_dir, "status": config["status"], "stopped": config["stopped"],
         "epochs_run": config["epochs_run"], "best_epoch": config["best_epoch"],

@@ -16,7 +16,7 @@ import os
 
 import numpy as np
 
-from cpl_keras import runs
+from cpl_keras import distributed, runs
 from cpl_keras.camera import TARGETS
 from cpl_keras.data.storage import DatasetError, StereoFile
 from cpl_keras.datasets import targets_from_labels
@@ -55,7 +55,9 @@ def predict_images(model, left, right, batch_size=32):
     pair and their outputs dropped. Inference treats each pair on its own, so
     the outputs are the same; the model's forward pass is compiled once, not
     once for every set size it meets (a compilation costs seconds, more than
-    the filled-up rows)."""
+    the filled-up rows). Not inside a group of several processes
+    (``distributed.refuse_prediction``): prediction runs after training."""
+    distributed.refuse_prediction()
     left, right = np.asarray(left), np.asarray(right)
     out = {name: [] for name in TARGETS}
     for start in range(0, len(left), batch_size):

@@ -21,6 +21,8 @@ from __future__ import annotations
 import keras
 import numpy as np
 
+from cpl_keras import distributed
+
 
 def batchnorm_layers(model):
     """Every ``BatchNormalization`` layer of ``model``, nested models included."""
@@ -80,7 +82,10 @@ def recompute_batchnorm_statistics(model, batches, population=False):
         sums, count = None, 0
         for batch in batches:
             inputs = batch[0] if isinstance(batch, tuple) else batch
-            stats = [np.asarray(keras.ops.convert_to_numpy(s), np.float64)
+            # (in a process group each process holds a part of the batch; the
+            # statistics are those of the whole batch, on every process)
+            inputs = distributed.global_batch(inputs)
+            stats = [np.asarray(distributed.to_numpy(s), np.float64)
                      for s in statistics(trainable, non_trainable, inputs)]
             if population:
                 # (mean, variance) -> (mean, E[x^2]) so that the average over

@@ -1,0 +1,275 @@
+"""Training over several processes (``cpl_keras.distributed``): the slices
+each process reads, the group's checks, and two local processes of
+``train.py --data-parallel`` against one process on one and on two devices,
+a partner stopped by SIGTERM and one killed with -9, then resumed."""
+
+import csv
+import json
+import os
+import signal
+import socket
+import subprocess
+import sys
+import time
+
+import h5py
+import numpy as np
+import pytest
+
+from conftest import train_py
+from cpl_keras import distributed
+from cpl_keras.sequence import StereoSequence
+
+#: Every subprocess of these tests ends within this many seconds or fails.
+TIMEOUT_S = 240
+#: The runs compared: MTL-CPL-U, the small backbone, batch 4 on a 52-pair
+#: fixture (32 training pairs, 4 validation pairs: every batch splits evenly
+#: over two devices, so one device sees the same batches as two).
+ARGS = ["--variant", "cpl-u", "--backbone", "small", "--batch-size", "4", "--quiet"]
+
+
+@pytest.fixture(scope="module")
+def fixture52(tmp_path_factory):
+    from test_datasets import write_stereo_fixture
+
+    path = str(tmp_path_factory.mktemp("dist") / "stereo52.h5")
+    write_stereo_fixture(path, n=52, image_size=32)
+    return path
+
+
+@pytest.fixture(scope="module")
+def fixture60(tmp_path_factory):
+    from test_datasets import write_stereo_fixture
+
+    path = str(tmp_path_factory.mktemp("dist") / "stereo60.h5")
+    write_stereo_fixture(path, n=60, image_size=32)
+    return path
+
+
+def _free_port():
+    with socket.socket() as s:
+        s.bind(("localhost", 0))
+        return s.getsockname()[1]
+
+
+def _group_env(port, process_id, extra=None):
+    return {"KERAS_DISTRIBUTION_JOB_ADDRESSES": f"localhost:{port}",
+            "KERAS_DISTRIBUTION_NUM_PROCESSES": "2",
+            "KERAS_DISTRIBUTION_PROCESS_ID": str(process_id),
+            "CPL_KERAS_PEER_TIMEOUT_S": "5", **(extra or {})}
+
+
+def _start_group(tmp, cache, data_paths, run_dir, epochs, extra=()):
+    """Two train.py processes of one group; returns the Popen objects."""
+    port, processes = _free_port(), []
+    for process_id, data in enumerate(data_paths):
+        argv, environ = train_py(*ARGS, *extra, "--data", data, "--epochs", str(epochs),
+                                 "--data-parallel", "--run-dir", run_dir,
+                                 cache=cache, env=_group_env(port, process_id))
+        out = open(os.path.join(tmp, f"p{process_id}.{len(os.listdir(tmp))}.txt"), "w+")
+        processes.append(subprocess.Popen(argv, env=environ, stdout=out,
+                                          stderr=subprocess.STDOUT, text=True))
+        processes[-1].log = out
+    return processes
+
+
+def _wait(process, timeout=TIMEOUT_S):
+    try:
+        status = process.wait(timeout=timeout)
+    except subprocess.TimeoutExpired:
+        process.kill()
+        raise AssertionError(f"a process of the group ran past {timeout} s") from None
+    process.log.seek(0)
+    return status, process.log.read()
+
+
+def _lines(text):
+    """The output without the Gloo library's own connection notices."""
+    return [line for line in text.splitlines() if line and not line.startswith("[Gloo]")]
+
+
+def _log(run_dir):
+    with open(os.path.join(run_dir, "log.csv")) as f:
+        return list(csv.DictReader(f))
+
+
+def _weights(run_dir):
+    arrays = []
+    with h5py.File(os.path.join(run_dir, "best.weights.h5")) as f:
+        f.visititems(lambda name, item: arrays.append((name, item[...]))
+                     if isinstance(item, h5py.Dataset) else None)
+    return arrays
+
+
+# ---------------------------------------------------------------------------
+# The slices, and the group from the environment
+# ---------------------------------------------------------------------------
+def test_each_process_reads_a_disjoint_equal_part_of_every_global_batch(fixture52):
+    rng = np.random.default_rng(0)
+    for _ in range(200):
+        processes = int(rng.integers(1, 5))
+        batch = rng.permutation(1000)[:processes * int(rng.integers(1, 9))]
+        parts = [distributed.local_part(batch, p, processes) for p in range(processes)]
+        assert all(len(part) == len(batch) // processes for part in parts)
+        np.testing.assert_array_equal(np.concatenate(parts), batch)  # disjoint, whole, in order
+    with pytest.raises(ValueError, match="does not split"):
+        distributed.local_part(np.arange(5), 0, 2)
+
+    # the sequences of the two processes of a group: equal step counts, and
+    # their batches together the one-process batch, epoch after epoch
+    train = np.arange(0, 50, 1)[::-1][:38]
+    whole = StereoSequence(fixture52, train, batch_size=4, shuffle=True, seed=3, multiple_of=2)
+    parts = [StereoSequence(fixture52, train, batch_size=4, shuffle=True, seed=3, multiple_of=2,
+                            process=(p, 2)) for p in range(2)]
+    assert len(parts[0]) == len(parts[1]) == len(whole)
+    for epoch in (0, 1, 5):
+        for sequence in [whole] + parts:
+            sequence.set_epoch(epoch)
+        for index in range(len(whole)):
+            x, y = whole[index]
+            pieces = [part[index] for part in parts]
+            np.testing.assert_array_equal(
+                np.concatenate([p[0]["left_image"] for p in pieces]), x["left_image"])
+            np.testing.assert_array_equal(np.concatenate([p[1]["fx"] for p in pieces]), y["fx"])
+            np.testing.assert_array_equal(parts[1].batch_targets(index)["fx"], y["fx"])
+    with pytest.raises(ValueError, match="equal part"):
+        StereoSequence(fixture52, train, batch_size=3, process=(0, 2))
+
+
+def test_group_from_environment():
+    assert distributed.group_from_environment({}) is None
+    group = distributed.group_from_environment(_group_env(1234, 1))
+    assert group == distributed.ProcessGroup("localhost:1234", 2, 1) and not group.chief
+    bad = [({"KERAS_DISTRIBUTION_NUM_PROCESSES": "2"}, "needs all three"),
+           ({**_group_env(1, 2)}, "is not a process of"),
+           ({**_group_env(1, 0), "KERAS_DISTRIBUTION_JOB_ADDRESSES": "nohost"}, "host:port"),
+           ({**_group_env(1, 0), "KERAS_DISTRIBUTION_NUM_PROCESSES": "two"}, "integers")]
+    for environ, message in bad:
+        with pytest.raises(distributed.DistributedError, match=message):
+            distributed.group_from_environment(environ)
+
+
+def test_train_py_group_arguments_fail_in_one_line(fixture52, tmp_path):
+    cases = [(["--coordinator", "localhost:1"], "go together"),
+             (["--coordinator", "localhost:1", "--num-processes", "2", "--process-id", "0"],
+              "--data-parallel"),
+             (["--coordinator", "localhost:1", "--num-processes", "2", "--process-id", "2",
+               "--data-parallel"], "is not a process of")]
+    for extra, message in cases:
+        argv, environ = train_py(*ARGS, "--data", fixture52, "--run-dir",
+                                 str(tmp_path / "run"), *extra, cache=str(tmp_path / "xla"))
+        result = subprocess.run(argv, env=environ, capture_output=True, text=True,
+                                timeout=TIMEOUT_S)
+        assert result.returncode == 2, result.stderr
+        assert len(result.stderr.strip().splitlines()) == 1 and message in result.stderr
+        assert not os.path.exists(tmp_path / "run")
+
+
+# ---------------------------------------------------------------------------
+# Two processes against one
+# ---------------------------------------------------------------------------
+@pytest.fixture(scope="module")
+def compared_runs(fixture52, tmp_path_factory):
+    """The same 2-epoch run on 1 device, on 2 forced devices of one process,
+    and in 2 local processes of one device each: their run directories."""
+    root = tmp_path_factory.mktemp("compared")
+    cache = str(root / "xla")
+    runs = {name: str(root / name) for name in ("one", "two_devices", "two_processes")}
+    for name, extra, env in (("one", [], None),
+                             ("two_devices", ["--data-parallel"],
+                              {"XLA_FLAGS": "--xla_force_host_platform_device_count=2"})):
+        argv, environ = train_py(*ARGS, "--data", fixture52, "--epochs", "2", *extra,
+                                 "--run-dir", runs[name], cache=cache, env=env)
+        result = subprocess.run(argv, env=environ, capture_output=True, text=True,
+                                timeout=TIMEOUT_S)
+        assert result.returncode == 0, result.stderr
+    logs = root / "logs"
+    logs.mkdir()
+    group = _start_group(str(logs), cache, [fixture52, fixture52], runs["two_processes"], 2)
+    outputs = [_wait(process) for process in group]
+    for status, text in outputs:
+        assert status == 0, text
+    return runs, outputs
+
+
+def test_two_processes_train_one_model_as_one_process_does(compared_runs):
+    runs, outputs = compared_runs
+    config = json.load(open(os.path.join(runs["two_processes"], "config.json")))
+    assert (config["num_devices"], config["num_processes"], config["status"]) == (2, 2, "finished")
+    reference = _log(runs["one"])
+    for name in ("two_devices", "two_processes"):
+        rows = _log(runs[name])
+        assert len(rows) == len(reference) == 2
+        for row, expected in zip(rows, reference):
+            for key in ("loss", "val_loss", "val_nmae"):
+                assert float(row[key]) == pytest.approx(float(expected[key]), rel=1e-5, abs=1e-6)
+        for (name_a, a), (name_b, b) in zip(_weights(runs[name]), _weights(runs["one"])):
+            assert name_a == name_b
+            np.testing.assert_allclose(a, b, atol=1e-5, rtol=1e-5)
+    # each process said the same last line; the run directory was written once
+    assert _lines(outputs[0][1])[-1] == _lines(outputs[1][1])[-1]
+    assert os.path.isfile(os.path.join(runs["two_processes"], "model.keras"))
+
+
+def test_processes_with_unequal_steps_stop_before_training(fixture52, fixture60, tmp_path):
+    group = _start_group(str(tmp_path), str(tmp_path / "xla"), [fixture52, fixture60],
+                         str(tmp_path / "run"), 2)
+    for status, text in (_wait(process) for process in group):
+        assert status == 2, text
+        lines = _lines(text)
+        assert len(lines) == 1 and "training steps per epoch is 8 on process 0, 10 on " \
+                                   "process 1" in lines[0], text
+    assert not os.path.exists(tmp_path / "run" / "log.csv")
+
+
+# ---------------------------------------------------------------------------
+# Faults
+# ---------------------------------------------------------------------------
+def _when_logged(run_dir, rows, processes, timeout=TIMEOUT_S):
+    """Wait until log.csv has ``rows`` epochs (while the processes run)."""
+    deadline = time.monotonic() + timeout
+    path = os.path.join(run_dir, "log.csv")
+    while time.monotonic() < deadline:
+        if os.path.exists(path) and len(_log(run_dir)) >= rows:
+            return
+        assert all(p.poll() is None for p in processes), "the group ended too soon"
+        time.sleep(0.05)
+    raise AssertionError(f"no {rows} epochs logged within {timeout} s")
+
+
+def test_a_stopped_or_killed_partner_ends_the_group_and_the_same_command_resumes(
+        fixture52, tmp_path):
+    run_dir, cache, epochs = str(tmp_path / "run"), str(tmp_path / "xla"), 12
+    slow = ["--patience", "100"]  # (every epoch, so that there is time to stop it)
+
+    # SIGTERM to process 1: both end within seconds, each with one line
+    group = _start_group(str(tmp_path), cache, [fixture52] * 2, run_dir, epochs, slow)
+    _when_logged(run_dir, 1, group)
+    group[1].send_signal(signal.SIGTERM)
+    start = time.monotonic()
+    (status0, text0), (status1, text1) = _wait(group[0], 60), _wait(group[1], 60)
+    assert time.monotonic() - start < 30  # (seconds, not the heartbeats' timeout)
+    assert (status0, status1) == (130, 130), (text0, text1)
+    assert "interrupted" in _lines(text1)[-1]
+    assert "process 1 interrupted" in _lines(text0)[-1] and len(_lines(text0)) == 1, text0
+    stopped_at = len(_log(run_dir))
+
+    # kill -9 of process 1: process 0 ends with one line, never waits forever
+    group = _start_group(str(tmp_path), cache, [fixture52] * 2, run_dir, epochs, slow)
+    _when_logged(run_dir, stopped_at + 1, group)
+    group[1].kill()
+    status0, text0 = _wait(group[0], 120)
+    assert status0 == distributed.PARTNER_FAILED, text0
+    assert "process 1 of 2 gave no sign of life" in _lines(text0)[-1]
+    killed_at = len(_log(run_dir))
+    assert killed_at > stopped_at
+
+    # the same command resumes the run and takes it to its end
+    group = _start_group(str(tmp_path), cache, [fixture52] * 2, run_dir, epochs, slow)
+    for status, text in (_wait(process) for process in group):
+        assert status == 0, text
+    rows = _log(run_dir)
+    config = json.load(open(os.path.join(run_dir, "config.json")))
+    assert config["status"] == "finished" and config["epochs_run"] == len(rows)
+    assert [int(r["epoch"]) for r in rows] == list(range(1, len(rows) + 1))
+    assert len(rows) > killed_at
