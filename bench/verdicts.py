@@ -9,6 +9,10 @@ paired bootstrap of every seed's test pairs agree
 
     python bench/verdicts.py                      # paper_results/cpu-8000
     python bench/verdicts.py --folder paper_results/cpu-8000 --resamples 2000
+    python bench/verdicts.py --folder paper_results/compact-2000
+
+A folder's splits are those with a ``table1_<split>.json``; a pair is
+compared where the folder has both variants.
 """
 
 from __future__ import annotations
@@ -41,6 +45,14 @@ def load_rows(folder, split, variant):
         raise EvaluationError(f"no predictions of {variant} on {split} in {folder}/runs")
     files = [os.path.relpath(item["path"], folder) for item in items]
     return {item["seed"]: item["raw"] for item in items}, items[0]["row"], files
+
+
+def has_rows(folder, split, variant):
+    """Whether the folder has predictions of ``variant`` on ``split``."""
+    from cpl_keras import predictions
+
+    return bool(glob.glob(os.path.join(folder, "runs",
+                                       f"{split}_{variant}-s*{predictions.SUFFIX}")))
 
 
 def check_against_table(folder, split, name_a, name_b, verdicts):
@@ -140,6 +152,8 @@ def decide_split(folder, split, resamples, seed):
     entry = {"title": title, "table": f"table1_{split}.json", "pairs": {}}
     md = [f"## {title[0].upper() + title[1:]}", ""]
     for variant_a, variant_b in PAIRS:
+        if not (has_rows(folder, split, variant_a) and has_rows(folder, split, variant_b)):
+            continue  # (a folder without that variant: inception-2000 has no MTL-CPL-U)
         rows_a, name_a, files_a = load_rows(folder, split, variant_a)
         rows_b, name_b, files_b = load_rows(folder, split, variant_b)
         if "same_quantity" not in entry:
@@ -174,7 +188,13 @@ def main(argv=None):
     md = header(args.resamples, rules.LEVEL, args.seed)
     out = {"rules": RULES, "resamples": args.resamples, "level": rules.LEVEL,
            "bootstrap_seed": args.seed, "splits": {}}
-    for split in SPLITS:
+    splits = [split for split in SPLITS
+              if os.path.isfile(os.path.join(args.folder, f"table1_{split}.json"))]
+    if not splits:
+        from cpl_keras.evaluation import EvaluationError
+
+        raise EvaluationError(f"no table1_{{{','.join(SPLITS)}}}.json in {args.folder}")
+    for split in splits:  # (the splits the folder has: compact-2000 the paper's only)
         out["splits"][split], lines = decide_split(args.folder, split, args.resamples,
                                                    args.seed)
         md += lines
