@@ -59,7 +59,7 @@ import math
 import os
 import sys
 
-from cpl_keras import evaluation, exports
+from cpl_keras import evaluation, exports, files
 from cpl_keras.data.storage import StereoFile
 from cpl_keras.errors import Error
 from cpl_keras.real import resize_image
@@ -449,7 +449,7 @@ def main(argv=None):
         warn(calibration["real_camera_record"]["line"])
         text = json.dumps(result, indent=2, allow_nan=False)
         if args.json_out:
-            runs.write_text(args.json_out, text + "\n")
+            files.write_text(args.json_out, text + "\n")
         if args.opencv_yaml:
             exports.write_opencv_yaml(args.opencv_yaml, calibration)
         if args.ros_yaml:

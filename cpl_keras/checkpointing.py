@@ -19,7 +19,7 @@ import time
 import keras
 import numpy as np
 
-from cpl_keras import cli, distributed, runs
+from cpl_keras import cli, distributed, files, runs
 from cpl_keras.models.batchnorm import recompute_batchnorm_statistics
 
 
@@ -60,7 +60,7 @@ class RunState(keras.callbacks.Callback):
         self.state_path = os.path.join(run_dir, runs.STATE)
         self.patience = patience
         self.sequence = sequence
-        self.state = runs.read_json(self.state_path) or {
+        self.state = files.read_json(self.state_path) or {
             "epoch": 0, "best": None, "best_epoch": None, "wait": 0, "stopped": None,
             "rows": [], "checkpoint": None, "best_weights": None, "wall_time_s": 0.0,
         }
@@ -201,7 +201,7 @@ class RunState(keras.callbacks.Callback):
             self.state["checkpoint"] = name
         if best_name is not None:
             self.state["best_weights"] = best_name
-        runs.write_json(self.state_path, self.state)
+        files.write_json(self.state_path, self.state)
         for stale in old:
             if stale is not None and stale not in (self.state["checkpoint"],
                                                    self.state["best_weights"]):
@@ -235,7 +235,7 @@ def publish_run_files(run_dir, state):
     source = os.path.join(run_dir, runs.BACKUP, f"{state.get('best_weights')}.weights.h5")
     if state.get("best_weights") and os.path.exists(source):
         # (After a finished run the backup copy is gone; best.weights.h5 stays.)
-        with runs.atomic_path(os.path.join(run_dir, runs.BEST_WEIGHTS)) as tmp:
+        with files.atomic_path(os.path.join(run_dir, runs.BEST_WEIGHTS)) as tmp:
             shutil.copyfile(source, tmp)
     write_log(os.path.join(run_dir, runs.LOG), state.get("rows", []))
     if state.get("rows"):
@@ -249,7 +249,7 @@ def write_log(path, rows):
     ``rows`` are the state's (``epoch``: Keras's 0-based index); the file
     numbers the epochs from 1, as the console and config.json do."""
     keys = sorted({k for row in rows for k in row if k != "epoch"})
-    with runs.atomic_path(path) as tmp, open(tmp, "w", newline="") as f:
+    with files.atomic_path(path) as tmp, open(tmp, "w", newline="") as f:
         writer = csv.writer(f)
         writer.writerow(["epoch"] + keys)
         for row in rows:
@@ -315,6 +315,6 @@ def plot_curves(path, rows, best_epoch=None, title=None):
         lines = [wrapped for line in title.split("\n") for wrapped in textwrap.wrap(line, columns)]
         fig.suptitle("\n".join(lines), fontsize=9)
     fig.tight_layout()
-    runs.save_figure(fig, path, dpi=100)
+    files.save_figure(fig, path, dpi=100)
 
 

@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import os
 
-from cpl_keras import camera, cli, models, runs
+from cpl_keras import camera, cli, files, models
 from cpl_keras.models import BACKBONES, variants
 
 PROG = "python -m cpl_keras.graph"
@@ -412,7 +412,7 @@ def draw_graph(graph, path, title):
     if dashed:
         ax.text(0, height + margin + foot / 2, "dashed: read through stop_gradient (exact "
                 "disentangling of Eq. 7)", fontsize=FONT_SIZE, color="#44546a", va="center")
-    runs.save_figure(fig, path, dpi=130)
+    files.save_figure(fig, path, dpi=130)
 
 
 def main(argv=None, prog=PROG):

@@ -27,7 +27,7 @@ import time
 
 import numpy as np
 
-from cpl_keras import cli, runs
+from cpl_keras import cli, files, runs
 from cpl_keras.baselines.average import load_statistics
 from cpl_keras.camera import PARAMETERS
 from cpl_keras.data.generate import cached_dataset
@@ -151,7 +151,7 @@ def plot(curve, path):
         fontsize=10,
     )
     fig.tight_layout()
-    runs.save_figure(fig, path, dpi=90)
+    files.save_figure(fig, path, dpi=90)
 
 
 def summary_rows(curve, load=None):
@@ -279,7 +279,7 @@ def write_outputs(run_dirs, out_dir, loads=None, keep_earlier=False, at_epoch=No
         table += "\n" + budget_table(_finite(payload), at_epoch)
     for filename, text in (("learning_curves.md", table),
                            ("learning_curves.json", json.dumps(_finite(payload), indent=1))):
-        runs.write_text(os.path.join(out_dir, filename), text)
+        files.write_text(os.path.join(out_dir, filename), text)
     return rows
 
 

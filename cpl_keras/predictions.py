@@ -68,6 +68,7 @@ from cpl_keras.camera import TARGETS
 from cpl_keras.cli import one_line
 from cpl_keras.data.storage import StereoFile
 from cpl_keras.evaluation import EvaluationError
+from cpl_keras.files import atomic_path
 
 #: File name suffix of a predictions file.
 SUFFIX = "_predictions.npz"
@@ -186,12 +187,12 @@ def table2_files(run_list, rigs, *, out_dir, prefix, stem, key, suffix=""):
 
 def write_files(folder, files):
     """Write ``{file name: arrays}`` into ``folder`` (created if missing), all
-    files or none (``runs.atomic_path``); returns their paths."""
+    files or none (``cpl_keras.files.atomic_path``); returns their paths."""
     os.makedirs(folder, exist_ok=True)
     paths = [os.path.join(folder, name) for name in files]
     if not paths:
         return []
-    with runs.atomic_path(*paths) as tmps:
+    with atomic_path(*paths) as tmps:
         tmps = tmps if isinstance(tmps, list) else [tmps]
         for tmp, arrays in zip(tmps, files.values()):
             with open(tmp, "wb") as f:

@@ -39,14 +39,11 @@ from typing import Any
 
 import numpy as np
 
+from cpl_keras import files
 from cpl_keras.baselines.average import load_statistics
 from cpl_keras.cli import one_line
 from cpl_keras.datasets import load_split
 from cpl_keras.errors import Error
-# (the atomic file writers, also re-exported for the run directory's callers)
-from cpl_keras.files import (  # noqa: F401
-    atomic_path, commit, read_json, save_figure, write_json, write_text,
-)
 from cpl_keras.models.variants import ALPHA_RATE, VARIANT_ROWS
 
 CONFIG = "config.json"
@@ -110,14 +107,14 @@ def read_config(run_dir, default=None):
     RunError when it is unreadable."""
     path = os.path.join(run_dir, CONFIG)
     try:
-        config = read_json(path)
+        config = files.read_json(path)
     except (OSError, ValueError) as error:  # JSONDecodeError is a ValueError
         raise RunError(f"cannot read {path}: {error}") from None
     return default if config is None else normalise_config(config)
 
 
 def write_config(run_dir, config):
-    write_json(os.path.join(run_dir, CONFIG), normalise_config(config))
+    files.write_json(os.path.join(run_dir, CONFIG), normalise_config(config))
 
 
 def config_as_released(config):
@@ -232,7 +229,7 @@ def publish_files(run_dir, target_dir, name):
     for source, suffix in ((LOG, "_log.csv"), (CURVES, "_curves.png")):
         path = os.path.join(run_dir, source)
         if os.path.exists(path):
-            with atomic_path(os.path.join(target_dir, name + suffix)) as tmp:
+            with files.atomic_path(os.path.join(target_dir, name + suffix)) as tmp:
                 shutil.copyfile(path, tmp)
 
 
@@ -399,7 +396,7 @@ def write_predictions(run_dir, data_path, indices, outputs, names):
     path = predictions_path(run_dir, data_path)
     os.makedirs(os.path.dirname(path), exist_ok=True)
     pred = np.stack([np.asarray(outputs[n], np.float32).reshape(-1) for n in names], axis=1)
-    with atomic_path(path) as tmp:
+    with files.atomic_path(path) as tmp:
         with open(tmp, "wb") as f:
             np.savez(f, indices=np.asarray(indices, np.int64), pred=pred,
                      outputs=np.array(list(names)),

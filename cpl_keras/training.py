@@ -33,7 +33,7 @@ import sys
 
 import numpy as np
 
-from cpl_keras import distributed, models, runs
+from cpl_keras import distributed, files, models, runs
 from cpl_keras.baselines.average import save_statistics, training_statistics
 from cpl_keras.camera import PARAMETERS
 from cpl_keras.data.storage import StereoFile
@@ -125,7 +125,7 @@ def group_fingerprint(plan, finished):
         digest.update(np.asarray(plan["targets"][name], np.float32).tobytes())
     for part in ("train", "val", "test"):
         digest.update(np.asarray(plan["split"][part], np.int64).tobytes())
-    state = runs.read_json(os.path.join(config["run_dir"], runs.STATE)) or {}
+    state = files.read_json(os.path.join(config["run_dir"], runs.STATE)) or {}
     return {
         "training steps per epoch": -(-config["num_train"] // batch),
         "validation steps": -(-config["num_val"] // batch),
@@ -275,7 +275,7 @@ def _write_run_files(plan, config, run_dir):
         if any(not np.array_equal(old[k], plan["split"][k]) for k in old):
             raise TrainingError(f"{split_path} differs from this run's split; use another --run-dir")
     else:
-        with runs.atomic_path(split_path) as tmp:
+        with files.atomic_path(split_path) as tmp:
             save_split(tmp, plan["split"])
     # The release's Average bug depends on the order of the training set: its
     # frames were shuffled, so sample i is the i-th of a shuffled order.
@@ -363,7 +363,7 @@ def _finish(model, run_dir, config, state):
             model.optimizer.build(model.trainable_variables)
         model.load_weights(os.path.join(run_dir, runs.BEST_WEIGHTS))
         if chief:
-            with runs.atomic_path(os.path.join(run_dir, runs.MODEL)) as tmp, distributed.alone():
+            with files.atomic_path(os.path.join(run_dir, runs.MODEL)) as tmp, distributed.alone():
                 model.save(tmp)
     nan = state.get("stopped") or ""
     failed = nan.startswith("non-finite")

@@ -707,7 +707,8 @@ def test_epoch_lines_are_short_and_log_csv_keeps_every_metric(dataset, tmp_path,
         float(lines[1].split("val_nmae ")[1].split()[0]), rel=1e-3)
     # curves.png names the run and how far it got
     config = runs.read_config(run_dir)
-    state = runs.read_json(os.path.join(run_dir, runs.STATE))
+    with open(os.path.join(run_dir, runs.STATE)) as f:
+        state = json.load(f)
     title = checkpointing.curves_title(config, state)
     assert title == "cpl-a, small, tiny.h5, split paper\n2 of 2 epochs, finished"
     assert checkpointing.curves_title(config, dict(state, rows=state["rows"][:1])).endswith(

@@ -13,7 +13,7 @@ from __future__ import annotations
 import json
 import os
 
-from cpl_keras import runs
+from cpl_keras import files, runs
 from cpl_keras.metrics import jsonable
 from cpl_keras.report.plots import fov_plot, fov_scatter_plot
 from cpl_keras.report.text import (
@@ -105,7 +105,7 @@ def write_outputs(out_dir, stem, table, command, *, render_markdown=markdown,
     drawn = list(plots_for(table) if plots is None else plots) if table.get("rows") else []
     finals = [os.path.join(out_dir, name) for name in texts]
     finals += [os.path.join(out_dir, stem + suffix) for suffix, _ in drawn]
-    with runs.atomic_path(*finals) as tmps:
+    with files.atomic_path(*finals) as tmps:
         tmps = tmps if isinstance(tmps, list) else [tmps]
         for tmp, text in zip(tmps, texts.values()):
             with open(tmp, "w") as f:

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import os
 
-from cpl_keras import report, runs
+from cpl_keras import files, report, runs
 from cpl_keras.learning_curves import _val_mae
 from cpl_keras.models.variants import VARIANT_ROWS
 from cpl_keras.reproduce.presets import (
@@ -110,7 +110,7 @@ def plot_protocol_curves(out_dir, runs_list):
         fig.suptitle(TITLES.get(f"table1_{protocol}", protocol), fontsize=10)
         fig.tight_layout()
         name = f"curves_{protocol}.png"
-        runs.save_figure(fig, os.path.join(out_dir, name), dpi=80)
+        files.save_figure(fig, os.path.join(out_dir, name), dpi=80)
         figures.append((protocol, name))
     return figures
 
@@ -192,6 +192,6 @@ def write_report(out_dir, summary, tables, rebuilt_by=None):
                       ""] + differences + [""]
     if summary.get("discussion"):
         lines += ["## Comparison with the paper", "", summary["discussion"].strip(), ""]
-    runs.write_text(os.path.join(out_dir, "REPORT.md"), "\n".join(lines) + "\n")
+    files.write_text(os.path.join(out_dir, "REPORT.md"), "\n".join(lines) + "\n")
 
 

@@ -13,6 +13,7 @@ from cpl_keras import cli, evaluation, predictions, report, runs
 from cpl_keras.cache import enable_compile_cache
 from cpl_keras.data.generate import cached_dataset
 from cpl_keras.data.storage import StereoFile
+from cpl_keras.files import read_json, write_json
 from cpl_keras.real import build
 from cpl_keras.reproduce.jobs import train_all
 from cpl_keras.reproduce.page import write_report
@@ -194,7 +195,7 @@ def reproduce(*, out_dir, data_dir, runs_dir, config, seed=0, command="", discus
         "datasets": dataset_lines(paths), "runs": summaries, "machine": info,
         "predictions": [runs.relative(p, out_dir) for p in files], "tables": list(tables),
         "discussion": discussion}
-    runs.write_json(os.path.join(out_dir, SUMMARY), summary)
+    write_json(os.path.join(out_dir, SUMMARY), summary)
     write_report(out_dir, summary, tables)
     return os.path.join(out_dir, "REPORT.md")
 
@@ -214,7 +215,7 @@ def read_summary(out_dir):
     if not os.path.isdir(out_dir):
         raise ValueError(f"not a folder: {out_dir}")
     try:
-        summary = runs.read_json(path)
+        summary = read_json(path)
     except (OSError, ValueError) as error:
         raise ValueError(f"cannot read {path}: {cli.one_line(error)}") from None
     if summary is None:
@@ -255,7 +256,7 @@ def rebuild(out_dir, command="", discussion_file=None):
             f"the predictions make tables {list(tables)}, {SUMMARY} lists {summary['tables']}")
     make_tables(files, out_dir, summary["command"])
     if discussion_file is not None:
-        runs.write_json(os.path.join(out_dir, SUMMARY), summary)
+        write_json(os.path.join(out_dir, SUMMARY), summary)
     write_report(out_dir, summary, tables, rebuilt_by=command)
     return os.path.join(out_dir, "REPORT.md")
 
