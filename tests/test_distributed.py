@@ -273,3 +273,16 @@ def test_a_stopped_or_killed_partner_ends_the_group_and_the_same_command_resumes
     assert config["status"] == "finished" and config["epochs_run"] == len(rows)
     assert [int(r["epoch"]) for r in rows] == list(range(1, len(rows) + 1))
     assert len(rows) > killed_at
+
+
+def test_prediction_refuses_to_run_inside_a_group_of_several_processes(monkeypatch):
+    from cpl_keras.evaluation.predict import predict_images
+
+    images = np.zeros((2, 32, 32, 3), np.uint8)
+    monkeypatch.setitem(distributed._state, "group",
+                        distributed.ProcessGroup("localhost:1", 2, 0))
+    with pytest.raises(distributed.DistributedError, match="prediction runs in one process"):
+        predict_images(None, images, images)
+    monkeypatch.setitem(distributed._state, "group", distributed.ProcessGroup("localhost:1", 1, 0))
+    with pytest.raises(AttributeError):  # (one process: on to the model, here None)
+        predict_images(None, images, images)
