@@ -9,27 +9,16 @@ import os
 import numpy as np
 
 from cpl_keras.errors import Error
+from cpl_keras.images import read_rgb
 
 
 class CalibrationError(Error):
     """Bad input to calibrate (one-line message)."""
 
 
-def read_image(path):
-    """A uint8 RGB image from ``path`` (CalibrationError if unreadable)."""
-    import cv2
-
-    if not os.path.isfile(path):
-        raise CalibrationError(f"image not found: {path}")
-    image = cv2.imread(os.fspath(path), cv2.IMREAD_COLOR)
-    if image is None:
-        raise CalibrationError(f"cannot read {path} as an image")
-    return cv2.cvtColor(image, cv2.COLOR_BGR2RGB)
-
-
 def read_pair(left_path, right_path):
     """The two images of a pair, checked to be a pair (CalibrationError)."""
-    left, right = read_image(left_path), read_image(right_path)
+    left, right = read_rgb(left_path, CalibrationError), read_rgb(right_path, CalibrationError)
     if left.shape != right.shape:
         raise CalibrationError(
             f"left and right images differ in size: {left.shape[1]}x{left.shape[0]} "

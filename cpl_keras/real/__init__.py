@@ -21,14 +21,13 @@ crop + resize, the OpenCV-to-project axis change (and, from
 
 from __future__ import annotations
 
-import os
-
 import numpy as np
 
 from cpl_keras.camera import image_to_world
 from cpl_keras.data.pair import released_disparity  # noqa: F401  (the builders' label)
 from cpl_keras.data.storage import StereoWriter
 from cpl_keras.errors import Error
+from cpl_keras.images import resize_image
 
 #: Label conventions a real-data builder can write (see docs/evaluation.md).
 LABEL_MODES = ("rig", "vehicle")
@@ -90,16 +89,6 @@ def crop_resize_intrinsics(fx, fy, u0, v0, x0, y0, crop_width, crop_height, out_
     sy = out_height / float(crop_height)
     return (fx * sx, fy * sy, float(crop_resize_coordinate(u0, x0, sx)),
             float(crop_resize_coordinate(v0, y0, sy)), sx, sy)
-
-
-def read_rgb(path):
-    """A uint8 RGB image from ``path`` (RealDataError if it cannot be read)."""
-    import cv2
-
-    image = cv2.imread(os.fspath(path), cv2.IMREAD_COLOR)
-    if image is None:
-        raise RealDataError(f"cannot read image {path}")
-    return cv2.cvtColor(image, cv2.COLOR_BGR2RGB)
 
 
 def rectified_crop(left, right, window, pixel, match, disparity, intrinsics, baseline,
@@ -170,13 +159,3 @@ def write_samples(out, samples, image_size, metadata, label_descriptions, block=
             writer.write(start, np.stack([s[0] for s in part]), np.stack([s[1] for s in part]),
                          labels)
     return str(out)
-
-
-def resize_image(image, width, height):
-    """Resize with area averaging when shrinking, bilinear when enlarging."""
-    import cv2
-
-    shrink = width <= image.shape[1] and height <= image.shape[0]
-    interpolation = cv2.INTER_AREA if shrink else cv2.INTER_LINEAR
-    return cv2.resize(np.ascontiguousarray(image), (int(width), int(height)),
-                      interpolation=interpolation)

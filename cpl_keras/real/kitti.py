@@ -53,9 +53,10 @@ import numpy as np
 
 from cpl_keras.camera import image_to_world
 from cpl_keras.data.storage import StereoWriter
+from cpl_keras.images import read_rgb, resize_image
 from cpl_keras.real import (
     CV_TO_PROJECT, RealDataError, crop_resize_coordinate, crop_resize_intrinsics,
-    read_rgb, released_disparity, resize_image,
+    released_disparity,
 )
 
 LAYOUTS = ("stereo", "raw")
@@ -267,7 +268,7 @@ def sample_from_frame(left_path, right_path, calib_path, disparity_path=None, im
     calib = read_calib_file(calib_path)
     P2, P3 = projection_matrices(calib, calib_path)
     rig = rig_from_projections(P2, P3)
-    left_full, right_full = read_rgb(left_path), read_rgb(right_path)
+    left_full, right_full = read_rgb(left_path, RealDataError), read_rgb(right_path, RealDataError)
     if left_full.shape != right_full.shape:
         raise RealDataError(f"{right_path} is {right_full.shape[1]}x{right_full.shape[0]}, "
                             f"{left_path} is {left_full.shape[1]}x{left_full.shape[0]}")
@@ -346,7 +347,7 @@ def build_kitti(root, out, *, layout="stereo", split=None, image_size=112, limit
     }
     with StereoWriter(out, len(frames), image_size, metadata=metadata,
                       label_descriptions=LABEL_DESCRIPTIONS) as writer:
-        for index, (name, left_path, right_path, calib_path, disparity_path) in enumerate(frames):
+        for index, (_, left_path, right_path, calib_path, disparity_path) in enumerate(frames):
             left, right, labels, _ = sample_from_frame(left_path, right_path, calib_path,
                                                        disparity_path, image_size)
             labels.update(config_id=index, town_id=-1, frame_index=index)

@@ -28,8 +28,9 @@ import os
 
 import numpy as np
 
+from cpl_keras.images import read_rgb
 from cpl_keras.real import (
-    RECTIFIED_LABEL_DESCRIPTIONS, RealDataError, check_crop_settings, read_rgb, rectified_crop,
+    RECTIFIED_LABEL_DESCRIPTIONS, RealDataError, check_crop_settings, rectified_crop,
     write_samples,
 )
 
@@ -153,7 +154,7 @@ def oakd_samples(crops_per_pair=20, image_size=112, seed=0, root=DATA_DIR):
     rng = np.random.default_rng(seed)
     index = 0
     for pair_index, (scene, left_path, right_path) in enumerate(find_pairs(root)):
-        left, right = read_rgb(left_path), read_rgb(right_path)
+        left, right = read_rgb(left_path, RealDataError), read_rgb(right_path, RealDataError)
         if left.shape[:2] != (cal["height"], cal["width"]) or right.shape != left.shape:
             raise RealDataError(f"{scene}: images are not {cal['width']}x{cal['height']}")
         disparity = measure_disparity(left, right)

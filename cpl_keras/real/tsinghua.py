@@ -52,9 +52,9 @@ import numpy as np
 
 from cpl_keras.camera import image_to_world
 from cpl_keras.data.storage import StereoWriter
+from cpl_keras.images import read_rgb, resize_image
 from cpl_keras.real import (  # noqa: F401  (RealDataError is re-exported)
     LABEL_MODES, RealDataError, crop_resize_coordinate, crop_resize_intrinsics, released_disparity,
-    resize_image,
 )
 
 DATASETS = ("tsinghua", "cityscapes")
@@ -140,16 +140,6 @@ def read_disparity_png(path):
     return disparity, raw
 
 
-def read_left_image(path):
-    """The left image as uint8 RGB."""
-    import cv2
-
-    image = cv2.imread(os.fspath(path), cv2.IMREAD_COLOR)
-    if image is None:
-        raise RealDataError(f"cannot read image {path}")
-    return cv2.cvtColor(image, cv2.COLOR_BGR2RGB)
-
-
 def warp_to_right(left, disparity):
     """Forward-warp ``left`` with its disparity: ``right(u - d, v) = left(u, v)``.
 
@@ -198,7 +188,7 @@ def sample_from_files(left_path, disparity_path, camera_path, image_size=112, ri
         raise ValueError(f"unknown label mode '{labels}' (use {', '.join(LABEL_MODES)})")
     rng = np.random.default_rng(0) if rng is None else rng
     camera = read_camera(camera_path)
-    left_full = read_left_image(left_path)
+    left_full = read_rgb(left_path, RealDataError)
     disparity, raw = read_disparity_png(disparity_path)
     if disparity.shape != left_full.shape[:2]:
         raise RealDataError(
