@@ -6,7 +6,6 @@
 Prints every camera-graph layer with its op, its inputs and the paper
 equation it implements, and draws the graph (PNG, SVG or PDF by the file
 extension, drawn with matplotlib, so no graphviz is needed).
-(``python -m cpl_keras.inspect``, the module's former name, still works.)
 """
 
 from __future__ import annotations

@@ -1,4 +1,4 @@
-"""The camera-graph CLI (cpl_keras.graph, alias cpl_keras.inspect) prints the graph and draws it."""
+"""The camera-graph CLI (cpl_keras.graph) prints the graph and draws it."""
 
 import subprocess
 import sys
@@ -41,11 +41,11 @@ def test_cli_bad_arguments_exit_2_without_output(tmp_path):
     out = tmp_path / "graph.png"
     for args in (["--variant", "baseline"], ["--variant", "cpl-u", "--out", str(tmp_path / "g.txt")],
                  ["--variant", "cpl-u", "--image-size", "8"]):
-        result = subprocess.run([sys.executable, "-m", "cpl_keras.inspect", *args, "--out", str(out)]
-                                if "--out" not in args else [sys.executable, "-m", "cpl_keras.inspect", *args],
+        result = subprocess.run([sys.executable, "-m", "cpl_keras.graph", *args, "--out", str(out)]
+                                if "--out" not in args else [sys.executable, "-m", "cpl_keras.graph", *args],
                                 capture_output=True, text=True, timeout=600)
         assert result.returncode == 2
-        assert result.stderr.startswith("python -m cpl_keras.inspect: error: ") and "Traceback" not in result.stderr
+        assert result.stderr.startswith("python -m cpl_keras.graph: error: ") and "Traceback" not in result.stderr
         assert len(result.stderr.strip().splitlines()) == 1
     assert not out.exists()
 
