@@ -6,263 +6,35 @@
 Without ``--data`` a small dataset is generated on first use into the cache
 directory (``$CPL_KERAS_CACHE``, default ``~/.cache/cpl_keras``) and a short
 demonstration run is made. Killed runs resume when the same command is run
-again. See docs/training.md.
+again. The command itself is cpl_keras/commands/train.py (installed:
+``cpl-train``). See docs/training.md.
 """
 
 from __future__ import annotations
 
-import os
-import sys
-
-os.environ.setdefault("KERAS_BACKEND", "jax")
-
-from cpl_keras import cli  # noqa: E402  (first, and light: the Ctrl-C guard starts at once)
-
-#: The demonstration run (no --data): dataset and training settings chosen to
-#: finish in about five minutes on a 2-core CPU.
-DEMO = {"pairs": 800, "image_size": 112, "epochs": 8, "backbone": "small", "seed": 0}
-
+from cpl_keras import cli  # (first, and light: the Ctrl-C guard starts at once)
 
 PROG = "train.py"
 
 
-def disparity_ceiling(text):
-    """argparse type of --disparity-ceiling: auto, none or a positive number."""
-    if text in ("auto", "none"):
-        return None if text == "none" else text
-    return cli.positive_float(text)
+def main(argv=None):
+    # (imported inside cli.run's Ctrl-C guard)
+    from cpl_keras.commands import train
 
-
-def build_parser():
-    from cpl_keras.augment import AUGMENTATIONS
-    from cpl_keras.datasets import SPLITS
-    from cpl_keras.models import BACKBONES, VARIANTS
-    from cpl_keras.models.variants import DISENTANGLE
-
-    parser = cli.Parser(
-        prog=PROG,
-        description="Train a camera calibration network (Butt & Taj) on a stereo dataset.",
-    )
-    parser.add_argument("--variant", required=True, choices=VARIANTS,
-                        help="the network: baseline (MTL-Baseline, 13 heads, MAE), cpl-u "
-                        "(camera projection loss, uniform), cpl-a (CPL with adaptive weights, "
-                        "the paper's), deep-homo (the Deep-Homo comparison)")
-    parser.add_argument("--data", help="dataset file (.h5) from the data generator; "
-                        "default: a small demonstration dataset")
-    parser.add_argument("--epochs", type=cli.positive_int, help="maximum epochs (default 200)")
-    parser.add_argument("--batch-size", type=cli.positive_int, default=16,
-                        help="pairs per training step (default 16, the paper's); at most the "
-                        "training split")
-    parser.add_argument("--lr", type=cli.positive_float, help="learning rate (default 1e-3, Deep-Homo 1.5e-3)")
-    parser.add_argument("--image-size", type=cli.positive_int,
-                        help="expected image side; must match the dataset (default: the dataset's)")
-    parser.add_argument("--backbone", choices=BACKBONES,
-                        help="tower backbone (default inception_v3, the paper's)")
-    parser.add_argument("--split", choices=SPLITS, default="paper",
-                        help="paper: the paper's frame-level 70/30 split (default); drive: "
-                        "whole contiguous drives held out; held-out-config: whole rigs held out "
-                        "(random protocol)")
-    parser.add_argument("--as-released", action="store_true",
-                        help="reproduce the released code (labels, loss, val = test)")
-    parser.add_argument("--run-dir", help="run directory (default runs/<variant>-<split>-s<seed>)")
-    parser.add_argument("--seed", type=cli.non_negative_int, help="seed of split, shuffling and weights (default 0)")
-    parser.add_argument("--data-parallel", action="store_true",
-                        help="data parallelism over all local devices, or over every "
-                        "process's devices in a process group (docs/training.md)")
-    group = parser.add_argument_group(
-        "process group (with --data-parallel; or Keras's KERAS_DISTRIBUTION_JOB_ADDRESSES, "
-        "KERAS_DISTRIBUTION_NUM_PROCESSES, KERAS_DISTRIBUTION_PROCESS_ID)")
-    group.add_argument("--coordinator", metavar="HOST:PORT",
-                       help="process 0's address, the same on every process")
-    group.add_argument("--num-processes", type=cli.positive_int, help="processes in the group")
-    group.add_argument("--process-id", type=cli.non_negative_int,
-                       help="this process's index, 0 .. N-1 (0 writes the run directory)")
-    parser.add_argument("--patience", type=cli.non_negative_int, default=5, help="early stopping patience")
-    parser.add_argument("--workers", type=cli.positive_int, default=1, help="data reading threads")
-    parser.add_argument("--steps-per-execution", type=cli.positive_int, default=1,
-                        help="training steps per compiled call (Keras's steps_per_execution; "
-                        "default 1)")
-    parser.add_argument("--disentangle", choices=DISENTANGLE, default="exact",
-                        help="CPL: the X, Y, Z terms of Eq. 7 train only the pixel heads "
-                        "(exact, default) or every head the camera graph reads (partial)")
-    parser.add_argument("--linear-pitch-head", action="store_true",
-                        help="an unbounded pitch head (the release's; default: clipped to +-pi/2)")
-    parser.add_argument("--linear-focal-head", action="store_true",
-                        help="CPL: linear fx, fy heads (the release's; default clipped at 1 px, "
-                        "straight-through, since the camera graph divides by them)")
-    parser.add_argument("--alpha-rate", type=cli.positive_float,
-                        help="MTL-CPL-A: how many times an ordinary weight's pace the adaptive "
-                        "weights move (default 10; 1 = Eq. 9 as the paper trains it)")
-    parser.add_argument("--disparity-ceiling", type=disparity_ceiling, default="auto",
-                        metavar="auto|none|PX",
-                        help="CPL: the exp disparity head's largest output (auto, default: twice "
-                        "the largest training label; none: 1e5 px, the bound before; or pixels)")
-    parser.add_argument("--bn-statistics", choices=("fixed", "epoch"),
-                        help="BatchNorm statistics before each validation: fixed (default), the "
-                        "same training pairs every epoch, population variance; epoch, the first "
-                        "batches of each epoch's order (this project's default before)")
-    parser.add_argument("--bn-recompute-batches", type=cli.non_negative_int,
-                        help="training batches of that recompute (default 64 fixed, 16 epoch; "
-                        "0 = Keras's moving averages, as released)")
-    parser.add_argument("--monitor", choices=("nmae", "loss"),
-                        help="what early stopping and the kept epoch follow: nmae (default), the "
-                        "sum of the ten parameters' validation NMAEs; loss, the validation loss "
-                        "(the paper's; as released)")
-    parser.add_argument("--target-scaling", choices=("none", "std"), default="none",
-                        help="MTL-Baseline: divide each output's MAE by the target's training "
-                        "standard deviation (std; not the paper's) or not (none, default)")
-    parser.add_argument("--time-budget", type=cli.positive_float, metavar="SECONDS",
-                        help="seconds of training the run may take: no epoch is started that "
-                        "would overrun them (judged by the last epoch's length); the run "
-                        "then ends as finished with its best epoch (default: no limit)")
-    parser.add_argument("--augment", choices=("none",) + AUGMENTATIONS, default="none",
-                        help="photometric augmentation of the training batches (exposure, grey, "
-                             "blur, noise, JPEG; labels unchanged; not the paper's, default none)")
-    parser.add_argument("--quiet", action="store_true",
-                        help="no per-epoch lines or progress bar (the summary line stays)")
-    return parser
-
-
-def demo_dataset():
-    """The demonstration dataset, generated on first use."""
-    from cpl_keras.cache import cache_dir
-    from cpl_keras.data.storage import DatasetError
-
-    try:
-        from cpl_keras.data.generate import cached_dataset
-    except ImportError:
-        raise DatasetError("the data generator (cpl_keras.data.generate) is not available; "
-                           "pass --data") from None
-    try:
-        return cached_dataset(
-            cache_dir(), protocol="cvgl", pairs=DEMO["pairs"], seed=DEMO["seed"],
-            image_size=DEMO["image_size"], prefix="demo-",
-            log=lambda line: print(f"Demonstration dataset: {line}", file=sys.stderr))
-    except (OSError, ValueError) as error:
-        raise DatasetError(f"cannot generate the demonstration dataset: {error}") from None
-
-
-#: The paper's number of cvgl pairs.
-FULL_PAIRS = 123017
+    return train.main(argv, prog=PROG)
 
 
 def next_step(variant, demo_file):
-    """What to run after the demonstration, with what the dataset will cost
-    (measured on ``demo_file`` and by rendering a few pairs now)."""
-    text = (
-        f"This was a demonstration ({DEMO['pairs']} pairs, the 'small' backbone, "
-        f"{DEMO['epochs']} epochs). Full-scale training (InceptionV3 towers, up to 200 "
-        "epochs with early stopping):\n"
-        f"  python -m cpl_keras.data.generate --protocol cvgl --pairs {FULL_PAIRS} "
-        "--out data/cvgl.h5\n"
-        f"  python train.py --variant {variant} --data data/cvgl.h5"
-    )
-    try:
-        from cpl_keras.data.generate import estimate_cost
+    from cpl_keras.commands import train
 
-        cost = estimate_cost(FULL_PAIRS, demo_file)
-    except (ImportError, OSError, ValueError):
-        return text
-    return text + (
-        f"\nThe dataset takes about {cost['bytes'] / 1e9:.1f} GB of disk "
-        f"({cost['bytes_per_pair'] / 1e3:.1f} KB a pair at {cost['image_size']} px, measured "
-        f"on the demonstration file) and about {_duration(cost['seconds'])} to generate on "
-        f"{cost['workers']} core{'s' if cost['workers'] > 1 else ''} "
-        f"({cost['seconds_per_pair']:.3f} s a pair on one core, measured just now)."
-    )
+    return train.next_step(variant, demo_file, prog=PROG)
 
 
-def _duration(seconds):
-    if seconds < 90:
-        return f"{seconds:.0f} s"
-    if seconds < 5400:
-        return f"{seconds / 60:.0f} min"
-    return f"{seconds / 3600:.1f} h"
+def __getattr__(name):
+    # the command's other names (DEMO, build_parser, ...), from its module
+    from cpl_keras.commands import train
 
-
-def main(argv=None):
-    parser = build_parser()
-    args = parser.parse_args(argv)
-    demo = args.data is None
-    _check_group_arguments(parser, args, demo)
-    seed = args.seed if args.seed is not None else DEMO["seed"]
-    epochs = args.epochs if args.epochs is not None else (DEMO["epochs"] if demo else 200)
-    backbone = args.backbone or (DEMO["backbone"] if demo else "inception_v3")
-    run_dir = args.run_dir or os.path.join(
-        "runs", ("demo-" if demo else "") + f"{args.variant}-{args.split}-s{seed}"
-        + ("-released" if args.as_released else "")
-    )
-    command = cli.command_line(PROG, argv)
-
-    from cpl_keras.cache import enable_compile_cache
-
-    enable_compile_cache()
-
-    try:
-        with cli.interruptible():
-            return _train(args, demo, seed, epochs, backbone, run_dir, command)
-    except KeyboardInterrupt:  # cli.Interrupted, or a Ctrl-C outside the block
-        # a kill's state: the last completed epoch is checkpointed; the same
-        # command resumes after it
-        return cli.interrupted(PROG, resume=command)
-
-
-def _check_group_arguments(parser, args, demo):
-    """--coordinator, --num-processes and --process-id: all three or none
-    (then Keras's variables, which they set, may describe the group)."""
-    from cpl_keras import distributed
-
-    flags = (args.coordinator, args.num_processes, args.process_id)
-    if any(flag is not None for flag in flags):
-        if any(flag is None for flag in flags):
-            parser.error("--coordinator, --num-processes and --process-id go together")
-        distributed.set_environment(*flags)
-    try:
-        group = distributed.group_from_environment()
-    except distributed.DistributedError as error:
-        parser.error(str(error))
-    if group is not None and not args.data_parallel:
-        parser.error("a process group (--coordinator or KERAS_DISTRIBUTION_*) trains with "
-                     "--data-parallel")
-    if group is not None and demo:
-        parser.error("a process group trains on --data (each process its own copy)")
-
-
-def _train(args, demo, seed, epochs, backbone, run_dir, command):
-    from cpl_keras.errors import Error
-    from cpl_keras.training import summary_line, train
-
-    try:
-        data = demo_dataset() if demo else args.data
-        summary = train(
-            data, variant=args.variant, run_dir=run_dir, epochs=epochs,
-            batch_size=args.batch_size, learning_rate=args.lr, image_size=args.image_size,
-            backbone=backbone, split=args.split, as_released=args.as_released, seed=seed,
-            data_parallel=args.data_parallel, patience=args.patience, workers=args.workers,
-            steps_per_execution=args.steps_per_execution, disentangle=args.disentangle,
-            bounded_pitch_head=False if args.linear_pitch_head else None,
-            positive_focal_head=False if args.linear_focal_head else None,
-            alpha_rate=args.alpha_rate, disparity_ceiling=args.disparity_ceiling,
-            bn_recompute_batches=args.bn_recompute_batches, bn_statistics=args.bn_statistics,
-            monitor=args.monitor, target_scaling=args.target_scaling,
-            time_budget_s=args.time_budget, verbose=0 if args.quiet else 1,
-            augment=None if args.augment == "none" else args.augment,
-            command=command, return_model=False,
-        )
-    except (Error, OSError) as error:  # (DatasetError, TrainingError, RunError, ...)
-        return cli.fail(PROG, error)
-    if summary.get("finished_before"):
-        # nothing trained, no file changed
-        print(f"already {summary['status']}, left as it is: {summary_line(summary)}")
-        return 0
-    if summary["status"] == "failed":
-        # diverged: the run directory says so (and keeps the best weights so
-        # far); the next run into it replaces it
-        return cli.fail(PROG, summary_line(summary))
-    print(summary_line(summary))
-    if demo:
-        print(next_step(args.variant, data))
-    return 0
+    return getattr(train, name)
 
 
 if __name__ == "__main__":

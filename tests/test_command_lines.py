@@ -45,6 +45,38 @@ def test_bad_arguments_are_refused_before_keras_or_jax_is_imported(script, argv)
     assert result.stderr.count("\n") == 1 and ": error: " in result.stderr, result.stderr
 
 
+#: An installed command (``console``'s function) with a bad argument: its
+#: exit status and whether Keras or JAX was imported on the way.
+CONSOLE_PROBE = """
+import sys
+sys.argv = [{name!r}, "--bogus"]
+from cpl_keras import console
+try:
+    getattr(console, {function!r})()
+except SystemExit as exit:
+    code = exit.code
+heavy = sorted(m for m in ("keras", "jax") if m in sys.modules)
+print("exit", code, "heavy", ",".join(heavy) or "none")
+"""
+
+
+@pytest.mark.parametrize("name, prog", [
+    ("train", "cpl-train"), ("evaluate", "cpl-evaluate"),
+    ("reproduce", "python -m cpl_keras.reproduce"), ("calibrate", "python -m cpl_keras.calibrate"),
+    ("graph", "python -m cpl_keras.graph"), ("generate", "python -m cpl_keras.data.generate"),
+    ("real_build", "python -m cpl_keras.real.build"),
+])
+def test_installed_commands_refuse_a_bad_argument_in_one_line(name, prog):
+    """The cpl-* commands (pyproject.toml's [project.scripts]) run their
+    command's main: a bad flag is one line naming the command, exit 2."""
+    env = dict(os.environ, KERAS_BACKEND="jax")
+    result = subprocess.run([sys.executable, "-c", CONSOLE_PROBE.format(name=prog, function=name)],
+                            cwd=REPO, env=env, capture_output=True, text=True, timeout=120)
+    assert result.stdout.strip() == "exit 2 heavy none", (result.stdout, result.stderr)
+    assert result.stderr.startswith(f"{prog}: error: "), result.stderr
+    assert result.stderr.count("\n") == 1, result.stderr
+
+
 class _Captured(Exception):
     pass
 

@@ -290,6 +290,33 @@ def test_every_command_leaves_through_cli_run():
     assert checked >= 25
 
 
+def console_scripts():
+    """``{name: (module, function)}``: pyproject.toml's ``[project.scripts]``."""
+    import re
+
+    with open(os.path.join(REPO, "pyproject.toml")) as f:
+        table = re.search(r"^\[project\.scripts\]\n(.*?)(?:^\[|\Z)", f.read(), re.M | re.S)
+    found = re.findall(r'^([\w-]+) = "([\w.]+):(\w+)"$', table.group(1), re.M)
+    return {name: (module, function) for name, module, function in found}
+
+
+def test_every_installed_command_leaves_through_cli_run():
+    """The same exit path for the installed commands (``cpl-train``, ...):
+    each entry point's function calls ``cli.run``."""
+    import ast
+    import importlib
+
+    scripts = console_scripts()
+    assert {"cpl-train", "cpl-evaluate", "cpl-reproduce", "cpl-calibrate", "cpl-graph",
+            "cpl-generate", "cpl-real-build"} <= set(scripts), scripts
+    for name, (module, function) in scripts.items():
+        with open(importlib.import_module(module).__file__) as f:
+            tree = ast.parse(f.read())
+        [node] = [n for n in tree.body if isinstance(n, ast.FunctionDef) and n.name == function]
+        calls = [ast.unparse(c.func) for c in ast.walk(node) if isinstance(c, ast.Call)]
+        assert "cli.run" in calls, (name, calls)
+
+
 def test_cli_run_exit_statuses(tmp_path):
     """``cli.run``: main's status; a KeyboardInterrupt -> one line and 130;
     a package error or OSError -> one line and 2."""

@@ -176,7 +176,8 @@ def test_command_line_modules_start_without_keras():
 
     code = ("import sys, cpl_keras.training, cpl_keras.runs, cpl_keras.evaluation, "
             "cpl_keras.reproduce, cpl_keras.calibrate, cpl_keras.graph, cpl_keras.data.generate, "
-            "cpl_keras.real.build; print(sorted(m for m in ('keras', 'jax', 'cv2', 'h5py', "
+            "cpl_keras.real.build, cpl_keras.commands.train, cpl_keras.commands.evaluate, "
+            "cpl_keras.console; print(sorted(m for m in ('keras', 'jax', 'cv2', 'h5py', "
             "'matplotlib') if m in sys.modules))")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
                          timeout=120, check=True).stdout

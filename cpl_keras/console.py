@@ -1,0 +1,57 @@
+"""The installed command lines (pyproject.toml's ``[project.scripts]``).
+
+Each leaves through ``cli.run`` as the modules' ``__main__`` blocks do, and
+imports its command's module inside ``cli.run``'s Ctrl-C guard (the guard
+is in place at once; the module's imports take a moment):
+
+    cpl-train        train.py                          (cpl_keras.commands.train)
+    cpl-evaluate     evaluate.py                       (cpl_keras.commands.evaluate)
+    cpl-reproduce    python -m cpl_keras.reproduce
+    cpl-calibrate    python -m cpl_keras.calibrate
+    cpl-graph        python -m cpl_keras.graph
+    cpl-generate     python -m cpl_keras.data.generate
+    cpl-real-build   python -m cpl_keras.real.build
+
+``cpl-train`` and ``cpl-evaluate`` go by those names in their lines and in
+the commands they record; the others by their ``python -m`` form, which
+runs wherever the package is installed.
+"""
+
+from __future__ import annotations
+
+import importlib
+
+from cpl_keras import cli
+
+
+def _main(module, **options):
+    """``main`` of ``module``, imported when called."""
+    return lambda: importlib.import_module(module).main(**options)
+
+
+def train():
+    cli.run(_main("cpl_keras.commands.train", prog="cpl-train"), "cpl-train")
+
+
+def evaluate():
+    cli.run(_main("cpl_keras.commands.evaluate", prog="cpl-evaluate"), "cpl-evaluate")
+
+
+def reproduce():
+    cli.run(_main("cpl_keras.reproduce.cli"), "python -m cpl_keras.reproduce")
+
+
+def calibrate():
+    cli.run(_main("cpl_keras.calibrate"), "python -m cpl_keras.calibrate")
+
+
+def graph():
+    cli.run(_main("cpl_keras.graph"), "python -m cpl_keras.graph")
+
+
+def generate():
+    cli.run(_main("cpl_keras.data.generate"), "python -m cpl_keras.data.generate")
+
+
+def real_build():
+    cli.run(_main("cpl_keras.real.build"), "python -m cpl_keras.real.build")
