@@ -18,11 +18,8 @@ from __future__ import annotations
 
 import argparse
 import os
-import sys
 import time
 
-REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
-sys.path.insert(0, REPO)
 
 #: (feature map side, in channels, out channels, kernel (h, w), padding, where in InceptionV3 at 112)
 SHAPES = (

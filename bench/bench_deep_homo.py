@@ -23,11 +23,9 @@ import argparse
 import contextlib
 import os
 import statistics
-import sys
 import time
 
 os.environ.setdefault("KERAS_BACKEND", "jax")
-sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 
 import keras  # noqa: E402
 import numpy as np  # noqa: E402
@@ -117,8 +115,9 @@ def main(argv=None):
     times = {path: [] for path in built}
     for _ in range(args.rounds):
         for path, model in built.items():
-            times[path].append(_timed(lambda: [model.train_on_batch(x, y)
-                                               for _ in range(args.steps)]) / args.steps)
+            times[path].append(_timed(lambda model=model: [model.train_on_batch(x, y)
+                                                           for _ in range(args.steps)])
+                               / args.steps)
     flop = step_flop(built["plain"]) * args.batch_size
     rate = matmul_rate()
     print(f"step arithmetic: {flop / 1e9:.1f} GFLOP (batch {args.batch_size}, "

@@ -13,11 +13,9 @@ time corresponds to on the machine's cores if they were all free.
 import argparse
 import os
 import resource
-import sys
 import tempfile
 import time
 
-sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."))
 
 from cpl_keras.data.generate import generate_dataset  # noqa: E402
 from cpl_keras.data.protocols import PROTOCOLS  # noqa: E402

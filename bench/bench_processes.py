@@ -17,7 +17,6 @@ Gloo, the coordination), not a speed-up, which needs real hosts.
 
 from __future__ import annotations
 
-import argparse
 import csv
 import os
 import socket
@@ -26,7 +25,6 @@ import sys
 import tempfile
 import time
 
-sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 
 from cpl_keras import cli  # noqa: E402
 

@@ -20,11 +20,8 @@ from __future__ import annotations
 import argparse
 import os
 import statistics
-import sys
 import time
 
-REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
-sys.path.insert(0, REPO)
 os.environ.setdefault("KERAS_BACKEND", "jax")
 
 

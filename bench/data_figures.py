@@ -15,12 +15,8 @@ from __future__ import annotations
 
 import argparse
 import os
-import sys
 
 import numpy as np
-
-REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
-sys.path.insert(0, REPO)
 
 
 def figures(path):

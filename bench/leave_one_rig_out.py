@@ -37,7 +37,6 @@ import os
 import sys
 
 os.environ.setdefault("KERAS_BACKEND", "jax")
-sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."))
 
 #: What a calibrated real rig needs (issue targets): median relative focal
 #: error of fx and fy, and the share of pairs with the hFoV within 5 degrees.

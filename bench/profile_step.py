@@ -28,12 +28,9 @@ import collections
 import glob
 import os
 import re
-import sys
 import tempfile
 import time
 
-REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
-sys.path.insert(0, REPO)
 
 #: Keras layer class -> the kind the tables report.
 LAYER_KINDS = {

@@ -21,9 +21,7 @@ import argparse
 import dataclasses
 import glob
 import os
-import sys
 
-sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."))
 
 #: The splits: predictions-file prefix and title.
 SPLITS = {"cvgl": "paper split (frame-level)",
