@@ -158,7 +158,7 @@ def _order(layers, links, sweeps=12):
             where = {item: k for k, item in enumerate(near)}
             neighbours = preds if down else succs
 
-            def key(item, k):
+            def key(item, k, where=where, neighbours=neighbours):
                 found = [where[n] for n in neighbours.get(item, ()) if n in where]
                 return (sum(found) / len(found) if found else k, k)
             layers[r] = [item for k, item in sorted(enumerate(layers[r]),

@@ -5,10 +5,11 @@ runs (``options``: ``training.train``'s keyword arguments) ``processes`` at
 a time, each in a fresh, spawned process (JAX does not survive a fork), the
 slow variants first, and never two runs of one model at once while another
 run could go instead: the second then loads the first's compiled programs
-from the compile cache (``cpl_keras.cache``) instead of compiling them too. Ctrl-C (or SIGINT to this process) interrupts every
-running run, each of which resumes from its last completed epoch next
-time; a run that fails stops the others and raises ``TrainingError``; a
-process whose parent is gone ends itself. ``on_finished(label, options)``
+from the compile cache (``cpl_keras.cache``) instead of compiling them
+too. Ctrl-C (or SIGINT to this process) interrupts every running run,
+each of which resumes from its last completed epoch next time; a run
+that fails stops the others and raises ``TrainingError``; a process
+whose parent is gone ends itself. ``on_finished(label, options)``
 is called, in this process, for every run that ends well (the
 reproduction publishes it there). The runs are the same as runs trained
 one after the other.

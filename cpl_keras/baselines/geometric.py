@@ -120,7 +120,7 @@ def bougnoux_focal_squared(F, p1, p2):
     p2 = np.array([p2[0], p2[1], 1.0])
     _, _, vt = np.linalg.svd(F.T)
     e2 = vt[-1]
-    I = np.diag([1.0, 1.0, 0.0])
+    I = np.diag([1.0, 1.0, 0.0])  # noqa: E741  (the formula's name)
     numerator = -(p2 @ _skew(e2) @ I @ F @ p1) * (p1 @ F.T @ p2)
     denominator = p2 @ _skew(e2) @ I @ F @ I @ F.T @ p2
     if denominator == 0.0 or not np.isfinite(denominator):

@@ -215,7 +215,7 @@ def table2_from_rigs(run_list, rigs):
     predicted horizontal FOV per rig and row)."""
     rigs = [dict(rig) for rig in rigs]
     names = [r["rig"] for r in rigs]
-    for i, rig in enumerate(rigs):                      # two files of one rig: tell apart
+    for rig in rigs:                                    # two files of one rig: tell apart
         if names.count(rig["rig"]) > 1:
             rig["rig"] = f"{rig['rig']} ({os.path.basename(rig['data'])})"
     widths = {r["width"] for r in rigs}

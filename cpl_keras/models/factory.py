@@ -53,7 +53,7 @@ import random
 import keras
 import numpy as np
 
-from cpl_keras import camera, losses
+from cpl_keras import camera
 from cpl_keras.layers import (
     MAX_OUTPUT, LambdaOps, PositiveDisparity, bounded_pitch, multiply, positive_focal,
     regression_head, stop_gradient,

@@ -252,12 +252,13 @@ def build_stereo_dataset(root, out, *, dataset="tsinghua", split=None, image_siz
         samples = samples[: int(limit)]
     rng = np.random.default_rng(seed)
     metadata = {
-        "source": dataset, "rig": dataset, "rectified": labels == "rig", "root": os.path.abspath(os.fspath(root)), "split": split,
+        "source": dataset, "rig": dataset, "rectified": labels == "rig",
+        "root": os.path.abspath(os.fspath(root)), "split": split,
         "image_size": image_size, "right": right, "labels": labels, "seed": int(seed),
         "names": [s[0] for s in samples], "command": command,
     }
     with StereoWriter(out, len(samples), image_size, metadata=metadata) as writer:
-        for index, (name, left_path, disparity_path, camera_path) in enumerate(samples):
+        for index, (_, left_path, disparity_path, camera_path) in enumerate(samples):
             left, right_img, lab = sample_from_files(
                 left_path, disparity_path, camera_path, image_size, right, labels, rng)
             lab.update(config_id=index, town_id=-1, frame_index=index)
