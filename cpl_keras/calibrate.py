@@ -64,14 +64,12 @@ from cpl_keras.data.storage import StereoFile
 from cpl_keras.errors import Error
 from cpl_keras.images import resize_image
 
-os.environ.setdefault("KERAS_BACKEND", "jax")
+import numpy as np
 
-import numpy as np  # noqa: E402
-
-from cpl_keras import cli, priors as known, real_record, runs  # noqa: E402
-from cpl_keras.camera import PARAMETERS, UNITS, fov_from_focal  # noqa: E402
-from cpl_keras.image_pairs import CalibrationError, find_pairs, is_grey, read_pair  # noqa: E402
-from cpl_keras.real import crop_resize_coordinate  # noqa: E402
+from cpl_keras import cli, priors as known, real_record, runs
+from cpl_keras.camera import PARAMETERS, UNITS, fov_from_focal
+from cpl_keras.image_pairs import CalibrationError, find_pairs, is_grey, read_pair
+from cpl_keras.real import crop_resize_coordinate
 
 PROG = "python -m cpl_keras.calibrate"
 

@@ -73,8 +73,10 @@ def build_model(variant, *, backbone="inception_v3", image_size=112, as_released
 
     Args:
         variant: one of ``VARIANTS``.
-        backbone: ``"inception_v3"`` (the paper's) or ``"small"`` (quick runs,
-            not the paper's). Deep-Homo has its own convolutional stack.
+        backbone: ``"inception_v3"`` (the paper's), ``"small"`` (quick runs)
+            or ``"small_resnet"`` (CPU-scale experiments); neither of the last
+            two is the paper's (``backbones``). Deep-Homo has its own
+            convolutional stack.
         image_size: side of the square input images, or ``(height, width)``
             or ``(height, width, 3)``. At least 75 for InceptionV3.
         as_released: reproduce the released code instead of the paper's text
@@ -83,8 +85,9 @@ def build_model(variant, *, backbone="inception_v3", image_size=112, as_released
             ``camera.FLOORS``; as released ``camera.RELEASED_FLOORS``).
         bounded_pitch_head: pitch = clip(z, -pi/2, pi/2), straight-through, for the MTL variants
             (default: True, as released False).
-        positive_focal_head: fx = exp(z), fy = exp(z) for the CPL variants
-            (default: True, as released False; see ``layers.positive_focal``).
+        positive_focal_head: fx, fy = clip(z, the focal floor, 1e5) with z's
+            gradient (straight-through), for the CPL variants (default: True,
+            as released False: linear heads; see ``layers.positive_focal``).
         disentangle: ``"exact"`` (the X, Y, Z terms of Eq. 7 reach only the
             pixel heads u, v) or ``"partial"`` (they reach every head the
             camera graph reads). CPL variants as the paper writes them only.

@@ -48,18 +48,14 @@ stages and the rebuild), ``page`` (REPORT.md), ``cli`` (the command line).
 
 from __future__ import annotations
 
-import os
-
-os.environ.setdefault("KERAS_BACKEND", "jax")
-
-from cpl_keras.reproduce.cli import add_arguments, main, resolve_args, run  # noqa: E402
-from cpl_keras.models.variants import SLOW_VARIANTS  # noqa: E402
-from cpl_keras.reproduce.jobs import publish_run, published_record, train_all  # noqa: E402
-from cpl_keras.reproduce.page import scale_text, write_report  # noqa: E402
-from cpl_keras.reproduce.pipeline import (  # noqa: E402
+from cpl_keras.reproduce.cli import add_arguments, main, resolve_args, run
+from cpl_keras.models.variants import SLOW_VARIANTS
+from cpl_keras.reproduce.jobs import publish_run, published_record, train_all
+from cpl_keras.reproduce.page import scale_text, write_report
+from cpl_keras.reproduce.pipeline import (
     SUMMARY, make_datasets, read_summary, rebuild, rebuild_command, reproduce,
 )
-from cpl_keras.reproduce.presets import (  # noqa: E402
+from cpl_keras.reproduce.presets import (
     DEFAULT_TABLES, GPU_SIZED_PAIRS, MTL_VARIANTS, PAPER_SCALE, PRESETS, PROG, QUICK,
     Preset, REAL_ROOTS, REAL_SETS, RELEASED_RUN, TABLE1, cpu_cost, default_folders, gpu_sized,
     has_accelerator, run_jobs, run_stems, settings,
