@@ -67,25 +67,10 @@ from cpl_keras.images import resize_image
 import numpy as np
 
 from cpl_keras import cli, priors as known, real_record, runs
-from cpl_keras.camera import PARAMETERS, UNITS, fov_from_focal
+from cpl_keras.camera import PARAMETERS, UNITS, from_window, fov_from_focal
 from cpl_keras.image_pairs import CalibrationError, find_pairs, is_grey, read_pair
-from cpl_keras.real import crop_resize_coordinate
 
 PROG = "python -m cpl_keras.calibrate"
-
-
-def to_input_pixels(values, width, height, size_w, size_h):
-    """Scale predicted pixel quantities from the model's S x S grid back to
-    the input image's W x H grid (see the module doc): the inverse of the
-    builders' resize, ``real.crop_resize_coordinate`` with the inverse scale."""
-    sx, sy = width / size_w, height / size_h
-    out = dict(values)
-    out["fx"] = values["fx"] * sx
-    out["fy"] = values["fy"] * sy
-    out["u0"] = float(crop_resize_coordinate(values["u0"], 0, sx))
-    out["v0"] = float(crop_resize_coordinate(values["v0"], 0, sy))
-    out["disparity"] = values["disparity"] * sx
-    return out
 
 
 #: Test-time crops for the spread: how many, and their side as a share of the image.
@@ -122,16 +107,6 @@ def crop_windows(width, height, count=TTA_CROPS, seed=0):
         windows.append((int(rng.integers(0, width - w + 1)), int(rng.integers(0, height - h + 1)),
                         w, h))
     return windows
-
-
-def from_window(values, window, size_w, size_h):
-    """Predictions made on a crop ``window`` resized to the model's input, in
-    the full image's pixels (the inverse of that crop and resize, per axis)."""
-    x0, y0, w, h = window
-    out = to_input_pixels(values, w, h, size_w, size_h)
-    out["u0"] += x0
-    out["v0"] += y0
-    return out
 
 
 def is_demonstration(run):

@@ -373,3 +373,86 @@ EQUATIONS = {
     "Z_rotated": ("5c", "-xCam * sin(pitch) + zCam * cos(pitch)"),
     "Z": ("5c", "Z = -xCam * sin(pitch) + zCam * cos(pitch) + tz"),
 }
+
+
+# ---------------------------------------------------------------------------
+# OpenCV's camera frame, and the intrinsics of a crop + resize (numpy): the
+# real-data builders go one way, calibrate and its exports the other
+# ---------------------------------------------------------------------------
+#: OpenCV camera axes (x right, y down, z forward) -> project axes (x forward,
+#: y left, z up): ``p_project = CV_TO_PROJECT @ p_opencv``.
+CV_TO_PROJECT = np.array([[0.0, 0.0, 1.0], [-1.0, 0.0, 0.0], [0.0, -1.0, 0.0]])
+
+
+def opencv_pose_to_rig(R, T):
+    """The right camera's pose in the left camera frame, project axes, from
+    OpenCV's stereo extrinsics (``X_right = R X_left + T``, OpenCV axes).
+
+    Returns ``(R_lr, t)`` with ``P_left = R_lr P_right + t`` (docs/data.md):
+    ``R_lr = C R^T C^T`` and ``t = C (-R^T T)``, ``C = CV_TO_PROJECT``; ``t`` is
+    the right camera centre in the left camera frame. Pitch, yaw and roll are
+    ``euler_from_rotation(R_lr)``.
+    """
+    R = np.asarray(R, dtype=np.float64).reshape(3, 3)
+    T = np.asarray(T, dtype=np.float64).reshape(3)
+    return CV_TO_PROJECT @ R.T @ CV_TO_PROJECT.T, CV_TO_PROJECT @ (-R.T @ T)
+
+
+def rig_to_opencv_pose(R_lr, t):
+    """The inverse of ``opencv_pose_to_rig``: OpenCV's stereo extrinsics
+    ``(R, T)`` (``X_right = R X_left + T``, OpenCV axes) from the right
+    camera's pose in the left camera frame (project axes)."""
+    R_lr = np.asarray(R_lr, dtype=np.float64).reshape(3, 3)
+    t = np.asarray(t, dtype=np.float64).reshape(3)
+    C = CV_TO_PROJECT
+    R = C.T @ R_lr.T @ C
+    return R, -R @ (C.T @ t)
+
+
+def crop_resize_coordinate(x, start, scale):
+    """A pixel coordinate after cropping at ``start`` and resizing by ``scale``.
+
+    Pixel centres sit at integer coordinates, as in OpenCV and scikit-image,
+    so a resize by ``scale`` maps ``x -> (x + 0.5) * scale - 0.5`` (the mapping
+    ``cv2.resize`` uses). Applies to u, u0 (with the crop's x start and the
+    horizontal scale) and to v, v0 (y start, vertical scale).
+    """
+    return (np.asarray(x, dtype=np.float64) - start + 0.5) * scale - 0.5
+
+
+def crop_resize_intrinsics(fx, fy, u0, v0, x0, y0, crop_width, crop_height, out_width, out_height):
+    """Intrinsics after cropping the window ``(x0, y0, crop_width, crop_height)``
+    and resizing it to ``out_width`` x ``out_height``: a crop shifts the
+    principal point, a resize scales focal length and principal point per axis.
+
+    Returns ``(fx, fy, u0, v0, sx, sy)`` with the scales ``sx``, ``sy``.
+    A disparity (a difference of u coordinates) scales by ``sx``.
+    """
+    sx = out_width / float(crop_width)
+    sy = out_height / float(crop_height)
+    return (fx * sx, fy * sy, float(crop_resize_coordinate(u0, x0, sx)),
+            float(crop_resize_coordinate(v0, y0, sy)), sx, sy)
+
+
+def to_input_pixels(values, width, height, size_w, size_h):
+    """Scale predicted pixel quantities from the model's S x S grid back to
+    the input image's W x H grid: the inverse of the builders' resize,
+    ``crop_resize_coordinate`` with the inverse scale."""
+    sx, sy = width / size_w, height / size_h
+    out = dict(values)
+    out["fx"] = values["fx"] * sx
+    out["fy"] = values["fy"] * sy
+    out["u0"] = float(crop_resize_coordinate(values["u0"], 0, sx))
+    out["v0"] = float(crop_resize_coordinate(values["v0"], 0, sy))
+    out["disparity"] = values["disparity"] * sx
+    return out
+
+
+def from_window(values, window, size_w, size_h):
+    """Predictions made on a crop ``window`` resized to the model's input, in
+    the full image's pixels (the inverse of that crop and resize, per axis)."""
+    x0, y0, w, h = window
+    out = to_input_pixels(values, w, h, size_w, size_h)
+    out["u0"] += x0
+    out["v0"] += y0
+    return out

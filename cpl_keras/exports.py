@@ -28,9 +28,8 @@ import os
 
 import numpy as np
 
-from cpl_keras.camera import rotation_matrix
+from cpl_keras.camera import rig_to_opencv_pose, rotation_matrix
 from cpl_keras.files import atomic_path, write_text
-from cpl_keras.real import rig_to_opencv_pose
 
 
 def camera_matrix(parameters):

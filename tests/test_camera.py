@@ -116,7 +116,7 @@ def test_square_pixel_fy_of_a_crop_and_resize():
     resized to 100 x 100: fx becomes 500 / 3, fy 500 / 2 (by hand), and
     square_pixel_fy recovers fy from fx and the sides alone, as the real
     crops' labels have it (crop_resize_intrinsics)."""
-    from cpl_keras.real import crop_resize_intrinsics
+    from cpl_keras.camera import crop_resize_intrinsics
 
     fx = 500.0 * 100 / 300
     assert camera.square_pixel_fy(fx, 300, 200, 100, 100) == pytest.approx(500.0 * 100 / 200)

@@ -10,7 +10,8 @@ import pytest
 
 from cpl_keras.camera import image_to_world, rotation_matrix
 from cpl_keras.data.storage import StereoFile
-from cpl_keras.real import CV_TO_PROJECT, build, chessboard, opencv_pose_to_rig
+from cpl_keras.camera import CV_TO_PROJECT, opencv_pose_to_rig
+from cpl_keras.real import build, chessboard
 
 SIZE = 32
 

@@ -9,7 +9,8 @@ import pytest
 
 from cpl_keras.camera import image_to_camera, image_to_world
 from cpl_keras.data.storage import StereoFile
-from cpl_keras.real import build, crop_resize_coordinate, crop_resize_intrinsics
+from cpl_keras.camera import crop_resize_coordinate, crop_resize_intrinsics
+from cpl_keras.real import build
 from cpl_keras.real import middlebury, tsinghua
 
 SIZE = 32

@@ -87,11 +87,6 @@ MIN_TEXTURE_STD = 2.0
 #: Accepted field-of-view range (degrees) of a Bougnoux focal length.
 FOV_RANGE_DEG = (10.0, 170.0)
 
-# OpenCV camera axes (x right, y down, z forward) -> project axes
-# (x forward, y left, z up).
-_CV_TO_PROJECT = np.array([[0.0, 0.0, 1.0], [-1.0, 0.0, 0.0], [0.0, -1.0, 0.0]])
-
-
 def _cv2():
     import cv2
 
@@ -283,8 +278,7 @@ def calibrate_from_matches(pts_left, pts_right, width, height, priors=None, min_
         good, R_cv, t_cv, _ = cv2.recoverPose(E, pts_l[inliers], pts_r[inliers], K)
         if int(good) >= 5:
             # OpenCV: X_right = R_cv X_left + t_cv, so X_left = R_cv^T X_right - R_cv^T t_cv
-            R_lr = _CV_TO_PROJECT @ R_cv.T @ _CV_TO_PROJECT.T
-            t_lr = _CV_TO_PROJECT @ (-R_cv.T @ t_cv.ravel())
+            R_lr, t_lr = camera.opencv_pose_to_rig(R_cv, t_cv)
             pitch = float(camera.euler_from_rotation(R_lr)[0])
             direction = t_lr / max(float(np.linalg.norm(t_lr)), 1e-12)
             status["pose_failed"] = False

@@ -14,16 +14,18 @@
   layouts (rectified projection matrices, ``disp_occ_0`` disparity).
 * ``cpl_keras.real.build``: the command line that writes any of them as HDF5.
 
-The helpers below are shared by the builders: the exact intrinsics of a
-crop + resize, the OpenCV-to-project axis change (and, from
-``cpl_keras.data.generate``, the release's StereoBM disparity label).
+The helpers below are shared by the builders: a rectified pair's crop and
+its labels, writing the samples (and, from ``cpl_keras.data.generate``, the
+release's StereoBM disparity label). The exact intrinsics of a crop + resize
+and the OpenCV-to-project axis change are the camera model's
+(``cpl_keras.camera``).
 """
 
 from __future__ import annotations
 
 import numpy as np
 
-from cpl_keras.camera import image_to_world
+from cpl_keras.camera import crop_resize_coordinate, crop_resize_intrinsics, image_to_world
 from cpl_keras.data.pair import released_disparity  # noqa: F401  (the builders' label)
 from cpl_keras.data.storage import StereoWriter
 from cpl_keras.errors import Error
@@ -32,63 +34,9 @@ from cpl_keras.images import resize_image
 #: Label conventions a real-data builder can write (see docs/evaluation.md).
 LABEL_MODES = ("rig", "vehicle")
 
-#: OpenCV camera axes (x right, y down, z forward) -> project axes (x forward,
-#: y left, z up): ``p_project = CV_TO_PROJECT @ p_opencv``.
-CV_TO_PROJECT = np.array([[0.0, 0.0, 1.0], [-1.0, 0.0, 0.0], [0.0, -1.0, 0.0]])
-
 
 class RealDataError(Error):
     """A real-data file or directory is missing or malformed (one-line message)."""
-
-
-def opencv_pose_to_rig(R, T):
-    """The right camera's pose in the left camera frame, project axes, from
-    OpenCV's stereo extrinsics (``X_right = R X_left + T``, OpenCV axes).
-
-    Returns ``(R_lr, t)`` with ``P_left = R_lr P_right + t`` (docs/data.md):
-    ``R_lr = C R^T C^T`` and ``t = C (-R^T T)``, ``C = CV_TO_PROJECT``; ``t`` is
-    the right camera centre in the left camera frame. Pitch, yaw and roll are
-    ``camera.euler_from_rotation(R_lr)``.
-    """
-    R = np.asarray(R, dtype=np.float64).reshape(3, 3)
-    T = np.asarray(T, dtype=np.float64).reshape(3)
-    return CV_TO_PROJECT @ R.T @ CV_TO_PROJECT.T, CV_TO_PROJECT @ (-R.T @ T)
-
-
-def rig_to_opencv_pose(R_lr, t):
-    """The inverse of ``opencv_pose_to_rig``: OpenCV's stereo extrinsics
-    ``(R, T)`` (``X_right = R X_left + T``, OpenCV axes) from the right
-    camera's pose in the left camera frame (project axes)."""
-    R_lr = np.asarray(R_lr, dtype=np.float64).reshape(3, 3)
-    t = np.asarray(t, dtype=np.float64).reshape(3)
-    C = CV_TO_PROJECT
-    R = C.T @ R_lr.T @ C
-    return R, -R @ (C.T @ t)
-
-
-def crop_resize_coordinate(x, start, scale):
-    """A pixel coordinate after cropping at ``start`` and resizing by ``scale``.
-
-    Pixel centres sit at integer coordinates, as in OpenCV and scikit-image,
-    so a resize by ``scale`` maps ``x -> (x + 0.5) * scale - 0.5`` (the mapping
-    ``cv2.resize`` uses). Applies to u, u0 (with the crop's x start and the
-    horizontal scale) and to v, v0 (y start, vertical scale).
-    """
-    return (np.asarray(x, dtype=np.float64) - start + 0.5) * scale - 0.5
-
-
-def crop_resize_intrinsics(fx, fy, u0, v0, x0, y0, crop_width, crop_height, out_width, out_height):
-    """Intrinsics after cropping the window ``(x0, y0, crop_width, crop_height)``
-    and resizing it to ``out_width`` x ``out_height``: a crop shifts the
-    principal point, a resize scales focal length and principal point per axis.
-
-    Returns ``(fx, fy, u0, v0, sx, sy)`` with the scales ``sx``, ``sy``.
-    A disparity (a difference of u coordinates) scales by ``sx``.
-    """
-    sx = out_width / float(crop_width)
-    sy = out_height / float(crop_height)
-    return (fx * sx, fy * sy, float(crop_resize_coordinate(u0, x0, sx)),
-            float(crop_resize_coordinate(v0, y0, sy)), sx, sy)
 
 
 def rectified_crop(left, right, window, pixel, match, disparity, intrinsics, baseline,

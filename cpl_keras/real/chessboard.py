@@ -58,11 +58,13 @@ import os
 import numpy as np
 
 from cpl_keras import cli
-from cpl_keras.camera import PARAMETERS, UNITS, disparity_from_depth, euler_from_rotation, fov_from_focal
+from cpl_keras.camera import (
+    CV_TO_PROJECT, PARAMETERS, UNITS, crop_resize_coordinate, crop_resize_intrinsics,
+    disparity_from_depth, euler_from_rotation, fov_from_focal, opencv_pose_to_rig,
+)
 from cpl_keras.images import resize_image
 from cpl_keras.real import (
-    CV_TO_PROJECT, RealDataError, crop_resize_coordinate, crop_resize_intrinsics,
-    check_crop_settings, opencv_pose_to_rig, released_disparity, write_samples,
+    RealDataError, check_crop_settings, released_disparity, write_samples,
 )
 from cpl_keras.real.middlebury import _draw_window
 

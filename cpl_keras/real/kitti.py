@@ -51,13 +51,12 @@ import re
 
 import numpy as np
 
-from cpl_keras.camera import image_to_world
+from cpl_keras.camera import (
+    CV_TO_PROJECT, crop_resize_coordinate, crop_resize_intrinsics, image_to_world,
+)
 from cpl_keras.data.storage import StereoWriter
 from cpl_keras.images import read_rgb, resize_image
-from cpl_keras.real import (
-    CV_TO_PROJECT, RealDataError, crop_resize_coordinate, crop_resize_intrinsics,
-    released_disparity,
-)
+from cpl_keras.real import RealDataError, released_disparity
 
 LAYOUTS = ("stereo", "raw")
 #: Keys of the left / right rectified projection matrices, in lookup order.

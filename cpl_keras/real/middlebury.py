@@ -12,7 +12,7 @@ paper Eq. 4a (``d = fx * b / xCam``, one shared principal point) is
 ``build_middlebury`` draws many crops (random size, aspect and position; some
 cover the whole image) of both images at the same window, resizes each to
 ``image_size`` x ``image_size`` and transforms the intrinsics exactly
-(``cpl_keras.real.crop_resize_intrinsics``). Labels follow the project's
+(``cpl_keras.camera.crop_resize_intrinsics``). Labels follow the project's
 conventions ("rig" mode): extrinsics are the right camera's pose in the left
 camera frame (x forward, y left, z up), so ``pitch = tx = tz = 0`` and
 ``ty = -baseline`` (the right camera is to the right); the projection pixel
@@ -28,9 +28,9 @@ from __future__ import annotations
 
 import numpy as np
 
+from cpl_keras.camera import crop_resize_coordinate
 from cpl_keras.real import (
-    RECTIFIED_LABEL_DESCRIPTIONS, check_crop_settings, crop_resize_coordinate, rectified_crop,
-    write_samples,
+    RECTIFIED_LABEL_DESCRIPTIONS, check_crop_settings, rectified_crop, write_samples,
 )
 
 #: Calibration of the pair as scikit-image documents it (pixels, metres).

@@ -50,11 +50,11 @@ import os
 
 import numpy as np
 
-from cpl_keras.camera import image_to_world
+from cpl_keras.camera import crop_resize_coordinate, crop_resize_intrinsics, image_to_world
 from cpl_keras.data.storage import StereoWriter
 from cpl_keras.images import read_rgb, resize_image
 from cpl_keras.real import (  # noqa: F401  (RealDataError is re-exported)
-    LABEL_MODES, RealDataError, crop_resize_coordinate, crop_resize_intrinsics, released_disparity,
+    LABEL_MODES, RealDataError, released_disparity,
 )
 
 DATASETS = ("tsinghua", "cityscapes")
