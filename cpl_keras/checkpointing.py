@@ -13,7 +13,6 @@ import csv
 import math
 import os
 import shutil
-import textwrap
 import time
 
 import keras
@@ -21,6 +20,7 @@ import numpy as np
 
 from cpl_keras import cli, distributed, files, runs
 from cpl_keras.models.batchnorm import recompute_batchnorm_statistics
+from cpl_keras.report.curves import plot_curves
 
 
 class RunState(keras.callbacks.Callback):
@@ -269,52 +269,3 @@ def curves_title(config, state):
     else:
         status = f"{done} of at most {cap} epochs so far"
     return f"{runs.run_label(config)}\n{status}"
-
-
-def plot_curves(path, rows, best_epoch=None, title=None):
-    """Training and validation loss per epoch (log scale when positive), and
-    the adaptive weights alpha_i of Eq. 9 beside them when the run has them.
-    ``rows`` and ``best_epoch`` are the state's (0-based); the axis numbers
-    epochs from 1."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-    from matplotlib.ticker import MaxNLocator
-
-    epochs = [row["epoch"] + 1 for row in rows]
-    alpha_keys = sorted({k for row in rows for k in row if k.startswith("alpha_")})
-    fig, axes = plt.subplots(1, 2 if alpha_keys else 1, figsize=(11 if alpha_keys else 6, 4),
-                             squeeze=False)
-    ax = axes[0, 0]
-    for key, label in (("loss", "training"), ("val_loss", "validation")):
-        values = [row.get(key, np.nan) for row in rows]
-        ax.plot(epochs, values, marker="o", markersize=3, label=label)
-    losses = [row.get(k) for row in rows for k in ("loss", "val_loss") if row.get(k) is not None]
-    if losses and all(math.isfinite(v) and v > 0 for v in losses):
-        ax.set_yscale("log")
-    if best_epoch is not None:
-        ax.axvline(best_epoch + 1, color="grey", linestyle="--", label=f"best (epoch {best_epoch + 1})")
-    ax.set_xlabel("epoch")
-    ax.xaxis.set_major_locator(MaxNLocator(integer=True))
-    ax.set_ylabel("loss")
-    ax.legend()
-    ax.grid(True, alpha=0.3)
-    if alpha_keys:
-        ax = axes[0, 1]
-        for key in alpha_keys:
-            ax.plot(epochs, [row.get(key, np.nan) for row in rows], label=key[len("alpha_"):])
-        ax.set_yscale("log")
-        ax.set_xlabel("epoch")
-        ax.xaxis.set_major_locator(MaxNLocator(integer=True))
-        ax.set_ylabel("alpha_i (Eq. 9)")
-        ax.legend(fontsize=7, ncol=2)
-        ax.grid(True, alpha=0.3)
-    if title:
-        columns = 120 if alpha_keys else 64  # (characters that fit the figure's width)
-        lines = [wrapped for line in title.split("\n") for wrapped in textwrap.wrap(line, columns)]
-        fig.suptitle("\n".join(lines), fontsize=9)
-    fig.tight_layout()
-    files.save_figure(fig, path, dpi=100)
-
-

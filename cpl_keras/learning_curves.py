@@ -35,6 +35,7 @@ from cpl_keras.data.storage import StereoFile
 from cpl_keras.datasets import load_split, targets_from_labels
 from cpl_keras.errors import Error
 from cpl_keras.metrics import nmae
+from cpl_keras.report.curves import plot_nmae_curves, val_mae
 from cpl_keras.training import train
 
 #: The parameters the write-up quotes.
@@ -52,15 +53,6 @@ def read_log(run_dir):
     if not os.path.isfile(path):
         raise CurveError(f"{run_dir} has no log.csv")
     return runs.read_log(path)
-
-
-def _val_mae(row, name):
-    """The logged validation MAE of output ``name`` (``_mae`` metric or, for
-    the per-output MAE loss, ``_loss``)."""
-    for key in (f"val_{name}_mae", f"val_{name}_loss"):
-        if key in row:
-            return row[key]
-    return math.nan
 
 
 def curves(run_dir, data=None):
@@ -93,7 +85,7 @@ def curves(run_dir, data=None):
         truth = np.asarray(targets[name], np.float64)[val]
         scale[name] = float(np.mean(np.abs(truth)))
         average[name] = nmae(truth, np.full_like(truth, stats["mean"][name]))
-    out = {name: [_val_mae(row, name) / scale[name] if scale[name] > 0 else math.nan
+    out = {name: [val_mae(row, name) / scale[name] if scale[name] > 0 else math.nan
                   for row in rows] for name in PARAMETERS}
     num_train = int(len(split["train"]) if config.num_train is None else config.num_train)
     best_epoch = config.best_epoch
@@ -115,43 +107,12 @@ def run_label(curve):
     return runs.run_label(curve["config"])
 
 
-def plot(curve, path):
-    """One panel per camera parameter: validation NMAE (log scale) against
-    samples seen, Average's level dashed, the kept epoch marked."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    fig, axes = plt.subplots(2, 5, figsize=(16, 6.2), sharex=True)
-    seen = np.asarray(curve["samples_seen"]) / 1000.0
-    best_epoch = curve["kept_epoch"]
-    for ax, name in zip(axes.ravel(), PARAMETERS):
-        values = np.asarray(curve["nmae"][name], np.float64)
-        ax.plot(seen, values, marker="o", markersize=2.5, label="network (validation)")
-        level = curve["average"][name]
-        if math.isfinite(level):
-            ax.axhline(level, color="tab:red", linestyle="--", label="Average")
-        if best_epoch and best_epoch <= len(seen):
-            ax.axvline(seen[best_epoch - 1], color="grey", linestyle=":", label="kept epoch")
-        finite = values[np.isfinite(values)]
-        if finite.size and np.all(finite > 0) and (not math.isfinite(level) or level > 0):
-            ax.set_yscale("log")
-        ax.set_title(name, fontsize=10)
-        ax.grid(True, alpha=0.3)
-    for ax in axes[1]:
-        ax.set_xlabel("training samples seen (thousands)")
-    for ax in axes[:, 0]:
-        ax.set_ylabel("validation NMAE")
-    axes[0, 0].legend(fontsize=7)
+def plot_title(curve):
+    """The title of a run's learning-curve figure: the run, its training
+    pairs and epochs, how it stopped."""
     row = summary_rows(curve)
-    fig.suptitle(
-        f"{run_label(curve)}: {row['num_train']} training pairs, {row['epochs_run']} epochs "
-        f"({row['stopped'] or 'epoch cap'})",
-        fontsize=10,
-    )
-    fig.tight_layout()
-    files.save_figure(fig, path, dpi=90)
+    return (f"{run_label(curve)}: {row['num_train']} training pairs, {row['epochs_run']} epochs "
+            f"({row['stopped'] or 'epoch cap'})")
 
 
 def summary_rows(curve, load=None):
@@ -268,7 +229,7 @@ def write_outputs(run_dirs, out_dir, loads=None, keep_earlier=False, at_epoch=No
     for run_dir in run_dirs:
         curve = curves(run_dir)
         name = os.path.basename(os.path.abspath(run_dir))
-        plot(curve, os.path.join(out_dir, f"{name}.png"))
+        plot_nmae_curves(curve, os.path.join(out_dir, f"{name}.png"), plot_title(curve))
         runs.publish_files(run_dir, os.path.join(out_dir, "runs"), name)
         row = summary_rows(curve, (loads or {}).get(name))
         rows.append(row)

@@ -6,8 +6,8 @@ from __future__ import annotations
 import os
 
 from cpl_keras import files, report, runs
-from cpl_keras.learning_curves import _val_mae
 from cpl_keras.models.variants import VARIANT_ROWS
+from cpl_keras.report.curves import plot_mae_curves
 from cpl_keras.reproduce.presets import (
     DEFAULT_TABLES, RELEASED_RUN, TABLE1, TITLES, run_stems,
 )
@@ -71,13 +71,9 @@ CURVE_PARAMETERS = ("fx", "baseline", "disparity", "pitch")
 def plot_protocol_curves(out_dir, runs_list):
     """``curves_<protocol>.png`` in ``out_dir``: the validation MAE of
     ``CURVE_PARAMETERS`` per epoch, every run of the protocol, from the
-    published logs (``runs/<name>_log.csv``; so a rebuild draws them alike).
-    Returns ``[(protocol, file name)]``."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
+    published logs (``runs/<name>_log.csv``; so a rebuild draws them alike):
+    a colour per variant, a line style per seed. Returns ``[(protocol, file
+    name)]``."""
     figures = []
     for protocol in dict.fromkeys(s["protocol"] for s in runs_list):
         logged = []
@@ -89,28 +85,12 @@ def plot_protocol_curves(out_dir, runs_list):
             continue
         stems = list(dict.fromkeys(_run_stem(s) for s, _ in logged))
         seeds = sorted({s.get("seed") or 0 for s, _ in logged})
-        fig, axes = plt.subplots(1, len(CURVE_PARAMETERS), figsize=(16, 4.2))
-        for ax, parameter in zip(axes, CURVE_PARAMETERS):
-            for s, rows in logged:
-                epochs = [row["epoch"] for row in rows]
-                values = [_val_mae(row, parameter) for row in rows]
-                colour = plt.cm.tab10(stems.index(_run_stem(s)) % 10)
-                style = ("-", "--", ":", "-.")[seeds.index(s.get("seed") or 0) % 4]
-                label = _stem_row(_run_stem(s)) + (f", seed {s['seed']}" if len(seeds) > 1
-                                                    else "")
-                ax.plot(epochs, values, style, color=colour, linewidth=1.2, label=label)
-                best = s.get("best_epoch")
-                if best and best <= len(values):
-                    ax.plot([best], [values[best - 1]], "o", color=colour, markersize=3.5)
-            ax.set_yscale("log")
-            ax.set_title(f"validation MAE of {parameter}", fontsize=10)
-            ax.set_xlabel("epoch")
-            ax.grid(True, alpha=0.3)
-        axes[0].legend(fontsize=6.5)
-        fig.suptitle(TITLES.get(f"table1_{protocol}", protocol), fontsize=10)
-        fig.tight_layout()
+        series = [(_stem_row(_run_stem(s)) + (f", seed {s['seed']}" if len(seeds) > 1 else ""),
+                   rows, stems.index(_run_stem(s)), seeds.index(s.get("seed") or 0),
+                   s.get("best_epoch")) for s, rows in logged]
         name = f"curves_{protocol}.png"
-        files.save_figure(fig, os.path.join(out_dir, name), dpi=80)
+        plot_mae_curves(os.path.join(out_dir, name), series, CURVE_PARAMETERS,
+                        TITLES.get(f"table1_{protocol}", protocol))
         figures.append((protocol, name))
     return figures
 
