@@ -117,16 +117,6 @@ def write_config(run_dir, config):
     files.write_json(os.path.join(run_dir, CONFIG), normalise_config(config))
 
 
-def config_as_released(config):
-    """Whether the run of ``config`` was trained as released (either layout)."""
-    return bool(config.get("build", {}).get("as_released", config.get("as_released", False)))
-
-
-def as_released(run):
-    """Whether the run (a ``Run``) was trained as released."""
-    return run.config.as_released
-
-
 @dataclasses.dataclass(frozen=True)
 class RunConfig:
     """config.json as the readers of a run see it, typed (``from_dict``).
@@ -314,12 +304,6 @@ def run_label(config):
         options += f", alpha rate {rate:g}"
     return (f"{config.variant}{released}, {config.build['backbone']}, "
             f"{os.path.basename(config.data)}, split {config.split}{options}")
-
-
-def row_name(run):
-    """The table row of a run (a ``Run``): its variant's row, marked when
-    trained as released."""
-    return run.row
 
 
 # ---------------------------------------------------------------------------
