@@ -30,10 +30,13 @@ PROG = "evaluate.py"
 def main(argv=None):
     """The command line; Ctrl-C at any moment ends it with one line and exit
     status 130 (tables are written atomically: none is left half-written)."""
-    # (imported inside cli.run's Ctrl-C guard)
-    from cpl_keras.commands import evaluate
+    try:
+        # (imported inside cli.run's Ctrl-C guard)
+        from cpl_keras.commands import evaluate
 
-    return evaluate.main(argv, prog=PROG)
+        return evaluate.main(argv, prog=PROG)
+    except KeyboardInterrupt:  # (during the import)
+        return cli.interrupted(PROG, note="nothing was written")
 
 
 def parse_args(argv=None):

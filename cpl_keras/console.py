@@ -34,7 +34,13 @@ def train():
 
 
 def evaluate():
-    cli.run(_main("cpl_keras.commands.evaluate", prog="cpl-evaluate"), "cpl-evaluate")
+    def main():
+        try:
+            return _main("cpl_keras.commands.evaluate", prog="cpl-evaluate")()
+        except KeyboardInterrupt:  # (during the import; evaluate's main says the same)
+            return cli.interrupted("cpl-evaluate", note="nothing was written")
+
+    cli.run(main, "cpl-evaluate")
 
 
 def reproduce():
