@@ -103,7 +103,7 @@ def test_rendered_random_rig_focal_and_pitch(rendered_pairs):
     """Measured behaviour on the generator's realistic protocol (lateral rigs,
     small rotations), where Bougnoux's formula is near its degenerate case.
 
-    On 300 pairs (seed 1, docs/evaluation.md) the focal length was real for
+    On 300 pairs (seed 1, paper_results/notes/) the focal length was real for
     61% of pairs with a median relative error of 49% among them, and the
     pitch median error was 0.0186 rad. Over windows of 24 consecutive pairs
     the real share ranged 0.42-0.79, the median relative fx error 0.38-0.71,
