@@ -32,9 +32,10 @@ from __future__ import annotations
 
 import argparse
 import glob
-import json
 import os
 import sys
+
+from cpl_keras import files
 
 os.environ.setdefault("KERAS_BACKEND", "jax")
 
@@ -220,10 +221,9 @@ def main(argv=None):
             "(fx and the crop's sides, as calibrate reports it).\n\n" + "\n".join(lines) + "\n"
             "\nOn each model's own test split (pairs of its training file it did not train on, "
             "per source):\n\n" + "\n".join(own) + "\n")
-    with open(os.path.join(args.out, "summary.md"), "w") as f:
-        f.write(text)
-    with open(os.path.join(args.out, "summary.json"), "w") as f:
-        json.dump({"args": vars(args), "rigs": rigs}, f, indent=1)
+    files.write_text(os.path.join(args.out, "summary.md"), text)  # (atomically)
+    files.write_json(os.path.join(args.out, "summary.json"), {"args": vars(args), "rigs": rigs},
+                     indent=1)
     print(text)
     return 0
 
