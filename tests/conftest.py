@@ -18,7 +18,7 @@ and the expensive things several test files need, made once per session:
   priority. The tests leave one of the two cores mostly idle (they run one
   at a time, and their floor is XLA's compile time, one thread), so these
   commands run in that idle time instead of holding the suite up
-  (docs/performance.md, "The suite on an idle AMD EPYC");
+  (paper_results/notes/pipeline-and-suite.md, "The suite on an idle AMD EPYC");
 * ``train_cache``: the XLA compile cache of the suite's train.py processes
   of the small backbone, warm from the uninterrupted run.
 
@@ -124,7 +124,8 @@ REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 def quick_reproduction_args(root):
     """``evaluate.py``'s arguments for the quick reproduction into ``root``:
     one run at a time, its default (at this scale faster than two at a time,
-    and with less work: docs/performance.md; ``--jobs`` has tests of its own)."""
+    and with less work: paper_results/notes/pipeline-and-suite.md; ``--jobs``
+    has tests of its own)."""
     return ["--reproduce", "--quick", "--out", os.path.join(root, "out"),
             "--data-dir", os.path.join(root, "data"), "--runs-dir", os.path.join(root, "runs")]
 
