@@ -1,7 +1,7 @@
 """Training over several processes (``cpl_keras.distributed``): the slices
 each process reads, the group's checks, and two local processes of
 ``train.py --data-parallel`` against one process on one and on two devices,
-a partner stopped by SIGTERM and one killed with -9, then resumed."""
+a partner killed with -9, the group resumed, then a partner stopped by SIGTERM."""
 
 import csv
 import json
@@ -236,42 +236,35 @@ def _when_logged(run_dir, rows, processes, timeout=TIMEOUT_S):
     raise AssertionError(f"no {rows} epochs logged within {timeout} s")
 
 
-def test_a_stopped_or_killed_partner_ends_the_group_and_the_same_command_resumes(
+def test_a_killed_or_stopped_partner_ends_the_group_and_the_same_command_resumes(
         fixture52, tmp_path):
     run_dir, cache, epochs = str(tmp_path / "run"), str(tmp_path / "xla"), 12
     slow = ["--patience", "100"]  # (every epoch, so that there is time to stop it)
 
-    # SIGTERM to process 1: both end within seconds, each with one line
+    # kill -9 of process 1: process 0 ends with one line, never waits forever
     group = _start_group(str(tmp_path), cache, [fixture52] * 2, run_dir, epochs, slow)
     _when_logged(run_dir, 1, group)
+    group[1].kill()
+    status0, text0 = _wait(group[0], 120)
+    assert status0 == distributed.PARTNER_FAILED, text0
+    assert "process 1 of 2 gave no sign of life" in _lines(text0)[-1]
+    killed_at = len(_log(run_dir))
+
+    # the same command resumes the group after the last epoch; SIGTERM to
+    # process 1 then ends both within seconds, each with one line
+    group = _start_group(str(tmp_path), cache, [fixture52] * 2, run_dir, epochs, slow)
+    _when_logged(run_dir, killed_at + 1, group)
     group[1].send_signal(signal.SIGTERM)
     start = time.monotonic()
     (status0, text0), (status1, text1) = _wait(group[0], 60), _wait(group[1], 60)
     assert time.monotonic() - start < 30  # (seconds, not the heartbeats' timeout)
     assert (status0, status1) == (130, 130), (text0, text1)
     assert "interrupted" in _lines(text1)[-1]
-    assert "process 1 interrupted" in _lines(text0)[-1] and len(_lines(text0)) == 1, text0
-    stopped_at = len(_log(run_dir))
-
-    # kill -9 of process 1: process 0 ends with one line, never waits forever
-    group = _start_group(str(tmp_path), cache, [fixture52] * 2, run_dir, epochs, slow)
-    _when_logged(run_dir, stopped_at + 1, group)
-    group[1].kill()
-    status0, text0 = _wait(group[0], 120)
-    assert status0 == distributed.PARTNER_FAILED, text0
-    assert "process 1 of 2 gave no sign of life" in _lines(text0)[-1]
-    killed_at = len(_log(run_dir))
-    assert killed_at > stopped_at
-
-    # the same command resumes the run and takes it to its end
-    group = _start_group(str(tmp_path), cache, [fixture52] * 2, run_dir, epochs, slow)
-    for status, text in (_wait(process) for process in group):
-        assert status == 0, text
+    assert "process 1 interrupted" in _lines(text0)[-1], text0
+    assert f"Resuming {run_dir} after epoch {killed_at}" in text0
     rows = _log(run_dir)
-    config = json.load(open(os.path.join(run_dir, "config.json")))
-    assert config["status"] == "finished" and config["epochs_run"] == len(rows)
-    assert [int(r["epoch"]) for r in rows] == list(range(1, len(rows) + 1))
     assert len(rows) > killed_at
+    assert [int(r["epoch"]) for r in rows] == list(range(1, len(rows) + 1))
 
 
 def test_prediction_refuses_to_run_inside_a_group_of_several_processes(monkeypatch):
