@@ -25,7 +25,7 @@ def balance(run_dir, batches=8, batch_size=16):
 
     from cpl_keras import camera, runs
     from cpl_keras.datasets import targets_from_labels
-    from cpl_keras.sequence import StereoSequence
+    from cpl_keras.training.sequence import StereoSequence
     from cpl_keras.data.storage import StereoFile
 
     run = runs.load_run(run_dir)

@@ -112,7 +112,7 @@ def run(args):
     shape = (args.image_size, args.image_size, 3)
     if args.data:
         from cpl_keras.datasets import targets_from_labels
-        from cpl_keras.sequence import StereoSequence
+        from cpl_keras.training.sequence import StereoSequence
         from cpl_keras.data.storage import StereoFile
 
         with StereoFile(args.data) as f:

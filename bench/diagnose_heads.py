@@ -67,7 +67,7 @@ def main(argv=None):
     from cpl_keras.data.storage import StereoFile
     from cpl_keras.datasets import make_split, targets_from_labels
     from cpl_keras.models import build_model, compile_model
-    from cpl_keras.sequence import StereoSequence
+    from cpl_keras.training.sequence import StereoSequence
 
     with StereoFile(args.data) as f:
         labels = f.labels

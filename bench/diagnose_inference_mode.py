@@ -92,7 +92,7 @@ def main(argv=None):
     from cpl_keras.layers import PositiveDisparity, positive_disparity
     from cpl_keras.data.storage import StereoFile
     from cpl_keras.models.batchnorm import recompute_batchnorm_statistics
-    from cpl_keras.sequence import StereoSequence
+    from cpl_keras.training.sequence import StereoSequence
 
     run = runs.load_run(args.run)
     data = run.config.data

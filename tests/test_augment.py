@@ -5,7 +5,7 @@ batch the same whenever it is served)."""
 import numpy as np
 import pytest
 
-from cpl_keras.augment import GREY_PROBABILITY, photometric
+from cpl_keras.training.augment import GREY_PROBABILITY, photometric
 
 
 def _square_pair(n, size=32):
@@ -73,7 +73,7 @@ def test_bad_batches_are_refused():
 
 def test_the_sequence_augments_training_batches_reproducibly(tmp_path):
     from cpl_keras.datasets import targets_from_labels
-    from cpl_keras.sequence import StereoSequence
+    from cpl_keras.training.sequence import StereoSequence
     from test_datasets import fixture_labels, write_stereo_fixture
 
     path = write_stereo_fixture(tmp_path / "d.h5", n=12, image_size=(16, 24))

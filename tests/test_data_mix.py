@@ -77,7 +77,7 @@ def test_every_pair_and_label_is_carried_over_and_configurations_kept_apart(sour
 
 def test_training_records_the_rigs_and_table2_refuses_them(sources, tmp_path, tiny_run):
     from cpl_keras.evaluation import EvaluationError, table2
-    from cpl_keras.planning import plan_run
+    from cpl_keras.training.planning import plan_run
 
     out = mix.mix_datasets(tmp_path / "mix.h5", sources)
     plan = plan_run(out, variant="baseline", run_dir=str(tmp_path / "run"), backbone="small",

@@ -298,7 +298,7 @@ def test_training_writes_the_release_average_of_the_release_labels(tmp_path):
 # StereoSequence
 # ---------------------------------------------------------------------------
 def test_sequence_batches_shuffles_and_pads(tmp_path):
-    from cpl_keras.sequence import StereoSequence
+    from cpl_keras.training.sequence import StereoSequence
 
     path = write_stereo_fixture(tmp_path / "d.h5", n=30, image_size=(16, 24))
     targets = targets_from_labels(fixture_labels(30, 24))
@@ -336,7 +336,7 @@ def test_sequence_batches_shuffles_and_pads(tmp_path):
 def test_sequence_with_threads_matches_single_reader(tmp_path):
     import keras
 
-    from cpl_keras.sequence import StereoSequence
+    from cpl_keras.training.sequence import StereoSequence
 
     path = write_stereo_fixture(tmp_path / "d.h5", n=24, image_size=16)
     targets = targets_from_labels(fixture_labels(24, 16))
@@ -356,7 +356,7 @@ def test_sequence_with_threads_matches_single_reader(tmp_path):
 
 
 def test_sequence_memory_does_not_grow_with_the_dataset(tmp_path):
-    from cpl_keras.sequence import StereoSequence
+    from cpl_keras.training.sequence import StereoSequence
 
     peaks = []
     for n in (40, 400):
@@ -406,8 +406,8 @@ def test_malformed_hdf5_objects_are_named_in_one_line(tmp_path):
 
 
 def test_sequence_in_memory_serves_the_same_batches(tmp_path, monkeypatch):
-    from cpl_keras import sequence
-    from cpl_keras.sequence import StereoSequence
+    from cpl_keras.training import sequence
+    from cpl_keras.training.sequence import StereoSequence
 
     n = 60
     path = write_stereo_fixture(tmp_path / "d.h5", n=n, image_size=32)

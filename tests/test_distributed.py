@@ -17,7 +17,7 @@ import pytest
 
 from conftest import train_py
 from cpl_keras import distributed
-from cpl_keras.sequence import StereoSequence
+from cpl_keras.training.sequence import StereoSequence
 
 #: Every subprocess of these tests ends within this many seconds or fails.
 TIMEOUT_S = 240

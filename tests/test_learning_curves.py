@@ -125,7 +125,7 @@ def test_a_tiny_run_learns_and_its_pitch_stays_bounded(variant, tiny):
     inference mode; Deep-Homo (Dropout 0.75 before its last layers keeps its
     inference-mode fit of 16 pairs loose) by its training loss."""
     from cpl_keras import build_model, compile_model
-    from cpl_keras.sequence import StereoSequence
+    from cpl_keras.training.sequence import StereoSequence
     from cpl_keras.models.batchnorm import recompute_batchnorm_statistics
 
     with StereoFile(tiny) as f:

@@ -252,7 +252,7 @@ def test_deep_homo_saved_by_training_has_statistics_of_its_weights(tmp_path, tin
     every epoch) saves its BatchNorm's population statistics of the saved
     weights; a run without the recompute (as released) lags behind them."""
     from cpl_keras.datasets import load_split
-    from cpl_keras.sequence import StereoSequence
+    from cpl_keras.training.sequence import StereoSequence
     from cpl_keras.training import train
 
     def first_bn_mean(run_dir):

@@ -463,7 +463,7 @@ def test_two_runs_of_one_model_do_not_compile_side_by_side():
     """The next job is the first whose model no running process is compiling
     (so the later one loads its programs from the compile cache), else the
     first; the slow variants' order is otherwise kept."""
-    from cpl_keras import parallel
+    from cpl_keras.training import parallel
 
     def job(variant, released=False):
         return (variant, "data.h5", dict(variant=variant, as_released=released,
@@ -485,7 +485,8 @@ def test_parallel_training_makes_the_same_runs(tiny_run, tmp_path):
     """``--jobs 2``: runs trained two at a time, each in a spawned process,
     end as the same run trained here; a run that fails stops the rest with
     one error naming its directory."""
-    from cpl_keras import parallel, runs, training
+    from cpl_keras import runs, training
+    from cpl_keras.training import parallel
 
     data = tiny_run["data"]
     pending = [(f"cvgl/{name}", data, _tiny_plan(tmp_path / name, seed))

@@ -329,8 +329,8 @@ def test_nan_loss_stops_and_keeps_the_best_weights(dataset, tmp_path, monkeypatc
     weights: finite, predicting finite values, equal to best.weights.h5."""
     import keras
 
-    from cpl_keras.checkpointing import RunState
-    from cpl_keras.sequence import StereoSequence
+    from cpl_keras.training.checkpointing import RunState
+    from cpl_keras.training.sequence import StereoSequence
     from cpl_keras.training import summary_line, train
 
     getitem = StereoSequence.__getitem__
@@ -382,7 +382,7 @@ def test_early_stopping_ends_the_run_and_model_keras_holds_the_best_epoch(
     weights of epoch 2, not those of the last epoch."""
     import keras
 
-    from cpl_keras.checkpointing import RunState
+    from cpl_keras.training.checkpointing import RunState
     from cpl_keras.training import train
 
     scripted = [3.0, 2.0, 5.0, 6.0, 7.0, 8.0]
@@ -678,7 +678,8 @@ def test_truncated_files_are_called_truncated(dataset, tmp_path, tiny_run):
 # Readable output: short epoch lines, every metric in log.csv, curves titled
 # ---------------------------------------------------------------------------
 def test_epoch_lines_are_short_and_log_csv_keeps_every_metric(dataset, tmp_path, capsys):
-    from cpl_keras import checkpointing, progress, runs
+    from cpl_keras import runs
+    from cpl_keras.training import checkpointing, progress
     from cpl_keras.camera import PARAMETERS, TARGETS
 
     run_dir = str(tmp_path / "run")
@@ -722,7 +723,7 @@ def test_epoch_lines_are_short_and_log_csv_keeps_every_metric(dataset, tmp_path,
 def test_progress_bar_on_a_terminal_stays_within_the_width():
     import io
 
-    from cpl_keras import progress
+    from cpl_keras.training import progress
 
     class Terminal(io.StringIO):
         def isatty(self):
@@ -760,7 +761,8 @@ def test_old_zero_based_log_is_read_alike_and_renumbered_on_resume(dataset, tmp_
     """A run begun by the code that numbered log.csv's epochs from 0 (Keras's
     CSVLogger convention) and resumed by this code: both logs read alike, and
     the resumed run's log.csv is numbered from 1 throughout."""
-    from cpl_keras import checkpointing, learning_curves, runs
+    from cpl_keras import learning_curves, runs
+    from cpl_keras.training import checkpointing
     from cpl_keras.training import train
 
     run_dir = str(tmp_path / "run")
@@ -984,11 +986,11 @@ def test_fixed_batchnorm_statistics_do_not_depend_on_the_epoch(dataset, tmp_path
     import keras
 
     from cpl_keras import models
-    from cpl_keras.checkpointing import RunState
+    from cpl_keras.training.checkpointing import RunState
     from cpl_keras.models.batchnorm import batchnorm_layers
-    from cpl_keras.planning import plan_run
-    from cpl_keras.sequence import StereoSequence
-    from cpl_keras.training import batchnorm_pairs
+    from cpl_keras.training.planning import plan_run
+    from cpl_keras.training.sequence import StereoSequence
+    from cpl_keras.training.trainer import batchnorm_pairs
 
     plan = plan_run(dataset, variant="baseline", run_dir=str(tmp_path / "r"), backbone="small",
                     batch_size=5, bn_recompute_batches=2)
@@ -1026,7 +1028,7 @@ def test_fixed_batchnorm_statistics_do_not_depend_on_the_epoch(dataset, tmp_path
 
 
 def test_nmae_scores_read_either_mae_name_and_sum_the_parameters():
-    from cpl_keras.checkpointing import nmae_scores
+    from cpl_keras.training.checkpointing import nmae_scores
 
     logs = {"val_fx_mae": 2.0, "val_baseline_loss": 6.0, "val_loss": 9.0}
     scores = nmae_scores(logs, {"fx": 4.0, "baseline": 3.0, "pitch": 1.0})
@@ -1038,7 +1040,7 @@ def test_a_run_made_before_the_new_defaults_resumes_with_its_own(dataset, tmp_pa
     """A run directory of before ``bn_statistics`` and ``monitor`` (its
     config.json has neither) is resumed with what it ran with, unless the
     call names other settings."""
-    from cpl_keras.planning import TrainingError, plan_run
+    from cpl_keras.training.planning import TrainingError, plan_run
     from cpl_keras.training import train
 
     run_dir = str(tmp_path / "old")

@@ -14,7 +14,7 @@ import os
 import sys
 
 from cpl_keras import cli, distributed
-from cpl_keras.augment import AUGMENTATIONS
+from cpl_keras.training.augment import AUGMENTATIONS
 from cpl_keras.cache import cache_dir, enable_compile_cache
 from cpl_keras.data.generate import cached_dataset, estimate_cost
 from cpl_keras.data.storage import DatasetError

@@ -42,7 +42,7 @@ from their last epoch):
 
 The package: ``presets`` (the settings and the runs they make), ``jobs``
 (training each run and publishing it; with ``--jobs`` in processes of their
-own, ``cpl_keras.parallel``), ``pipeline`` (the
+own, ``cpl_keras.training.parallel``), ``pipeline`` (the
 stages and the rebuild), ``page`` (REPORT.md), ``cli`` (the command line).
 """
 

@@ -6,8 +6,9 @@ from __future__ import annotations
 
 import os
 
-from cpl_keras import evaluation, parallel, planning, runs, training
+from cpl_keras import evaluation, runs, training
 from cpl_keras.reproduce.presets import PROG, log, run_jobs
+from cpl_keras.training import parallel, planning
 
 # ---------------------------------------------------------------------------
 # Stage 2: training

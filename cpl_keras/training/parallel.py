@@ -1,7 +1,7 @@
 """Several training runs at once, each in a process of its own.
 
 ``train_parallel(pending, processes)`` trains ``(label, data, options)``
-runs (``options``: ``training.train``'s keyword arguments) ``processes`` at
+runs (``options``: ``trainer.train``'s keyword arguments) ``processes`` at
 a time, each in a fresh, spawned process (JAX does not survive a fork), the
 slow variants first, and never two runs of one model at once while another
 run could go instead: the second then loads the first's compiled programs
@@ -25,10 +25,11 @@ import sys
 import threading
 import time
 
-from cpl_keras import cli, training
+from cpl_keras import cli
 from cpl_keras.cache import enable_compile_cache
 from cpl_keras.errors import Error
 from cpl_keras.models.variants import SLOW_VARIANTS
+from cpl_keras.training import trainer
 
 
 def _log(message):
@@ -55,13 +56,13 @@ def _train_job(data, options, parent, log, prog):
     enable_compile_cache()
     try:
         with cli.interruptible():
-            summary = training.train(data, verbose=0, **options)
+            summary = trainer.train(data, verbose=0, **options)
     except KeyboardInterrupt:  # the last completed epoch is checkpointed
         sys.exit(130)
     except (Error, OSError) as error:
         print(f"{prog}: error: {options['run_dir']}: {error}", file=sys.stderr)
         sys.exit(2)
-    log(training.summary_line(summary))
+    log(trainer.summary_line(summary))
     sys.exit(0 if summary["best_epoch"] is not None else 1)
 
 
@@ -124,4 +125,4 @@ def train_parallel(pending, processes, *, on_finished=None, log=_log, prog="cpl_
         _interrupt(running)
         raise
     if failure is not None:
-        raise training.TrainingError(failure)
+        raise trainer.TrainingError(failure)

@@ -1,7 +1,7 @@
 """Training one of the paper's networks on a stereo dataset file.
 
 ``train(data, variant=..., run_dir=...)`` validates everything first (the
-file, its labels and images, the arguments: ``cpl_keras.planning``; the
+file, its labels and images, the arguments: ``cpl_keras.training.planning``; the
 model itself), then creates the run directory (its files:
 ``cpl_keras.runs``).
 
@@ -18,7 +18,7 @@ its last completed epoch; the epoch order of the data depends only on
 A second process training into the same run directory (say, the same
 command run again after a kill that missed) waits until the first one ends,
 then resumes from where it left off (or finds the run finished).
-The callback that checkpoints is ``cpl_keras.checkpointing.RunState``.
+The callback that checkpoints is ``cpl_keras.training.checkpointing.RunState``.
 A non-finite training loss stops the run and keeps the best weights so far.
 """
 
@@ -39,7 +39,7 @@ from cpl_keras.camera import PARAMETERS
 from cpl_keras.data.storage import StereoFile
 from cpl_keras.datasets import load_split, save_split, targets_from_labels
 from cpl_keras.errors import Error
-from cpl_keras.planning import RESUME_KEYS, TrainingError, plan_run
+from cpl_keras.training.planning import RESUME_KEYS, TrainingError, plan_run
 
 # ---------------------------------------------------------------------------
 # Training
@@ -206,7 +206,7 @@ def _run(plan, steps_per_execution, verbose):
 
 
 def _run_locked(plan, model, config, run_dir, verbose):
-    from cpl_keras.sequence import StereoSequence
+    from cpl_keras.training.sequence import StereoSequence
 
     finished = _finished_run(run_dir)  # (by the process this one waited for)
     if finished is not None:
@@ -228,8 +228,8 @@ def _run_locked(plan, model, config, run_dir, verbose):
         bn_seq = StereoSequence(config["data"], batchnorm_pairs(plan, config), shuffle=False,
                                 **common)
 
-    from cpl_keras.checkpointing import RunState
-    from cpl_keras.progress import EpochLines
+    from cpl_keras.training.checkpointing import RunState
+    from cpl_keras.training.progress import EpochLines
 
     run_state = RunState(run_dir, config["patience"], train_seq, config["bn_recompute_batches"],
                          time_budget_s=config.get("time_budget_s"), bn_sequence=bn_seq,
@@ -347,7 +347,7 @@ def _target_scale(plan):
 
 def _finish(model, run_dir, config, state):
     """Best weights -> model.keras; final config.json; remove the checkpoint."""
-    from cpl_keras.checkpointing import publish_run_files
+    from cpl_keras.training.checkpointing import publish_run_files
 
     chief = distributed.is_chief()  # (in a group, process 0 writes; the others read)
     if chief:

@@ -16,7 +16,6 @@ import os
 import numpy as np
 
 from cpl_keras import distributed, runs
-from cpl_keras.augment import AUGMENTATIONS
 from cpl_keras.backend import keras_backend
 from cpl_keras.camera import FLOORS, RELEASED_FLOORS
 from cpl_keras.data.mix import training_rigs
@@ -25,6 +24,7 @@ from cpl_keras.datasets import SPLITS, make_split, targets_from_labels
 from cpl_keras.errors import Error
 from cpl_keras.models import BACKBONES, variants
 from cpl_keras.models.variants import ALPHA_RATE, DISENTANGLE
+from cpl_keras.training.augment import AUGMENTATIONS
 
 #: config.json keys that must match for a run directory to be resumed.
 RESUME_KEYS = (
@@ -204,7 +204,7 @@ def plan_run(data, *, variant, run_dir, epochs=200, batch_size=16, learning_rate
     (``"auto"``: ``DISPARITY_CEILING_FACTOR`` times the largest training
     label; None: ``layers.MAX_OUTPUT``, the bound of runs made before it).
     ``augment``: None, or ``"photometric"`` for the training batches
-    (``cpl_keras.augment``; not the paper's).
+    (``cpl_keras.training.augment``; not the paper's).
     ``bn_statistics`` (``BN_STATISTICS``), ``bn_recompute_batches`` and
     ``monitor`` (``MONITORS``): the BatchNorm statistics validation runs
     with, and what early stopping follows (None: "fixed" over 64 batches and

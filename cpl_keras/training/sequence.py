@@ -11,11 +11,11 @@ import threading
 import keras
 import numpy as np
 
-from cpl_keras.augment import AUGMENTATIONS, photometric
 from cpl_keras.camera import TARGETS
 from cpl_keras.data.storage import StereoFile
 from cpl_keras.datasets import targets_from_labels
 from cpl_keras.distributed import local_part
+from cpl_keras.training.augment import AUGMENTATIONS, photometric
 
 #: A sequence keeps its images in memory ("auto") when they take at most this
 #: many bytes (2 GiB: 27,000 pairs at 112x112).
@@ -57,7 +57,7 @@ class StereoSequence(keras.utils.PyDataset):
             ``process_id``-th of ``num_processes`` equal slices), from the
             same order on every process.
         augment: None (the images as stored) or ``"photometric"``
-            (``cpl_keras.augment.photometric``, drawn from the seed, the
+            (``cpl_keras.training.augment.photometric``, drawn from the seed, the
             epoch and the batch index: the same batch whenever it is
             served).
     """

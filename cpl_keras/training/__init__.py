@@ -1,0 +1,20 @@
+"""Training: planning a run, the training loop, its checkpoints and what it
+prints, the batches and their augmentation, several runs at once.
+
+``planning`` checks every argument before anything is written
+(``plan_run``); ``trainer`` runs a plan (``train``: the run directory's
+lifecycle, resume, the lock, data parallel); ``checkpointing`` is its
+callback (checkpoints, early stopping, the NaN guard); ``progress`` what it
+prints; ``sequence`` the batches (``StereoSequence``, Keras); ``augment``
+the photometric augmentation; ``parallel`` several runs at once, each in a
+process of its own.
+
+Importing this package imports no Keras (the command lines start without
+it): ``sequence``, ``checkpointing`` and ``progress`` import Keras, and
+``trainer`` imports them where it uses them.
+"""
+
+from cpl_keras.training.planning import TrainingError, plan_run
+from cpl_keras.training.trainer import summary_line, train
+
+__all__ = ["TrainingError", "plan_run", "summary_line", "train"]
