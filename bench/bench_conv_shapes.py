@@ -74,7 +74,7 @@ def main(argv=None):
     import keras
     import numpy as np
 
-    from cpl_keras.models.backbones import PatchConv2D
+    from cpl_keras.models.fast_layers import PatchConv2D
 
     if keras.backend.backend() != "jax":
         raise SystemExit("bench_conv_shapes.py times the JAX backend only")

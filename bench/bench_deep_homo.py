@@ -2,7 +2,7 @@
 
 Deep-Homo dominates the ``cpu`` reproduction preset (its step costs 15-18
 compact-tower steps). Its convolutions are
-``cpl_keras.models.backbones.PatchConv2D`` layers; this measures what their
+``cpl_keras.models.fast_layers.PatchConv2D`` layers; this measures what their
 paths gain: the same network (same layers, names and weights) trained with
 XLA's own convolutions ("plain"), with the paths ``PatchConv2D`` picks (the
 default: a kernel gradient of matrix products, one per kernel row, on the
@@ -32,7 +32,7 @@ import numpy as np  # noqa: E402
 
 from cpl_keras import models  # noqa: E402
 from cpl_keras.camera import TARGETS  # noqa: E402
-from cpl_keras.models import backbones  # noqa: E402
+from cpl_keras.models import fast_layers  # noqa: E402
 
 
 def build(path, size, x, y):
@@ -41,7 +41,7 @@ def build(path, size, x, y):
     picks, the default; "patches": one matrix product over image patches where
     it picks the tap gradient; same layers and weights either way), compiled
     and traced by one training step on ``x``, ``y``."""
-    original_path = backbones.PatchConv2D.path
+    original_path = fast_layers.PatchConv2D.path
 
     def patches_everywhere(layer, shape):
         chosen = original_path(layer, shape)
@@ -51,12 +51,12 @@ def build(path, size, x, y):
     # (the paths are chosen when the step is traced)
     with contextlib.ExitStack() as paths_chosen:
         if path == "plain":
-            paths_chosen.enter_context(backbones.xla_layers_only())
+            paths_chosen.enter_context(fast_layers.xla_layers_only())
         elif path == "patches":
-            backbones.PatchConv2D.path = patches_everywhere
-            paths_chosen.callback(setattr, backbones.PatchConv2D, "path", original_path)
+            fast_layers.PatchConv2D.path = patches_everywhere
+            paths_chosen.callback(setattr, fast_layers.PatchConv2D, "path", original_path)
         paths = [(layer.name, layer.path(layer.input.shape)) for layer in model.layers
-                 if isinstance(layer, (backbones.PatchConv2D, backbones.ViewMaxPooling2D))]
+                 if isinstance(layer, (fast_layers.PatchConv2D, fast_layers.ViewMaxPooling2D))]
         models.compile_model(model)
         model.train_on_batch(x, y)
     return model, paths

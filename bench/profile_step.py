@@ -163,11 +163,11 @@ def run(args):
         raise SystemExit("profile_step.py profiles the JAX backend only")
     keras.config.set_dtype_policy(args.dtype_policy)
     if args.plain_conv:
-        from cpl_keras.models import backbones
+        from cpl_keras.models import backbones, fast_layers
 
         backbones.with_faster_layers = lambda tower: tower
         # Deep-Homo's PatchConv2D and ViewMaxPooling2D, for the rest of the process
-        backbones.xla_layers_only().__enter__()
+        fast_layers.xla_layers_only().__enter__()
     model = build_model(args.variant, backbone=args.backbone, image_size=args.image_size, seed=0)
     compile_model(model)
     rng = np.random.default_rng(0)

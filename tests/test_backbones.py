@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from cpl_keras import build_model
-from cpl_keras.models import backbones
+from cpl_keras.models import backbones, fast_layers
 
 #: Flattened features of ONE tower: {backbone: {image side: features}}.
 FEATURES_PER_TOWER = {
@@ -86,7 +86,7 @@ def _conv_pair(kernel_size, input_shape, **kwargs):
     """A built Conv2D and a PatchConv2D with the same config and weights."""
     conv = keras.layers.Conv2D(5, kernel_size, **kwargs)
     conv.build(input_shape)
-    patch = backbones.PatchConv2D.from_config(conv.get_config())
+    patch = fast_layers.PatchConv2D.from_config(conv.get_config())
     patch.build(input_shape)
     patch.set_weights(conv.get_weights())
     return conv, patch
@@ -104,7 +104,7 @@ def test_patch_conv2d_matches_conv2d_values_and_gradients(kernel_size, spatial, 
         pytest.skip("gradients through jax.grad (other backends: checked in docs/performance.md)")
     import jax
 
-    shape = (2,) + spatial + (backbones.TAP_GRADIENT_MIN_CHANNELS if path == "tap-gradient" else 3,)
+    shape = (2,) + spatial + (fast_layers.TAP_GRADIENT_MIN_CHANNELS if path == "tap-gradient" else 3,)
     conv, patch = _conv_pair(kernel_size, shape, padding=padding, activation="relu")
     assert patch.path(shape) == path
     x = np.random.default_rng(0).standard_normal(shape).astype("float32")
@@ -122,13 +122,13 @@ def test_patch_conv2d_matches_conv2d_values_and_gradients(kernel_size, spatial, 
 
 
 def test_patch_conv2d_keeps_conv2d_for_strides_dilation_1x1_kernels_and_few_channels():
-    channels = backbones.TAP_GRADIENT_MIN_CHANNELS
-    assert backbones.PatchConv2D(5, 3, padding="same").path((1, 30, 30, channels)) == "tap-gradient"
-    assert backbones.PatchConv2D(5, 3, padding="same").path((1, 30, 30, channels - 1)) == "conv"
+    channels = fast_layers.TAP_GRADIENT_MIN_CHANNELS
+    assert fast_layers.PatchConv2D(5, 3, padding="same").path((1, 30, 30, channels)) == "tap-gradient"
+    assert fast_layers.PatchConv2D(5, 3, padding="same").path((1, 30, 30, channels - 1)) == "conv"
     for shape in ((1, 2, 2, 4), (1, 30, 30, channels)):
         for kwargs in ({"strides": 2}, {"dilation_rate": 2}):
-            assert backbones.PatchConv2D(5, 3, padding="same", **kwargs).path(shape) == "conv"
-        assert backbones.PatchConv2D(5, 1, padding="same").path(shape) == "conv"
+            assert fast_layers.PatchConv2D(5, 3, padding="same", **kwargs).path(shape) == "conv"
+        assert fast_layers.PatchConv2D(5, 1, padding="same").path(shape) == "conv"
 
 
 def test_patch_convolutions_change_neither_weights_nor_outputs(monkeypatch):
@@ -138,10 +138,10 @@ def test_patch_convolutions_change_neither_weights_nor_outputs(monkeypatch):
     patched = build_model("cpl-a", backbone="small_resnet", image_size=size, seed=3)
     tower = patched.get_layer("left_small_resnet")
     assert {layer.name: layer.path(layer.input.shape) for layer in tower.layers
-            if isinstance(layer, backbones.PatchConv2D)} == {"stage4_b_conv": "patches"}
+            if isinstance(layer, fast_layers.PatchConv2D)} == {"stage4_b_conv": "patches"}
     monkeypatch.setattr(backbones, "with_faster_layers", lambda tower: tower)
     plain = build_model("cpl-a", backbone="small_resnet", image_size=size, seed=3)
-    assert not any(isinstance(layer, backbones.PatchConv2D)
+    assert not any(isinstance(layer, fast_layers.PatchConv2D)
                    for layer in plain.get_layer("left_small_resnet").layers)
     assert [w.path for w in patched.weights] == [w.path for w in plain.weights]
     for a, b in zip(patched.get_weights(), plain.get_weights()):
@@ -162,7 +162,7 @@ def test_inception_v3_at_112_takes_the_patch_paths_where_expected():
     tower = backbones.with_faster_layers(
         backbones.TOWERS["inception_v3"](112, 112, "tower"))
     paths = {layer.name: (layer.path(layer.input.shape), tuple(layer.input.shape[1:]))
-             for layer in tower.layers if isinstance(layer, backbones.PatchConv2D)}
+             for layer in tower.layers if isinstance(layer, fast_layers.PatchConv2D)}
     assert sorted(path for path, _ in paths.values()) == ["patches"] * 2 + ["tap-gradient"] * 3
     assert {shape for path, shape in paths.values() if path == "patches"} == {(2, 2, 448)}
     assert {shape for path, shape in paths.values() if path == "tap-gradient"} == {
@@ -170,7 +170,7 @@ def test_inception_v3_at_112_takes_the_patch_paths_where_expected():
     # the four 3x3, stride-2 max-poolings (the stem's two, mixed3's and
     # mixed8's) take views; no MaxPooling2D is left
     pools = [tuple(layer.input.shape[1:]) for layer in tower.layers
-             if isinstance(layer, backbones.ViewMaxPooling2D)
+             if isinstance(layer, fast_layers.ViewMaxPooling2D)
              and layer.path(layer.input.shape) == "views"]
     assert pools == [(53, 53, 64), (24, 24, 192), (11, 11, 288), (5, 5, 768)]
     assert not any(type(layer) is keras.layers.MaxPooling2D for layer in tower.layers)
@@ -192,7 +192,7 @@ def test_view_max_pooling_matches_max_pooling_values_and_gradients(pool_size, sh
     import jax
 
     strides = pool_size[2] if len(pool_size) == 3 else None
-    by_views = backbones.ViewMaxPooling2D(pool_size[:2], strides=strides)
+    by_views = fast_layers.ViewMaxPooling2D(pool_size[:2], strides=strides)
     pool = keras.layers.MaxPooling2D(pool_size[:2], strides=strides)
     assert by_views.path(shape) == "views"
     x = np.random.default_rng(0).standard_normal(shape).astype("float32")  # no ties
@@ -211,18 +211,32 @@ def test_view_max_pooling_splits_a_tied_window_and_keeps_pooling_for_same_paddin
         pytest.skip("gradients through jax.grad")
     import jax
 
-    by_views = backbones.ViewMaxPooling2D(2)
+    by_views = fast_layers.ViewMaxPooling2D(2)
     x = np.array([[1.0, 1.0, 0.0, 5.0], [1.0, 1.0, 2.0, 0.0]], "float32")[None, :, :, None]
     gradient = np.asarray(jax.grad(lambda inputs: keras.ops.sum(by_views(inputs)))(x))[0, :, :, 0]
     np.testing.assert_array_equal(gradient, [[0.25, 0.25, 0, 1], [0.25, 0.25, 0, 0]])
     shape = (1, 8, 8, 1)
-    assert backbones.ViewMaxPooling2D(3, strides=2).path(shape) == "views"
-    assert backbones.ViewMaxPooling2D(2, padding="same").path(shape) == "pool"
-    assert backbones.ViewMaxPooling2D(2).path((1, None, None, 1)) == "pool"
-    with backbones.xla_layers_only():
+    assert fast_layers.ViewMaxPooling2D(3, strides=2).path(shape) == "views"
+    assert fast_layers.ViewMaxPooling2D(2, padding="same").path(shape) == "pool"
+    assert fast_layers.ViewMaxPooling2D(2).path((1, None, None, 1)) == "pool"
+    with fast_layers.xla_layers_only():
         assert by_views.path(shape) == "pool"
-        assert backbones.PatchConv2D(4, 3, padding="same").path((1, 30, 30, 64)) == "conv"
+        assert fast_layers.PatchConv2D(4, 3, padding="same").path((1, 30, 30, 64)) == "conv"
     assert by_views.path(shape) == "views"
+
+
+def test_the_faster_layers_keep_their_registered_names():
+    """Saved models name the layers ``cpl_keras>PatchConv2D`` and
+    ``cpl_keras>ViewMaxPooling2D``; one saved when they lived in
+    ``cpl_keras.models.backbones`` (its config's module) loads as well."""
+    for layer in (fast_layers.PatchConv2D(4, 3, padding="same"), fast_layers.ViewMaxPooling2D(2)):
+        name = type(layer).__name__
+        assert keras.saving.get_registered_name(type(layer)) == f"cpl_keras>{name}"
+        config = keras.saving.serialize_keras_object(layer)
+        assert config["registered_name"] == f"cpl_keras>{name}"
+        config["module"] = "cpl_keras.models.backbones"
+        restored = keras.saving.deserialize_keras_object(config, safe_mode=True)
+        assert type(restored) is type(layer) and restored.get_config() == layer.get_config()
 
 
 def test_deep_homo_takes_the_kernel_gradient_path_on_its_larger_maps(monkeypatch):
@@ -235,17 +249,17 @@ def test_deep_homo_takes_the_kernel_gradient_path_on_its_larger_maps(monkeypatch
 
     model = build_model("deep-homo", image_size=112, seed=4)
     paths = {layer.name: layer.path(layer.input.shape) for layer in model.layers
-             if isinstance(layer, backbones.PatchConv2D)}
+             if isinstance(layer, fast_layers.PatchConv2D)}
     assert paths == {"conv1_1": "conv", "conv1_2": "tap-gradient",
                      "conv2_1": "tap-gradient", "conv2_2": "tap-gradient",
                      "conv3_1": "tap-gradient", "conv3_2": "tap-gradient",
                      "conv4_1": "conv", "conv4_2": "conv"}
     assert {layer.name: layer.path(layer.input.shape) for layer in model.layers
-            if isinstance(layer, backbones.ViewMaxPooling2D)} == {
+            if isinstance(layer, fast_layers.ViewMaxPooling2D)} == {
         "max_pool1": "views", "max_pool2": "views", "max_pool3": "views"}
     monkeypatch.setattr(deep_homo, "PatchConv2D", keras.layers.Conv2D)
     plain = build_model("deep-homo", image_size=112, seed=4)
-    assert not any(isinstance(layer, backbones.PatchConv2D) for layer in plain.layers)
+    assert not any(isinstance(layer, fast_layers.PatchConv2D) for layer in plain.layers)
     assert [w.path for w in model.weights] == [w.path for w in plain.weights]
     for a, b in zip(model.get_weights(), plain.get_weights()):
         np.testing.assert_array_equal(a, b)

@@ -26,7 +26,7 @@ import keras
 
 from cpl_keras.camera import TARGETS
 from cpl_keras.layers import stack_channels, take
-from cpl_keras.models.backbones import PatchConv2D, ViewMaxPooling2D
+from cpl_keras.models.fast_layers import PatchConv2D, ViewMaxPooling2D
 
 
 def deep_homo_outputs(left, right, as_released=False):
