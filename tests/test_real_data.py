@@ -11,7 +11,7 @@ from cpl_keras.camera import image_to_camera, image_to_world
 from cpl_keras.data.storage import StereoFile
 from cpl_keras.camera import crop_resize_coordinate, crop_resize_intrinsics
 from cpl_keras.real import build
-from cpl_keras.real import middlebury, tsinghua
+from cpl_keras.real import middlebury, tsinghua_cityscapes
 
 SIZE = 32
 
@@ -102,7 +102,7 @@ def _write_fixture(root, names=("a_000001", "a_000002"), shape=(48, 96), d=8.0,
 
 def test_tsinghua_layout_rig_labels(tmp_path):
     camera = _write_fixture(tmp_path)
-    out = tsinghua.build_stereo_dataset(tmp_path, tmp_path / "t.h5", image_size=SIZE, seed=1)
+    out = tsinghua_cityscapes.build_stereo_dataset(tmp_path, tmp_path / "t.h5", image_size=SIZE, seed=1)
     with StereoFile(out) as data:
         labels = data.labels
         assert data.num_pairs == 2
@@ -121,7 +121,7 @@ def test_tsinghua_layout_rig_labels(tmp_path):
 
 def test_tsinghua_vehicle_labels_match_dataset_camera_model(tmp_path):
     camera = _write_fixture(tmp_path)
-    out = tsinghua.build_stereo_dataset(tmp_path, tmp_path / "v.h5", image_size=SIZE,
+    out = tsinghua_cityscapes.build_stereo_dataset(tmp_path, tmp_path / "v.h5", image_size=SIZE,
                                         labels="vehicle", right="released")
     with StereoFile(out) as data:
         labels = data.labels
@@ -140,7 +140,7 @@ def test_tsinghua_vehicle_labels_match_dataset_camera_model(tmp_path):
     high = np.uint8((8 * 256 + 1) >> 8)
     expected = (left[0, :, -1].astype(np.int64) - int(high)) % 256
     np.testing.assert_array_equal(right[0, :, -1], expected)
-    assert tsinghua.released_right(np.zeros((4, 4, 3), np.uint8),
+    assert tsinghua_cityscapes.released_right(np.zeros((4, 4, 3), np.uint8),
                                    np.full((4, 4), 2 * 256 + 1, np.uint16), 4).max() == 254
 
 
@@ -149,7 +149,7 @@ def test_warp_moves_pixels_by_disparity():
     left = (rng.random((10, 40, 3)) * 255).astype(np.uint8)
     disparity = np.full((10, 40), 5.0)
     disparity[:, 20:] = 9.0                                   # a nearer region
-    right, visible = tsinghua.warp_to_right(left, disparity)
+    right, visible = tsinghua_cityscapes.warp_to_right(left, disparity)
     np.testing.assert_array_equal(right[:, 0:11], left[:, 5:16])   # right(u - 5) = left(u)
     np.testing.assert_array_equal(right[:, 11:31], left[:, 20:40]) # nearer region wins
     assert visible[:, 5:16].all() and visible[:, 20:].all()

@@ -3,8 +3,9 @@
 * ``cpl_keras.real.middlebury``: crops and rescales of the Middlebury 2014
   "Motorcycle" pair that scikit-image ships (true right image, ground-truth
   disparity, exact intrinsics per crop).
-* ``cpl_keras.real.tsinghua``: the Tsinghua-Daimler Cyclist Benchmark and
-  Cityscapes layouts (camera JSON, left image, 16-bit disparity PNG).
+* ``cpl_keras.real.tsinghua_cityscapes``: the Tsinghua-Daimler Cyclist
+  Benchmark and Cityscapes, one layout (camera JSON, left image, 16-bit
+  disparity PNG).
 * ``cpl_keras.real.chessboard``: OpenCV's 13 sample chessboard pairs from one
   real, unrectified rig, every label derived from the images
   (``cv2.stereoCalibrate``, triangulated corners).

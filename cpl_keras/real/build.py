@@ -29,7 +29,7 @@ import sys
 
 from cpl_keras import cli
 from cpl_keras.real import LABEL_MODES
-from cpl_keras.real import chessboard, kitti, middlebury, oakd, tsinghua
+from cpl_keras.real import chessboard, kitti, middlebury, oakd, tsinghua_cityscapes
 
 SOURCES = ("all", "chessboard", "middlebury", "oakd", "kitti", "tsinghua", "cityscapes")
 #: Default crops of the sets that draw crops (chessboard, oakd: per pair).
@@ -126,7 +126,7 @@ def build_one(source, out, *, root=None, image_size=112, seed=0, crops=None, spl
     if source == "kitti":
         return kitti.build_kitti(root, out, layout=layout, split=split, image_size=image_size,
                                  limit=limit, calib_root=kitti_calib, command=command)
-    return tsinghua.build_stereo_dataset(
+    return tsinghua_cityscapes.build_stereo_dataset(
         root, out, dataset=source, split=split, image_size=image_size, right=right,
         labels=labels, seed=seed, limit=limit, command=command)
 
