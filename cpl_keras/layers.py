@@ -157,7 +157,7 @@ class PositiveDisparity:
 
     Why a ceiling: in inference mode a few pairs' exp(z) explode. On the
     faithful-2000 InceptionV3 MTL-CPL-A run's 140 validation pairs
-    (``bench/diagnose_inference_mode.py``), the median absolute disparity
+    (``analyses/diagnose_inference_mode.py``), the median absolute disparity
     error was 132-148 px under every BatchNorm statistics tried, but the MAE
     ran 364-7,210 px with the statistics of one 256-pair recompute or
     another, from one to five pairs predicted at up to 1e5 px (the training

@@ -1,8 +1,8 @@
-"""The diagnostic scripts of bench/ on the shared tiny run.
+"""The analyses of analyses/ and the diagnostics of bench/ on the shared tiny run.
 
-diagnose_inference_mode.py: every row of statistics is printed, the saved
+analyses/diagnose_inference_mode.py: every row of statistics is printed, the saved
 statistics give the validation loss that training recorded, and the figures
-are finite. fy_from_aspect.py: its errors are the ones worked out here from
+are finite. analyses/fy_from_aspect.py: its errors are the ones worked out here from
 the run's own predictions."""
 
 import importlib.util
@@ -12,11 +12,13 @@ import os
 
 import pytest
 
-BENCH = os.path.join(os.path.dirname(os.path.dirname(__file__)), "bench")
+REPO = os.path.dirname(os.path.dirname(__file__))
+BENCH = os.path.join(REPO, "bench")
+ANALYSES = os.path.join(REPO, "analyses")
 
 
 def _script(name):
-    spec = importlib.util.spec_from_file_location(name, os.path.join(BENCH, name + ".py"))
+    spec = importlib.util.spec_from_file_location(name, os.path.join(ANALYSES, name + ".py"))
     module = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(module)
     return module

@@ -270,13 +270,14 @@ def test_ctrl_c_of_a_benchmark_while_it_compiles_exits_130_with_one_line(tmp_pat
 
 def test_every_command_leaves_through_cli_run():
     """One exit path: the ``__main__`` block of every module of the package,
-    of bench/ and of the top-level commands calls ``cli.run`` (a bare
+    of bench/, of analyses/ and of the top-level commands calls ``cli.run`` (a bare
     ``sys.exit(main())`` is what crashed on Ctrl-C)."""
     import glob
     import re
 
     files = (glob.glob(os.path.join(REPO, "cpl_keras", "**", "*.py"), recursive=True)
              + glob.glob(os.path.join(REPO, "bench", "*.py"))
+             + glob.glob(os.path.join(REPO, "analyses", "*.py"))
              + [os.path.join(REPO, name) for name in ("train.py", "evaluate.py")])
     checked = 0
     for path in files:

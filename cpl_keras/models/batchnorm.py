@@ -68,7 +68,7 @@ def recompute_batchnorm_statistics(model, batches, population=False):
     Training uses the average (Keras's own per-batch variance); on the
     faithful-2000 InceptionV3 MTL-CPL-A run the population variance gave a
     validation loss 5-8 % lower in each of 5 draws
-    (``bench/diagnose_inference_mode.py``)."""
+    (``analyses/diagnose_inference_mode.py``)."""
     layers = batchnorm_layers(model)
     if not layers:
         return 0

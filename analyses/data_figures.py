@@ -1,7 +1,7 @@
 """The figures docs/data.md quotes about the generated labels, measured again.
 
-    python bench/data_figures.py                 # 200 pairs per protocol, seed 0, 112 px
-    python bench/data_figures.py --pairs 300 --out-dir data/figures
+    python analyses/data_figures.py                 # 200 pairs per protocol, seed 0, 112 px
+    python analyses/data_figures.py --pairs 300 --out-dir data/figures
 
 Generates (or reuses) one dataset per protocol with ``generate_dataset`` and
 prints, per protocol, a Markdown row: how often the release's pixel (the
@@ -9,6 +9,10 @@ image centre) sees the sky, the pairs that needed the projection-pixel
 fallback, the label points' distance from the right camera, the median
 |X|, the true disparity's range and median, and the share of labels whose
 projection pixel lies on the principal row or column.
+
+Produces: the table on stdout, the one docs/data.md quotes ("Measured
+(generator 3.0) by a committed script"); the datasets it makes go to
+``--out-dir`` (runs/data_figures/, not committed).
 """
 
 from __future__ import annotations
@@ -76,4 +80,4 @@ def main(argv=None):
 if __name__ == "__main__":
     from cpl_keras import cli
 
-    cli.run(main, 'bench/data_figures.py')
+    cli.run(main, 'analyses/data_figures.py')

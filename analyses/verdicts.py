@@ -7,12 +7,16 @@ paired bootstrap of every seed's test pairs agree
 (``cpl_keras.evaluation.verdicts``). Writes ``verdicts.md`` and
 ``verdicts.json`` in the folder.
 
-    python bench/verdicts.py                      # paper_results/cpu-8000
-    python bench/verdicts.py --folder paper_results/cpu-8000 --resamples 2000
-    python bench/verdicts.py --folder paper_results/compact-2000
+    python analyses/verdicts.py                      # paper_results/cpu-8000
+    python analyses/verdicts.py --folder paper_results/cpu-8000 --resamples 2000
+    python analyses/verdicts.py --folder paper_results/compact-2000
 
 A folder's splits are those with a ``table1_<split>.json``; a pair is
 compared where the folder has both variants.
+
+Produces: ``verdicts.md`` and ``verdicts.json`` in ``--folder``; committed
+for paper_results/cpu-8000/ and paper_results/compact-2000/ (rebuilt from
+their committed tables and predictions, no weights needed).
 """
 
 from __future__ import annotations
@@ -139,7 +143,7 @@ def header(resamples, level, seed):
              "(NMAE = MAE / mean|y| over the resampled pairs); a seed gives a side when its "
              f"{level:.0%} percentile interval excludes 0, the rule when every seed gives "
              "the same side. `=`: undecided. Cells: NMAE, mean ± sample SD over the seeds. "
-             f"`python bench/verdicts.py` (bootstrap seed {seed})."), ""]
+             f"`python analyses/verdicts.py` (bootstrap seed {seed})."), ""]
 
 
 def decide_split(folder, split, resamples, seed):
@@ -204,4 +208,4 @@ def main(argv=None):
 if __name__ == "__main__":
     from cpl_keras import cli
 
-    cli.run(main, "bench/verdicts.py")
+    cli.run(main, "analyses/verdicts.py")

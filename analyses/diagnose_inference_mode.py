@@ -26,8 +26,13 @@ A spread between the draws far above the difference between ``recompute all``
 and ``batch stats`` says that the recompute's sample, not the fit, moves the
 validation figures.
 
-    python bench/diagnose_inference_mode.py --run runs/faithful/cvgl-cpl-a-inception_v3 \\
+    python analyses/diagnose_inference_mode.py --run runs/faithful/cvgl-cpl-a-inception_v3 \\
         --batches 16 --draws 4
+
+Produces: the table on stdout. Committed outputs, with the commands in their
+folders' README.md: paper_results/faithful-2000/diagnose_inference_mode.txt,
+paper_results/faithful-2000-steady/diagnose_fixed_64.txt and
+diagnose_epoch_16.txt.
 """
 
 from __future__ import annotations
@@ -168,4 +173,4 @@ def main(argv=None):
 if __name__ == "__main__":
     from cpl_keras import cli
 
-    cli.run(main, 'bench/diagnose_inference_mode.py')
+    cli.run(main, 'analyses/diagnose_inference_mode.py')

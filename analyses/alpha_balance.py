@@ -7,7 +7,11 @@ disentangled terms L_i of Eq. 7 on training batches of its own dataset
 (mean over ``--batches`` batches, in inference mode) and prints alpha_i,
 L_i and alpha_i L_i per term, and the spread of alpha_i L_i.
 
-    python bench/alpha_balance.py runs/faithful/cvgl-cpl-a-small_resnet [RUN ...]
+    python analyses/alpha_balance.py runs/faithful/cvgl-cpl-a-small_resnet [RUN ...]
+
+Produces: the table on stdout. Its figures for the two paces of the
+adaptive weights are quoted in paper_results/faithful-2000/README.md ("The
+adaptive weights' pace").
 """
 
 from __future__ import annotations
@@ -71,4 +75,4 @@ def main(argv=None):
 if __name__ == "__main__":
     from cpl_keras import cli
 
-    cli.run(main, 'bench/alpha_balance.py')
+    cli.run(main, 'analyses/alpha_balance.py')

@@ -4,12 +4,17 @@ true log(fy / fx), for runs on the test split of a ``cameras`` dataset
 (source images of real cameras' aspect ratios squashed to the square
 input, ``cpl_keras.data.protocols``).
 
-    python bench/fy_from_aspect.py --data runs/aspect/cameras_1500.h5 \\
+    python analyses/fy_from_aspect.py --data runs/aspect/cameras_1500.h5 \\
         --split-of runs/aspect/cameras-baseline \\
         --runs runs/aspect/cameras-baseline runs/aspect/random-baseline
 
 The pairs are the test split of ``--split-of`` (a run trained on
 ``--data``); every run is scored on the same pairs.
+
+Produces: one line per run on stdout. Committed output:
+paper_results/aspect/fy_from_aspect.txt (the commands in that folder's
+README.md); paper_results/real-cameras/README.md quotes a run on held-out
+rendered rigs.
 """
 
 from __future__ import annotations
@@ -61,4 +66,4 @@ def main(argv=None):
 if __name__ == "__main__":
     from cpl_keras import cli
 
-    cli.run(main, 'bench/fy_from_aspect.py')
+    cli.run(main, 'analyses/fy_from_aspect.py')
