@@ -17,6 +17,7 @@ and the warnings calibrate printed.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import math
 import os
 import sys
@@ -51,7 +52,9 @@ def truths():
 
 
 def without_paths(result, folder_name):
-    """calibrate's JSON without this machine's paths (file names only)."""
+    """calibrate's JSON of the ``RigCalibration`` ``result`` without this
+    machine's paths (file names only)."""
+    result = result.as_dict()
     rig = dict(result["rig"], folder=folder_name, run=os.path.basename(result["rig"]["run"]))
     pairs = [dict(p, left=os.path.basename(p["left"]), right=os.path.basename(p["right"]),
                   run=os.path.basename(p["run"])) for p in result["pairs"]]
@@ -68,7 +71,7 @@ def main(argv=None):
     import numpy as np
 
     from cpl_keras import exports
-    from cpl_keras.calibrate import calibrate_rig
+    from cpl_keras.calibrate import Calibrator
     from cpl_keras.files import write_json, write_text
 
     os.makedirs(args.out, exist_ok=True)
@@ -82,25 +85,25 @@ def main(argv=None):
             continue
         folder, fx, fy = truth()
         warnings = []
-        result = calibrate_rig(folder, run_dir, warn=warnings.append, aspect=args.aspect)
-        calib = result["rig"]
+        calib = Calibrator.from_run(run_dir).calibrate_folder(
+            folder, aspect=args.aspect, warn=warnings.append)
         write_json(os.path.join(args.out, f"{rig}.json"),
-                   without_paths(result, os.path.basename(folder.rstrip("/"))))
+                   without_paths(calib, os.path.basename(folder.rstrip("/"))))
         write_text(os.path.join(args.out, f"{rig}_warnings.txt"), "".join(
             line.replace(os.path.join(folder, ""), "") + "\n" for line in warnings))
-        published = dict(calib, run=os.path.basename(calib["run"]))   # no machine paths
+        published = dataclasses.replace(calib, run=os.path.basename(calib.run))  # no paths
         exports.write_opencv_yaml(os.path.join(args.out, f"{rig}_opencv.yml"), published)
         exports.write_ros_yaml(os.path.join(args.out, f"{rig}_ros"), published)
-        p, width = calib["parameters"], calib["image_width"]
-        network_fy = float(np.median([pair["network_fy"] for pair in result["pairs"]]))
+        p, width = calib.parameters, calib.image_width
+        network_fy = float(np.median([pair.network_fy for pair in calib.pairs]))
         hfov = math.degrees(2 * math.atan2(width, 2 * fx))
         lines.append(
-            f"| {rig} | {calib['num_pairs']} | {width} x {calib['image_height']} | "
+            f"| {rig} | {calib.num_pairs} | {width} x {calib.image_height} | "
             f"{fx:.1f} / {p['fx']:.1f} ({abs(p['fx'] / fx - 1):.3f}) | "
             f"{fy:.1f} / {p['fy']:.1f} ({abs(p['fy'] / fy - 1):.3f}) | "
             f"{network_fy:.1f} ({abs(network_fy / fy - 1):.3f}) | "
-            f"{hfov:.1f} / {calib['fov_horizontal_deg']:.1f} deg | "
-            f"{calib['spread_over_pairs']['fx']:.1f} px | {len(warnings)} |")
+            f"{hfov:.1f} / {calib.fov_horizontal_deg:.1f} deg | "
+            f"{calib.spread_over_pairs['fx']:.1f} px | {len(warnings)} |")
         print(lines[-1], flush=True)
     text = ("# Calibrating each shipped rig with the model that never saw it\n\n"
             f"`python bench/calibrate_held_out.py {' '.join(argv or sys.argv[1:])}`: "

@@ -2,7 +2,9 @@
 ``camera_info`` YAML and COLMAP's ``cameras.txt`` (``python -m
 cpl_keras.calibrate ... --opencv-yaml FILE --ros-yaml DIR --colmap DIR``).
 
-Both describe the pair as calibrate found it, in the input images' pixels:
+Each writer takes calibrate's record, a ``cpl_keras.calibration.Calibration``
+(one pair) or ``RigCalibration`` (a rig: the medians over its pairs), and
+describes the pair as calibrate found it, in the input images' pixels:
 one pinhole camera model ``K = [[fx, 0, u0], [0, fy, v0], [0, 0, 1]]`` for
 both cameras (the model predicts one), no distortion (the paper's model has
 none), and the right camera's pose from ``pitch`` and ``(tx, ty, tz)``
@@ -45,22 +47,22 @@ def stereo_pose(parameters):
     return rig_to_opencv_pose(R_lr, [parameters["tx"], parameters["ty"], parameters["tz"]])
 
 
-def write_opencv_yaml(path, result):
-    """Write calibrate's ``result`` as an OpenCV stereo YAML (atomically)."""
+def write_opencv_yaml(path, calibration):
+    """Write ``calibration`` as an OpenCV stereo YAML (atomically)."""
     import cv2
 
-    K = camera_matrix(result["parameters"])
-    R, T = stereo_pose(result["parameters"])
+    K = camera_matrix(calibration.parameters)
+    R, T = stereo_pose(calibration.parameters)
     with atomic_path(path) as tmp:
         fs = cv2.FileStorage(tmp, cv2.FILE_STORAGE_WRITE | cv2.FILE_STORAGE_FORMAT_YAML)
         try:
-            fs.write("image_width", int(result["image_width"]))
-            fs.write("image_height", int(result["image_height"]))
+            fs.write("image_width", int(calibration.image_width))
+            fs.write("image_height", int(calibration.image_height))
             for name, value in (("M1", K), ("D1", np.zeros((1, 5))), ("M2", K),
                                 ("D2", np.zeros((1, 5))), ("R", R), ("T", T.reshape(3, 1))):
                 fs.write(name, np.asarray(value, np.float64))
-            fs.write("baseline_m", float(result["parameters"]["baseline"]))
-            fs.write("source", f"cpl_keras.calibrate, run {result['run']}")
+            fs.write("baseline_m", float(calibration.parameters["baseline"]))
+            fs.write("source", f"cpl_keras.calibrate, run {calibration.run}")
         finally:
             fs.release()
     return path
@@ -71,16 +73,16 @@ def _matrix(name, rows, cols, values):
     return f"{name}:\n  rows: {rows}\n  cols: {cols}\n  data: [{data}]\n"
 
 
-def ros_camera_info(result, side):
+def ros_camera_info(calibration, side):
     """The text of one ROS ``camera_info`` YAML (``side``: left or right)."""
-    K = camera_matrix(result["parameters"])
+    K = camera_matrix(calibration.parameters)
     if side == "left":
         P = np.hstack([K, np.zeros((3, 1))])
     else:
-        R, T = stereo_pose(result["parameters"])
+        R, T = stereo_pose(calibration.parameters)
         P = K @ np.hstack([R, T.reshape(3, 1)])
-    return (f"image_width: {int(result['image_width'])}\n"
-            f"image_height: {int(result['image_height'])}\n"
+    return (f"image_width: {int(calibration.image_width)}\n"
+            f"image_height: {int(calibration.image_height)}\n"
             f"camera_name: {side}\n"
             + _matrix("camera_matrix", 3, 3, K)
             + "distortion_model: plumb_bob\n"
@@ -89,14 +91,14 @@ def ros_camera_info(result, side):
             + _matrix("projection_matrix", 3, 4, P))
 
 
-def write_ros_yaml(directory, result):
+def write_ros_yaml(directory, calibration):
     """Write ``left.yaml`` and ``right.yaml`` into ``directory`` (created if
     missing); returns their paths."""
     os.makedirs(directory, exist_ok=True)
     paths = []
     for side in ("left", "right"):
         path = os.path.join(directory, f"{side}.yaml")
-        write_text(path, ros_camera_info(result, side))
+        write_text(path, ros_camera_info(calibration, side))
         paths.append(path)
     return paths
 
@@ -106,27 +108,27 @@ def write_ros_yaml(directory, result):
 COLMAP_PIXEL_OFFSET = 0.5
 
 
-def colmap_cameras(result):
+def colmap_cameras(calibration):
     """The text of COLMAP's ``cameras.txt``: cameras 1 (left) and 2 (right),
     model PINHOLE (``fx fy cx cy``, no distortion), in the input images'
     pixels with COLMAP's pixel centres (``cx = u0 + 0.5``)."""
-    p = result["parameters"]
-    width, height = int(result["image_width"]), int(result["image_height"])
+    p = calibration.parameters
+    width, height = int(calibration.image_width), int(calibration.image_height)
     params = " ".join(repr(float(v)) for v in (
         p["fx"], p["fy"], p["u0"] + COLMAP_PIXEL_OFFSET, p["v0"] + COLMAP_PIXEL_OFFSET))
     return ("# Camera list with one line of data per camera:\n"
             "#   CAMERA_ID, MODEL, WIDTH, HEIGHT, PARAMS[]\n"
             "# Number of cameras: 2\n"
-            f"# cpl_keras.calibrate, run {result['run']}: 1 = left, 2 = right\n"
+            f"# cpl_keras.calibrate, run {calibration.run}: 1 = left, 2 = right\n"
             f"1 PINHOLE {width} {height} {params}\n"
             f"2 PINHOLE {width} {height} {params}\n")
 
 
-def write_colmap_cameras(directory, result):
+def write_colmap_cameras(directory, calibration):
     """Write ``directory/cameras.txt`` (created if missing); returns its path."""
     os.makedirs(directory, exist_ok=True)
     path = os.path.join(directory, "cameras.txt")
-    write_text(path, colmap_cameras(result))
+    write_text(path, colmap_cameras(calibration))
     return path
 
 

@@ -1,5 +1,6 @@
 """python -m cpl_keras.calibrate on image files."""
 
+import dataclasses
 import json
 import os
 import shutil
@@ -10,8 +11,10 @@ import cv2
 import numpy as np
 import pytest
 
-from cpl_keras import calibrate, evaluation
+from cpl_keras import calibrate, calibration, evaluation, exports
+from cpl_keras.calibrate import Calibration, CalibrationError, Calibrator, RigCalibration
 from cpl_keras.camera import PARAMETERS, fov_from_focal
+from cpl_keras.image_pairs import find_pairs
 
 SIZE = 32
 
@@ -30,13 +33,30 @@ def setup(tiny_run, tmp_path_factory):
     return {"root": root, "run": str(run)}
 
 
-def test_calibrate_scales_back_to_input_pixels(setup, tmp_path, capsys):
+@pytest.fixture(scope="module")
+def calibrator(setup):
+    """The tiny run's ``Calibrator``, its model loaded once for the module."""
+    return Calibrator.from_run(setup["run"])
+
+
+def test_calibrate_scales_back_to_input_pixels(setup, calibrator, tmp_path, capsys):
     root = setup["root"]
     out = tmp_path / "calib.json"
     assert calibrate.main([str(root / "left.png"), str(root / "right.png"), "--run",
                            setup["run"], "--json-out", str(out)]) == 0
-    printed = json.loads(capsys.readouterr().out)
+    text = capsys.readouterr().out
+    printed = json.loads(text)
     assert printed == json.load(open(out))
+    # the Python API's record is what the command printed, to the byte
+    record = calibrator.calibrate(str(root / "left.png"), str(root / "right.png"))
+    assert isinstance(record, Calibration) and record.as_dict() == printed
+    assert record.to_json() + "\n" == text == out.read_text()
+    assert list(record.as_dict()) == list(printed) and "notes" not in printed
+    assert record.parameters == printed["parameters"] and record.network_fy == printed["network_fy"]
+    with pytest.raises(dataclasses.FrozenInstanceError):
+        record.aspect = "model"
+    record.as_dict()["parameters"]["fx"] = -1.0          # a copy: the record keeps its fx
+    assert record.parameters["fx"] == printed["parameters"]["fx"]
     assert set(printed["parameters"]) == set(PARAMETERS)
     assert (printed["image_width"], printed["image_height"]) == (64, 40)
     # the same forward pass by hand, on the resized pair
@@ -175,7 +195,8 @@ def test_pose_conversion_to_opencv_inverts_the_rig_pose():
     np.testing.assert_allclose(T, [-0.3, 0.0, 0.0], atol=1e-12)
 
 
-def test_exports_opencv_and_ros_yaml_that_opencv_reads_back(setup, tmp_path, capsys):
+def test_exports_opencv_and_ros_yaml_that_opencv_reads_back(setup, calibrator, tmp_path,
+                                                            capsys):
     """--opencv-yaml and --ros-yaml: cv2.FileStorage reads both back; K holds
     the printed intrinsics, R is the pitch's rotation in OpenCV's axes, T the
     translation, and the ROS right projection matrix is K [R | T]."""
@@ -185,6 +206,13 @@ def test_exports_opencv_and_ros_yaml_that_opencv_reads_back(setup, tmp_path, cap
                            setup["run"], "--opencv-yaml", str(opencv), "--ros-yaml",
                            str(ros)]) == 0
     p = json.loads(capsys.readouterr().out)["parameters"]
+    # the exporters take the API's record and write the command's files, to the byte
+    record = calibrator.calibrate(str(root / "left.png"), str(root / "right.png"))
+    assert open(exports.write_opencv_yaml(str(tmp_path / "api.yml"), record), "rb").read() \
+        == opencv.read_bytes()
+    for side, path in zip(("left", "right"), exports.write_ros_yaml(str(tmp_path / "api"),
+                                                                    record)):
+        assert open(path).read() == (ros / f"{side}.yaml").read_text()
     K = np.array([[p["fx"], 0, p["u0"]], [0, p["fy"], p["v0"]], [0, 0, 1]])
     fs = cv2.FileStorage(str(opencv), cv2.FILE_STORAGE_READ)
     assert fs.isOpened() and fs.getNode("image_width").real() == 64
@@ -219,13 +247,13 @@ def test_exports_opencv_and_ros_yaml_that_opencv_reads_back(setup, tmp_path, cap
 
 def test_from_window_maps_a_crop_prediction_back_by_hand():
     values = {"fx": 10.0, "fy": 12.0, "u0": 15.5, "v0": 7.0, "disparity": 4.0, "baseline": 0.3}
-    out = calibrate.from_window(values, (20, 6, 50, 40), 32, 32)
+    out = calibration.from_window(values, (20, 6, 50, 40), 32, 32)
     assert out["fx"] == pytest.approx(10 * 50 / 32) and out["fy"] == pytest.approx(12 * 40 / 32)
     assert out["u0"] == pytest.approx((15.5 + 0.5) * 50 / 32 - 0.5 + 20)
     assert out["v0"] == pytest.approx((7.0 + 0.5) * 40 / 32 - 0.5 + 6)
     assert out["disparity"] == pytest.approx(4 * 50 / 32) and out["baseline"] == 0.3
-    windows = calibrate.crop_windows(64, 40)
-    assert windows[0] == (0, 0, 64, 40) and len(windows) == 1 + calibrate.TTA_CROPS
+    windows = calibration.crop_windows(64, 40)
+    assert windows[0] == (0, 0, 64, 40) and len(windows) == 1 + calibration.TTA_CROPS
     assert all(x + w <= 64 and y + h <= 40 and 0.75 * 64 < w < 64 for x, y, w, h in windows[1:])
 
 
@@ -260,24 +288,25 @@ def test_spread_scale_priors_fields_and_the_demonstration_notice(setup, tmp_path
 def test_find_pairs_of_the_shipped_rigs_and_of_left_right_folders(tmp_path):
     from cpl_keras.real import chessboard, oakd
 
-    board = calibrate.find_pairs(chessboard.DATA_DIR)
+    board = find_pairs(chessboard.DATA_DIR)
     assert len(board) == 13 and all(
         os.path.basename(r) == os.path.basename(l).replace("left", "right") for l, r in board)
-    assert len(calibrate.find_pairs(oakd.DATA_DIR)) == 12
+    assert len(find_pairs(oakd.DATA_DIR)) == 12
     for side in ("left", "right"):
         (tmp_path / side).mkdir()
         for name in ("a.png", "b.png"):
             (tmp_path / side / name).write_bytes(b"")
-    assert [os.path.basename(l) for l, _ in calibrate.find_pairs(str(tmp_path))] == \
+    assert [os.path.basename(l) for l, _ in find_pairs(str(tmp_path))] == \
         ["a.png", "b.png"]
     (tmp_path / "left" / "c.png").write_bytes(b"")
-    with pytest.raises(calibrate.CalibrationError, match="c.png has no right image"):
-        calibrate.find_pairs(str(tmp_path))
-    with pytest.raises(calibrate.CalibrationError, match="no stereo pairs"):
-        calibrate.find_pairs(str(tmp_path / "left"))
+    with pytest.raises(CalibrationError, match="c.png has no right image"):
+        find_pairs(str(tmp_path))
+    with pytest.raises(CalibrationError, match="no stereo pairs"):
+        find_pairs(str(tmp_path / "left"))
 
 
-def test_a_folder_of_pairs_is_one_rig_of_medians_with_their_spread(setup, tmp_path, capsys):
+def test_a_folder_of_pairs_is_one_rig_of_medians_with_their_spread(setup, calibrator, tmp_path,
+                                                                   capsys):
     """--folder: each pair calibrated as on its own, the rig's parameters the
     medians over the pairs (worked out here from the printed pairs), their
     spread the standard deviation; the YAML holds the rig's intrinsics; a
@@ -296,11 +325,20 @@ def test_a_folder_of_pairs_is_one_rig_of_medians_with_their_spread(setup, tmp_pa
     printed = json.loads(captured.out)
     pairs, rig = printed["pairs"], printed["rig"]
     assert [os.path.basename(p["left"]) for p in pairs] == [f"{k}_left.png" for k in range(3)]
-    one = calibrate.calibrate_pair(str(folder / "1_left.png"), str(folder / "1_right.png"),
-                                   setup["run"])
-    assert pairs[1]["parameters"] == one["parameters"]
+    one = calibrator.calibrate(str(folder / "1_left.png"), str(folder / "1_right.png"))
+    assert pairs[1]["parameters"] == one.parameters
     assert rig["num_pairs"] == 3 and "disparity" not in rig["parameters"]
-    for name in calibrate.RIG_PARAMETERS:
+    # the Python API: the same JSON, a record of records, the medians of its pairs
+    record = calibrator.calibrate_folder(str(folder))
+    assert isinstance(record, RigCalibration) and record.as_dict() == printed
+    assert record.to_json() + "\n" == captured.out
+    assert [pair.parameters for pair in record.pairs] == [p["parameters"] for p in pairs]
+    for name in calibration.RIG_PARAMETERS:
+        assert record.parameters[name] == float(np.median([p.parameters[name]
+                                                           for p in record.pairs]))
+    assert (tmp_path / "rig.yml").read_bytes() == \
+        open(exports.write_opencv_yaml(str(tmp_path / "api.yml"), record), "rb").read()
+    for name in calibration.RIG_PARAMETERS:
         values = sorted(p["parameters"][name] for p in pairs)
         assert rig["parameters"][name] == values[1]
         mean = sum(values) / 3
@@ -341,7 +379,7 @@ def test_a_shipped_real_pair_calibrates_with_spreads_warnings_and_both_exports(
     from cpl_keras.real import chessboard, oakd
 
     folder = {"chessboard": chessboard.DATA_DIR, "oakd": oakd.DATA_DIR}[rig]
-    left, right = next((l, r) for l, r in calibrate.find_pairs(folder)
+    left, right = next((l, r) for l, r in find_pairs(folder)
                        if pair in os.path.basename(l))
     opencv, ros = tmp_path / "stereo.yml", tmp_path / "ros"
     assert calibrate.main([left, right, "--run", setup["run"], "--opencv-yaml", str(opencv),
@@ -491,12 +529,12 @@ def test_focal_from_a_jpegs_exif_35mm_equivalent(setup, tmp_path, capsys):
                                          "(FocalLengthIn35mmFilm); give --focal PX")
 
 
-def test_colmap_cameras_txt_reads_back(setup, tmp_path, capsys):
-    from cpl_keras import exports
-
+def test_colmap_cameras_txt_reads_back(setup, calibrator, tmp_path, capsys):
     out = tmp_path / "colmap"
     assert calibrate.main(_pair_args(setup) + ["--colmap", str(out)]) == 0
     result = json.loads(capsys.readouterr().out)
+    record = calibrator.calibrate(*_pair_args(setup)[:2])
+    assert exports.colmap_cameras(record) == (out / "cameras.txt").read_text()
     cameras = exports.read_colmap_cameras(out / "cameras.txt")
     p = result["parameters"]
     expected = (p["fx"], p["fy"], p["u0"] + 0.5, p["v0"] + 0.5)
@@ -510,3 +548,29 @@ def test_colmap_cameras_txt_reads_back(setup, tmp_path, capsys):
     blocker.write_text("x")
     assert calibrate.main(_pair_args(setup) + ["--colmap", str(blocker)]) == 2
     assert "--colmap is a file, not a directory" in capsys.readouterr().err
+
+
+def test_bad_arguments_to_the_python_api_are_one_line_calibration_errors(setup, calibrator,
+                                                                          tmp_path):
+    """Checked before any image is read or any pair searched for; a missing
+    image and a run directory that is not one likewise, as one line."""
+    from cpl_keras import priors as known
+    from cpl_keras.errors import Error
+
+    left, right = _pair_args(setup)[:2]
+    cases = [(lambda: calibrator.calibrate(left, right, aspect="wide"), "unknown aspect 'wide'"),
+             (lambda: calibrator.calibrate(left, right, priors={"baseline_m": 0.1}),
+              "priors must be a cpl_keras.priors.Priors, not dict"),
+             (lambda: calibrator.calibrate_folder(str(tmp_path / "none"), aspect="fisheye"),
+              "unknown aspect 'fisheye'"),
+             (lambda: calibrator.calibrate(left, str(tmp_path / "missing.png")), "not found")]
+    for call, message in cases:
+        with pytest.raises(CalibrationError) as error:
+            call()
+        assert message in str(error.value) and "\n" not in str(error.value), error.value
+    with pytest.raises(Error) as error:
+        Calibrator.from_run(str(tmp_path / "nothing"))
+    assert "not found" in str(error.value) and "\n" not in str(error.value)
+    # known values go through as on the command line
+    known_focal = calibrator.calibrate(left, right, priors=known.Priors(focal_px=50.0))
+    assert known_focal.parameters["fx"] == 50.0 and known_focal.from_prior

@@ -1,0 +1,404 @@
+"""Calibrating stereo pairs of image files with a trained run, from Python:
+
+    from cpl_keras.calibrate import Calibrator
+
+    calibrator = Calibrator.from_run("runs/cpl-a-paper-s0")    # the model, loaded once
+    calibration = calibrator.calibrate("left.png", "right.png")
+    calibration.parameters["fx"], calibration.fov_horizontal_deg
+    rig = calibrator.calibrate_folder("cpl_keras/real/oakd_stereo")   # medians over the pairs
+
+``Calibration`` (one pair) and ``RigCalibration`` (a folder of pairs of one
+rig) are the records; ``as_dict()`` and ``to_json()`` give the JSON that
+``python -m cpl_keras.calibrate`` prints (its module doc says what each
+value is), and ``cpl_keras.exports`` writes them for OpenCV, ROS and
+COLMAP. Bad input is a one-line ``CalibrationError``.
+
+The values are in the input images' own pixel units: the model sees the
+pair resized to its input size S, so the focal length and principal point
+are scaled back per axis (``fx``, ``u0``, ``disparity`` by W / S, ``fy``,
+``v0`` by H / S, with pixel centres at integer coordinates: ``u = (u_S +
+0.5) W / S - 0.5``). Metres and radians are unchanged. A run trained
+``as_released`` predicts pitch in degrees and the release's StereoBM
+disparity; pitch is converted to radians and the disparity is scaled like
+the others, with a note that it is the release's quantity.
+"""
+
+from __future__ import annotations
+
+import copy
+import dataclasses
+import json
+import math
+import os
+
+import numpy as np
+
+from cpl_keras import evaluation, priors as known, real_record, runs
+from cpl_keras.camera import PARAMETERS, UNITS, from_window, fov_from_focal
+from cpl_keras.data.storage import StereoFile
+from cpl_keras.image_pairs import CalibrationError, find_pairs, is_grey, read_pair
+from cpl_keras.images import resize_image
+
+#: Test-time crops for the spread: how many, and their side as a share of the image.
+TTA_CROPS = 8
+TTA_FRACTION = (0.8, 0.95)
+#: A spread of fx or fy above this share of the value is warned about.
+SPREAD_WARNING = 0.2
+#: How fy is reported: "square" pixels (fy = fx), or the "model"'s fy head.
+ASPECTS = ("square", "model")
+#: What each printed field means, with its unit.
+FIELDS = {
+    "fx": "focal length along u (px of the input images)",
+    "fy": "focal length along v (px)",
+    "u0": "principal point u (px; pixel centres at integers)",
+    "v0": "principal point v (px)",
+    "baseline": "distance between the camera centres (m; a scale prior, see scale_free)",
+    "disparity": "disparity of the projection pixel (px; Eq. 4a: fx * baseline / xCam)",
+    "tx": "right camera's position along the left camera's forward axis (m; scale prior)",
+    "ty": "right camera's position along the left camera's left axis (m; scale prior)",
+    "tz": "right camera's position along the left camera's up axis (m; scale prior)",
+    "pitch": "right camera's pitch relative to the left one (rad; positive: down)",
+    "X": "the projection pixel's point, forward (m, left camera frame; scale prior)",
+    "Y": "the point, to the left (m; scale prior)",
+    "Z": "the point, up (m; scale prior)",
+}
+#: What the JSON says of the quantities a pair does not fix.
+SCALE_PRIORS = ("baseline", "tx", "ty", "tz", "X", "Y", "Z")
+SCALE_NOTE = ("the pair's matches fix the disparity in pixels; for a rectified or nearly "
+              "rectified rig (parallel optical axes) they carry nothing of fx, fy, u0, v0 "
+              "(its fundamental matrix does not depend on them), so those come from how "
+              "scenes looked in training, as does baseline / depth = disparity / fx through "
+              "fx; the metres of baseline, tx, ty, tz and X, Y, Z come from the scene scale "
+              "seen in training (scale priors)")
+ASPECT_NOTES = {
+    "square": "square pixels: fy = fx (px of the input images); network_fy is the network's "
+              "own fy, which guesses the aspect ratio of the squashed image from content",
+    "model": "fy is the network's fy head (the pair squashed to the model's square input)",
+}
+SPREAD_METHOD = (f"standard deviation over the whole image and {{}} crops of "
+                 f"{int(100 * TTA_FRACTION[0])}-{int(100 * TTA_FRACTION[1])} % of each side, "
+                 "each mapped back to the full image's pixels")
+RELEASED_NOTE = ("run trained as released: pitch converted from degrees; disparity is the "
+                 "release's StereoBM mean label, not a pixel disparity")
+#: The rig's parameters (the disparity belongs to each pair's scene).
+RIG_PARAMETERS = tuple(name for name in PARAMETERS if name != "disparity")
+RIG_METHOD = ("median over the pairs; spread_over_pairs: standard deviation over the pairs "
+              "(n - 1 in the denominator)")
+
+
+class _Record:
+    """``as_dict`` and ``to_json`` of the records below."""
+
+    def as_dict(self):
+        """The record as calibrate's JSON-ready dict (a copy: changing it
+        leaves the record as it is)."""
+        return {f.name: copy.deepcopy(getattr(self, f.name)) for f in dataclasses.fields(self)
+                if not (f.name == "notes" and getattr(self, f.name) is None)}
+
+    def to_json(self):
+        """The JSON text ``python -m cpl_keras.calibrate`` prints."""
+        return json.dumps(self.as_dict(), indent=2, allow_nan=False)
+
+
+@dataclasses.dataclass(frozen=True, kw_only=True)
+class Calibration(_Record):
+    """One pair calibrated by a run, in the input images' pixels."""
+
+    left: str                 #: the left image file (absolute path)
+    right: str                #: the right image file
+    image_width: int          #: W of the input images (px)
+    image_height: int         #: H
+    model_input: list         #: [S_h, S_w], the model's input the pair was resized to
+    run: str                  #: the run directory
+    variant: str              #: the run's model variant
+    parameters: dict          #: fx, fy, u0, v0, baseline, disparity, tx, ty, tz, pitch
+    point: dict               #: X, Y, Z: the projection pixel's point (m, left camera frame)
+    pitch_deg: float          #: pitch in degrees
+    fov_horizontal_deg: float  #: horizontal field of view from fx and W
+    fov_vertical_deg: float   #: vertical field of view from fy and H
+    units: dict               #: each parameter's unit
+    spread: dict              #: each value's standard deviation over crops of the pair
+    spread_method: str        #: how the spread was measured
+    scale_free: dict          #: what one pair fixes: the disparity, baseline / depth
+    scale_priors: list        #: the values whose metres come from training's scene scale
+    fields: dict              #: what each value means, with its unit
+    demonstration_model: bool  #: the run is the demonstration model
+    aspect: str               #: "square" (fy = fx) or "model" (the network's fy)
+    network_fy: float         #: the network's own fy (px)
+    aspect_note: str          #: what ``aspect`` means
+    training: dict            #: the run's protocol, split and training label ranges
+    notes: list | None = None  #: a run trained as released: what differs (else left out)
+    real_camera_record: dict  #: the run's record on real cameras (``real_record``)
+    priors: dict              #: the known values given, where they came from
+    from_prior: list          #: the outputs that came from, or through, a known value
+
+
+@dataclasses.dataclass(frozen=True, kw_only=True)
+class RigCalibration(_Record):
+    """The pairs of one rig calibrated by a run, and the rig from them;
+    ``as_dict()`` is ``{"rig": ..., "pairs": [...]}``."""
+
+    folder: str               #: the folder of pairs (absolute path)
+    num_pairs: int            #: how many pairs it holds
+    run: str                  #: the run directory
+    variant: str              #: the run's model variant
+    image_width: int          #: W of the pairs' images (px; one rig, one size)
+    image_height: int         #: H
+    parameters: dict          #: each of RIG_PARAMETERS: the median over the pairs
+    spread_over_pairs: dict   #: their standard deviation over the pairs
+    method: str               #: how the two were worked out
+    pitch_deg: float          #: the median pitch in degrees
+    fov_horizontal_deg: float  #: horizontal field of view from the median fx
+    fov_vertical_deg: float   #: vertical field of view from the median fy
+    units: dict               #: each parameter's unit
+    scale_priors: list        #: the parameters whose metres come from training's scene scale
+    demonstration_model: bool  #: the run is the demonstration model
+    aspect: str               #: "square" or "model"
+    aspect_note: str          #: what ``aspect`` means
+    real_camera_record: dict  #: the run's record on real cameras
+    priors: dict              #: the known values given (without a pair's scale factor)
+    from_prior: list          #: the outputs that came from, or through, a known value
+    pairs: tuple = ()         #: each pair's ``Calibration``
+
+    def as_dict(self):
+        rig = {f.name: copy.deepcopy(getattr(self, f.name)) for f in dataclasses.fields(self)
+               if f.name != "pairs"}
+        return {"rig": rig, "pairs": [pair.as_dict() for pair in self.pairs]}
+
+
+def crop_windows(width, height, count=TTA_CROPS, seed=0):
+    """The windows ``(x0, y0, w, h)`` the spread is measured over: the whole
+    image, then ``count`` crops of 80-95 % of each side at seeded positions."""
+    rng = np.random.default_rng(seed)
+    windows = [(0, 0, width, height)]
+    for _ in range(count):
+        w = int(round(width * rng.uniform(*TTA_FRACTION)))
+        h = int(round(height * rng.uniform(*TTA_FRACTION)))
+        windows.append((int(rng.integers(0, width - w + 1)), int(rng.integers(0, height - h + 1)),
+                        w, h))
+    return windows
+
+
+def is_demonstration(run):
+    """Whether ``run`` is train.py's demonstration run (trained without --data
+    on the cached demonstration dataset)."""
+    data = os.path.basename(str(run.config.data or ""))
+    return data.startswith("demo-") or "--data" not in str(run.config.command or "--data")
+
+
+def training_protocol(run):
+    """The data generator's protocol of the run's training set (config.json,
+    else the dataset's metadata when the file is still there), or None."""
+    if run.config.protocol:
+        return run.config.protocol
+    try:
+        with StereoFile(run.config.data) as data:
+            return data.metadata.get("protocol")
+    except Exception:  # moved or unreadable: unknown
+        return None
+
+
+def label_ranges(stats):
+    """name -> [min, max] of the training labels (train_stats.json), or None
+    for a run whose statistics predate the ranges."""
+    if "min" not in stats or "max" not in stats:
+        return None
+    return {name: [stats["min"][name], stats["max"][name]] for name in stats["targets"]
+            if name in stats["min"] and name in stats["max"]}
+
+
+def predict_windows(model, left, right, windows, released):
+    """The model's outputs on each window of the pair (resized to its input):
+    ``(raw, mapped)``, two lists of dicts, as the model gives them and in the
+    full image's pixels with pitch in radians."""
+    size_h, size_w = evaluation.model_image_shape(model)
+    pred = evaluation.predict_images(
+        model, np.stack([resize_image(left[y:y + h, x:x + w], size_w, size_h)
+                         for x, y, w, h in windows]),
+        np.stack([resize_image(right[y:y + h, x:x + w], size_w, size_h)
+                  for x, y, w, h in windows]))
+    raw, mapped = [], []
+    for i, window in enumerate(windows):
+        one = {name: float(pred[name][i]) for name in pred}
+        raw.append(dict(one))
+        if released:  # (the release predicted pitch in degrees)
+            one["pitch"] = math.radians(one["pitch"])
+        mapped.append(from_window(one, window, size_w, size_h))
+    return raw, mapped
+
+
+def _check_ranges(raw, ranges, warn):
+    """Warn about predictions outside the training labels' range (model units)."""
+    outside = [f"{name} {raw[name]:.4g} (trained on {lo:.4g}..{hi:.4g})"
+               for name, (lo, hi) in (ranges or {}).items()
+               if name in raw and not lo <= raw[name] <= hi]
+    if outside:
+        warn("warning: predictions outside the training labels' range, in the model's "
+             f"input units: {', '.join(outside)}")
+
+
+def _check_spread(spread, values, aspect, warn, between="crops of the pair", of="value"):
+    """Warn about fx (and the network's fy) moving by over SPREAD_WARNING."""
+    for name in ("fx", "fy") if aspect == "model" else ("fx",):   # (square: fy is fx)
+        if spread[name] > SPREAD_WARNING * abs(values[name]):
+            warn(f"warning: {name} changes by {spread[name]:.4g} px (std) between {between}, "
+                 f"over {100 * SPREAD_WARNING:.0f} % of its {of} {values[name]:.4g}: "
+                 "an unreliable estimate")
+
+
+def _check_arguments(aspect, priors):
+    if aspect not in ASPECTS:
+        raise CalibrationError(f"unknown aspect {aspect!r}; choose one of {', '.join(ASPECTS)}")
+    if priors is not None and not isinstance(priors, known.Priors):
+        raise CalibrationError(f"priors must be a cpl_keras.priors.Priors, not "
+                               f"{type(priors).__name__}")
+
+
+def _resolve_priors(priors, left_path, width, height):
+    """``priors`` with an EXIF focal length read from the left image."""
+    if priors.focal_source != "exif":
+        return priors
+    focal, source = known.exif_focal_px(left_path, width, height)
+    return known.Priors(baseline_m=priors.baseline_m, focal_px=focal, focal_source=source)
+
+
+class Calibrator:
+    """A trained run's model, loaded once, that calibrates pairs of image
+    files (``calibrate``) and folders of one rig's pairs
+    (``calibrate_folder``). ``warn(line)``, when given, is called with each
+    warning (a grey image, a prediction outside the training labels' range,
+    a large spread, the demonstration model)."""
+
+    def __init__(self, run, model):
+        self.run, self.model = run, model
+
+    @classmethod
+    def from_run(cls, run_dir):
+        """The calibrator of the run in ``run_dir`` (its model loaded)."""
+        run = runs.load_run(run_dir)
+        return cls(run, runs.load_model(run))
+
+    def calibrate(self, left, right, *, aspect="square", priors=None, warn=None):
+        """The ``Calibration`` of the pair of image files ``left``,
+        ``right``; ``aspect`` one of ``ASPECTS``, ``priors`` a
+        ``cpl_keras.priors.Priors`` of known values (its ``focal_source``
+        "exif": the left image's EXIF)."""
+        _check_arguments(aspect, priors)
+        warn = warn or (lambda line: None)
+        run, (size_h, size_w) = self.run, evaluation.model_image_shape(self.model)
+        left_image, right_image = read_pair(left, right)
+        height, width = left_image.shape[:2]
+        if height < size_h or width < size_w:
+            raise CalibrationError(
+                f"images are {width}x{height}, smaller than the model's input {size_w}x{size_h}")
+        for side, path, image in (("left", left, left_image), ("right", right, right_image)):
+            if is_grey(image):
+                warn(f"warning: the {side} image {path} is grey; the model was trained on "
+                     "colour images")
+        windows = crop_windows(width, height)
+        raw, per_window = predict_windows(self.model, left_image, right_image, windows,
+                                          run.as_released)
+        network_fy, network_baseline = per_window[0]["fy"], per_window[0]["baseline"]
+        if aspect == "square":                  # fy = fx on the input images (and every crop)
+            for one in per_window:
+                one["fy"] = one["fx"]
+        priors = _resolve_priors(known.Priors() if priors is None else priors, left, width,
+                                 height)
+        if priors:                              # what the user knows, in place of the guess
+            per_window = [known.apply(one, priors, aspect) for one in per_window]
+        values = per_window[0]                  # the whole image
+        if not all(math.isfinite(v) for v in values.values()):
+            raise CalibrationError("the model predicted non-finite values")
+        ranges = label_ranges(run.stats)
+        _check_ranges(raw[0], ranges, warn)
+        spread = {name: float(np.std([v[name] for v in per_window], ddof=1))
+                  for name in PARAMETERS + ("X", "Y", "Z")}
+        _check_spread(spread, values, aspect, warn)
+        demo = is_demonstration(run)
+        if demo:
+            warn("warning: this run is the demonstration model (800 pairs, small towers, 8 "
+                 "epochs): its values show the pipeline working, not a calibration")
+        return Calibration(
+            left=os.path.abspath(left), right=os.path.abspath(right),
+            image_width=width, image_height=height, model_input=[size_h, size_w],
+            run=run.run_dir, variant=run.config.variant,
+            parameters={name: values[name] for name in PARAMETERS},
+            point={name: values[name] for name in ("X", "Y", "Z")},
+            pitch_deg=math.degrees(values["pitch"]),
+            fov_horizontal_deg=float(np.degrees(fov_from_focal(values["fx"], width))),
+            fov_vertical_deg=float(np.degrees(fov_from_focal(values["fy"], height))),
+            units={name: UNITS[name] for name in PARAMETERS},
+            spread=spread, spread_method=SPREAD_METHOD.format(len(windows) - 1),
+            scale_free={"disparity_px": values["disparity"],
+                        "baseline_over_depth": values["disparity"] / values["fx"],
+                        "note": SCALE_NOTE},
+            scale_priors=list(SCALE_PRIORS), fields=dict(FIELDS), demonstration_model=demo,
+            aspect=aspect, network_fy=network_fy, aspect_note=ASPECT_NOTES[aspect],
+            training=_training(run, ranges, size_w, size_h),
+            notes=[RELEASED_NOTE] if run.as_released else None,
+            real_camera_record=real_record.summarise(run),
+            priors=known.describe(priors, factor=(
+                priors.baseline_m / network_baseline if priors.baseline_m else None)),
+            from_prior=known.from_prior(priors))
+
+    def calibrate_folder(self, folder, *, aspect="square", priors=None, warn=None):
+        """The ``RigCalibration`` of every pair of ``folder`` (``find_pairs``):
+        each pair calibrated as by ``calibrate``, the rig's parameters (all
+        but the disparity, which is the scene's) the medians over the pairs,
+        with their spread over the pairs. Warnings name their pair; each is
+        given once."""
+        _check_arguments(aspect, priors)
+        warn = warn or (lambda line: None)
+        said, results = set(), []
+
+        def warn_once(line):
+            if line not in said:
+                said.add(line)
+                warn(line)
+
+        for left, right in find_pairs(folder):
+            name = os.path.basename(left)
+            results.append(self.calibrate(
+                left, right, aspect=aspect, priors=priors,
+                warn=lambda line, name=name: warn_once(
+                    line if "demonstration model" in line else f"{name}: {line}")))
+        return _rig(folder, results, aspect, warn)
+
+
+def _training(run, ranges, size_w, size_h):
+    """The JSON's ``training``: what the run was trained on."""
+    return {"protocol": training_protocol(run), "split": run.config.split,
+            "as_released": run.as_released, "label_ranges": ranges,
+            "label_ranges_units": f"the model's input ({size_w}x{size_h} px), targets as trained"}
+
+
+def _rig(folder, results, aspect, warn):
+    """The ``RigCalibration`` of ``folder`` from its pairs' ``results``."""
+    sizes = sorted({(r.image_width, r.image_height) for r in results})
+    if len(sizes) > 1:
+        raise CalibrationError(f"the pairs of {folder} have different image sizes "
+                               f"({sizes[0][0]}x{sizes[0][1]}, {sizes[1][0]}x{sizes[1][1]}); "
+                               "one rig has one")
+    width, height = sizes[0]
+    per_pair = {name: [r.parameters[name] for r in results] for name in RIG_PARAMETERS}
+    parameters = {name: float(np.median(v)) for name, v in per_pair.items()}
+    spread = {name: float(np.std(v, ddof=1)) if len(v) > 1 else 0.0
+              for name, v in per_pair.items()}
+    _check_spread(spread, parameters, aspect, warn, between=f"the {len(results)} pairs",
+                  of="median")
+    first = results[0]
+    return RigCalibration(
+        folder=os.path.abspath(folder), num_pairs=len(results), run=first.run,
+        variant=first.variant, image_width=width, image_height=height,
+        parameters=parameters, spread_over_pairs=spread, method=RIG_METHOD,
+        pitch_deg=math.degrees(parameters["pitch"]),
+        fov_horizontal_deg=float(np.degrees(fov_from_focal(parameters["fx"], width))),
+        fov_vertical_deg=float(np.degrees(fov_from_focal(parameters["fy"], height))),
+        units={name: UNITS[name] for name in RIG_PARAMETERS},
+        scale_priors=[n for n in SCALE_PRIORS if n in RIG_PARAMETERS],
+        demonstration_model=first.demonstration_model, aspect=aspect,
+        aspect_note=ASPECT_NOTES[aspect], real_camera_record=copy.deepcopy(
+            first.real_camera_record),
+        priors={name: {k: v for k, v in said.items() if k != "scale_factor"}
+                for name, said in first.priors.items()},
+        from_prior=list(first.from_prior), pairs=tuple(results))
