@@ -147,8 +147,8 @@ def summary_rows(name, table, row, square_fy):
     Average row's, fy from square pixels (``square_fy``: rig -> median
     relative error), and whether each target is met (fy: square pixels)."""
     lines = []
-    for rig, part in table["rigs"].items():
-        model, average = part["rows"][row], part["rows"]["Average"]
+    for rig, part in table.rigs.items():
+        model, average = part.rows[row], part.rows["Average"]
         field, within = model["field"], model["fov_within_deg"][str(TARGETS["fov_deg"])] / 100
         met = [field["relative_fx_median"] <= TARGETS["relative"],
                square_fy[rig] <= TARGETS["relative"],

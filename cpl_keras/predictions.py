@@ -128,7 +128,7 @@ def _arrays(row, raw, *, name, out_dir, run_configs, reference, data_path, subse
         "indices": np.asarray(raw["indices"], np.int64),
         "name": np.array(name), "row": np.array(row),
         "variant": np.array(BASELINES.get(row) or config["variant"]),
-        "source": np.array(report.portable({"source": raw["source"]}, out_dir)["source"]),
+        "source": np.array(report.portable_paths({"source": raw["source"]}, out_dir)["source"]),
         "as_released": np.array(bool(raw["as_released"])),
         "dataset": np.array(dataset), "generator_version": np.array(version),
         "dataset_path": np.array(runs.relative(data_path, out_dir)),
@@ -136,7 +136,7 @@ def _arrays(row, raw, *, name, out_dir, run_configs, reference, data_path, subse
         "seed": np.array(int(identity.get("seed", 0)), np.int64),
         "table": np.array(table), "table_number": np.array(int(table_number), np.int64),
         "rig": np.array(rig), "rig_index": np.array(int(rig_index), np.int64),
-        "context": np.array(json.dumps(report.portable(context, out_dir), sort_keys=True)),
+        "context": np.array(json.dumps(report.portable_paths(context, out_dir), sort_keys=True)),
         "key": np.array(key),
     }
     if row == "Geometric":

@@ -22,14 +22,14 @@ RECORD = "real_cameras.json"
 
 
 def write_record(run_dir, table, command=None):
-    """Write ``run_dir``'s record from ``table``, a Table 2 of that run
+    """Write ``run_dir``'s record from ``table``, a pooled ``Table2`` of that run
     (``evaluation.make_table2([run_dir], real_sets)``): per rig, its pairs,
     the median relative fx error and hFoV error of the run's row, and the
     Average row's relative fx error."""
     row = runs.read_run_config(run_dir).row
     rigs = {}
-    for rig, part in table["rigs"].items():
-        model, average = part["rows"][row], part["rows"]["Average"]
+    for rig, part in table.rigs.items():
+        model, average = part.rows[row], part.rows["Average"]
         rigs[rig] = {
             "pairs": int(model["num_pairs"]),
             "relative_fx_error": float(model["field"]["relative_fx_median"]),

@@ -281,7 +281,7 @@ def test_training_writes_the_release_average_of_the_release_labels(tmp_path):
     # plain Average (of a paper-mode run) against the paper's
     from cpl_keras.evaluation import make_table
 
-    rows = make_table(1, [str(run_dir)], geometric=False)["rows"]
+    rows = make_table(1, [str(run_dir)], geometric=False).rows
     test = split["test"]
     bug, plain = rows["Average (release bug)"], rows["Average"]
     assert bug["as_released"] is True and plain["as_released"] is False

@@ -145,8 +145,8 @@ def test_bad_inputs(tiny, tmp_path, capsys):
 def test_best_marks_smallest_magnitude_and_ties():
     def row(value):
         return {"targets": {p: {"nmae_signed": value} for p in PARAMETERS}}
-    table = {"rows": {"A": row(-1.9), "B": row(0.09), "C": row(-0.09), "D": row(None)}}
-    best = report.best_rows(table, "nmae_signed")
+    rows = {"A": row(-1.9), "B": row(0.09), "C": row(-0.09), "D": row(None)}
+    best = report.best_rows(rows, "nmae_signed")
     assert best["fx"] == {"B", "C"}
 
 

@@ -1,6 +1,7 @@
 """Published predictions: the files, tables scored from them alone, and a
 table over several seeds as mean ± spread."""
 
+import dataclasses
 import json
 import os
 import shutil
@@ -67,8 +68,8 @@ def test_tables_from_files_equal_the_tables_in_memory(published):
     tables = predictions.tables_from_files(published["paths"])
     assert list(tables) == ["table1_cvgl", "table2"]
     for stem in tables:
-        assert json.dumps(tables[stem], sort_keys=True) == \
-            json.dumps(published[stem.split("_")[0]], sort_keys=True), stem
+        assert json.dumps(tables[stem].to_json(), sort_keys=True) == \
+            json.dumps(published[stem.split("_")[0]].to_json(), sort_keys=True), stem
 
 
 def _second_seed(published, tmp_path):
@@ -92,31 +93,31 @@ def test_a_table_over_seeds_is_mean_and_spread(published, tmp_path):
     one = predictions.tables_from_files(seed1)
     tables = predictions.tables_from_files(published["paths"] + seed1)
     table = tables["table1_cvgl"]
-    assert table["seeds"] == [0, 1]
+    assert table.seeds == [0, 1]
     first, second = published["table1"], one["table1_cvgl"]
-    a = first["rows"]["MTL-Baseline"]["targets"]["fx"]["nmae"]
-    b = second["rows"]["MTL-Baseline"]["targets"]["fx"]["nmae"]
+    a = first.rows["MTL-Baseline"]["targets"]["fx"]["nmae"]
+    b = second.rows["MTL-Baseline"]["targets"]["fx"]["nmae"]
     assert a != b
-    row = table["rows"]["MTL-Baseline"]
+    row = table.rows["MTL-Baseline"]
     assert row["targets"]["fx"]["nmae"] == pytest.approx((a + b) / 2)
     assert row["spread"]["targets"]["fx"]["nmae"] == pytest.approx(abs(a - b) / np.sqrt(2))
     assert row["per_seed"]["1"]["targets"]["fx"]["nmae"] == b
-    assert row["num_pairs"] == 2 * first["rows"]["MTL-Baseline"]["num_pairs"]
-    geo = table["rows"]["Geometric"]
+    assert row["num_pairs"] == 2 * first.rows["MTL-Baseline"]["num_pairs"]
+    geo = table.rows["Geometric"]
     assert geo["failures"]["num_pairs"] == 6 and set(geo["priors"]) == {"seed 0", "seed 1"}
     # same rows on both seeds: spread 0 where the predictions did not change
-    assert table["rows"]["Average"]["spread"]["targets"]["fx"]["nmae"] == 0
+    assert table.rows["Average"]["spread"]["targets"]["fx"]["nmae"] == 0
     md = report.markdown(table)
     assert "mean ± spread over 2 seeds" in md and " ± " in md.split("| MTL-Baseline |")[1]
     csv = report.csv_text(table).splitlines()
     assert any(line.startswith("MTL-Baseline,nmae_spread,") for line in csv)
     assert len(csv) == 1 + 4 * 6
-    json.dumps(table, allow_nan=False)                               # strict JSON
+    json.dumps(table.to_json(), allow_nan=False)                               # strict JSON
     # Table 2: per rig and pooled, each a mean over the seeds
     t2 = tables["table2"]
-    assert t2["seeds"] == [0, 1] and t2["rigs"]["middlebury"]["seeds"] == [0, 1]
-    assert "spread" in t2["rigs"]["middlebury"]["rows"]["MTL-Baseline"]
-    assert len(t2["fov_points"]["middlebury"]["MTL-Baseline"]["true_deg"]) == 6
+    assert t2.seeds == [0, 1] and t2.rigs["middlebury"].seeds == [0, 1]
+    assert "spread" in t2.rigs["middlebury"].rows["MTL-Baseline"]
+    assert len(t2.fov_points["middlebury"]["MTL-Baseline"]["true_deg"]) == 6
     written = report.write_outputs(str(tmp_path / "t2"), "table2", t2, "cmd")
     assert all(os.path.getsize(p) for p in written)
     assert "± " in open(tmp_path / "t2" / "table2.md").read()
@@ -195,17 +196,18 @@ def test_a_row_of_one_seed_in_a_table_over_seeds(published, tmp_path):
     # exact: the files give what the rows scored in memory give
     for stem, in_memory in (("table1_cvgl", table1_s0), ("table2", table2_s0)):
         expected = evaluation.aggregate_seeds([in_memory, one[stem]], [0, 1])
-        assert json.dumps(tables[stem], sort_keys=True) == json.dumps(expected, sort_keys=True)
+        assert json.dumps(tables[stem].to_json(), sort_keys=True) == \
+            json.dumps(expected.to_json(), sort_keys=True)
     table = tables["table1_cvgl"]
-    assert table["seeds"] == [0, 1]
-    assert list(table["rows"]) == ["Average", "Average (release bug)", "Deep-Homo",
+    assert table.seeds == [0, 1]
+    assert list(table.rows) == ["Average", "Average (release bug)", "Deep-Homo",
                                    "MTL-Baseline", "Geometric"]
-    deep = table["rows"]["Deep-Homo"]
+    deep = table.rows["Deep-Homo"]
     assert deep["seeds"] == [0] and "spread" not in deep and list(deep["per_seed"]) == ["0"]
-    alone = table1_s0["rows"]["Deep-Homo"]
+    alone = table1_s0.rows["Deep-Homo"]
     assert deep["targets"] == alone["targets"] and deep["fov_within_deg"] == alone["fov_within_deg"]
     assert deep["num_pairs"] == alone["num_pairs"]
-    both = table["rows"]["MTL-Baseline"]
+    both = table.rows["MTL-Baseline"]
     assert both["seeds"] == [0, 1] and "spread" in both
     assert both["num_pairs"] == 2 * alone["num_pairs"]
     # Markdown: x ± s for the rows of both seeds, a plain x marked (1 seed)
@@ -214,8 +216,8 @@ def test_a_row_of_one_seed_in_a_table_over_seeds(published, tmp_path):
     assert " ± " not in line and line.count(" | ") == len(report.COLUMNS) - 1
     assert " ± " in md.split("| MTL-Baseline |")[1].split("\n")[0]
     assert "Deep-Homo: seed 0" in md and "without spread" in md
-    released = {"seeds": [0, 1, 2], "rows": {"MTL-CPL-A (as released)": {"seeds": [0]},
-                                            "MTL-CPL-U": {"seeds": [0, 2]}}}
+    released = dataclasses.replace(table, seeds=[0, 1, 2], rows={
+        "MTL-CPL-A (as released)": {"seeds": [0]}, "MTL-CPL-U": {"seeds": [0, 2]}})
     assert report.row_label(released, "MTL-CPL-A (as released)") == \
         "MTL-CPL-A (as released, 1 seed)"
     assert report.row_label(released, "MTL-CPL-U") == "MTL-CPL-U (2 seeds)"
@@ -227,13 +229,13 @@ def test_a_row_of_one_seed_in_a_table_over_seeds(published, tmp_path):
     assert all(c.endswith(",0") for c in deep_lines)
     assert all(c.endswith(",0 1") for c in csv if c.startswith("MTL-Baseline,"))
     assert len(csv) == 1 + 4 * 6 + 3
-    json.dumps(table, allow_nan=False)
+    json.dumps(table.to_json(), allow_nan=False)
     # Table 2: per rig and pooled, and its FOV points of the one seed
     t2 = tables["table2"]
-    for sub in [t2] + list(t2["rigs"].values()):
-        assert sub["rows"]["Deep-Homo"]["seeds"] == [0]
-        assert "spread" not in sub["rows"]["Deep-Homo"] and "spread" in sub["rows"]["MTL-Baseline"]
-    points = t2["fov_points"]["middlebury"]
+    for sub in [t2] + list(t2.rigs.values()):
+        assert sub.rows["Deep-Homo"]["seeds"] == [0]
+        assert "spread" not in sub.rows["Deep-Homo"] and "spread" in sub.rows["MTL-Baseline"]
+    points = t2.fov_points["middlebury"]
     assert len(points["Deep-Homo"]["true_deg"]) == 3 and len(points["MTL-Baseline"]["true_deg"]) == 6
     written = report.write_outputs(str(tmp_path / "t2"), "table2", t2, "cmd")
     assert all(os.path.getsize(p) for p in written)

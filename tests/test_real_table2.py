@@ -118,7 +118,7 @@ def test_pooled_table_compares_every_row_on_the_same_pairs():
 
     rigs = [_rig("chessboard", 10, False, 4, 0), _rig("middlebury", 20, True, 20, 1)]
     table = table2_from_rigs(["run"], rigs)
-    pooled = table["rows"]
+    pooled = table.rows
     fx_pairs = rigs[0]["rows"]["Average"]["truth"]["fx"][:4]
     for row, scale in (("Average", 1.5), ("MTL-CPL-A", 1.1), ("Geometric", 1.3)):
         cells = pooled[row]["targets"]
@@ -129,7 +129,7 @@ def test_pooled_table_compares_every_row_on_the_same_pairs():
         # u0: defined everywhere; the shared pairs are the 4 + 20 Geometric has
         assert cells["u0"]["num_defined"] == 24
     # per rig, each row keeps all of its own pairs
-    assert table["rigs"]["chessboard"]["rows"]["MTL-CPL-A"]["targets"]["fx"]["num_defined"] == 10
+    assert table.rigs["chessboard"].rows["MTL-CPL-A"]["targets"]["fx"]["num_defined"] == 10
 
 
 def _synthetic_rig(name, n, errors, rectified, subset=None, seed=0):
@@ -167,22 +167,22 @@ def test_table2_values_per_rig_and_pooled_against_hand_computed_nmae():
     table = table2_from_rigs(["run"], [rig_a, rig_b])
 
     def cell(t, row, name):
-        return t["rows"][row]["targets"][name]["nmae"]
+        return t.rows[row]["targets"][name]["nmae"]
 
     # per rig: all of the row's own pairs
     fx_a = truth_a["fx"]
-    assert cell(table["rigs"]["A"], "MTL-Baseline", "fx") == pytest.approx(
+    assert cell(table.rigs["A"], "MTL-Baseline", "fx") == pytest.approx(
         np.sum(fx_a * baseline_a) / np.sum(fx_a), rel=1e-12)
-    assert cell(table["rigs"]["A"], "Average", "fx") == pytest.approx(0.3, rel=1e-12)
-    assert cell(table["rigs"]["B"], "MTL-Baseline", "pitch") == pytest.approx(0.05, rel=1e-12)
+    assert cell(table.rigs["A"], "Average", "fx") == pytest.approx(0.3, rel=1e-12)
+    assert cell(table.rigs["B"], "MTL-Baseline", "pitch") == pytest.approx(0.05, rel=1e-12)
     # pooled over the shared pairs: A's first 10 and all of B's 20
     for name in ("fx", "baseline", "Z"):
         y = np.concatenate([truth_a[name][:10], truth_b[name]])
         e = np.concatenate([np.full(10, 0.1), np.full(20, 0.05)])
         assert cell(table, "MTL-Baseline", name) == pytest.approx(
             np.sum(y * e) / np.sum(y), rel=1e-12), name
-        assert table["rows"]["MTL-Baseline"]["targets"][name]["num_defined"] == 30
+        assert table.rows["MTL-Baseline"]["targets"][name]["num_defined"] == 30
     # pitch pooled only where defined: rig B is rectified
     assert cell(table, "MTL-Baseline", "pitch") == pytest.approx(0.1, rel=1e-12)
     assert cell(table, "Average", "pitch") == pytest.approx(0.3, rel=1e-12)
-    assert table["rows"]["Average"]["targets"]["pitch"]["num_defined"] == 10
+    assert table.rows["Average"]["targets"]["pitch"]["num_defined"] == 10

@@ -358,21 +358,22 @@ def test_presets_resolve():
     # initial weights), Deep-Homo and MTL-CPL-A as released once, on seed 0
     jobs = reproduce.run_jobs(cpu, seed=0)
     assert len(jobs) == 15
-    cvgl = [(j[3], j[4], j[5], j[6]) for j in jobs if j[0] == "cvgl"]
+    cvgl = [(j.seed, j.variant, j.released, j.name) for j in jobs if j.key == "cvgl"]
     assert cvgl == [(0, "deep-homo", False, "deep-homo-s0"), (0, "cpl-u", False, "cpl-u-s0"),
                     (0, "baseline", False, "baseline-s0"), (0, "cpl-a", False, "cpl-a-s0"),
                     (0, "cpl-a", True, "cpl-a-released-s0")] + [
         (s, v, False, f"{v}-s{s}") for s in (1, 2) for v in ("cpl-u", "baseline", "cpl-a")]
-    assert all(j[1:3] == ("cvgl", "paper") for j in jobs if j[0] == "cvgl")
-    assert [(j[3], j[4], j[5], j[6]) for j in jobs if j[0] == "random"] == [
+    assert all((j.protocol, j.split) == ("cvgl", "paper") for j in jobs if j.key == "cvgl")
+    assert [(j.seed, j.variant, j.released, j.name) for j in jobs if j.key == "random"] == [
         (0, v, False, v) for v in ("deep-homo", "cpl-u", "baseline", "cpl-a")]
-    assert all(j[1:3] == ("random", "held-out-config") for j in jobs if j[0] == "random")
+    assert all((j.protocol, j.split) == ("random", "held-out-config") for j in jobs
+               if j.key == "random")
     # --seed S shifts every run seed; more random seeds: the MTL variants on each
     shifted = reproduce.run_jobs(reproduce.settings(preset="cpu", random_seeds=2), seed=5)
-    assert [j[-1] for j in shifted if j[0] == "random"] == [
+    assert [j.name for j in shifted if j.key == "random"] == [
         "deep-homo-s5", "cpl-u-s5", "baseline-s5", "cpl-a-s5", "cpl-u-s6", "baseline-s6",
         "cpl-a-s6"]
-    assert {j[3] for j in shifted if j[0] == "cvgl"} == {5, 6, 7}
+    assert {j.seed for j in shifted if j.key == "cvgl"} == {5, 6, 7}
     # the decision preset: the MTL variants on 8,000 cvgl pairs, 3 seeds, both splits
     decide = _parsed("--preset", "cpu-8000").config
     assert (decide["pairs"], decide["seeds"], decide["backbone"]) == (8000, 3, "small_resnet")
@@ -380,13 +381,13 @@ def test_presets_resolve():
     assert decide["geometric_max"] is None                 # every baseline on every test pair
     jobs = reproduce.run_jobs(decide, seed=0)
     assert len(jobs) == 18
-    assert {(j[0], j[2]) for j in jobs} == {("cvgl", "paper"), ("cvgl_drive", "drive")}
-    assert {j[1] for j in jobs} == {"cvgl"}          # one dataset for both tables
+    assert {(j.key, j.split) for j in jobs} == {("cvgl", "paper"), ("cvgl_drive", "drive")}
+    assert {j.protocol for j in jobs} == {"cvgl"}          # one dataset for both tables
     # the deciding pair on every seed before MTL-CPL-U, in each table
-    assert [j[-1] for j in jobs if j[0] == "cvgl_drive"] == [
+    assert [j.name for j in jobs if j.key == "cvgl_drive"] == [
         f"{v}-s{s}" for s in (0, 1, 2) for v in ("cpl-a", "baseline")] + [
         f"cpl-u-s{s}" for s in (0, 1, 2)]
-    assert [j[-1] for j in jobs if j[0] == "cvgl"][:6] == [
+    assert [j.name for j in jobs if j.key == "cvgl"][:6] == [
         "cpl-a-s0", "baseline-s0", "cpl-a-s1", "baseline-s1", "cpl-a-s2", "baseline-s2"]
     with pytest.raises(ValueError, match="first variant 'baseline' is not trained"):
         reproduce.settings(preset="cpu-8000", variants=("cpl-a", "cpl-u"))
@@ -406,7 +407,7 @@ def test_presets_resolve():
     assert config["variants"] == ("deep-homo", "cpl-u", "baseline", "cpl-a") and config["released"]
     assert config["geometric_max"] is None and config["seeds"] == 1
     assert config["seeded_variants"] is None                     # everything on every seed
-    assert [j[-1] for j in reproduce.run_jobs(config, 0)] == [
+    assert [j.name for j in reproduce.run_jobs(config, 0)] == [
         "deep-homo", "cpl-u", "baseline", "cpl-a", "cpl-a-released"] + [
         "deep-homo", "cpl-u", "baseline", "cpl-a"]
     assert paper.out.endswith(os.path.join("paper_results", "paper"))
@@ -419,8 +420,8 @@ def test_presets_resolve():
     config = gpu.config
     assert config["backbone"] == "inception_v3" and config["image_size"] == 112
     assert config["run_budget_s"] == 150 and config["tables"] == ("cvgl",)
-    assert [j[-1] for j in reproduce.run_jobs(config, 0)] == ["cpl-a", "baseline"]
-    assert all(j[2] == "paper" for j in reproduce.run_jobs(config, 0))
+    assert [j.name for j in reproduce.run_jobs(config, 0)] == ["cpl-a", "baseline"]
+    assert all(j.split == "paper" for j in reproduce.run_jobs(config, 0))
     assert gpu.out.endswith(os.path.join("paper_results", "paper-gpu"))
     assert gpu.runs_dir == os.path.join("runs", "reproduce-paper-gpu")
     assert "a budget of 150 s of training per run" in reproduce.scale_text(config)
@@ -430,15 +431,16 @@ def test_presets_resolve():
     # first runs were made before it (all its runs keep one setting)
     from cpl_keras.reproduce.jobs import training_arguments
 
+    job = reproduce.Job("cvgl", "cvgl", "paper", 0, "cpl-a", False, "cpl-a")
     assert config["disparity_ceiling"] == "auto"
     cpu_8000 = reproduce.settings(preset="cpu-8000")
     assert cpu_8000["disparity_ceiling"] is None
-    assert training_arguments(cpu_8000, "r", "cpl-a", "paper", False, 0)[
+    assert training_arguments(cpu_8000, "r", job)[
         "disparity_ceiling"] is None
-    assert training_arguments(config, "r", "cpl-a", "paper", False, 0)[
+    assert training_arguments(config, "r", job)[
         "disparity_ceiling"] == "auto"
     assert training_arguments({k: v for k, v in config.items() if k != "disparity_ceiling"},
-                              "r", "cpl-a", "paper", False, 0)["disparity_ceiling"] == "auto"
+                              "r", job)["disparity_ceiling"] == "auto"
     with pytest.raises(ValueError, match="disparity-ceiling"):
         dataclasses.replace(reproduce.PRESETS["cpu"], disparity_ceiling="high")
     # explicit flags override the preset's values

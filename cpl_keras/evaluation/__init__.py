@@ -12,7 +12,8 @@
 * ``seeds``: one table over several seeds, mean ± spread
   (``aggregate_seeds``).
 
-The scored tables are JSON-ready dicts; ``cpl_keras.report`` renders both
+The scored tables are typed records (``tables``: ``Table1``, ``Table2``,
+``table_from_json``); ``cpl_keras.report`` renders both
 kinds (Markdown, CSV, JSON, plots). Runs are read through
 ``cpl_keras.runs``; real data through ``cpl_keras.real``.
 """
@@ -27,6 +28,7 @@ from cpl_keras.evaluation.table1 import (
     PAPER_CONVENTION, PAPER_DIR, ROWS, average_rows, evaluate_run, geometric_predictions,
     make_table, read_paper_table, score, table_from_rows, table_rows,
 )
+from cpl_keras.evaluation.tables import Table1, Table2, table_from_json
 from cpl_keras.evaluation.table2 import (
     expand_data_paths, is_rectified, make_table2, rig_name, score_masked, table2_from_rigs,
     table2_rigs,
@@ -63,6 +65,9 @@ __all__ = [
     "SPREAD",
     "SPREAD_METRICS",
     "store_predictions",
+    "Table1",
+    "Table2",
+    "table_from_json",
     "table2_from_rigs",
     "table2_rigs",
     "table_from_rows",

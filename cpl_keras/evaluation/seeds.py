@@ -7,11 +7,14 @@ rig by rig.
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 
 from cpl_keras.baselines.geometric import FAILURE_FLAGS
 from cpl_keras.evaluation.predict import EvaluationError
 from cpl_keras.evaluation.table1 import ROWS
+from cpl_keras.evaluation.tables import Table2
 from cpl_keras.metrics import jsonable
 from cpl_keras.runs import RELEASED
 
@@ -33,12 +36,13 @@ def _mean_and_spread(values):
     return float(np.mean(a)), float(np.std(a, ddof=1)) if len(a) > 1 else 0.0
 
 
-def _row_order(tables):
-    """Every row of ``tables`` (a row may be missing from some), in the
-    tables' order (``ROWS``, each followed by its as-released row)."""
+def _row_order(row_sets):
+    """Every row of ``row_sets`` (each a table's row names; a row may be
+    missing from some), in the tables' order (``ROWS``, each followed by its
+    as-released row)."""
     names = []
-    for table in tables:
-        names += [row for row in table["rows"] if row not in names]
+    for rows in row_sets:
+        names += [row for row in rows if row not in names]
     order = [row for base in ROWS for row in (base, base + RELEASED)]
     return sorted(names, key=lambda r: (order.index(r) if r in order else len(order),
                                         names.index(r)))
@@ -48,8 +52,8 @@ def _aggregate_rows(tables, seeds):
     """Each row over the seeds that have it: means, its ``seeds``, its
     ``per_seed`` values and (2+ seeds) its ``spread``."""
     rows = {}
-    for row in _row_order(tables):
-        present = [(s, t["rows"][row]) for s, t in zip(seeds, tables) if row in t["rows"]]
+    for row in _row_order([t.rows for t in tables]):
+        present = [(s, t.rows[row]) for s, t in zip(seeds, tables) if row in t.rows]
         row_seeds = [s for s, _ in present]
         parts = [p for _, p in present]
         first = parts[0]
@@ -96,17 +100,16 @@ def _aggregate_rows(tables, seeds):
 
 
 def _aggregate_table(tables, seeds):
-    table = dict(tables[0])
-    table["seeds"] = [int(s) for s in seeds]
-    table["spread"] = SPREAD
-    table["num_pairs"] = int(sum(t["num_pairs"] for t in tables))
-    descriptions = [t["data_description"] for t in tables]
-    table["data_description"] = (
-        f"{table['num_pairs']} pairs over {len(seeds)} seeds: "
-        + "; ".join(f"seed {s}: {d}" for s, d in zip(seeds, descriptions)))
-    table["runs"] = [r for t in tables for r in t["runs"]]
-    table["rows"] = _aggregate_rows(tables, seeds)
-    return table
+    """The first seed's table with the seeds' rows, pairs, runs and
+    descriptions (a ``Table1`` or ``Table2``; a pooled Table 2's rigs left
+    to ``aggregate_seeds``)."""
+    num_pairs = int(sum(t.num_pairs for t in tables))
+    description = f"{num_pairs} pairs over {len(seeds)} seeds: " + "; ".join(
+        f"seed {s}: {t.data_description}" for s, t in zip(seeds, tables))
+    return dataclasses.replace(
+        tables[0], seeds=[int(s) for s in seeds], spread=SPREAD, num_pairs=num_pairs,
+        data_description=description, runs=[r for t in tables for r in t.runs],
+        rows=jsonable(_aggregate_rows(tables, seeds)))
 
 
 def aggregate_seeds(tables, seeds):
@@ -124,19 +127,20 @@ def aggregate_seeds(tables, seeds):
     if len(tables) == 1:
         return tables[0]
     table = _aggregate_table(tables, seeds)
-    if "rigs" in tables[0]:
-        rigs = list(tables[0]["rigs"])
-        for seed, other in zip(seeds[1:], tables[1:]):
-            if list(other["rigs"]) != rigs:
-                raise EvaluationError(f"seed {seed} has rigs {list(other['rigs'])}, seed "
-                                      f"{seeds[0]} has {rigs}")
-        table["rigs"] = {rig: _aggregate_table([t["rigs"][rig] for t in tables], seeds)
-                         for rig in rigs}
-        table["fov_points"] = {
-            rig: {row: {key: [x for t in tables if row in t["fov_points"][rig]
-                              for x in t["fov_points"][rig][row][key]]
-                        for key in ("true_deg", "pred_deg")}
-                  for row in _row_order([{"rows": t["fov_points"][rig]} for t in tables])}
-            for rig in tables[0]["fov_points"]}
-    return jsonable(table)
+    if not (isinstance(table, Table2) and table.pooled):
+        return table
+    rigs = list(tables[0].rigs)
+    for seed, other in zip(seeds[1:], tables[1:]):
+        if list(other.rigs) != rigs:
+            raise EvaluationError(f"seed {seed} has rigs {list(other.rigs)}, seed "
+                                  f"{seeds[0]} has {rigs}")
+    fov_points = {
+        rig: {row: {key: [x for t in tables if row in t.fov_points[rig]
+                          for x in t.fov_points[rig][row][key]]
+                    for key in ("true_deg", "pred_deg")}
+              for row in _row_order([t.fov_points[rig] for t in tables])}
+        for rig in tables[0].fov_points}
+    return dataclasses.replace(
+        table, rigs={rig: _aggregate_table([t.rigs[rig] for t in tables], seeds)
+                     for rig in rigs}, fov_points=jsonable(fov_points))
 

@@ -5,7 +5,8 @@ release's buggy Average, Deep-Homo, MTL-CPL-U, MTL-Baseline, MTL-CPL-A and
 the Geometric baseline -- in both NMAE conventions (``cpl_keras.metrics``);
 ``table_rows`` gathers what it scores and ``table_from_rows`` scores it, so
 a table rebuilt from published predictions goes through the same code.
-``evaluate_run`` scores one run.
+``evaluate_run`` scores one run. Each returns a ``Table1``
+(``cpl_keras.evaluation.tables``).
 
 Each row is scored against the targets its method predicts: a run trained
 with ``as_released`` against the release's targets
@@ -29,6 +30,7 @@ from cpl_keras.evaluation.predict import (
     EvaluationError, _same_file, evaluation_indices, forget_model, load_run, load_table_runs,
     open_dataset, published, run_predictions, truth_targets,
 )
+from cpl_keras.evaluation.tables import Table1
 from cpl_keras.metrics import jsonable
 from cpl_keras.models.variants import MODEL_ROWS, VARIANT_ROWS
 from cpl_keras.runs import RELEASED
@@ -52,7 +54,7 @@ def score(truth, predictions, width):
 
 
 def evaluate_run(run_dir, data_path, batch_size=32):
-    """Score one run on ``data_path``; returns a JSON-ready dict."""
+    """Score one run on ``data_path``: a ``Table1`` of one row (``table`` None)."""
     run = load_run(run_dir)
     with open_dataset(data_path) as data:
         indices, description = evaluation_indices(run, data_path, data.num_pairs)
@@ -62,7 +64,7 @@ def evaluate_run(run_dir, data_path, batch_size=32):
         width = data.image_shape[1]
         metadata = data.metadata
     row = VARIANT_ROWS[run.config.variant]
-    return jsonable({
+    return Table1(**jsonable({
         "table": None, "data": os.path.abspath(data_path), "data_description": description,
         "data_source": metadata.get("source", metadata.get("protocol")),
         "num_pairs": int(len(indices)), "image_width": int(width), "runs": [run.run_dir],
@@ -70,7 +72,7 @@ def evaluate_run(run_dir, data_path, batch_size=32):
                        "num_pairs": int(len(indices)),
                        **score(truth, predictions, width)}},
         "paper": {}, "paper_convention": None,
-    })
+    }))
 
 
 def read_paper_table(number, directory=PAPER_DIR):
@@ -117,8 +119,9 @@ def geometric_predictions(reference, data, subset):
 
 def table_rows(number, run_dirs, data_path=None, geometric=True, geometric_max=None,
                batch_size=32, progress=None):
-    """The raw rows of the paper's Table ``number`` (1: synthetic, 2: real):
-    ``(context, rows)``, everything ``make_table`` scores.
+    """The raw rows of the paper's Table ``number`` (1: synthetic; Table 2,
+    per real rig and pooled, is ``table2_rigs``): ``(context, rows)``,
+    everything ``make_table`` scores.
 
     ``rows`` maps a row name to ``source``, ``as_released``, ``indices`` (the
     pairs of the dataset file), ``truth`` and ``pred`` (name -> array; the
@@ -126,14 +129,12 @@ def table_rows(number, run_dirs, data_path=None, geometric=True, geometric_max=N
     table's own fields (``table``, ``data``, ``data_description``,
     ``data_source``, ``data_metadata``, ``num_pairs``, ``image_width``,
     ``runs``). Table 1 evaluates on the runs' own dataset (their common test
-    split) unless ``data_path`` is given; Table 2 needs ``data_path``
-    (forward pass only).
+    split) unless ``data_path`` is given.
     """
-    if number not in (1, 2):
-        raise EvaluationError(f"unknown table {number}; choose 1 or 2")
+    if number != 1:
+        raise EvaluationError(f"unknown table {number}: make_table scores Table 1 "
+                              f"(Table 2 is make_table2)")
     loaded = load_table_runs(run_dirs)
-    if number == 2 and data_path is None:
-        raise EvaluationError("table 2 needs --data REAL.h5")
     reference = loaded[0]
     if data_path is None:
         data_path = reference.config.data
@@ -191,7 +192,7 @@ def table_rows(number, run_dirs, data_path=None, geometric=True, geometric_max=N
 
 def table_from_rows(context, rows):
     """Score the raw ``rows`` of ``table_rows`` (or of published predictions
-    files) into the table: a JSON-ready dict with every figure."""
+    files) into the table: a ``Table1`` with every figure."""
     width = context["image_width"]
     scored = {}
     for row, raw in rows.items():
@@ -206,16 +207,14 @@ def table_from_rows(context, rows):
                      if row in scored}
     table["paper"] = read_paper_table(number)
     table["paper_convention"] = PAPER_CONVENTION[number]
-    return jsonable(table)
+    return Table1(**jsonable(table))
 
 
 def make_table(number, run_dirs, data_path=None, geometric=True, geometric_max=None,
                batch_size=32, progress=None):
-    """Score the rows of the paper's Table ``number`` (1: synthetic, 2: real).
-
-    Table 1 evaluates on the runs' own dataset (their common test split)
-    unless ``data_path`` is given; Table 2 needs ``data_path`` (forward pass
-    only). Returns a JSON-ready dict with every figure.
+    """Score the rows of the paper's Table ``number`` (1: synthetic; Table 2
+    is ``make_table2``) on the runs' own dataset (their common test split)
+    unless ``data_path`` is given. Returns a ``Table1`` with every figure.
     """
     return table_from_rows(*table_rows(number, run_dirs, data_path, geometric, geometric_max,
                                        batch_size, progress))

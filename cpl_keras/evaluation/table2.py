@@ -45,6 +45,7 @@ from cpl_keras.evaluation.predict import (
 from cpl_keras.evaluation.table1 import (
     PAPER_CONVENTION, ROWS, average_rows, geometric_predictions, read_paper_table,
 )
+from cpl_keras.evaluation.tables import Table2
 from cpl_keras.metrics import jsonable
 from cpl_keras.runs import RELEASED
 
@@ -179,7 +180,7 @@ def _table(raw_rows, *, number_of_pairs, width, data, description, source, runs,
         "num_pairs": int(number_of_pairs), "image_width": int(width), "runs": runs,
         "rows": {row: rows[row] for base in ROWS for row in (base, base + RELEASED) if row in rows},
         "paper": paper, "paper_convention": PAPER_CONVENTION[2],
-    })
+    })  # (the fields of a Table2: table2_from_rigs makes the records)
 
 
 def _fov_points(r, width):
@@ -210,9 +211,9 @@ def table2_rigs(run_dirs, data_paths, geometric=True, geometric_max=None, progre
 
 def table2_from_rigs(run_list, rigs):
     """Table 2 per rig and pooled from the raw rows of ``table2_rigs`` (or of
-    published predictions files): a JSON-ready dict, the pooled table's
-    fields, ``rigs`` (one table per rig) and ``fov_points`` (true and
-    predicted horizontal FOV per rig and row)."""
+    published predictions files): a pooled ``Table2``, with ``rigs`` (a
+    ``Table2`` per rig) and ``fov_points`` (true and predicted horizontal
+    FOV per rig and row)."""
     rigs = [dict(rig) for rig in rigs]
     names = [r["rig"] for r in rigs]
     for rig in rigs:                                    # two files of one rig: tell apart
@@ -226,10 +227,10 @@ def table2_from_rigs(run_list, rigs):
     run_list = list(run_list)
     tables = {}
     for rig in rigs:
-        tables[rig["rig"]] = dict(_table(
+        tables[rig["rig"]] = Table2(**_table(
             rig["rows"], number_of_pairs=rig["num_pairs"], width=width, data=rig["data"],
             description=rig["data_description"], source=rig["data_source"], runs=run_list,
-            paper={}), rectified=rig["rectified"])
+            paper={}), rectified=bool(rig["rectified"]))
     pooled_rows = {}
     shared = [_shared_pairs(rig) for rig in rigs]
     for row in rigs[0]["rows"]:
@@ -254,10 +255,9 @@ def table2_from_rigs(run_list, rigs):
                            f"{r['rig']} {r['num_pairs']}" for r in rigs)),
                    source=rigs[0]["data_source"] if single else "pooled real rigs", runs=run_list,
                    paper=read_paper_table(2))
-    table["rigs"] = tables
-    table["fov_points"] = {rig["rig"]: {row: _fov_points(r, width) for row, r in rig["rows"].items()}
-                           for rig in rigs}
-    return jsonable(table)
+    fov_points = {rig["rig"]: {row: _fov_points(r, width) for row, r in rig["rows"].items()}
+                  for rig in rigs}
+    return Table2(**table, rigs=tables, fov_points=jsonable(fov_points))
 
 
 def _shared_pairs(rig):
@@ -290,9 +290,9 @@ UNDEFINED_ON_RECTIFIED = ("pitch",)
 
 
 def make_table2(run_dirs, data_paths, geometric=True, geometric_max=None, progress=None):
-    """Table 2 per rig and pooled (see the module doc); a JSON-ready dict:
-    the pooled table's fields, ``rigs`` (one table per rig) and ``fov_points``
-    (true and predicted horizontal FOV per rig and row)."""
+    """Table 2 per rig and pooled (see the module doc): a pooled ``Table2``,
+    with ``rigs`` (a ``Table2`` per rig) and ``fov_points`` (true and
+    predicted horizontal FOV per rig and row)."""
     return table2_from_rigs(*table2_rigs(run_dirs, data_paths, geometric, geometric_max,
                                          progress))
 

@@ -155,7 +155,7 @@ def spread_rule(nmae_a, nmae_b):
         stats = {name: _mean_and_spread(values[name]) for name in PARAMETERS}
         rows[label] = {"targets": {k: {"nmae": m} for k, (m, _) in stats.items()},
                        "spread": {"targets": {k: {"nmae": s} for k, (_, s) in stats.items()}}}
-    lines = differences_beyond_spread({"rows": rows})
+    lines = differences_beyond_spread(rows)
     if len(lines) != 3:
         raise EvaluationError("the seed-spread rule needs 2 or more seeds")
     cells = [c.strip() for c in lines[2].strip().strip("|").split("|")][1:1 + len(PARAMETERS)]

@@ -1,7 +1,7 @@
 """Rendering of the scored tables, both of them, in one place.
 
 ``cpl_keras.evaluation`` scores Tables 1 and 2; this package turns a scored
-table (a JSON-ready dict) into files: Markdown and CSV (``report.text``:
+table (a ``Table1`` or ``Table2``) into files: Markdown and CSV (``report.text``:
 ``markdown``, ``csv_text``), the FOV plots (``report.plots``) and
 ``write_outputs``, which writes them all atomically with paths relative to
 the output directory (``portable``). Each function takes either table and
@@ -14,6 +14,7 @@ import json
 import os
 
 from cpl_keras import files, runs
+from cpl_keras.evaluation.tables import table_from_json
 from cpl_keras.metrics import jsonable
 from cpl_keras.report.plots import fov_plot, fov_scatter_plot
 from cpl_keras.report.text import (
@@ -48,6 +49,7 @@ __all__ = [
     "notes",
     "plots_for",
     "portable",
+    "portable_paths",
     "row_label",
     "row_seeds",
     "seeds_lines",
@@ -68,9 +70,15 @@ def plots_for(table):
 
 
 def portable(table, out_dir):
-    """``table`` with the paths it records (``data``, ``runs``, ``run_dir``,
-    ``source``) relative to ``out_dir``, where its files are written: a
-    committed table names no machine's directories."""
+    """``table`` (a ``Table1`` or ``Table2``) with the paths it records
+    relative to ``out_dir`` (``portable_paths``)."""
+    return table_from_json(portable_paths(table.to_json(), out_dir))
+
+
+def portable_paths(data, out_dir):
+    """A JSON-ready dict with the paths it records (``data``, ``runs``,
+    ``run_dir``, ``source``) relative to ``out_dir``, where its files are
+    written: a committed file names no machine's directories."""
     def convert(key, value):
         if isinstance(value, dict):
             return {k: convert(k, v) for k, v in value.items()}
@@ -84,7 +92,7 @@ def portable(table, out_dir):
         path, sep, rest = text.partition(" (")  # "<path> (<what>)"
         return runs.relative(path, out_dir) + sep + rest if os.path.isabs(path) else text
 
-    return convert(None, table)
+    return convert(None, data)
 
 
 def write_outputs(out_dir, stem, table, command, *, render_markdown=markdown,
@@ -100,9 +108,10 @@ def write_outputs(out_dir, stem, table, command, *, render_markdown=markdown,
     texts = {
         f"{stem}.md": render_markdown(table, command),
         f"{stem}.csv": render_csv(table),
-        f"{stem}.json": json.dumps(dict(table, command=command), indent=2, allow_nan=False) + "\n",
+        f"{stem}.json": json.dumps(dict(table.to_json(), command=command), indent=2,
+                                   allow_nan=False) + "\n",
     }
-    drawn = list(plots_for(table) if plots is None else plots) if table.get("rows") else []
+    drawn = list(plots_for(table) if plots is None else plots) if table.rows else []
     finals = [os.path.join(out_dir, name) for name in texts]
     finals += [os.path.join(out_dir, stem + suffix) for suffix, _ in drawn]
     with files.atomic_path(*finals) as tmps:

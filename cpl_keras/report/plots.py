@@ -22,13 +22,13 @@ def fov_plot(table, path):
 
     fig, ax = plt.subplots(figsize=(6, 4))
     ks = list(metrics.FOV_THRESHOLDS_DEG)
-    for row, row_metrics in table["rows"].items():
+    for row, row_metrics in table.rows.items():
         values = [row_metrics["fov_within_deg"][str(k)] for k in ks]
         values = [math.nan if v is None else v for v in values]
         ax.plot(ks, values, marker="o", label=row_label(table, row))
     ax.set_xlabel("field-of-view error threshold (degrees)")
     ax.set_ylabel("samples within threshold (%)")
-    ax.set_title(f"Table {table['table']}: FOV-threshold curves" if table["table"]
+    ax.set_title(f"Table {table.table}: FOV-threshold curves" if table.table
                  else "FOV-threshold curve")
     ax.set_ylim(-2, 102)
     ax.grid(alpha=0.3)
@@ -47,7 +47,7 @@ def fov_scatter_plot(table, path):
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    rigs = list(table["fov_points"].items())
+    rigs = list(table.fov_points.items())
     fig, axes = plt.subplots(1, len(rigs), figsize=(4.5 * len(rigs), 4.2), squeeze=False)
     for ax, (rig, rows) in zip(axes[0], rigs):
         values = []

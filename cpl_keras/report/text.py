@@ -1,7 +1,7 @@
 """Tables 1 and 2 as text: Markdown and CSV.
 
-``markdown`` and ``csv_text`` render either table (a scored table from
-``cpl_keras.evaluation``: a Table 2 has its ``rigs``): one table per NMAE
+``markdown`` and ``csv_text`` render either table (a ``Table1`` or a
+pooled ``Table2`` from ``cpl_keras.evaluation``): one table per NMAE
 convention, the best value per column in bold, the paper's numbers beside
 ours in the paper's convention, mean ± spread for a table over seeds, and
 for Table 2 one section per rig and the focal and field-of-view metrics
@@ -17,6 +17,7 @@ import numpy as np
 
 from cpl_keras import metrics
 from cpl_keras.camera import PARAMETERS
+from cpl_keras.evaluation.tables import Table2
 from cpl_keras.runs import RELEASED
 
 #: Table columns (the paper's names) and the parameter each one is.
@@ -34,19 +35,19 @@ def cell(row_metrics, column, convention):
     return math.nan if value is None else value
 
 
-def best_rows(table, convention):
-    """{column: set of rows with the smallest |value|} (ties all win; undefined
-    values never win).
+def best_rows(rows, convention):
+    """{column: set of rows with the smallest |value|} among ``rows`` (a
+    table's rows; ties all win; undefined values never win).
 
     The paper bolded the smallest *signed* value, so a large negative NMAE
     could be marked best; a magnitude is what an error ratio means, so the
     smallest magnitude wins here."""
     best = {}
-    if len(table["rows"]) < 2:
+    if len(rows) < 2:
         return best
     for column in COLUMNS:
         candidates = [(abs(cell(m, column, convention)), row)
-                      for row, m in table["rows"].items()
+                      for row, m in rows.items()
                       if math.isfinite(cell(m, column, convention))]
         if candidates:
             smallest = min(value for value, _ in candidates)
@@ -76,9 +77,9 @@ def _with_spread(text, spread, decimals=3):
 def row_seeds(table, row):
     """The seeds a row of a table over seeds is a mean over (all the table's
     unless the row says otherwise); None for a table of one seed."""
-    if "seeds" not in table:
+    if table.seeds is None:
         return None
-    return table["rows"][row].get("seeds", table["seeds"])
+    return table.rows[row].get("seeds", table.seeds)
 
 
 def row_label(table, row):
@@ -86,7 +87,7 @@ def row_label(table, row):
     ``(1 seed)`` (``(k seeds)``) when it is a mean over fewer seeds than the
     table's."""
     seeds = row_seeds(table, row)
-    if seeds is None or len(seeds) == len(table["seeds"]):
+    if seeds is None or len(seeds) == len(table.seeds):
         return row
     mark = f"{len(seeds)} seed{'s' if len(seeds) > 1 else ''}"
     # "MTL-CPL-A (as released)" -> "MTL-CPL-A (as released, 1 seed)"
@@ -100,12 +101,12 @@ def _seed_list(seeds):
 def seeds_lines(table):
     """Markdown lines saying that the cells are means over seeds, and which
     rows have fewer seeds (none for a table of one seed)."""
-    if "seeds" not in table:
+    if table.seeds is None:
         return []
-    seeds = ", ".join(str(s) for s in table["seeds"])
-    lines = [f"Cells: mean ± spread over {len(table['seeds'])} seeds ({seeds}; each seed its "
-             f"own split and initial weights); spread = {table['spread']}."]
-    fewer = [row for row in table["rows"] if row_label(table, row) != row]
+    seeds = ", ".join(str(s) for s in table.seeds)
+    lines = [f"Cells: mean ± spread over {len(table.seeds)} seeds ({seeds}; each seed its "
+             f"own split and initial weights); spread = {table.spread}."]
+    fewer = [row for row in table.rows if row_label(table, row) != row]
     if fewer:
         lines.append("Rows marked \"1 seed\" (\"k seeds\") were trained on those seeds only: "
                      + "; ".join(f"{row}: {_seed_list(row_seeds(table, row))}" for row in fewer)
@@ -119,14 +120,14 @@ def nmae_tables(table, level="##"):
     paper's convention; a row's ``degenerate`` columns say so."""
     lines = []
     for convention in CONVENTIONS:
-        with_paper = convention == table["paper_convention"] and table["paper"]
+        with_paper = convention == table.paper_convention and table.paper
         lines += [f"{level} {CONVENTION_TITLES[convention]}", ""]
         if with_paper:
-            lines += [f"Cells: ours (paper's Table {table['table']}).", ""]
-        best = best_rows(table, convention)
+            lines += [f"Cells: ours (paper's Table {table.table}).", ""]
+        best = best_rows(table.rows, convention)
         lines.append("| method | " + " | ".join(COLUMNS) + " |")
         lines.append("|---" * (len(COLUMNS) + 1) + "|")
-        for row, row_metrics in table["rows"].items():
+        for row, row_metrics in table.rows.items():
             cells = []
             for column in COLUMNS:
                 if is_degenerate(row_metrics, column):
@@ -139,7 +140,7 @@ def nmae_tables(table, level="##"):
                 if with_paper:
                     paper_row = row[: -len(RELEASED)] if row.endswith(RELEASED) else row
                     paper_row = "Average" if paper_row == "Average (release bug)" else paper_row
-                    paper = table["paper"].get(paper_row, {}).get(column)
+                    paper = table.paper.get(paper_row, {}).get(column)
                     if paper is not None and row != "Average":
                         text += f" ({paper:.3f})"
                 cells.append(text)
@@ -153,7 +154,7 @@ def fov_table(table, header="{k} deg"):
     ks = metrics.FOV_THRESHOLDS_DEG
     lines = ["| method | " + " | ".join(header.format(k=k) for k in ks) + " |",
              "|---" * (len(ks) + 1) + "|"]
-    for row, row_metrics in table["rows"].items():
+    for row, row_metrics in table.rows.items():
         if is_degenerate(row_metrics, "fx"):
             cells = ["degenerate"] * len(ks)
         else:
@@ -170,22 +171,22 @@ def notes(table):
     """Markdown lines: the Geometric row's failures, and targets whose truth
     is defined on part of the pairs only."""
     lines = []
-    geo = table["rows"].get("Geometric")
+    geo = table.rows.get("Geometric")
     if geo:
         report = geo["failures"]
         parts = [f"{flag} {report[flag]['count']}/{report['num_pairs']}" for flag in report
                  if isinstance(report[flag], dict)]
-        priors = (f"each seed's training-mean priors, {geo['priors']}" if "seeds" in table
+        priors = (f"each seed's training-mean priors, {geo['priors']}" if table.seeds is not None
                   else f"priors {geo['priors']}")
         lines += [f"Geometric baseline on {geo['num_pairs']} pairs; stage failures (fallback "
                   f"to {priors}): " + ", ".join(parts) + ".", ""]
         if geo.get("degenerate"):
             lines += ["Geometric fx, fy: degenerate on a rectified rig (Bougnoux's formula is "
                       "0/0 when the optical axes are coplanar); no number is reported.", ""]
-    first = next(iter(table["rows"].values()), {"targets": {}})
-    undefined = [f"{name} ({m['num_defined']} of {table['num_pairs']} pairs)"
+    first = next(iter(table.rows.values()), {"targets": {}})
+    undefined = [f"{name} ({m['num_defined']} of {table.num_pairs} pairs)"
                  for name, m in first["targets"].items()
-                 if m.get("num_defined", table["num_pairs"]) < table["num_pairs"]]
+                 if m.get("num_defined", table.num_pairs) < table.num_pairs]
     if undefined:
         lines += ["Ground truth defined on part of the pairs only: " + ", ".join(undefined)
                   + "; the other pairs are left out of those columns.", ""]
@@ -195,13 +196,13 @@ def notes(table):
 def table1_markdown(table, command=None):
     """Table 1 (or one run's scores) as Markdown: one table per NMAE convention, best marked in
     bold, the paper's numbers beside ours in the paper's convention."""
-    number = table["table"]
+    number = table.table
     title = f"Table {number}" if number else "Evaluation"
     lines = [f"# {title}: NMAE per parameter", ""]
     if command:
         lines += ["Command:", "", "```", command, "```", ""]
-    lines += [f"Data: `{table['data']}` ({table['data_description']}; source: "
-              f"{table['data_source']}; image width {table['image_width']} px).", ""]
+    lines += [f"Data: `{table.data}` ({table.data_description}; source: "
+              f"{table.data_source}; image width {table.image_width} px).", ""]
     lines += seeds_lines(table)
     lines += nmae_tables(table, "##")
     lines += ["Best per column (smallest |NMAE|) in bold; `n/a` = undefined (zero mean).",
@@ -215,7 +216,7 @@ def table1_markdown(table, command=None):
 def csv_header(table, lead="method,metric"):
     """The CSV header: ``lead``, the columns and, for a table over seeds,
     ``seeds``."""
-    return f"{lead}," + ",".join(COLUMNS) + (",seeds" if "seeds" in table else "")
+    return f"{lead}," + ",".join(COLUMNS) + (",seeds" if table.seeds is not None else "")
 
 
 def csv_rows(table, prefix=""):
@@ -225,7 +226,7 @@ def csv_rows(table, prefix=""):
     values. A table over seeds ends each line with the row's seeds
     (space-separated)."""
     lines = []
-    for row, row_metrics in table["rows"].items():
+    for row, row_metrics in table.rows.items():
         seeds = row_seeds(table, row)
         tail = "" if seeds is None else "," + " ".join(str(s) for s in seeds)
         metrics_ = ("mae",) + CONVENTIONS
@@ -248,13 +249,13 @@ def table1_csv(table):
     return "\n".join([csv_header(table)] + csv_rows(table)) + "\n"
 
 
-def differences_beyond_spread(table):
-    """Markdown: for every two rows with a spread over seeds, which has the
+def differences_beyond_spread(rows):
+    """Markdown: for every two of ``rows`` (a table's rows) with a spread over seeds, which has the
     lower NMAE (MAE / mean|y|) per column where the difference of their means
     exceeds the sum of their spreads (``<``: the first row is lower, ``>``:
     the second), and ``=`` where it does not; empty (``[]``) for a table
     without spreads. The report claims an ordering only where this says so."""
-    rows = [(name, row) for name, row in table["rows"].items() if row.get("spread")]
+    rows = [(name, row) for name, row in rows.items() if row.get("spread")]
     if len(rows) < 2:
         return []
     lines = ["| rows compared | " + " | ".join(COLUMNS) + " | first lower / second lower / "
@@ -310,18 +311,18 @@ FIELD_COLUMNS = (
 def field_table(table):
     """Markdown lines: the metrics calibration papers report (relative focal
     error, FoV error in degrees, its AUC), per row that has them."""
-    rows = [(row, m["field"]) for row, m in table["rows"].items() if m.get("field")]
+    rows = [(row, m["field"]) for row, m in table.rows.items() if m.get("field")]
     if not rows:
         return []
     lines = ["| method | " + " | ".join(h for _, h, _ in FIELD_COLUMNS) + " |",
              "|---" * (len(FIELD_COLUMNS) + 1) + "|"]
     for row, field in rows:
-        degenerate = is_degenerate(table["rows"][row], "fx")
+        degenerate = is_degenerate(table.rows[row], "fx")
         cells = ["degenerate" if degenerate else metrics.format_value(field.get(key), decimals)
                  for key, _, decimals in FIELD_COLUMNS]
         lines.append(f"| {row_label(table, row)} | " + " | ".join(cells) + " |")
     seeds = (" Over several seeds, each cell is the mean of the seeds' values." if
-             table.get("seeds") and len(table["seeds"]) > 1 else "")
+             table.seeds and len(table.seeds) > 1 else "")
     return lines + ["", "Relative focal error |f - f*| / f* and FoV error per pair, their "
                     "medians; AUC of the FoV error's cumulative curve up to 1, 5 and 10 deg "
                     f"(1 = every pair exact).{seeds}", ""]
@@ -332,16 +333,16 @@ def table2_markdown(table, command=None):
     lines = ["# Table 2: NMAE per parameter on real rigs", ""]
     if command:
         lines += ["Command:", "", "```", command, "```", ""]
-    lines += [f"Pooled: {table['data_description']}; image width {table['image_width']} px. "
+    lines += [f"Pooled: {table.data_description}; image width {table.image_width} px. "
               "Forward pass only (no fine-tuning). `n/a` = undefined (zero mean, or no "
               "ground truth on that rig).", ""] + seeds_lines(table) + [
               "## Pooled over all rigs", ""]
     lines += _table2_sections(table, "###")
-    for name, rig in table["rigs"].items():
-        kind = "rectified" if rig["rectified"] else "not rectified"
+    for name, rig in table.rigs.items():
+        kind = "rectified" if rig.rectified else "not rectified"
         lines += [f"## Rig: {name} ({kind})", "",
-                  f"Data: `{rig['data']}` ({rig['data_description']}; source: "
-                  f"{rig['data_source']}).", ""]
+                  f"Data: `{rig.data}` ({rig.data_description}; source: "
+                  f"{rig.data_source}).", ""]
         lines += _table2_sections(rig, "###")
     lines += ["Best per column (smallest |NMAE|) in bold. The paper's Average row is placed "
               "beside 'Average (release bug)'. Plot of predicted against true horizontal field "
@@ -352,7 +353,7 @@ def table2_markdown(table, command=None):
 def table2_csv(table):
     """Table 2 as CSV: ``rig,method,metric,<columns>[,seeds]``; rig ``pooled`` for the pooled table."""
     lines = [csv_header(table, "rig,method,metric")]
-    for rig, sub in [("pooled", table)] + list(table["rigs"].items()):
+    for rig, sub in [("pooled", table)] + list(table.rigs.items()):
         lines += csv_rows(sub, prefix=f"{rig},")
     return "\n".join(lines) + "\n"
 
@@ -360,7 +361,7 @@ def table2_csv(table):
 
 def is_table2(table):
     """Whether a scored table is Table 2 over real rigs (per rig and pooled)."""
-    return "rigs" in table
+    return isinstance(table, Table2) and table.pooled
 
 
 def markdown(table, command=None):

@@ -13,13 +13,13 @@ from cpl_keras.training import parallel, planning
 # ---------------------------------------------------------------------------
 # Stage 2: training
 # ---------------------------------------------------------------------------
-def training_arguments(config, run_dir, variant, split, released, run_seed):
-    """The keyword arguments of ``training.train`` for one run of ``config``
-    (the settings; those of before the disparity ceiling: "auto")."""
+def training_arguments(config, run_dir, job):
+    """The keyword arguments of ``training.train`` for ``job`` (a ``Job``) of
+    ``config`` (the settings; those of before the disparity ceiling: "auto")."""
     return dict(
-        variant=variant, run_dir=run_dir, epochs=config["epochs"],
-        batch_size=config["batch_size"], backbone=config["backbone"], split=split,
-        as_released=released, seed=run_seed, patience=config["patience"],
+        variant=job.variant, run_dir=run_dir, epochs=config["epochs"],
+        batch_size=config["batch_size"], backbone=config["backbone"], split=job.split,
+        as_released=job.released, seed=job.seed, patience=config["patience"],
         time_budget_s=config.get("run_budget_s"),
         disparity_ceiling=config.get("disparity_ceiling", "auto"),
         bn_statistics=config.get("bn_statistics"), monitor=config.get("monitor"),
@@ -38,9 +38,10 @@ def train_all(config, paths, runs_dir, seed, jobs=1, out_dir=None):
     machine, a later session) is restored from it instead of trained again.
     """
     trained, pending = {}, []
-    for key, protocol, split, run_seed, variant, released, name in run_jobs(config, seed):
+    for job in run_jobs(config, seed):
+        key, protocol, name = job.key, job.protocol, job.name
         run_dir = os.path.join(runs_dir, key, name)
-        plan = training_arguments(config, run_dir, variant, split, released, run_seed)
+        plan = training_arguments(config, run_dir, job)
         record = published_record(out_dir, key, name) if out_dir else None
         finished = (runs.read_config(run_dir) or {}).get("status") == "finished"
         if not finished and record and runs.is_published(record) and \
@@ -51,7 +52,7 @@ def train_all(config, paths, runs_dir, seed, jobs=1, out_dir=None):
         # Refuses (TrainingError) a run directory that holds a run of other
         # settings, so a run made at another scale is never reused.
         planning.plan_run(paths[protocol], **plan)
-        trained.setdefault(key, {}).setdefault(run_seed, []).append(run_dir)
+        trained.setdefault(key, {}).setdefault(job.seed, []).append(run_dir)
         if finished:
             log(f"{key}/{name}: finished run found, reused")
             if record and not runs.is_published(record):

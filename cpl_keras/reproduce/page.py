@@ -162,7 +162,7 @@ def write_report(out_dir, summary, tables, rebuilt_by=None):
                          f"({stem}_fov_scatter.png)")
         lines += plots + ["", f"Files: [`{stem}.md`]({stem}.md), [`{stem}.csv`]({stem}.csv), "
                               f"[`{stem}.json`]({stem}.json).", ""]
-        differences = report.differences_beyond_spread(table)
+        differences = report.differences_beyond_spread(table.rows)
         if differences:
             lines += ["### Differences beyond the spread" + (" (pooled)" if report.is_table2(table)
                                                             else ""), "",

@@ -8,6 +8,7 @@ import dataclasses
 import math
 import os
 import sys
+from typing import NamedTuple
 
 from cpl_keras.evaluation import PAPER_DIR
 from cpl_keras.models import variants as registry
@@ -278,9 +279,25 @@ def run_stems(config, protocol="cvgl"):
     return tuple(stems)
 
 
+class Job(NamedTuple):
+    """One training run of the settings (``run_jobs``)."""
+
+    # the Table 1 version it belongs to (``TABLE1``'s key: "cvgl", "random", ...)
+    key: str
+    # the dataset's protocol, and the split the run is trained on
+    protocol: str
+    split: str
+    # the run's seed (the split's, the initialisation's and the batches' order)
+    seed: int
+    # the variant trained, and whether as released (the release's heads and targets)
+    variant: str
+    released: bool
+    # the run directory's name inside ``<runs dir>/<key>/``: ``cpl-a``, ``cpl-u-s1``
+    name: str
+
+
 def run_jobs(config, seed):
-    """Every training run of the settings: ``(table key, protocol, split, run
-    seed, variant, as released, run name)``. The runs of ``seeded_variants``
+    """Every training run of the settings, a ``Job`` each. The runs of ``seeded_variants``
     (None: all) are trained on every seed of a table, the others on its first
     seed only; a table trained over several seeds names its runs
     ``<stem>-s<seed>`` (``cpl-u-s1``, ``deep-homo-s0``, ``cpl-a-released-s0``).
@@ -302,7 +319,7 @@ def run_jobs(config, seed):
                     released = stem == RELEASED_RUN
                     variant = "cpl-a" if released else stem
                     name = stem + (f"-s{run_seed}" if count > 1 else "")
-                    jobs.append((key, protocol, split, run_seed, variant, released, name))
+                    jobs.append(Job(key, protocol, split, run_seed, variant, released, name))
     return jobs
 
 
