@@ -103,7 +103,7 @@ def main(argv=None):
     data = run.config.data
     with StereoFile(data) as f:
         targets = targets_from_labels(f.labels, as_released=run.as_released)
-    batch = int(run.config.other.get("batch_size", 16))
+    batch = int(run.config.batch_size or 16)
     ceiling = 2.0 * float(np.max(targets["disparity"][run.split["train"]]))
     val = StereoSequence(data, run.split["val"], targets=targets, batch_size=batch)
     val_batches = [val[i] for i in range(len(val))]

@@ -114,45 +114,97 @@ def read_config(run_dir, default=None):
 
 
 def write_config(run_dir, config):
+    """Write ``run_dir``'s config.json from a ``RunConfig`` (or a dict of it)."""
+    if isinstance(config, RunConfig):
+        config = config.to_dict()
     files.write_json(os.path.join(run_dir, CONFIG), normalise_config(config))
 
 
-@dataclasses.dataclass(frozen=True)
+@dataclasses.dataclass(frozen=True, kw_only=True)
 class RunConfig:
-    """config.json as the readers of a run see it, typed (``from_dict``).
+    """config.json, typed: one field per key, in the file's order.
 
-    Training writes the file (``write_config``, one dict it fills as the run
-    goes); everything that reads a run takes this record instead, so a key
-    is named in one place. Keys not named here stay in ``other``."""
+    ``training.plan_run`` makes it (the settings; the outcome fields None),
+    training fills in the outcome as the run goes (``dataclasses.replace``)
+    and writes it (``write_config``: ``to_dict()``); everything that reads a
+    run takes it through ``read_run_config`` / ``load_run`` (``from_dict``),
+    so a key is named in one place. A run directory of an older layout
+    lacks some keys (None here); keys not named here (``restored_from``,
+    ``adopted_from``, ...) stay in ``other``."""
 
-    # What was trained, on what: the variant, models.build_model's keyword
-    # arguments, the dataset file, its protocol, the split and the seed.
+    # What is trained: the variant and models.build_model's keyword arguments.
     variant: str
     build: dict
+    # On what: the dataset file, its pairs, protocol and real training rigs
+    # (a mixed or real training set: Table 2 never scores the run on them).
     data: str
+    num_pairs: int | None = None
     protocol: str | None = None
-    # the real rigs among the training pairs (a mixed or real training set):
-    # Table 2 never scores the run on them
     training_rigs: list = dataclasses.field(default_factory=list)
+    # The split: its kind, the test and validation shares, the pairs in each.
     split: str | None = None
-    seed: int | None = None
+    test_fraction: float | None = None
+    val_fraction: float | None = None
     num_train: int | None = None
     num_val: int | None = None
-    # How: the options that differ between runs, and the command line.
+    num_test: int | None = None
+    # The seed of the split, the initial weights and the batches' order.
+    seed: int | None = None
+    # Optimisation: batch size, learning rate (None: the variant's), epochs, patience.
+    batch_size: int | None = None
     learning_rate: float | None = None
-    target_scaling: str = "none"
     epochs: int | None = None
+    patience: int | None = None
+    # Validation: BatchNorm's statistics (batches, "fixed" or "epoch") and
+    # what early stopping follows ("nmae" or "loss").
+    bn_recompute_batches: int | None = None
+    bn_statistics: str | None = None
+    monitor: str | None = None
+    # The per-output MAE's scaling ("none" or "std").
+    target_scaling: str = "none"
+    # Seconds of training the run may take (None: no budget).
+    time_budget_s: float | None = None
+    # The training batches' augmentation (None or "photometric").
+    augment: str | None = None
+    # Data parallelism: on, devices, processes, and the batch over them.
+    data_parallel: bool | None = None
+    num_devices: int | None = None
+    num_processes: int | None = None
+    device_batch_size: int | None = None
+    # The command line, the run directory and the Keras backend.
     command: str | None = None
     run_dir: str | None = None
-    # How it ended (None while it runs).
-    status: str | None = None
-    stopped: str | None = None
+    keras_backend: str | None = None
+    # The model built: its optimizer's learning rate and its parameter count.
+    learning_rate_used: float | None = None
+    num_parameters: int | None = None
+    # How it ended (None while it runs): epochs, the kept one, its validation
+    # loss, the training time, status ("running", "finished", "failed"), why
+    # it stopped, the kept epoch's monitored score, MTL-CPL-A's final alphas.
     epochs_run: int | None = None
     best_epoch: int | None = None
     best_val_loss: float | None = None
     wall_time_s: float | None = None
+    status: str | None = None
+    stopped: str | None = None
+    best_score: float | None = None
+    adaptive_weights: dict | None = None
     # Every other key of config.json, as written.
     other: dict = dataclasses.field(default_factory=dict)
+
+    #: Fields written once set, and fields written once the run has ended.
+    LATE = ("learning_rate_used", "num_parameters")
+    FINAL = ("best_score", "adaptive_weights")
+
+    def to_dict(self):
+        """config.json's dict: the fields in order (``LATE`` ones once set,
+        ``FINAL`` ones once the run has ended), then ``other``."""
+        ended = self.status in ("finished", "failed")
+        out = {field.name: getattr(self, field.name) for field in dataclasses.fields(self)
+               if field.name != "other"
+               and not (field.name in self.LATE and getattr(self, field.name) is None)
+               and not (field.name in self.FINAL and not ended)}
+        return dict(out, **self.other)
 
     @classmethod
     def from_dict(cls, config, where="config.json"):

@@ -994,22 +994,26 @@ def test_fixed_batchnorm_statistics_do_not_depend_on_the_epoch(dataset, tmp_path
 
     plan = plan_run(dataset, variant="baseline", run_dir=str(tmp_path / "r"), backbone="small",
                     batch_size=5, bn_recompute_batches=2)
-    config = plan["config"]
-    pairs = batchnorm_pairs(plan, config)
-    assert len(pairs) == 10 and set(pairs) <= set(plan["split"]["train"])
-    np.testing.assert_array_equal(pairs, batchnorm_pairs(plan, config))
-    other_seed = batchnorm_pairs(plan, dict(config, seed=config["seed"] + 1))
+    config = plan.config
+
+    def with_config(**changes):
+        return dataclasses.replace(plan, config=dataclasses.replace(config, **changes))
+
+    pairs = batchnorm_pairs(plan)
+    assert len(pairs) == 10 and set(pairs) <= set(plan.split["train"])
+    np.testing.assert_array_equal(pairs, batchnorm_pairs(plan))
+    other_seed = batchnorm_pairs(with_config(seed=config.seed + 1))
     assert not np.array_equal(pairs, other_seed)
-    capped = batchnorm_pairs(plan, dict(config, bn_recompute_batches=1000))
-    assert len(capped) == len(plan["split"]["train"]) // 5 * 5
+    capped = batchnorm_pairs(with_config(bn_recompute_batches=1000))
+    assert len(capped) == len(plan.split["train"]) // 5 * 5
     # shuffled, so that each batch mixes frames as training's do (file order
     # put neighbouring frames of one drive together)
     assert not np.array_equal(capped, np.sort(capped))
 
     model = models.build_model("baseline", backbone="small_resnet", image_size=32)
-    train_seq = StereoSequence(dataset, plan["split"]["train"], targets=plan["targets"],
+    train_seq = StereoSequence(dataset, plan.split["train"], targets=plan.targets,
                                batch_size=5, shuffle=True, seed=0)
-    fixed = StereoSequence(dataset, pairs, targets=plan["targets"], batch_size=5)
+    fixed = StereoSequence(dataset, pairs, targets=plan.targets, batch_size=5)
     layer = batchnorm_layers(model)[0]
 
     def statistics(state, epoch):
@@ -1056,8 +1060,8 @@ def test_a_run_made_before_the_new_defaults_resumes_with_its_own(dataset, tmp_pa
         json.dump(config, f)
     plan = plan_run(dataset, variant="baseline", run_dir=run_dir, epochs=1, batch_size=5,
                     backbone="small")
-    assert (plan["config"]["bn_statistics"], plan["config"]["monitor"],
-            plan["config"]["bn_recompute_batches"]) == ("epoch", "loss", 16)
+    assert (plan.config.bn_statistics, plan.config.monitor,
+            plan.config.bn_recompute_batches) == ("epoch", "loss", 16)
     with pytest.raises(TrainingError, match="holds a different run .monitor"):
         plan_run(dataset, variant="baseline", run_dir=run_dir, epochs=1, batch_size=5,
                  backbone="small", monitor="nmae")

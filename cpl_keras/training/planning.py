@@ -3,13 +3,15 @@
 ``plan_run(data, variant=..., run_dir=...)`` checks the arguments, reads the
 dataset file (its images, labels and split, against the arguments) and an
 existing run directory (only the same run may be resumed in it), and
-returns the run's plan: the config.json it will write, the targets and the
-split. ``cpl_keras.training.train`` runs a plan. Problems are one-line
-``TrainingError`` or ``DatasetError``; nothing is written.
+returns the run's plan (a ``RunPlan``): the config.json it will write (a
+``runs.RunConfig``), the targets and the split. ``cpl_keras.training.train``
+runs a plan. Problems are one-line ``TrainingError`` or ``DatasetError``;
+nothing is written.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import os
 
@@ -62,6 +64,20 @@ DISPARITY_CEILING_FACTOR = 2.0
 
 class TrainingError(Error):
     """A bad argument or run directory (one-line message)."""
+
+
+@dataclasses.dataclass(frozen=True)
+class RunPlan:
+    """A checked run, ready to train (``plan_run``; ``trainer.train`` runs it)."""
+
+    # the settings, as config.json will hold them (the outcome fields None)
+    config: runs.RunConfig
+    # target name -> (num_pairs,) array: what each head is trained on
+    targets: dict
+    # "train", "val", "test" -> index arrays into the dataset file
+    split: dict
+    # loader threads per sequence of batches
+    workers: int
 
 
 def _check_arguments(*, variant, backbone, split, epochs, batch_size, workers, patience, seed,
@@ -191,9 +207,8 @@ def plan_run(data, *, variant, run_dir, epochs=200, batch_size=16, learning_rate
              positive_focal_head=None, alpha_rate=None, disparity_ceiling="auto",
              bn_recompute_batches=None, bn_statistics=None, monitor=None,
              target_scaling="none", time_budget_s=None, augment=None, command=None):
-    """Check the dataset and the arguments; return the run's plan (a dict:
-    ``config``, what config.json will hold; ``targets``; ``split``;
-    ``workers``).
+    """Check the dataset and the arguments; return the run's plan (a
+    ``RunPlan``: its ``config`` is what config.json will hold).
 
     The defaults are the paper's (Adam at the variant's learning rate, batch
     16, up to 200 epochs, patience 5, InceptionV3 towers, the paper's split).
@@ -263,7 +278,8 @@ def plan_run(data, *, variant, run_dir, epochs=200, batch_size=16, learning_rate
         "keras_backend": keras_backend(),
     }
     _check_run_dir(run_dir, config, keep_ceiling=disparity_ceiling == "auto", keep=defaulted)
-    return {"config": config, "targets": targets, "split": indices, "workers": int(workers)}
+    return RunPlan(config=runs.RunConfig(**config), targets=targets, split=indices,
+                   workers=int(workers))
 
 
 def _build_arguments(spec, *, backbone, image_size, as_released, bounded_pitch_head,

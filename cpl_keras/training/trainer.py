@@ -25,6 +25,7 @@ A non-finite training loss stops the run and keeps the best weights so far.
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import fcntl
 import hashlib
 import os
@@ -74,7 +75,7 @@ def train(data, *, steps_per_execution=1, verbose=1, return_model=True, **option
             f"steps per execution must be a positive integer, got {steps_per_execution!r}")
     group = _join_group(options)  # (before any device is counted)
     plan = plan_run(data, **options)
-    finished = _finished_run(plan["config"]["run_dir"], return_model)
+    finished = _finished_run(plan.config.run_dir, return_model)
     if group is not None:
         distributed.check_same("the run", group_fingerprint(plan, finished))
     if finished is not None:
@@ -82,9 +83,9 @@ def train(data, *, steps_per_execution=1, verbose=1, return_model=True, **option
     import keras
 
     if distributed.is_chief():
-        _replace_failed_run(plan["config"]["run_dir"])
+        _replace_failed_run(plan.config.run_dir)
     scope = contextlib.nullcontext()
-    if plan["config"]["data_parallel"]:
+    if plan.config.data_parallel:
         devices = keras.distribution.list_devices()
         # (across processes each one reads its own part of every batch:
         # StereoSequence's ``process``; Keras shards only tf.data itself)
@@ -118,23 +119,23 @@ def group_fingerprint(plan, finished):
     settings, the dataset's labels and split, the step counts of an epoch,
     and where the run stands (a run directory that one process sees and
     another does not shows here)."""
-    config = plan["config"]
-    batch = config["device_batch_size"]
+    config = plan.config
+    batch = config.device_batch_size
     digest = hashlib.sha256()
-    for name in sorted(plan["targets"]):
-        digest.update(np.asarray(plan["targets"][name], np.float32).tobytes())
+    for name in sorted(plan.targets):
+        digest.update(np.asarray(plan.targets[name], np.float32).tobytes())
     for part in ("train", "val", "test"):
-        digest.update(np.asarray(plan["split"][part], np.int64).tobytes())
-    state = files.read_json(os.path.join(config["run_dir"], runs.STATE)) or {}
+        digest.update(np.asarray(plan.split[part], np.int64).tobytes())
+    state = files.read_json(os.path.join(config.run_dir, runs.STATE)) or {}
     return {
-        "training steps per epoch": -(-config["num_train"] // batch),
-        "validation steps": -(-config["num_val"] // batch),
-        "devices": config["num_devices"],
-        **{key: config.get(key) for key in RESUME_KEYS if key != "data"},
-        "dataset pairs": config["num_pairs"],
+        "training steps per epoch": -(-config.num_train // batch),
+        "validation steps": -(-config.num_val // batch),
+        "devices": config.num_devices,
+        **{key: getattr(config, key) for key in RESUME_KEYS if key != "data"},
+        "dataset pairs": config.num_pairs,
         "labels and split (sha256)": digest.hexdigest()[:16],
         "run status": "finished" if finished is not None else (
-            runs.read_config(config["run_dir"], {}) or {}).get("status", "new"),
+            runs.read_config(config.run_dir, {}) or {}).get("status", "new"),
         "epochs completed": int(state.get("epoch", 0)),
     }
 
@@ -177,23 +178,21 @@ def _finished_run(run_dir, load_model=True):
 def _run(plan, steps_per_execution, verbose):
     import keras
 
-    config = plan["config"]
-    variant = config["variant"]
+    config = plan.config
     try:
-        model = models.build_model(variant, **config["build"])
-        models.compile_model(model, learning_rate=config["learning_rate"],
+        model = models.build_model(config.variant, **config.build)
+        models.compile_model(model, learning_rate=config.learning_rate,
                              steps_per_execution=steps_per_execution,
-                             target_scale=_target_scale(plan) if config["target_scaling"] == "std" else None)
+                             target_scale=_target_scale(plan) if config.target_scaling == "std" else None)
     except ValueError as error:
-        raise TrainingError(f"cannot build {variant}: {error}") from None
-    config["learning_rate_used"] = float(
-        f"{float(keras.ops.convert_to_numpy(model.optimizer.learning_rate)):.7g}"
-    )
-    config["num_parameters"] = int(model.count_params())
+        raise TrainingError(f"cannot build {config.variant}: {error}") from None
+    config = dataclasses.replace(
+        config, num_parameters=int(model.count_params()), learning_rate_used=float(
+            f"{float(keras.ops.convert_to_numpy(model.optimizer.learning_rate)):.7g}"))
 
     # Nothing has been written so far; from here on the run directory exists
     # (written by process 0 alone when several train together).
-    run_dir = config["run_dir"]
+    run_dir = config.run_dir
     if not distributed.is_chief():
         distributed.barrier("run directory ready")
         return _run_locked(plan, model, config, run_dir, verbose)
@@ -212,31 +211,30 @@ def _run_locked(plan, model, config, run_dir, verbose):
     if finished is not None:
         return finished
     if distributed.is_chief():
-        _write_run_files(plan, config, run_dir)
+        config = _write_run_files(plan, config, run_dir)
         distributed.barrier("run directory ready")
 
     group = distributed.current()
-    common = dict(targets=plan["targets"], batch_size=config["device_batch_size"],
-                  multiple_of=config["num_devices"], workers=plan["workers"],
+    common = dict(targets=plan.targets, batch_size=config.device_batch_size,
+                  multiple_of=config.num_devices, workers=plan.workers,
                   process=None if group is None else (group.process_id, group.num_processes))
-    train_seq = StereoSequence(config["data"], plan["split"]["train"], shuffle=True,
-                               seed=config["seed"], augment=config.get("augment"), **common)
-    val_seq = StereoSequence(config["data"], plan["split"]["val"], shuffle=False, **common)
+    train_seq = StereoSequence(config.data, plan.split["train"], shuffle=True,
+                               seed=config.seed, augment=config.augment, **common)
+    val_seq = StereoSequence(config.data, plan.split["val"], shuffle=False, **common)
 
     bn_seq = None
-    if config["bn_statistics"] == "fixed" and config["bn_recompute_batches"]:
-        bn_seq = StereoSequence(config["data"], batchnorm_pairs(plan, config), shuffle=False,
-                                **common)
+    if config.bn_statistics == "fixed" and config.bn_recompute_batches:
+        bn_seq = StereoSequence(config.data, batchnorm_pairs(plan), shuffle=False, **common)
 
     from cpl_keras.training.checkpointing import RunState
     from cpl_keras.training.progress import EpochLines
 
-    run_state = RunState(run_dir, config["patience"], train_seq, config["bn_recompute_batches"],
-                         time_budget_s=config.get("time_budget_s"), bn_sequence=bn_seq,
-                         nmae_scale=nmae_scale(plan) if config["monitor"] == "nmae" else None,
+    run_state = RunState(run_dir, config.patience, train_seq, config.bn_recompute_batches,
+                         time_budget_s=config.time_budget_s, bn_sequence=bn_seq,
+                         nmae_scale=nmae_scale(plan) if config.monitor == "nmae" else None,
                          writes=distributed.is_chief())
     state = run_state.state
-    done = state.get("stopped") is not None or state["epoch"] >= config["epochs"]
+    done = state.get("stopped") is not None or state["epoch"] >= config.epochs
     try:
         if not done:
             initial_epoch = run_state.restore(model)
@@ -247,9 +245,9 @@ def _run_locked(plan, model, config, run_dir, verbose):
             # own shuffle of the batch order uses Python's unseeded global RNG.
             callbacks = [run_state]
             if verbose and distributed.is_chief():  # (Keras's bar: all 14-30 metrics a line)
-                callbacks.append(EpochLines(config["epochs"], run_state,
+                callbacks.append(EpochLines(config.epochs, run_state,
                                             live=None if verbose == 1 else False))
-            model.fit(train_seq, validation_data=val_seq, epochs=config["epochs"],
+            model.fit(train_seq, validation_data=val_seq, epochs=config.epochs,
                       initial_epoch=initial_epoch, callbacks=callbacks, shuffle=False,
                       verbose=0)
     finally:  # (also on Ctrl-C: no reading threads left behind)
@@ -263,28 +261,30 @@ def _run_locked(plan, model, config, run_dir, verbose):
 
 def _write_run_files(plan, config, run_dir):
     """config.json (status "running"), split.npz and train_stats.json: what a
-    run directory holds from its start."""
+    run directory holds from its start. Returns ``config`` as written (a
+    resumed run keeps its outcome so far)."""
     previous = runs.read_config(run_dir, {})
-    for key in ("epochs_run", "best_epoch", "best_val_loss", "wall_time_s", "status", "stopped"):
-        config[key] = previous.get(key)
-    config["status"] = "running"
+    config = dataclasses.replace(config, status="running", **{
+        key: previous.get(key) for key in ("epochs_run", "best_epoch", "best_val_loss",
+                                           "wall_time_s", "stopped")})
     runs.write_config(run_dir, config)
     split_path = os.path.join(run_dir, runs.SPLIT)
     if os.path.exists(split_path):
         old = load_split(split_path)
-        if any(not np.array_equal(old[k], plan["split"][k]) for k in old):
+        if any(not np.array_equal(old[k], plan.split[k]) for k in old):
             raise TrainingError(f"{split_path} differs from this run's split; use another --run-dir")
     else:
         with files.atomic_path(split_path) as tmp:
-            save_split(tmp, plan["split"])
+            save_split(tmp, plan.split)
     # The release's Average bug depends on the order of the training set: its
     # frames were shuffled, so sample i is the i-th of a shuffled order.
-    train_order = np.random.default_rng(config["seed"]).permutation(plan["split"]["train"])
+    train_order = np.random.default_rng(config.seed).permutation(plan.split["train"])
     # ... and it averaged the release's labels (its frame, degrees, StereoBM).
-    with StereoFile(config["data"]) as data_file:
+    with StereoFile(config.data) as data_file:
         release_targets = targets_from_labels(data_file.labels, as_released=True)
-    stats = training_statistics(plan["targets"], train_order, release_targets=release_targets)
+    stats = training_statistics(plan.targets, train_order, release_targets=release_targets)
     save_statistics(os.path.join(run_dir, runs.STATS), stats)
+    return config
 
 
 def _lock_run_dir(run_dir):
@@ -304,7 +304,7 @@ def _lock_run_dir(run_dir):
     return handle
 
 
-def batchnorm_pairs(plan, config):
+def batchnorm_pairs(plan):
     """The training pairs BatchNorm's statistics are recomputed over with
     ``bn_statistics="fixed"``: ``bn_recompute_batches`` whole batches (at
     most the training split's whole batches) from a permutation of the
@@ -317,19 +317,20 @@ def batchnorm_pairs(plan, config):
     batch by batch, are not those of training: on the InceptionV3 MTL-CPL-A
     run of paper_results/faithful-2000-steady they gave a validation loss of
     46.5 where the shuffled order gave 10.1 with the same weights."""
-    train = np.asarray(plan["split"]["train"])
-    batch = config["device_batch_size"]
-    count = min(config["bn_recompute_batches"], max(len(train) // batch, 1)) * batch
-    return np.random.default_rng([config["seed"], 1024]).permutation(train)[:count]
+    config = plan.config
+    train = np.asarray(plan.split["train"])
+    batch = config.device_batch_size
+    count = min(config.bn_recompute_batches, max(len(train) // batch, 1)) * batch
+    return np.random.default_rng([config.seed, 1024]).permutation(train)[:count]
 
 
 def nmae_scale(plan):
     """The training split's mean |y| of each camera parameter: the NMAE
     monitor's fixed normalisers (1 where a parameter is 0 throughout)."""
-    train = plan["split"]["train"]
+    train = plan.split["train"]
     scale = {}
     for name in PARAMETERS:
-        mean = float(np.mean(np.abs(np.asarray(plan["targets"][name], np.float64)[train])))
+        mean = float(np.mean(np.abs(np.asarray(plan.targets[name], np.float64)[train])))
         scale[name] = mean if mean > 1e-9 else 1.0
     return scale
 
@@ -337,9 +338,9 @@ def nmae_scale(plan):
 def _target_scale(plan):
     """Training standard deviation of every target (1 for a constant one,
     such as the cvgl protocol's u0 and v0)."""
-    train = plan["split"]["train"]
+    train = plan.split["train"]
     scale = {}
-    for name, values in plan["targets"].items():
+    for name, values in plan.targets.items():
         std = float(np.std(np.asarray(values, np.float64)[train]))
         scale[name] = std if std > 1e-6 else 1.0
     return scale
@@ -367,8 +368,8 @@ def _finish(model, run_dir, config, state):
                 model.save(tmp)
     nan = state.get("stopped") or ""
     failed = nan.startswith("non-finite")
-    config.update(
-        epochs_run=int(state["epoch"]),
+    config = dataclasses.replace(
+        config, epochs_run=int(state["epoch"]),
         best_epoch=None if state.get("best_epoch") is None else int(state["best_epoch"]) + 1,
         best_val_loss=_best_row(state).get("val_loss", state.get("best")),
         best_score=state.get("best"),
@@ -385,10 +386,10 @@ def _finish(model, run_dir, config, state):
                 os.remove(os.path.join(backup, name))
     distributed.barrier("run finished")
     return {
-        "run_dir": run_dir, "status": config["status"], "stopped": config["stopped"],
-        "epochs_run": config["epochs_run"], "best_epoch": config["best_epoch"],
-        "best_val_loss": config["best_val_loss"], "has_model": bool(best),
-        "monitor": config["monitor"], "best_score": config["best_score"],
+        "run_dir": run_dir, "status": config.status, "stopped": config.stopped,
+        "epochs_run": config.epochs_run, "best_epoch": config.best_epoch,
+        "best_val_loss": config.best_val_loss, "has_model": bool(best),
+        "monitor": config.monitor, "best_score": config.best_score,
     }
 
 
