@@ -33,7 +33,7 @@ def enable_compile_cache():
     of the same model then loads instead of compiling. The quick reproduction
     (nine runs in processes of their own, two at a time) took 90 and 91 s
     with this against 100 and 103 s with JAX's default, from an empty cache
-    (docs/performance.md). Returns the directory, or None on other backends.
+    (paper_results/notes/pipeline-and-suite.md). Returns the directory, or None on other backends.
     """
     if keras_backend() != "jax":
         return None

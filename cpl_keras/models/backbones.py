@@ -29,7 +29,9 @@ patches: a 3x3 convolution on InceptionV3's 2 x 2 maps (about 20x faster) and
 the kernel gradients of its stem; and its max-poolings are
 ``ViewMaxPooling2D`` layers, whose gradient is element-wise instead of
 XLA's select-and-scatter (both in ``cpl_keras.models.fast_layers``;
-docs/performance.md). ``with_faster_layers`` swaps them into a tower.
+docs/performance.md; measured in
+paper_results/notes/performance-measurements.md). ``with_faster_layers``
+swaps them into a tower.
 """
 
 from __future__ import annotations

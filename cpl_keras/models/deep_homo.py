@@ -16,7 +16,7 @@ outputs, with the kernel gradient of the 3x3 convolutions on the 112, 56 and
 XLA:CPU's convolution with a window the size of the map, which took a third
 of the training step; the 2x2 max-poolings are ``ViewMaxPooling2D``
 layers, ``MaxPooling2D``'s values with an element-wise gradient instead of
-XLA's select-and-scatter (docs/performance.md, Deep-Homo: together a 1.64x
+XLA's select-and-scatter (paper_results/notes/deep-homo-speed.md: together a 1.64x
 faster step).
 """
 

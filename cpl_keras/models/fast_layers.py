@@ -174,7 +174,8 @@ class ViewMaxPooling2D(keras.layers.MaxPooling2D):
     between them, XLA's pooling gives it all to one). Forward and gradient
     together, jitted: Deep-Homo's first 2x2 pooling (16 x 112 x 112 x 64)
     18 ms against 151 ms; InceptionV3's first 3x3, stride-2 pooling (16 x 53
-    x 53 x 64) 3.3 ms against 34 ms (docs/performance.md). Other padding is
+    x 53 x 64) 3.3 ms against 34 ms (paper_results/notes/deep-homo-speed.md).
+    Other padding is
     ``MaxPooling2D`` as is (``"pool"``).
     """
 

@@ -325,7 +325,7 @@ def run_jobs(config, seed):
 
 #: Settings sized for a GPU: InceptionV3 towers on this many pairs or more.
 GPU_SIZED_PAIRS = 10000
-#: The faithful model's training rate on a 2-core CPU (docs/performance.md).
+#: The faithful model's training rate on a 2-core CPU (paper_results/notes/backends.md).
 CPU_SAMPLES_PER_S = 12
 
 
