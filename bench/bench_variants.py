@@ -10,7 +10,7 @@ training steps of every variant in turn, so a load change on a shared machine
 hits all of them alike and the ratio to MTL-Baseline is the stable figure.
 Reported per variant: the first fit (compilation included), the median
 round, samples/s and the ratio to the ``baseline`` variant's median. This is
-what the ``cpu`` preset's budget in docs/evaluation.md takes Deep-Homo's
+what the ``cpu`` preset's budget in paper_results/cpu/README.md takes Deep-Homo's
 epoch from (Deep-Homo has its own 8-convolution network at full resolution,
 whatever ``--backbone`` says).
 """

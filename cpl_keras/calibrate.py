@@ -36,7 +36,7 @@ them.
 cameras' are: fy = fx in the input image's pixels, the network's own fy
 kept as ``network_fy``. The network sees the pair squashed to a square, so
 its fy must guess the image's aspect ratio from content, and on real rigs it
-did worse than fx (docs/evaluation.md, "Models for real cameras");
+did worse than fx (docs/real-data.md, "Models for real cameras");
 ``--aspect model`` reports the network's fy.
 
 ``--folder DIR`` calibrates every pair of one rig (``find_pairs``) and

@@ -32,7 +32,7 @@ from cpl_keras.data.storage import StereoWriter
 from cpl_keras.errors import Error
 from cpl_keras.images import resize_image
 
-#: Label conventions a real-data builder can write (see docs/evaluation.md).
+#: Label conventions a real-data builder can write (see docs/real-data.md).
 LABEL_MODES = ("rig", "vehicle")
 
 

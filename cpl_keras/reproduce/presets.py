@@ -175,7 +175,7 @@ PRESETS = {
                         random_seeds=1, variants=("cpl-a", "baseline"), released=False,
                         seeded_variants=None, workers=None, tables=("cvgl",),
                         run_budget_s=150),
-    # Sized for a 2-core CPU: 1 h 24 min measured with --jobs 2 (docs/evaluation.md):
+    # Sized for a 2-core CPU: 1 h 24 min measured with --jobs 2 (paper_results/cpu/README.md):
     # every row of the tables, the MTL variants on cvgl over 3 seeds, Deep-Homo
     # and MTL-CPL-A as released on the first seed only; 1,000 pairs per
     # protocol, since a Deep-Homo training step costs 15-18 small_resnet ones.
