@@ -40,7 +40,7 @@ def evaluate():
         except KeyboardInterrupt:  # (during the import; evaluate's main says the same)
             return cli.interrupted("cpl-evaluate", note="nothing was written")
 
-    cli.run(main, "cpl-evaluate")
+    cli.run(main, "cpl-evaluate", note="nothing was written")
 
 
 def reproduce():

@@ -194,7 +194,9 @@ class EarlyCommand:
                                         stdin=subprocess.DEVNULL, stdout=self._out,
                                         stderr=self._err, text=True)
         try:  # a lower priority: it fills the cores the tests leave idle, and no more
-            os.setpriority(os.PRIO_PROCESS, self.process.pid, NICENESS)
+            # (with a second test process no core is idle: the same priority)
+            os.setpriority(os.PRIO_PROCESS, self.process.pid,
+                           0 if _second.process is not None else NICENESS)
         except (AttributeError, OSError):  # (no such call here, or the process has ended)
             pass
         self.started.set()
@@ -267,10 +269,100 @@ def pytest_collection_finish(session):
                   if any(fixture in getattr(item, "fixturenames", ()) for item in session.items)])
 
 
+# ---------------------------------------------------------------------------
+# A second test process
+# ---------------------------------------------------------------------------
+#: Test files that a second pytest process runs beside this one when the
+#: selection holds both them and others. The tests run one at a time and
+#: their floor is XLA's compile time, one thread, so one process leaves the
+#: second core mostly idle; these files need none of the ``EARLY`` commands
+#: (whose tests stay here) and about half of the suite's time
+#: (paper_results/notes/pipeline-and-suite.md). ``CPL_KERAS_TEST_SPLIT=0``
+#: keeps every test in this process.
+SECOND_PROCESS_FILES = ("test_distributed.py", "test_docs_commands.py", "test_inspect.py",
+                        "test_learning_curves.py", "test_leave_one_rig_out.py")
+#: Set in the second process (which runs what it is given and splits nothing).
+WORKER = "CPL_KERAS_TEST_WORKER"
+
+
+class SecondProcess:
+    """``python -m pytest`` on the given tests (node ids), in the background
+    from the end of collection on; its output goes to a file, and its result
+    is this session's too (``pytest_sessionfinish``)."""
+
+    def __init__(self):
+        self.process, self.folder, self.count = None, None, 0
+
+    def start(self, config, nodeids):
+        self.folder, self.count = tempfile.mkdtemp(prefix="cpl_keras_second_"), len(nodeids)
+        argv = [sys.executable, "-m", "pytest", "-q", "-rfE", "-p", "no:cacheprovider",
+                "--basetemp", os.path.join(self.folder, "tmp")]
+        if config.option.durations is not None:
+            argv += [f"--durations={config.option.durations}"]
+        self._out = open(os.path.join(self.folder, "output.txt"), "w")
+        self.process = subprocess.Popen(argv + list(nodeids), cwd=REPO, stdin=subprocess.DEVNULL,
+                                        stdout=self._out, stderr=subprocess.STDOUT,
+                                        env=dict(os.environ, **{WORKER: "1"}))
+
+    def finish(self, interrupted):
+        """``(returncode, output)``; the process is killed when this session
+        was interrupted."""
+        if interrupted and self.process.poll() is None:
+            self.process.kill()
+        try:
+            returncode = self.process.wait(timeout=1800)
+        except subprocess.TimeoutExpired:
+            self.process.kill()
+            returncode = self.process.wait()
+        self._out.close()
+        with open(self._out.name) as f:
+            output = f.read()
+        shutil.rmtree(self.folder, ignore_errors=True)
+        return returncode, output
+
+
+_second = SecondProcess()
+_second_result = []
+
+
+@pytest.hookimpl(trylast=True)  # (after -m and -k have deselected)
+def pytest_collection_modifyitems(session, config, items):
+    """Hand ``SECOND_PROCESS_FILES``' tests to a second process when the
+    selection also holds others."""
+    if os.environ.get(WORKER) or os.environ.get("CPL_KERAS_TEST_SPLIT") == "0" \
+            or config.option.collectonly:
+        return
+    second = [item for item in items if item.path.name in SECOND_PROCESS_FILES]
+    if not second or len(second) == len(items):
+        return
+    items[:] = [item for item in items if item.path.name not in SECOND_PROCESS_FILES]
+    _second.start(config, [item.nodeid for item in second])
+
+
 def pytest_sessionfinish(session):
+    if _second.process is not None:
+        returncode, output = _second.finish(
+            interrupted=session.exitstatus == pytest.ExitCode.INTERRUPTED)
+        _second_result.append((returncode, output))
+        if returncode not in (0, pytest.ExitCode.NO_TESTS_COLLECTED):
+            session.exitstatus = pytest.ExitCode.TESTS_FAILED
     _early.stop()
     for folder in _folders:
         shutil.rmtree(folder, ignore_errors=True)
+
+
+def pytest_terminal_summary(terminalreporter):
+    """The second process's result: its last line, and all of its output
+    when it failed."""
+    if not _second_result:
+        return
+    returncode, output = _second_result[0]
+    lines = output.rstrip().splitlines() or ["(no output)"]
+    terminalreporter.section(f"second process ({_second.count} tests of "
+                             f"{', '.join(SECOND_PROCESS_FILES)})")
+    for line in (lines if returncode not in (0, pytest.ExitCode.NO_TESTS_COLLECTED)
+                 else lines[-1:]):
+        terminalreporter.write_line(line)
 
 
 def started_early(name):

@@ -222,15 +222,15 @@ def _interrupt_at(args, moment, cache):
 
 
 @pytest.mark.slow
-def test_ctrl_c_of_evaluate_at_twenty_moments_exits_130_with_one_line(tiny_run, tmp_path):
-    """Ctrl-C at 20 moments from start-up to the end of compilation: exit
+def test_ctrl_c_of_evaluate_at_a_dozen_moments_exits_130_with_one_line(tiny_run, tmp_path):
+    """Ctrl-C at 12 moments from start-up to the end of compilation: exit
     130 and one line every time, nothing written. (Python's teardown with
     XLA's compilation still in flight crashed 4 of 10 such interrupts with
     a segmentation fault, exit -11 / 139; ``cli.run`` ends an interrupted
     process with ``os._exit(130)``.) Two at a time, on 2 cores."""
     from concurrent.futures import ThreadPoolExecutor
 
-    moments = [0.4 + 0.35 * i for i in range(20)]  # 0.4 .. 7.05 s
+    moments = [0.4 + 0.6 * i for i in range(12)]  # 0.4 .. 7.0 s
 
     def one(i):
         out = tmp_path / f"out{i}"
@@ -251,7 +251,7 @@ def test_ctrl_c_of_evaluate_at_twenty_moments_exits_130_with_one_line(tiny_run, 
         lines = [line for line in err.strip().splitlines() if "interrupted" in line]
         assert lines == ["evaluate.py: interrupted; nothing was written"], err
         assert written == [], f"at {moments[i]:.2f} s it wrote {written}"
-    assert interrupted >= 15, f"only {interrupted} of 20 were interrupted before they ended"
+    assert interrupted >= 9, f"only {interrupted} of 12 were interrupted before they ended"
 
 
 @pytest.mark.slow
