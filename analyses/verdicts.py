@@ -36,12 +36,12 @@ PAIRS = (("cpl-a", "baseline"), ("cpl-u", "baseline"), ("cpl-a", "cpl-u"))
 
 def load_rows(folder, split, variant):
     """``{seed: raw}`` and the row's name for one variant of a split, from
-    the folder's predictions files (``cpl_keras.predictions.load``)."""
-    from cpl_keras import predictions
+    the folder's predictions files (``cpl_keras.prediction_files.load``)."""
+    from cpl_keras import prediction_files
     from cpl_keras.evaluation import EvaluationError
 
-    pattern = os.path.join(folder, "runs", f"{split}_{variant}-s*{predictions.SUFFIX}")
-    items = [predictions.load(path) for path in sorted(glob.glob(pattern))]
+    pattern = os.path.join(folder, "runs", f"{split}_{variant}-s*{prediction_files.SUFFIX}")
+    items = [prediction_files.load(path) for path in sorted(glob.glob(pattern))]
     items = [item for item in items if item["table"] == f"table1_{split}"]
     if not items:
         raise EvaluationError(f"no predictions of {variant} on {split} in {folder}/runs")
@@ -51,10 +51,10 @@ def load_rows(folder, split, variant):
 
 def has_rows(folder, split, variant):
     """Whether the folder has predictions of ``variant`` on ``split``."""
-    from cpl_keras import predictions
+    from cpl_keras import prediction_files
 
     return bool(glob.glob(os.path.join(folder, "runs",
-                                       f"{split}_{variant}-s*{predictions.SUFFIX}")))
+                                       f"{split}_{variant}-s*{prediction_files.SUFFIX}")))
 
 
 def check_against_table(folder, split, name_a, name_b, verdicts):

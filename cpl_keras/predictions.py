@@ -9,43 +9,9 @@ and curves (``<out>/runs/<protocol>_<name>[_on_<real set>]_predictions.npz``)
 and makes its tables from them; ``--from-predictions DIR`` rebuilds every
 table and REPORT.md from them.
 
-A file holds (n = pairs of the row, one line per pair):
-
-=====================  ==========================================================
-``outputs``            (13,) str: the output names, in the release's order
-                       (fx fy u0 v0 baseline disparity tx ty tz pitch X Y Z)
-``pred``               (n, 13) float32: the predictions
-``truth``              (n, 13) float64: the ground-truth targets the row is
-                       scored against (the release's for an as-released row)
-``defined``            (n, 13) bool: where the truth exists (real sets without
-                       ground-truth disparity leave disparity, X, Y, Z out)
-``indices``            (n,) int64: the pairs' indices in the dataset file
-``name``, ``row``,     str: the file's name stem (``cvgl_cpl-a``), the table
-``variant``            row (``MTL-CPL-A``), the variant (``cpl-a``, or
-                       ``average``, ``average-release``, ``geometric``)
-``source``             str: the run directory, relative to the tables' folder
-                       (a baseline: what it is computed from)
-``as_released``        bool
-``dataset``,           str: the dataset file's name, its generator version
-``generator_version``  (empty for real sets), ``dataset_path``: relative to
-``dataset_path``       the tables' folder
-``split``, ``subset``  str: the run's split (``paper``, ``held-out-config``)
-                       and the pairs used (``test``: its test split; ``all``:
-                       every pair of a real set)
-``seed``               int: the run's seed (a baseline: its reference run's)
-``table``,             str / int: the table's file stem (``table1_cvgl``,
-``table_number``,      ``table2``), its number, the real set's rig name and
-``rig``, ``rig_index`` position among the table's real sets (``""``, -1 for
-                       Table 1)
-``context``            str (JSON): the table's fields (dataset description,
-                       image width, the runs, ...), as the table records them
-``key``                str (JSON): what the file was computed from (runs,
-                       data, Geometric settings), to tell when it is stale
-Geometric only         ``failure_flags`` (k,) str and ``failures`` (n, k) bool
-                       (its stage failures), ``prior_names`` / ``prior_values``
-                       (its fallbacks), ``degenerate`` (columns undefined on a
-                       rectified rig)
-=====================  ==========================================================
+The files' format (their arrays) is ``cpl_keras.prediction_files``'s,
+which reads and writes them; this module makes a row's arrays
+(``table1_files``, ``table2_files``) and scores the tables from the files.
 
 ``tables_from_files(paths)`` groups the files by table and seed, scores each
 group with the same code that scores a table in memory
@@ -58,35 +24,18 @@ from __future__ import annotations
 
 import json
 import os
-import zipfile
 
 import numpy as np
 
 from cpl_keras import evaluation, report, runs
 from cpl_keras.baselines.geometric import FAILURE_FLAGS
 from cpl_keras.camera import TARGETS
-from cpl_keras.cli import one_line
 from cpl_keras.data.storage import StereoFile
-from cpl_keras.evaluation import EvaluationError
-from cpl_keras.files import atomic_path
+from cpl_keras.prediction_files import FORMAT, FORMAT_VERSION, SUFFIX, PredictionsError, load
 
-#: File name suffix of a predictions file.
-SUFFIX = "_predictions.npz"
-FORMAT = "cpl_keras.predictions"
-FORMAT_VERSION = 1
 #: File name slug and variant of the baseline rows.
 BASELINES = {"Average": "average", "Average (release bug)": "average-release",
              "Geometric": "geometric"}
-#: Arrays every file has, and their dimensions (n = pairs, 13 = outputs).
-SHAPES = {"pred": ("n", 13), "truth": ("n", 13), "defined": ("n", 13), "indices": ("n",),
-          "outputs": (13,)}
-STRINGS = ("format", "name", "row", "variant", "source", "dataset", "generator_version",
-           "dataset_path", "split", "subset", "table", "rig", "context", "key")
-NUMBERS = ("format_version", "seed", "table_number", "rig_index", "as_released")
-
-
-class PredictionsError(EvaluationError):
-    """A predictions file is missing, unreadable or inconsistent (one line)."""
 
 
 def file_name(prefix, slug, data_stem=None):
@@ -183,107 +132,6 @@ def table2_files(run_list, rigs, *, out_dir, prefix, stem, key, suffix=""):
                 reference=run_list[0], data_path=rig["data"], subset="all", table=stem,
                 table_number=2, context=context, key=key, rig=rig["rig"], rig_index=index)
     return files
-
-
-def write_files(folder, files):
-    """Write ``{file name: arrays}`` into ``folder`` (created if missing), all
-    files or none (``cpl_keras.files.atomic_path``); returns their paths."""
-    os.makedirs(folder, exist_ok=True)
-    paths = [os.path.join(folder, name) for name in files]
-    if not paths:
-        return []
-    with atomic_path(*paths) as tmps:
-        tmps = tmps if isinstance(tmps, list) else [tmps]
-        for tmp, arrays in zip(tmps, files.values()):
-            with open(tmp, "wb") as f:
-                np.savez(f, **arrays)
-    return paths
-
-
-# ---------------------------------------------------------------------------
-# Reading
-# ---------------------------------------------------------------------------
-def _scalar(arrays, key, path, kind):
-    value = arrays[key]
-    if value.shape != ():
-        raise PredictionsError(f"{path}: '{key}' is not a single value")
-    if kind is str:
-        if value.dtype.kind != "U":
-            raise PredictionsError(f"{path}: '{key}' is not a string")
-        return str(value)
-    if value.dtype.kind not in "biu":
-        raise PredictionsError(f"{path}: '{key}' is not an integer")
-    return int(value)
-
-
-def read_key(path):
-    """The ``key`` stored in a predictions file (None when it cannot be read)."""
-    try:
-        with np.load(path, allow_pickle=False) as f:
-            return str(f["key"])
-    except Exception:  # a stale or damaged file is recomputed, never trusted
-        return None
-
-
-def load(path):
-    """A predictions file as a dict: its identity (``name``, ``row``,
-    ``seed``, ``table``, ``table_number``, ``rig``, ``rig_index``, ...), its
-    ``context`` (dict) and ``raw``, the row as the table code scores it.
-    PredictionsError (one line, naming the file) if it is missing, unreadable
-    or inconsistent."""
-    path = os.fspath(path)
-    if not os.path.isfile(path):
-        raise PredictionsError(f"predictions file not found: {path}")
-    try:
-        with np.load(path, allow_pickle=False) as f:
-            arrays = {k: f[k] for k in f.files}
-    except (OSError, ValueError, EOFError, zipfile.BadZipFile, KeyError) as error:
-        raise PredictionsError(f"{path}: not a readable predictions file "
-                               f"({type(error).__name__}: {one_line(error)})") from None
-    missing = [k for k in STRINGS + NUMBERS + tuple(SHAPES) if k not in arrays]
-    if missing:
-        raise PredictionsError(f"{path}: not a predictions file (no {', '.join(missing)})")
-    item = {k: _scalar(arrays, k, path, str) for k in STRINGS}
-    item.update({k: _scalar(arrays, k, path, int) for k in NUMBERS})
-    if item["format"] != FORMAT or item["format_version"] != FORMAT_VERSION:
-        raise PredictionsError(f"{path}: format {item['format']} {item['format_version']}, "
-                               f"expected {FORMAT} {FORMAT_VERSION}")
-    if [str(x) for x in arrays["outputs"]] != list(TARGETS):
-        raise PredictionsError(f"{path}: outputs {list(arrays['outputs'])} are not "
-                               f"{list(TARGETS)}")
-    n = len(arrays["indices"])
-    for key, shape in SHAPES.items():
-        expected = tuple(n if d == "n" else d for d in shape)
-        if arrays[key].shape != expected:
-            raise PredictionsError(f"{path}: '{key}' has shape {arrays[key].shape}, expected "
-                                   f"{expected}")
-    if arrays["pred"].dtype != np.float32 or arrays["truth"].dtype.kind != "f" \
-            or arrays["defined"].dtype != bool or arrays["indices"].dtype.kind not in "iu":
-        raise PredictionsError(f"{path}: wrong array types (pred float32, truth float, "
-                               f"defined bool, indices integer)")
-    try:
-        item["context"] = json.loads(item["context"])
-    except ValueError as error:
-        raise PredictionsError(f"{path}: 'context' is not JSON ({error})") from None
-    raw = {"source": item["source"], "as_released": bool(item["as_released"]),
-           "indices": arrays["indices"].astype(np.int64),
-           "truth": {k: arrays["truth"][:, i].astype(np.float64) for i, k in enumerate(TARGETS)},
-           "pred": {k: arrays["pred"][:, i].astype(np.float64) for i, k in enumerate(TARGETS)},
-           "defined": {k: arrays["defined"][:, i].copy() for i, k in enumerate(TARGETS)}}
-    if item["row"] == "Geometric":
-        for key in ("failure_flags", "failures", "prior_names", "prior_values", "degenerate"):
-            if key not in arrays:
-                raise PredictionsError(f"{path}: a Geometric row without '{key}'")
-        flags = [str(f) for f in arrays["failure_flags"]]
-        if arrays["failures"].shape != (n, len(flags)):
-            raise PredictionsError(f"{path}: 'failures' has shape {arrays['failures'].shape}")
-        raw["statuses"] = [dict(zip(flags, map(bool, line))) for line in arrays["failures"]]
-        raw["priors"] = {str(k): float(v) for k, v in zip(arrays["prior_names"],
-                                                          arrays["prior_values"])}
-        raw["degenerate"] = [str(k) for k in arrays["degenerate"]]
-    item["raw"] = raw
-    item["path"] = path
-    return item
 
 
 # ---------------------------------------------------------------------------

@@ -10,7 +10,8 @@ A run directory (written by ``cpl_keras.training``)::
     train_stats.json   training-set statistics (the Average baseline)
     split.npz          train, val, test index arrays
     predictions/       the best model's outputs on datasets, one .npz each
-                       (``store_predictions``): they outlive the weights
+                       (``evaluation.store_predictions``, in
+                       ``cpl_keras.prediction_files``' format): they outlive the weights
     backup/            resume state: state.json, checkpoints, the lock
 
 A *published* run directory is the same less the weights (model.keras,
@@ -36,8 +37,6 @@ import os
 import shutil
 import zipfile
 from typing import Any
-
-import numpy as np
 
 from cpl_keras import files
 from cpl_keras.baselines.average import load_statistics
@@ -423,45 +422,6 @@ def stored_predictions(run_dir):
     if not os.path.isdir(folder):
         return []
     return sorted(os.path.join(folder, f) for f in os.listdir(folder) if f.endswith(".npz"))
-
-
-def write_predictions(run_dir, data_path, indices, outputs, names):
-    """Store a run's ``outputs`` (name -> (n,) array) on pairs ``indices`` of
-    ``data_path``: ``indices`` (int64), ``pred`` (n, 13 float32), ``outputs``
-    (the names), ``dataset`` (the file's name). Atomic; no pickle."""
-    path = predictions_path(run_dir, data_path)
-    os.makedirs(os.path.dirname(path), exist_ok=True)
-    pred = np.stack([np.asarray(outputs[n], np.float32).reshape(-1) for n in names], axis=1)
-    with files.atomic_path(path) as tmp:
-        with open(tmp, "wb") as f:
-            np.savez(f, indices=np.asarray(indices, np.int64), pred=pred,
-                     outputs=np.array(list(names)),
-                     dataset=np.array(os.path.basename(os.fspath(data_path))))
-    return path
-
-
-def read_predictions(run_dir, data_path, indices, names):
-    """The stored outputs of the run on pairs ``indices`` of ``data_path``
-    (name -> float64 array), or None when none are stored for that file.
-    RunError when the file is unreadable or lacks some of the pairs."""
-    path = predictions_path(run_dir, data_path)
-    if not os.path.isfile(path):
-        return None
-    try:
-        with np.load(path, allow_pickle=False) as data:
-            stored, pred = data["indices"], data["pred"]
-            outputs = [str(n) for n in data["outputs"]]
-    except (OSError, ValueError, KeyError) as problem:
-        raise RunError(f"cannot read {path}: {problem}") from None
-    if outputs != list(names) or pred.shape != (len(stored), len(names)):
-        raise RunError(f"{path}: outputs {outputs} are not {list(names)}")
-    where = {int(i): k for k, i in enumerate(stored)}
-    missing = [int(i) for i in indices if int(i) not in where]
-    if missing:
-        raise RunError(f"{path} has no predictions for {len(missing)} of the pairs asked "
-                    f"(first: {missing[0]})")
-    rows = np.array([where[int(i)] for i in indices], np.int64)
-    return {name: pred[rows, k].astype(np.float64) for k, name in enumerate(names)}
 
 
 def load_model(run):

@@ -10,7 +10,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from cpl_keras import evaluation, predictions, report
+from cpl_keras import evaluation, prediction_files, predictions, report
 from cpl_keras.camera import TARGETS
 
 SIZE = 32
@@ -30,7 +30,7 @@ def published(tiny_run, tmp_path_factory):
     run_list, rigs = evaluation.table2_rigs([tiny_run["run"]], [real], geometric_max=2)
     files.update(predictions.table2_files(run_list, rigs, out_dir=out, prefix="cvgl",
                                           stem="table2", key="k2"))
-    paths = predictions.write_files(out / "runs", files)
+    paths = prediction_files.write_files(out / "runs", files)
     return {"out": out, "paths": paths, "tiny": tiny_run, "raw1": (context, rows),
             "raw2": (run_list, rigs),
             "table1": report.portable(evaluation.table_from_rows(context, rows), out),
@@ -127,7 +127,7 @@ def test_bad_files_are_one_line_errors(published, tmp_path):
     good = published["paths"][0]
 
     def fails(path, match):
-        with pytest.raises(predictions.PredictionsError) as info:
+        with pytest.raises(prediction_files.PredictionsError) as info:
             predictions.tables_from_files([path])
         message = str(info.value)
         assert "\n" not in message and match in message, message
@@ -151,7 +151,7 @@ def test_bad_files_are_one_line_errors(published, tmp_path):
         fails(path, match)
     twice = tmp_path / "twice_predictions.npz"
     shutil.copy(good, twice)
-    with pytest.raises(predictions.PredictionsError, match="are both row"):
+    with pytest.raises(prediction_files.PredictionsError, match="are both row"):
         predictions.tables_from_files([good, str(twice)])
 
 
@@ -179,7 +179,7 @@ def _with_deep_homo(published, tmp_path):
                                      stem="table1_cvgl", key="k1", suffix="-s0")
     files.update(predictions.table2_files(run_list, rigs, out_dir=out, prefix="cvgl",
                                           stem="table2", key="k2", suffix="-s0"))
-    paths = predictions.write_files(tmp_path / "seed0", files)
+    paths = prediction_files.write_files(tmp_path / "seed0", files)
     return (report.portable(evaluation.table_from_rows(context, rows), out),
             report.portable(evaluation.table2_from_rigs(run_list, rigs), out), paths)
 

@@ -16,7 +16,7 @@ import os
 
 import numpy as np
 
-from cpl_keras import distributed, runs
+from cpl_keras import distributed, prediction_files, runs
 from cpl_keras.camera import TARGETS
 from cpl_keras.data.storage import DatasetError, StereoFile
 from cpl_keras.datasets import targets_from_labels
@@ -93,7 +93,8 @@ def run_predictions(run, stereo_file, indices, batch_size=32):
     stored predictions for that file when it has them (a published run has
     nothing else), else a forward pass of its model (loaded once, kept on
     ``run.model``; ``forget_model`` drops it)."""
-    stored = runs.read_predictions(run.run_dir, stereo_file.path, indices, TARGETS)
+    stored = prediction_files.read_run_outputs(
+        runs.predictions_path(run.run_dir, stereo_file.path), indices, TARGETS)
     if stored is not None:
         return stored
     if run.model is None:
@@ -107,7 +108,7 @@ def forget_model(run):
 
 
 def store_predictions(run_dir, data_paths, batch_size=32):
-    """Store the run's outputs (``runs.write_predictions``): on its own
+    """Store the run's outputs (``prediction_files.write_run_outputs``): on its own
     dataset's test split, and on every pair of each other file of
     ``data_paths`` (real sets, folders of them). The forward passes are the
     ones the tables make. Returns the paths written."""
@@ -119,7 +120,8 @@ def store_predictions(run_dir, data_paths, batch_size=32):
             with open_dataset(path) as data:
                 indices, _ = evaluation_indices(run, path, data.num_pairs)
                 pred = run_predictions(run, data, indices, batch_size)
-            written.append(runs.write_predictions(run_dir, path, indices, pred, TARGETS))
+            written.append(prediction_files.write_run_outputs(
+                runs.predictions_path(run_dir, path), path, indices, pred, TARGETS))
     finally:
         forget_model(run)
     return written

@@ -9,7 +9,7 @@ import os
 import platform
 import time
 
-from cpl_keras import cli, evaluation, predictions, report, runs
+from cpl_keras import cli, evaluation, prediction_files, predictions, report, runs
 from cpl_keras.cache import enable_compile_cache
 from cpl_keras.data.generate import cached_dataset
 from cpl_keras.data.storage import StereoFile
@@ -67,7 +67,7 @@ def _group_predictions(number, stem, prefix, run_dirs, data, config, out_dir, su
     expected = [os.path.join(folder, name) for name in names]
     models = [os.path.join(r, runs.MODEL) for r in run_dirs]
     if all(os.path.exists(p) for p in expected + models) and \
-            all(predictions.read_key(p) == key for p in expected) and \
+            all(prediction_files.read_key(p) == key for p in expected) and \
             min(os.path.getmtime(p) for p in expected) >= max(os.path.getmtime(m) for m in models):
         log(f"{stem} ({', '.join(os.path.basename(r) for r in run_dirs)}): published "
              f"predictions up to date with their runs, reused")
@@ -86,7 +86,7 @@ def _group_predictions(number, stem, prefix, run_dirs, data, config, out_dir, su
     if sorted(files) != sorted(names):
         raise evaluation.EvaluationError(f"{stem}: predictions files {sorted(files)} are not "
                                          f"the expected {sorted(names)}")
-    return predictions.write_files(folder, {name: files[name] for name in names})
+    return prediction_files.write_files(folder, {name: files[name] for name in names})
 
 
 def make_predictions(config, paths, trained, out_dir):
@@ -252,7 +252,7 @@ def rebuild(out_dir, command="", discussion_file=None):
     files = [os.path.join(out_dir, p) for p in summary["predictions"]]
     tables = predictions.tables_from_files(files)
     if list(tables) != list(summary["tables"]):
-        raise predictions.PredictionsError(
+        raise prediction_files.PredictionsError(
             f"the predictions make tables {list(tables)}, {SUMMARY} lists {summary['tables']}")
     make_tables(files, out_dir, summary["command"])
     if discussion_file is not None:
