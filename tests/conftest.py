@@ -22,7 +22,9 @@ and the expensive things several test files need, made once per session:
 * ``train_cache``: the XLA compile cache of the suite's train.py processes
   of the small backbone, warm from the uninterrupted run.
 
-Each is read only: a test that changes a run copies it first.
+Each is read only: a test that changes a run copies it first. The helpers
+that tests share (the fixture dataset, the ``EARLY`` commands' arguments) are
+in helpers.py, which the tests import instead of this file.
 
 Tests marked ``slow`` (the quick reproduction, InceptionV3 builds, data
 parallelism, kill-and-resume, every train.py flag, the documented commands,
@@ -37,6 +39,8 @@ import tempfile
 import threading
 
 import pytest
+
+from helpers import REPO, RESUME_ARGS, quick_reproduction_args, train_py, write_stereo_fixture
 
 os.environ.setdefault("KERAS_BACKEND", "jax")
 
@@ -71,8 +75,6 @@ def stereo40_file():
     4 configurations), written once per session: the ``stereo40`` fixture's
     file, and the data of the ``EARLY`` training commands."""
     if not _folders:
-        from test_datasets import write_stereo_fixture
-
         _folders.append(tempfile.mkdtemp(prefix="cpl_keras_stereo40_"))
         write_stereo_fixture(os.path.join(_folders[0], "tiny.h5"), n=40, image_size=32)
     return os.path.join(_folders[0], "tiny.h5")
@@ -118,32 +120,6 @@ def real32(tmp_path_factory):
 # ---------------------------------------------------------------------------
 # Whole commands started early
 # ---------------------------------------------------------------------------
-REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
-
-
-def quick_reproduction_args(root):
-    """``evaluate.py``'s arguments for the quick reproduction into ``root``:
-    one run at a time, its default (at this scale faster than two at a time,
-    and with less work: paper_results/notes/pipeline-and-suite.md; ``--jobs``
-    has tests of its own)."""
-    return ["--reproduce", "--quick", "--out", os.path.join(root, "out"),
-            "--data-dir", os.path.join(root, "data"), "--runs-dir", os.path.join(root, "runs")]
-
-
-#: train.py's arguments for the run that the kill-and-resume tests compare with.
-RESUME_ARGS = ["--variant", "baseline", "--backbone", "small", "--epochs", "4",
-               "--batch-size", "5", "--patience", "10", "--quiet"]
-
-
-def train_py(*args, cache, env=None):
-    """``(argv, environment)`` of train.py with ``args`` and its XLA compile
-    cache in ``cache`` (every program kept)."""
-    environment = dict(os.environ, KERAS_BACKEND="jax", **(env or {}))
-    environment["JAX_COMPILATION_CACHE_DIR"] = cache
-    environment["JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS"] = "0"
-    return [sys.executable, os.path.join(REPO, "train.py"), *args], environment
-
-
 def _uninterrupted(root):
     return train_py(*RESUME_ARGS, "--data", stereo40_file(), "--run-dir",
                     os.path.join(root, "run"), cache=os.path.join(root, "xla"))

@@ -74,7 +74,7 @@ def test_bad_batches_are_refused():
 def test_the_sequence_augments_training_batches_reproducibly(tmp_path):
     from cpl_keras.datasets import targets_from_labels
     from cpl_keras.training.sequence import StereoSequence
-    from test_datasets import fixture_labels, write_stereo_fixture
+    from helpers import fixture_labels, write_stereo_fixture
 
     path = write_stereo_fixture(tmp_path / "d.h5", n=12, image_size=(16, 24))
     targets = targets_from_labels(fixture_labels(12, 24))

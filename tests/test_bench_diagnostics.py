@@ -12,7 +12,8 @@ import os
 
 import pytest
 
-REPO = os.path.dirname(os.path.dirname(__file__))
+from helpers import REPO
+
 BENCH = os.path.join(REPO, "bench")
 ANALYSES = os.path.join(REPO, "analyses")
 

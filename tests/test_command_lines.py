@@ -8,7 +8,7 @@ import sys
 
 import pytest
 
-REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+from helpers import REPO, main_functions
 
 #: Runs a command's main with a bad argument and reports, after its exit,
 #: whether Keras or JAX was imported on the way.
@@ -81,25 +81,6 @@ class _Captured(Exception):
     pass
 
 
-def _main_functions():
-    import importlib.util
-
-    from cpl_keras import calibrate, graph, learning_curves, reproduce
-    from cpl_keras.data import generate, mix
-    from cpl_keras.real import build
-
-    mains = {"reproduce": reproduce.main, "data.generate": generate.main, "data.mix": mix.main,
-             "calibrate": calibrate.main, "graph": graph.main, "real.build": build.main,
-             "learning_curves": learning_curves.main}
-    for script in ("train.py", "evaluate.py"):
-        spec = importlib.util.spec_from_file_location(script[:-3] + "_cli",
-                                                      os.path.join(REPO, script))
-        module = importlib.util.module_from_spec(spec)
-        spec.loader.exec_module(module)
-        mains[script] = module.main
-    return mains
-
-
 def test_every_option_of_every_command_has_help_text(monkeypatch):
     """``--help`` explains every option and argument of every command (and
     of real.build's subcommands)."""
@@ -110,7 +91,7 @@ def test_every_option_of_every_command_has_help_text(monkeypatch):
 
     monkeypatch.setattr(argparse.ArgumentParser, "parse_args", capture)
     missing = []
-    for name, main in _main_functions().items():
+    for name, main in main_functions().items():
         with pytest.raises(_Captured) as caught:
             main([])
         parsers = [(name, caught.value.args[0])]

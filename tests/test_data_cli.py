@@ -9,8 +9,7 @@ from PIL import Image
 
 from cpl_keras.data.generate import generate_dataset
 from cpl_keras.data.storage import StereoFile
-
-REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+from helpers import REPO
 
 
 def _cli(*args):

@@ -16,8 +16,7 @@ from cpl_keras.data.generate import generate_dataset
 from cpl_keras.data.pair import released_disparity
 from cpl_keras.data.protocols import PROTOCOLS
 from cpl_keras.data.storage import REQUIRED_LABELS, StereoFile
-
-REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+from helpers import REPO
 
 
 def _read(path):

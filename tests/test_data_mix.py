@@ -14,9 +14,7 @@ import pytest
 from cpl_keras.data import mix
 from cpl_keras.data.storage import DatasetError, StereoFile, StereoWriter
 
-from test_datasets import fixture_labels, write_stereo_fixture
-
-REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+from helpers import REPO, fixture_labels, write_stereo_fixture
 
 
 def write_rig(path, n=6, image_size=16, rig="bench"):

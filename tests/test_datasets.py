@@ -11,51 +11,11 @@ from cpl_keras import camera
 from cpl_keras.baselines import average_predictions, training_statistics
 from cpl_keras.baselines.average import load_statistics, save_statistics
 from cpl_keras.camera import TARGETS
-from cpl_keras.data.storage import DatasetError, StereoWriter
+from cpl_keras.data.storage import DatasetError
 from cpl_keras.datasets import (
     adjacent_fraction, load_split, make_split, save_split, targets_from_labels,
 )
-
-
-def fixture_labels(n, image_size, configs=4, seed=0):
-    """Labels of ``n`` pairs that obey the camera equations (Eqs. 4a-5c)."""
-    rng = np.random.default_rng(seed)
-    config_id = np.arange(n) % configs
-    fov = np.radians(rng.uniform(50, 150, configs))[config_id]
-    focal = camera.focal_from_fov(fov, image_size)
-    tx = rng.uniform(0.5, 5.0, configs)[config_id]
-    labels = {
-        "fx": focal, "fy": focal,
-        "u0": np.full(n, image_size / 2), "v0": np.full(n, image_size / 2),
-        "baseline": tx, "tx": tx,
-        "ty": rng.uniform(-5, 5, configs)[config_id],
-        "tz": rng.uniform(-0.4, 1.6, configs)[config_id],
-        "pitch": np.radians(rng.uniform(-30, 30, configs))[config_id],
-        "disparity": rng.uniform(1.0, 20.0, n),
-        "disparity_released": rng.uniform(-15.0, 5.0, n),
-        "u": rng.uniform(0, image_size, n), "v": rng.uniform(0, image_size, n),
-    }
-    params = {name: labels[name] for name in camera.PARAMETERS}
-    labels["X"], labels["Y"], labels["Z"] = camera.image_to_world(**params, u=labels["u"], v=labels["v"])
-    labels = {name: values.astype(np.float32) for name, values in labels.items()}
-    labels["config_id"] = config_id.astype(np.int32)
-    labels["town_id"] = (config_id % 2).astype(np.int32)
-    labels["frame_index"] = np.arange(n, dtype=np.int32)
-    return labels
-
-
-def write_stereo_fixture(path, n=40, image_size=32, configs=4, seed=0, labels=None, drop=()):
-    """A small dataset file: random images, labels from ``fixture_labels``."""
-    rng = np.random.default_rng(seed + 1)
-    h, w = (image_size, image_size) if np.isscalar(image_size) else image_size
-    labels = dict(labels or fixture_labels(n, w, configs, seed))
-    for name in drop:
-        labels.pop(name)
-    left = rng.integers(0, 256, (n, h, w, 3), dtype=np.uint8)
-    right = rng.integers(0, 256, (n, h, w, 3), dtype=np.uint8)
-    with StereoWriter(path, n, (h, w), metadata={"protocol": "test"}) as writer:
-        writer.write(0, left, right, labels)
-    return str(path)
+from helpers import fixture_labels, write_stereo_fixture
 
 
 # ---------------------------------------------------------------------------

@@ -15,9 +15,9 @@ import h5py
 import numpy as np
 import pytest
 
-from conftest import train_py
 from cpl_keras import distributed
 from cpl_keras.training.sequence import StereoSequence
+from helpers import train_py
 
 #: Every subprocess of these tests ends within this many seconds or fails.
 TIMEOUT_S = 240
@@ -29,7 +29,7 @@ ARGS = ["--variant", "cpl-u", "--backbone", "small", "--batch-size", "4", "--qui
 
 @pytest.fixture(scope="module")
 def fixture52(tmp_path_factory):
-    from test_datasets import write_stereo_fixture
+    from helpers import write_stereo_fixture
 
     path = str(tmp_path_factory.mktemp("dist") / "stereo52.h5")
     write_stereo_fixture(path, n=52, image_size=32)
@@ -38,7 +38,7 @@ def fixture52(tmp_path_factory):
 
 @pytest.fixture(scope="module")
 def fixture60(tmp_path_factory):
-    from test_datasets import write_stereo_fixture
+    from helpers import write_stereo_fixture
 
     path = str(tmp_path_factory.mktemp("dist") / "stereo60.h5")
     write_stereo_fixture(path, n=60, image_size=32)

@@ -12,7 +12,7 @@ import shlex
 
 import pytest
 
-from test_command_lines import REPO, _main_functions
+from helpers import REPO, main_functions
 
 DOCUMENTS = ["README.md"] + sorted(
     os.path.relpath(p, REPO) for p in glob.glob(os.path.join(REPO, "docs", "*.md")))
@@ -86,7 +86,7 @@ def test_every_documented_command_parses(document, command, monkeypatch):
         raise _Parsed(original(self, args, namespace))
 
     monkeypatch.setattr(argparse.ArgumentParser, "parse_args", parse_then_stop)
-    main = _main_functions()[ENTRY[entry]]
+    main = main_functions()[ENTRY[entry]]
     with pytest.raises(_Parsed):
         main(argv)
 

@@ -11,9 +11,7 @@ import time
 
 import pytest
 
-from test_datasets import write_stereo_fixture
-
-REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+from helpers import REPO, write_stereo_fixture
 
 
 @pytest.fixture(autouse=True)

@@ -17,7 +17,7 @@ from keras import ops
 from cpl_keras import TARGETS, build_model, camera, compile_model, losses
 from cpl_keras.models.batchnorm import batchnorm_layers, recompute_batchnorm_statistics
 
-from test_models import SIZE, batch
+from helpers import SIZE, batch
 
 
 @pytest.fixture(scope="module")

@@ -9,27 +9,7 @@ from keras import ops
 
 from cpl_keras import TARGETS, build_model, camera, compile_model, losses
 from cpl_keras.models import VARIANTS
-
-SIZE = 32
-
-
-def batch(n=4, seed=0):
-    """Images and targets that obey the camera equations."""
-    rng = np.random.default_rng(seed)
-    x = {
-        "left_image": rng.uniform(0, 255, (n, SIZE, SIZE, 3)).astype("float32"),
-        "right_image": rng.uniform(0, 255, (n, SIZE, SIZE, 3)).astype("float32"),
-    }
-    p = {
-        "fx": rng.uniform(20, 60, n), "fy": rng.uniform(20, 60, n),
-        "u0": np.full(n, 16.0), "v0": np.full(n, 16.0), "baseline": rng.uniform(0.2, 2, n),
-        "disparity": rng.uniform(1, 8, n), "tx": rng.normal(0, 1, n), "ty": rng.normal(0, 1, n),
-        "tz": rng.normal(0, 0.3, n), "pitch": rng.uniform(-0.3, 0.3, n),
-    }
-    X, Y, Z = camera.image_to_world(**p, u=rng.uniform(0, SIZE, n), v=rng.uniform(0, SIZE, n))
-    p.update(X=X, Y=Y, Z=Z)
-    y = {name: np.asarray(p[name], "float32").reshape(n, 1) for name in TARGETS}
-    return x, y
+from helpers import SIZE, batch
 
 
 @pytest.mark.parametrize("as_released", [False, True])

@@ -16,7 +16,8 @@ import sys
 
 import pytest
 
-REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+from helpers import REPO
+
 #: Test files that hold the core model tests; the ones that need JAX itself skip themselves.
 CORE_TESTS = ("tests/test_models.py", "tests/test_camera.py", "tests/test_backbones.py",
               "tests/test_training.py")

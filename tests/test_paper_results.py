@@ -14,7 +14,8 @@ from pathlib import Path
 
 import pytest
 
-REPO = str(Path(__file__).resolve().parent.parent)
+from helpers import REPO
+
 RESULTS = Path(REPO) / "paper_results"
 #: Every committed reproduction: a folder with its reproduce.json.
 REPRODUCTIONS = sorted(p.parent for p in RESULTS.glob("**/reproduce.json"))

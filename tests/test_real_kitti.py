@@ -10,37 +10,13 @@ import pytest
 from cpl_keras.camera import image_to_world
 from cpl_keras.data.storage import StereoFile
 from cpl_keras.real import build, kitti
+from helpers import (
+    KITTI_CAM_TO_CAM as CAM_TO_CAM, KITTI_HEIGHT as HEIGHT, KITTI_OBJECT as OBJECT,
+    KITTI_WIDTH as WIDTH, kitti_image, kitti_stereo_root,
+)
 
 SIZE = 32
-FIXTURES = os.path.join(os.path.dirname(__file__), "fixtures", "kitti")
-CAM_TO_CAM = os.path.join(FIXTURES, "calib_cam_to_cam.txt")
-OBJECT = os.path.join(FIXTURES, "calib_object_000000.txt")
-WIDTH, HEIGHT = 1242, 375
 FX, B = 721.5377, (44.85728 + 339.5242) / 721.5377
-
-
-def _image(seed):
-    # smooth texture: quick to write, compresses well
-    y, x = np.mgrid[0:HEIGHT, 0:WIDTH]
-    base = (127 + 100 * np.sin(x / (7.0 + seed)) * np.cos(y / 11.0)).astype(np.uint8)
-    return np.stack([base, base[:, ::-1], base.T[:HEIGHT, :WIDTH] if False else base], -1)
-
-
-def _stereo_root(root, calib="cam_to_cam", disparity=12.5):
-    base = root / "training"
-    for folder in ("image_2", "image_3", "disp_occ_0", "calib_cam_to_cam", "calib"):
-        (base / folder).mkdir(parents=True, exist_ok=True)
-    for name in ("000000_10", "000000_11"):
-        cv2.imwrite(str(base / "image_2" / f"{name}.png"), _image(0))
-        cv2.imwrite(str(base / "image_3" / f"{name}.png"), _image(1))
-    raw = np.zeros((HEIGHT, WIDTH), np.uint16)
-    raw[200:300, 100:400] = int(disparity * 256)        # valid block left of centre
-    cv2.imwrite(str(base / "disp_occ_0" / "000000_10.png"), raw)
-    if calib == "cam_to_cam":
-        shutil.copy(CAM_TO_CAM, base / "calib_cam_to_cam" / "000000.txt")
-    else:
-        shutil.copy(OBJECT, base / "calib" / "000000.txt")
-    return root
 
 
 def test_calibration_files_parse_in_both_formats():
@@ -62,7 +38,7 @@ def test_calibration_files_parse_in_both_formats():
 
 @pytest.mark.parametrize("calib", ["cam_to_cam", "object"])
 def test_stereo_2015_layout(tmp_path, calib):
-    root = _stereo_root(tmp_path, calib)
+    root = kitti_stereo_root(tmp_path, calib)
     out = kitti.build_kitti(root, tmp_path / "k.h5", image_size=SIZE)
     with StereoFile(out) as data:
         labels = data.labels
@@ -92,7 +68,7 @@ def test_raw_layout(tmp_path):
     drive = tmp_path / "2011_09_26" / "2011_09_26_drive_0001_sync"
     for cam in ("image_02", "image_03"):
         (drive / cam / "data").mkdir(parents=True)
-        cv2.imwrite(str(drive / cam / "data" / "0000000000.png"), _image(cam == "image_03"))
+        cv2.imwrite(str(drive / cam / "data" / "0000000000.png"), kitti_image(cam == "image_03"))
     shutil.copy(CAM_TO_CAM, tmp_path / "2011_09_26" / "calib_cam_to_cam.txt")
     out = tmp_path / "raw.h5"
     assert build.main(["kitti", "--layout", "raw", "--root", str(tmp_path), "--image-size",
@@ -115,7 +91,7 @@ def _fails(argv, capsys, *needles):
 
 
 def test_bad_kitti_inputs(tmp_path, capsys):
-    root = _stereo_root(tmp_path / "k")
+    root = kitti_stereo_root(tmp_path / "k")
     out = tmp_path / "bad.h5"
     args = ["kitti", "--root", str(root), "--image-size", str(SIZE), "--out", str(out)]
     calib = root / "training" / "calib_cam_to_cam" / "000000.txt"
@@ -142,7 +118,7 @@ def test_bad_kitti_inputs(tmp_path, capsys):
 def test_calibration_in_a_separate_root(tmp_path, capsys):
     """KITTI ships the calibration as an archive of its own: --kitti-calib
     finds it unpacked elsewhere, and without it the missing file is named."""
-    root = _stereo_root(tmp_path / "images", "cam_to_cam")
+    root = kitti_stereo_root(tmp_path / "images", "cam_to_cam")
     separate = tmp_path / "calib_archive" / "training" / "calib_cam_to_cam"
     separate.mkdir(parents=True)
     shutil.move(str(root / "training" / "calib_cam_to_cam" / "000000.txt"), separate)
@@ -161,7 +137,7 @@ def test_raw_calibration_in_a_separate_root(tmp_path):
     drive = tmp_path / "raw" / "2011_09_26" / "2011_09_26_drive_0001_sync"
     for cam in ("image_02", "image_03"):
         (drive / cam / "data").mkdir(parents=True)
-        cv2.imwrite(str(drive / cam / "data" / "0000000000.png"), _image(cam == "image_03"))
+        cv2.imwrite(str(drive / cam / "data" / "0000000000.png"), kitti_image(cam == "image_03"))
     (tmp_path / "calib" / "2011_09_26").mkdir(parents=True)
     shutil.copy(CAM_TO_CAM, tmp_path / "calib" / "2011_09_26" / "calib_cam_to_cam.txt")
     out = tmp_path / "raw.h5"

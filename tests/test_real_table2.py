@@ -56,9 +56,9 @@ def test_undefined_disparity_is_left_out(setup, tmp_path):
     other pairs only and are n/a when none is left."""
     import shutil
 
-    from tests.test_real_kitti import _stereo_root
+    from helpers import kitti_stereo_root
 
-    root = _stereo_root(tmp_path / "kitti")
+    root = kitti_stereo_root(tmp_path / "kitti")
     os.remove(root / "training" / "disp_occ_0" / "000000_10.png")
     real = tmp_path / "real"
     real.mkdir()

@@ -12,14 +12,12 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from conftest import quick_reproduction_args
 
 import evaluate
 from cpl_keras import reproduce
 from cpl_keras.camera import TARGETS
-
-#: The repository root (no result may name it).
-REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+# (REPO: the repository root; no result may name it)
+from helpers import REPO, quick_reproduction_args
 
 
 def run(*args, cwd=None):

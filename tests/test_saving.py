@@ -9,7 +9,7 @@ import sys
 
 import pytest
 
-REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+from helpers import REPO
 
 #: The recipes README.md names, each loading PATH in a process of its own.
 RECIPES = {

@@ -1,5 +1,6 @@
 """The package's structure: no import cycle among its modules, counting the
-imports inside functions (which hide a cycle rather than remove it)."""
+imports inside functions (which hide a cycle rather than remove it); and the
+tests': what they share, they import from tests/helpers.py."""
 
 import ast
 import os
@@ -238,3 +239,53 @@ def test_modules_and_functions_stay_readable():
     # and the check can fail: tighter limits find the longest module and function
     assert any("." in what for what, _ in oversized(limit_function=40))
     assert any(lines > 300 for _, lines in oversized(limit_module=300))
+
+
+# ---------------------------------------------------------------------------
+# The tests' own imports
+# ---------------------------------------------------------------------------
+TESTS = os.path.dirname(os.path.abspath(__file__))
+
+
+def _is_test_module(name):
+    """Whether the module ``name`` is a test file's or conftest's (as a
+    top-level module or under ``tests.``)."""
+    name = name.removeprefix("tests.")
+    return name.startswith("test_") or name == "conftest"
+
+
+def imports_of_test_modules(source, filename):
+    """``["file:line: module"]`` for each import in ``source`` of a test
+    module or of conftest (``import test_x``, ``from conftest import ...``,
+    ``from tests.test_x import ...``, ``from tests import test_x``)."""
+    found = []
+    for node in ast.walk(ast.parse(source)):
+        if isinstance(node, ast.Import):
+            names = [alias.name for alias in node.names]
+        elif isinstance(node, ast.ImportFrom):
+            module = node.module or ""
+            names = [module] if module not in ("", "tests") else \
+                [f"{module}.{alias.name}".lstrip(".") for alias in node.names]
+        else:
+            continue
+        found += [f"{filename}:{node.lineno}: {name}" for name in names if _is_test_module(name)]
+    return found
+
+
+def test_tests_import_helpers_from_helpers_only():
+    """A test file (and conftest.py, and helpers.py) imports what it shares
+    from tests/helpers.py, never from another test file or from conftest."""
+    found = []
+    for name in sorted(os.listdir(TESTS)):
+        if name.endswith(".py") and (name.startswith("test_") or name in ("conftest.py",
+                                                                             "helpers.py")):
+            with open(os.path.join(TESTS, name)) as f:
+                found += imports_of_test_modules(f.read(), f"tests/{name}")
+    assert found == [], found
+    # and the check can fail
+    bad = ("import os, test_a\nfrom conftest import x\nfrom tests.test_b import y\n"
+           "from tests import test_c, helpers\nfrom helpers import REPO\nimport tests.conftest\n"
+           "def f():\n    from test_d import z\n")
+    assert sorted(imports_of_test_modules(bad, "t.py")) == [
+        "t.py:1: test_a", "t.py:2: conftest", "t.py:3: tests.test_b", "t.py:4: tests.test_c",
+        "t.py:6: tests.conftest", "t.py:8: test_d"]

@@ -18,10 +18,8 @@ import h5py
 import numpy as np
 import pytest
 
-from conftest import RESUME_ARGS, train_py
-from test_datasets import write_stereo_fixture
+from helpers import REPO, RESUME_ARGS, train_py, write_stereo_fixture
 
-REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 RUN_FILES = ("config.json", "model.keras", "best.weights.h5", "log.csv", "curves.png",
              "train_stats.json", "split.npz")
 # 40 pairs -> 25 train, 3 val, 12 test: batches of 5 keep one shape (one compile).

@@ -1,0 +1,187 @@
+"""What several test files share: the repository's folder, the small
+fixture datasets and batches they build, the commands' main functions and
+the arguments of the whole commands that conftest.py starts early.
+
+Tests import their helpers from here, never from one another or from
+conftest.py (tests/test_structure.py checks it). Heavy imports (Keras's
+models, OpenCV) stay inside the functions, so that conftest.py can import
+this module before the backend is chosen.
+"""
+
+import os
+import shutil
+import sys
+
+import numpy as np
+
+#: The repository's root folder.
+REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+
+
+# ---------------------------------------------------------------------------
+# Fixture datasets (the storage format of cpl_keras.data.storage)
+# ---------------------------------------------------------------------------
+def fixture_labels(n, image_size, configs=4, seed=0):
+    """Labels of ``n`` pairs that obey the camera equations (Eqs. 4a-5c)."""
+    from cpl_keras import camera
+
+    rng = np.random.default_rng(seed)
+    config_id = np.arange(n) % configs
+    fov = np.radians(rng.uniform(50, 150, configs))[config_id]
+    focal = camera.focal_from_fov(fov, image_size)
+    tx = rng.uniform(0.5, 5.0, configs)[config_id]
+    labels = {
+        "fx": focal, "fy": focal,
+        "u0": np.full(n, image_size / 2), "v0": np.full(n, image_size / 2),
+        "baseline": tx, "tx": tx,
+        "ty": rng.uniform(-5, 5, configs)[config_id],
+        "tz": rng.uniform(-0.4, 1.6, configs)[config_id],
+        "pitch": np.radians(rng.uniform(-30, 30, configs))[config_id],
+        "disparity": rng.uniform(1.0, 20.0, n),
+        "disparity_released": rng.uniform(-15.0, 5.0, n),
+        "u": rng.uniform(0, image_size, n), "v": rng.uniform(0, image_size, n),
+    }
+    params = {name: labels[name] for name in camera.PARAMETERS}
+    labels["X"], labels["Y"], labels["Z"] = camera.image_to_world(**params, u=labels["u"], v=labels["v"])
+    labels = {name: values.astype(np.float32) for name, values in labels.items()}
+    labels["config_id"] = config_id.astype(np.int32)
+    labels["town_id"] = (config_id % 2).astype(np.int32)
+    labels["frame_index"] = np.arange(n, dtype=np.int32)
+    return labels
+
+
+def write_stereo_fixture(path, n=40, image_size=32, configs=4, seed=0, labels=None, drop=()):
+    """A small dataset file: random images, labels from ``fixture_labels``."""
+    from cpl_keras.data.storage import StereoWriter
+
+    rng = np.random.default_rng(seed + 1)
+    h, w = (image_size, image_size) if np.isscalar(image_size) else image_size
+    labels = dict(labels or fixture_labels(n, w, configs, seed))
+    for name in drop:
+        labels.pop(name)
+    left = rng.integers(0, 256, (n, h, w, 3), dtype=np.uint8)
+    right = rng.integers(0, 256, (n, h, w, 3), dtype=np.uint8)
+    with StereoWriter(path, n, (h, w), metadata={"protocol": "test"}) as writer:
+        writer.write(0, left, right, labels)
+    return str(path)
+
+
+# ---------------------------------------------------------------------------
+# A model batch
+# ---------------------------------------------------------------------------
+#: The image size (pixels, square) of ``batch``'s images and of the models
+#: the model tests build for them.
+SIZE = 32
+
+
+def batch(n=4, seed=0):
+    """Images and targets that obey the camera equations."""
+    from cpl_keras import TARGETS, camera
+
+    rng = np.random.default_rng(seed)
+    x = {
+        "left_image": rng.uniform(0, 255, (n, SIZE, SIZE, 3)).astype("float32"),
+        "right_image": rng.uniform(0, 255, (n, SIZE, SIZE, 3)).astype("float32"),
+    }
+    p = {
+        "fx": rng.uniform(20, 60, n), "fy": rng.uniform(20, 60, n),
+        "u0": np.full(n, 16.0), "v0": np.full(n, 16.0), "baseline": rng.uniform(0.2, 2, n),
+        "disparity": rng.uniform(1, 8, n), "tx": rng.normal(0, 1, n), "ty": rng.normal(0, 1, n),
+        "tz": rng.normal(0, 0.3, n), "pitch": rng.uniform(-0.3, 0.3, n),
+    }
+    X, Y, Z = camera.image_to_world(**p, u=rng.uniform(0, SIZE, n), v=rng.uniform(0, SIZE, n))
+    p.update(X=X, Y=Y, Z=Z)
+    y = {name: np.asarray(p[name], "float32").reshape(n, 1) for name in TARGETS}
+    return x, y
+
+
+# ---------------------------------------------------------------------------
+# The commands' main functions
+# ---------------------------------------------------------------------------
+def main_functions():
+    """``{command: its main function}`` for the package's commands and the
+    repository's train.py and evaluate.py."""
+    import importlib.util
+
+    from cpl_keras import calibrate, graph, learning_curves, reproduce
+    from cpl_keras.data import generate, mix
+    from cpl_keras.real import build
+
+    mains = {"reproduce": reproduce.main, "data.generate": generate.main, "data.mix": mix.main,
+             "calibrate": calibrate.main, "graph": graph.main, "real.build": build.main,
+             "learning_curves": learning_curves.main}
+    for script in ("train.py", "evaluate.py"):
+        spec = importlib.util.spec_from_file_location(script[:-3] + "_cli",
+                                                      os.path.join(REPO, script))
+        module = importlib.util.module_from_spec(spec)
+        spec.loader.exec_module(module)
+        mains[script] = module.main
+    return mains
+
+
+# ---------------------------------------------------------------------------
+# A KITTI stereo folder (tests/fixtures/kitti)
+# ---------------------------------------------------------------------------
+KITTI_FIXTURES = os.path.join(os.path.dirname(os.path.abspath(__file__)), "fixtures", "kitti")
+KITTI_CAM_TO_CAM = os.path.join(KITTI_FIXTURES, "calib_cam_to_cam.txt")
+KITTI_OBJECT = os.path.join(KITTI_FIXTURES, "calib_object_000000.txt")
+#: The size of KITTI's images (and of ``kitti_image``'s).
+KITTI_WIDTH, KITTI_HEIGHT = 1242, 375
+
+
+def kitti_image(seed):
+    """A KITTI-sized image (``KITTI_HEIGHT`` x ``KITTI_WIDTH`` x 3, uint8)."""
+    # smooth texture: quick to write, compresses well
+    y, x = np.mgrid[0:KITTI_HEIGHT, 0:KITTI_WIDTH]
+    base = (127 + 100 * np.sin(x / (7.0 + seed)) * np.cos(y / 11.0)).astype(np.uint8)
+    return np.stack([base, base[:, ::-1],
+                     base.T[:KITTI_HEIGHT, :KITTI_WIDTH] if False else base], -1)
+
+
+def kitti_stereo_root(root, calib="cam_to_cam", disparity=12.5):
+    """A KITTI stereo folder under ``root`` (a ``pathlib.Path``): frames
+    000000_10 and 000000_11, a ground-truth disparity of ``disparity`` in a
+    block of frame _10 only, and the calibration in KITTI's ``cam_to_cam``
+    or object (``calib``) format. Returns ``root``."""
+    import cv2
+
+    base = root / "training"
+    for folder in ("image_2", "image_3", "disp_occ_0", "calib_cam_to_cam", "calib"):
+        (base / folder).mkdir(parents=True, exist_ok=True)
+    for name in ("000000_10", "000000_11"):
+        cv2.imwrite(str(base / "image_2" / f"{name}.png"), kitti_image(0))
+        cv2.imwrite(str(base / "image_3" / f"{name}.png"), kitti_image(1))
+    raw = np.zeros((KITTI_HEIGHT, KITTI_WIDTH), np.uint16)
+    raw[200:300, 100:400] = int(disparity * 256)        # valid block left of centre
+    cv2.imwrite(str(base / "disp_occ_0" / "000000_10.png"), raw)
+    if calib == "cam_to_cam":
+        shutil.copy(KITTI_CAM_TO_CAM, base / "calib_cam_to_cam" / "000000.txt")
+    else:
+        shutil.copy(KITTI_OBJECT, base / "calib" / "000000.txt")
+    return root
+
+
+# ---------------------------------------------------------------------------
+# Whole commands (conftest.py's EARLY commands and the tests that rerun them)
+# ---------------------------------------------------------------------------
+def quick_reproduction_args(root):
+    """``evaluate.py``'s arguments for the quick reproduction into ``root``:
+    one run at a time, its default (at this scale faster than two at a time,
+    and with less work: paper_results/notes/pipeline-and-suite.md; ``--jobs``
+    has tests of its own)."""
+    return ["--reproduce", "--quick", "--out", os.path.join(root, "out"),
+            "--data-dir", os.path.join(root, "data"), "--runs-dir", os.path.join(root, "runs")]
+
+
+#: train.py's arguments for the run that the kill-and-resume tests compare with.
+RESUME_ARGS = ["--variant", "baseline", "--backbone", "small", "--epochs", "4",
+               "--batch-size", "5", "--patience", "10", "--quiet"]
+
+
+def train_py(*args, cache, env=None):
+    """``(argv, environment)`` of train.py with ``args`` and its XLA compile
+    cache in ``cache`` (every program kept)."""
+    environment = dict(os.environ, KERAS_BACKEND="jax", **(env or {}))
+    environment["JAX_COMPILATION_CACHE_DIR"] = cache
+    environment["JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS"] = "0"
+    return [sys.executable, os.path.join(REPO, "train.py"), *args], environment
