@@ -289,7 +289,7 @@ class SecondProcess:
             returncode = self.process.wait(timeout=1800)
         except subprocess.TimeoutExpired:
             self.process.kill()
-            returncode = self.process.wait()
+            returncode = self.process.wait(timeout=60)
         self._out.close()
         with open(self._out.name) as f:
             output = f.read()
