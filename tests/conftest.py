@@ -256,7 +256,8 @@ def pytest_collection_finish(session):
 #: (paper_results/notes/pipeline-and-suite.md). ``CPL_KERAS_TEST_SPLIT=0``
 #: keeps every test in this process.
 SECOND_PROCESS_FILES = ("test_distributed.py", "test_docs_commands.py", "test_inspect.py",
-                        "test_learning_curves.py", "test_leave_one_rig_out.py")
+                        "test_learning_curves.py", "test_leave_one_rig_out.py",
+                        "test_models.py")
 #: Set in the second process (which runs what it is given and splits nothing).
 WORKER = "CPL_KERAS_TEST_WORKER"
 

@@ -416,6 +416,7 @@ def test_the_real_camera_record_is_said_in_one_line_and_in_the_json(setup, tmp_p
     (``real_record.write_record``) the line gives each held-out rig's
     relative fx error beside the Average row's."""
     from cpl_keras import real_record
+    from cpl_keras.evaluation import Table2
 
     assert calibrate.main(_pair_args(setup)) == 0
     captured = capsys.readouterr()
@@ -428,11 +429,16 @@ def test_the_real_camera_record_is_said_in_one_line_and_in_the_json(setup, tmp_p
     run = tmp_path / "run"
     shutil.copytree(setup["run"], run)
     row = "MTL-Baseline"
-    table = {"rigs": {"middlebury": {"rows": {
-        row: {"num_pairs": 5, "field": {"relative_fx_median": 0.58,
-                                         "hfov_error_deg_median": 12.5}},
-        "Average": {"num_pairs": 5, "field": {"relative_fx_median": 0.30,
-                                               "hfov_error_deg_median": 8.0}}}}}}
+    rows = {row: {"num_pairs": 5, "field": {"relative_fx_median": 0.58,
+                                            "hfov_error_deg_median": 12.5}},
+            "Average": {"num_pairs": 5, "field": {"relative_fx_median": 0.30,
+                                                  "hfov_error_deg_median": 8.0}}}
+    common = dict(data="middlebury.h5", data_description="5 pairs", data_source="middlebury",
+                  num_pairs=5, image_width=32, runs=[str(run)], paper={},
+                  paper_convention="nmae")
+    table = Table2(**common, rows=rows, rigs={"middlebury": Table2(**common, rows=rows,
+                                                                  rectified=True)},
+                   fov_points={})
     real_record.write_record(str(run), table, command="test")
     args = _pair_args(setup)
     args[args.index("--run") + 1] = str(run)
