@@ -19,53 +19,13 @@ from __future__ import annotations
 import dataclasses
 
 
-def _to_json(record):
-    """The record's fields in order, less the optional ones left at None."""
-    return {field.name: getattr(record, field.name) for field in dataclasses.fields(record)
-            if field.name not in record.OPTIONAL or getattr(record, field.name) is not None}
-
-
 @dataclasses.dataclass(frozen=True, kw_only=True)
-class Table1:
-    """Table 1 scored: every row on the runs' common test pairs."""
+class _Table:
+    """What both tables hold; ``ORDER`` is the JSON's key order."""
 
-    # the paper's table number (1), or None for one run's scores
+    # the paper's table number (1 or 2; None for one run's scores)
     table: int | None
-    # the dataset file the rows are scored on, in words, and where it came from
-    data: str
-    data_description: str
-    data_source: str | None
-    # the dataset's generator settings (source, protocol, seed, image size, ...)
-    data_metadata: dict | None = None
-    # pairs scored (over several seeds: summed), and the images' width in px
-    num_pairs: int
-    image_width: int
-    # the run directories of the network rows
-    runs: list
-    # row name -> its scores (the module doc)
-    rows: dict
-    # the paper's own table (row -> column -> value), and its NMAE convention
-    paper: dict
-    paper_convention: str | None
-    # over several seeds: the seeds, and what the spread of a cell is
-    seeds: list | None = None
-    spread: str | None = None
-
-    OPTIONAL = ("data_metadata", "seeds", "spread")
-
-    def to_json(self):
-        """The table's JSON (a dict, keys in the file's order)."""
-        return _to_json(self)
-
-
-@dataclasses.dataclass(frozen=True, kw_only=True)
-class Table2:
-    """Table 2 scored: pooled over the real rigs (``rigs``: one ``Table2``
-    per rig, ``fov_points``), or one rig (``rectified`` set)."""
-
-    # the paper's table number: 2
-    table: int = 2
-    # the real set(s) scored, in words (pooled: each rig's pairs), and their source
+    # the dataset file(s) the rows are scored on, in words, and where they came from
     data: str
     data_description: str
     data_source: str | None
@@ -76,18 +36,51 @@ class Table2:
     runs: list
     # row name -> its scores (the module doc)
     rows: dict
-    # the paper's own Table 2 (pooled only; a rig: {}), and its NMAE convention
+    # the paper's own table (row -> column -> value; none for a rig), its NMAE convention
     paper: dict
     paper_convention: str | None
+    # over several seeds: the seeds, and what the spread of a cell is
+    seeds: list | None = None
+    spread: str | None = None
+
+    ORDER = ()
+    #: Fields written only when set.
+    OPTIONAL = ()
+
+    def to_json(self):
+        """The table's JSON (a dict, keys in the file's order)."""
+        return {name: getattr(self, name) for name in self.ORDER
+                if name not in self.OPTIONAL or getattr(self, name) is not None}
+
+
+@dataclasses.dataclass(frozen=True, kw_only=True)
+class Table1(_Table):
+    """Table 1 scored: every row on the runs' common test pairs (or one
+    run's scores, ``table`` None)."""
+
+    # the dataset's generator settings (source, protocol, seed, image size, ...)
+    data_metadata: dict | None = None
+
+    ORDER = ("table", "data", "data_description", "data_source", "data_metadata", "num_pairs",
+             "image_width", "runs", "rows", "paper", "paper_convention", "seeds", "spread")
+    OPTIONAL = ("data_metadata", "seeds", "spread")
+
+
+@dataclasses.dataclass(frozen=True, kw_only=True)
+class Table2(_Table):
+    """Table 2 scored: pooled over the real rigs (``rigs``: one ``Table2``
+    per rig, ``fov_points``), or one rig (``rectified`` set)."""
+
+    table: int = 2
     # one rig: whether its pairs are rectified (no rotation to measure)
     rectified: bool | None = None
     # pooled: rig name -> its Table2, and rig -> row -> true and predicted FOVs (deg)
     rigs: dict | None = None
     fov_points: dict | None = None
-    # over several seeds: the seeds, and what the spread of a cell is
-    seeds: list | None = None
-    spread: str | None = None
 
+    ORDER = ("table", "data", "data_description", "data_source", "num_pairs", "image_width",
+             "runs", "rows", "paper", "paper_convention", "rectified", "rigs", "fov_points",
+             "seeds", "spread")
     OPTIONAL = ("rectified", "rigs", "fov_points", "seeds", "spread")
 
     @property
@@ -97,7 +90,7 @@ class Table2:
 
     def to_json(self):
         """The table's JSON (a dict, keys in the file's order; each rig's too)."""
-        out = _to_json(self)
+        out = super().to_json()
         if self.rigs is not None:
             out["rigs"] = {name: rig.to_json() for name, rig in self.rigs.items()}
         return out
