@@ -1,6 +1,6 @@
-"""Image files and arrays: the package's one RGB reader (``read_rgb``) and
-one resizer (``resize_image``), for calibrate's pairs and the real-data
-builders alike. OpenCV is imported on first use."""
+"""Image files and arrays: the package's image readers (``read_rgb``,
+``read_gray``) and its one resizer (``resize_image``), for calibrate's
+pairs and the real-data builders alike. OpenCV is imported on first use."""
 
 from __future__ import annotations
 
@@ -27,6 +27,18 @@ def read_rgb(path, error=ImageError):
     if image is None:
         raise error(f"cannot read {path} as an image")
     return cv2.cvtColor(image, cv2.COLOR_BGR2RGB)
+
+
+def read_gray(path, error=ImageError):
+    """A uint8 grey image from ``path`` (``read_rgb``'s errors)."""
+    import cv2
+
+    if not os.path.isfile(path):
+        raise error(f"image not found: {path}")
+    image = cv2.imread(os.fspath(path), cv2.IMREAD_GRAYSCALE)
+    if image is None:
+        raise error(f"cannot read {path} as an image")
+    return image
 
 
 def resize_image(image, width, height):

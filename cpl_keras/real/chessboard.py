@@ -62,7 +62,7 @@ from cpl_keras.camera import (
     CV_TO_PROJECT, PARAMETERS, UNITS, crop_resize_coordinate, crop_resize_intrinsics,
     disparity_from_depth, euler_from_rotation, fov_from_focal, opencv_pose_to_rig,
 )
-from cpl_keras.images import resize_image
+from cpl_keras.images import read_gray, resize_image
 from cpl_keras.real import (
     RealDataError, check_crop_settings, released_disparity, write_samples,
 )
@@ -123,12 +123,7 @@ def find_pairs(root=DATA_DIR):
 
 
 def _read_gray(path):
-    import cv2
-
-    image = cv2.imread(os.fspath(path), cv2.IMREAD_GRAYSCALE)
-    if image is None:
-        raise RealDataError(f"cannot read image {path}")
-    return image
+    return read_gray(path, error=RealDataError)
 
 
 def detect_corners(gray, board=BOARD):
