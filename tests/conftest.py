@@ -251,11 +251,13 @@ def pytest_collection_finish(session):
 #: Test files that a second pytest process runs beside this one when the
 #: selection holds both them and others. The tests run one at a time and
 #: their floor is XLA's compile time, one thread, so one process leaves the
-#: second core mostly idle; these files need none of the ``EARLY`` commands
-#: (whose tests stay here) and about half of the suite's time
-#: (paper_results/notes/pipeline-and-suite.md). ``CPL_KERAS_TEST_SPLIT=0``
-#: keeps every test in this process.
-SECOND_PROCESS_FILES = ("test_distributed.py", "test_docs_commands.py", "test_inspect.py",
+#: second core mostly idle; these files take about half of the suite's time
+#: and need no ``EARLY`` command but the uninterrupted run's compile cache
+#: (``train_cache``: an empty one there, so test_interrupt's training
+#: compiles its own programs) (paper_results/notes/pipeline-and-suite.md).
+#: ``CPL_KERAS_TEST_SPLIT=0`` keeps every test in this process.
+SECOND_PROCESS_FILES = ("test_bench_diagnostics.py", "test_distributed.py",
+                        "test_docs_commands.py", "test_inspect.py", "test_interrupt.py",
                         "test_learning_curves.py", "test_leave_one_rig_out.py",
                         "test_models.py")
 #: Set in the second process (which runs what it is given and splits nothing).
