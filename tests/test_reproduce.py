@@ -283,7 +283,7 @@ def test_gpu_sized_settings_refused_on_a_cpu(tmp_path, capsys):
     assert "2 runs" in reproduce.cpu_cost(reproduce.settings(preset="paper-gpu"))
     for argv in (["--preset", "paper-gpu", "--allow-cpu"], ["--preset", "paper-gpu",
                                                            "--pairs", "9999"]):
-        assert evaluate.parse_args(["--reproduce"] + argv + folders).config["pairs"]
+        assert evaluate.parse_args(["--reproduce"] + argv + folders).config.pairs
     assert os.listdir(tmp_path) == []
 
 
@@ -338,20 +338,33 @@ def test_a_preset_is_a_frozen_checked_record():
         dataclasses.replace(cpu, image_size=16)
     with pytest.raises(ValueError, match="unknown setting 'pear'"):
         reproduce.settings(preset="cpu", pear=3)
-    # lists given as settings become tuples; the dict form has every field
+    # lists given as settings become tuples; the JSON form has every field, in order
     config = reproduce.settings(preset="cpu", variants=["baseline", "cpl-a", "cpl-u"])
-    assert config["variants"] == ("baseline", "cpl-a", "cpl-u")
-    assert set(config) == {f.name for f in dataclasses.fields(reproduce.Preset)} | {
-        "preset", "quick"}
+    assert config.variants == ("baseline", "cpl-a", "cpl-u") and config.preset == "cpu"
+    assert list(config.to_dict()) == [f.name for f in dataclasses.fields(reproduce.Preset)] + [
+        "preset", "quick"]
+    assert reproduce.Settings.from_dict(config.to_dict()) == config
+    with pytest.raises(dataclasses.FrozenInstanceError):
+        config.pairs = 5
+    with pytest.raises(ValueError, match="quick must be True with preset 'quick'"):
+        dataclasses.replace(reproduce.settings(quick=True), quick=False)
+    # an older reproduce.json: the settings added since take their defaults
+    old = {k: v for k, v in config.to_dict().items() if k not in ("real_sets", "monitor")}
+    assert reproduce.Settings.from_dict(old) == dataclasses.replace(
+        config, real_sets=reproduce.REAL_SETS, monitor=None)
+    with pytest.raises(ValueError, match="unknown setting 'pear'"):
+        reproduce.Settings.from_dict(dict(old, pear=3))
+    with pytest.raises(ValueError, match="setting 'pairs' missing"):
+        reproduce.Settings.from_dict({k: v for k, v in old.items() if k != "pairs"})
 
 
 def test_presets_resolve():
     cpu = _parsed("--preset", "cpu").config
-    assert cpu["backbone"] == "small_resnet" and cpu["image_size"] == 112
-    assert cpu["variants"] == ("deep-homo", "cpl-u", "baseline", "cpl-a") and cpu["released"]
-    assert cpu["seeded_variants"] == ("cpl-u", "baseline", "cpl-a")
-    assert (cpu["pairs"], cpu["random_pairs"], cpu["epochs"], cpu["patience"]) == (1000, 1000, 60, 5)
-    assert (cpu["seeds"], cpu["random_seeds"], cpu["geometric_max"]) == (3, 1, 200)
+    assert cpu.backbone == "small_resnet" and cpu.image_size == 112
+    assert cpu.variants == ("deep-homo", "cpl-u", "baseline", "cpl-a") and cpu.released
+    assert cpu.seeded_variants == ("cpl-u", "baseline", "cpl-a")
+    assert (cpu.pairs, cpu.random_pairs, cpu.epochs, cpu.patience) == (1000, 1000, 60, 5)
+    assert (cpu.seeds, cpu.random_seeds, cpu.geometric_max) == (3, 1, 200)
     # every row of both tables: the MTL variants on every cvgl seed (split and
     # initial weights), Deep-Homo and MTL-CPL-A as released once, on seed 0
     jobs = reproduce.run_jobs(cpu, seed=0)
@@ -374,9 +387,9 @@ def test_presets_resolve():
     assert {j.seed for j in shifted if j.key == "cvgl"} == {5, 6, 7}
     # the decision preset: the MTL variants on 8,000 cvgl pairs, 3 seeds, both splits
     decide = _parsed("--preset", "cpu-8000").config
-    assert (decide["pairs"], decide["seeds"], decide["backbone"]) == (8000, 3, "small_resnet")
-    assert decide["tables"] == ("cvgl", "cvgl_drive") and not decide["released"]
-    assert decide["geometric_max"] is None                 # every baseline on every test pair
+    assert (decide.pairs, decide.seeds, decide.backbone) == (8000, 3, "small_resnet")
+    assert decide.tables == ("cvgl", "cvgl_drive") and not decide.released
+    assert decide.geometric_max is None                 # every baseline on every test pair
     jobs = reproduce.run_jobs(decide, seed=0)
     assert len(jobs) == 18
     assert {(j.key, j.split) for j in jobs} == {("cvgl", "paper"), ("cvgl_drive", "drive")}
@@ -400,58 +413,59 @@ def test_presets_resolve():
     # the paper's scale: every row, into paper_results/paper/ (no preset: paper_results/)
     paper = _parsed("--preset", "paper", "--allow-cpu")
     config = paper.config
-    assert (config["pairs"], config["random_pairs"], config["epochs"]) == (123017, 123017, 200)
-    assert config["backbone"] == "inception_v3" and config["run_budget_s"] is None
-    assert config["variants"] == ("deep-homo", "cpl-u", "baseline", "cpl-a") and config["released"]
-    assert config["geometric_max"] is None and config["seeds"] == 1
-    assert config["seeded_variants"] is None                     # everything on every seed
+    assert (config.pairs, config.random_pairs, config.epochs) == (123017, 123017, 200)
+    assert config.backbone == "inception_v3" and config.run_budget_s is None
+    assert config.variants == ("deep-homo", "cpl-u", "baseline", "cpl-a") and config.released
+    assert config.geometric_max is None and config.seeds == 1
+    assert config.seeded_variants is None                     # everything on every seed
     assert [j.name for j in reproduce.run_jobs(config, 0)] == [
         "deep-homo", "cpl-u", "baseline", "cpl-a", "cpl-a-released"] + [
         "deep-homo", "cpl-u", "baseline", "cpl-a"]
     assert paper.out.endswith(os.path.join("paper_results", "paper"))
     default = _parsed("--allow-cpu")
     assert os.path.basename(default.out) == "paper_results" and default.discussion
-    assert {k: v for k, v in default.config.items() if k != "preset"} == \
-        {k: v for k, v in config.items() if k != "preset"}
+    assert default.config.preset is None
+    assert dataclasses.replace(default.config, preset="paper") == config
     # ten minutes of one GPU: the deciding pair first, each run under a time budget
     gpu = _parsed("--preset", "paper-gpu", "--allow-cpu")
     config = gpu.config
-    assert config["backbone"] == "inception_v3" and config["image_size"] == 112
-    assert config["run_budget_s"] == 150 and config["tables"] == ("cvgl",)
+    assert config.backbone == "inception_v3" and config.image_size == 112
+    assert config.run_budget_s == 150 and config.tables == ("cvgl",)
     assert [j.name for j in reproduce.run_jobs(config, 0)] == ["cpl-a", "baseline"]
     assert all(j.split == "paper" for j in reproduce.run_jobs(config, 0))
     assert gpu.out.endswith(os.path.join("paper_results", "paper-gpu"))
     assert gpu.runs_dir == os.path.join("runs", "reproduce-paper-gpu")
     assert "a budget of 150 s of training per run" in reproduce.scale_text(config)
     assert _parsed("--preset", "paper-gpu", "--allow-cpu",
-                   "--run-budget", "2.5").config["run_budget_s"] == 2.5
+                   "--run-budget", "2.5").config.run_budget_s == 2.5
     # the disparity head's ceiling: training's default, except cpu-8000, whose
     # first runs were made before it (all its runs keep one setting)
     from cpl_keras.reproduce.jobs import training_arguments
 
     job = reproduce.Job("cvgl", "cvgl", "paper", 0, "cpl-a", False, "cpl-a")
-    assert config["disparity_ceiling"] == "auto"
+    assert config.disparity_ceiling == "auto"
     cpu_8000 = reproduce.settings(preset="cpu-8000")
-    assert cpu_8000["disparity_ceiling"] is None
+    assert cpu_8000.disparity_ceiling is None
     assert training_arguments(cpu_8000, "r", job)[
         "disparity_ceiling"] is None
     assert training_arguments(config, "r", job)[
         "disparity_ceiling"] == "auto"
-    assert training_arguments({k: v for k, v in config.items() if k != "disparity_ceiling"},
-                              "r", job)["disparity_ceiling"] == "auto"
+    before = {k: v for k, v in config.to_dict().items() if k != "disparity_ceiling"}
+    assert training_arguments(reproduce.Settings.from_dict(before), "r", job)[
+        "disparity_ceiling"] == "auto"
     with pytest.raises(ValueError, match="disparity-ceiling"):
         dataclasses.replace(reproduce.PRESETS["cpu"], disparity_ceiling="high")
     # explicit flags override the preset's values
     mine = _parsed("--preset", "cpu", "--epochs", "7", "--seeds", "2", "--out", "x").config
-    assert (mine["epochs"], mine["seeds"], mine["pairs"]) == (7, 2, 1000)
+    assert (mine.epochs, mine.seeds, mine.pairs) == (7, 2, 1000)
     # the paper's recipe at --quick's values is --quick's pipeline (what CI runs)
     quick = reproduce.settings(quick=True)
     scaled = reproduce.settings(preset="paper", **{
-        k: quick[k] for k in ("pairs", "random_pairs", "epochs", "image_size", "backbone",
-                              "crops", "chessboard_crops", "geometric_max")}, workers=1)
+        k: getattr(quick, k) for k in ("pairs", "random_pairs", "epochs", "image_size",
+                                       "backbone", "crops", "chessboard_crops",
+                                       "geometric_max")}, workers=1)
     assert reproduce.run_jobs(scaled, 0) == reproduce.run_jobs(quick, 0)
-    assert {k: v for k, v in scaled.items() if k not in ("preset", "quick", "workers")} == \
-        {k: v for k, v in quick.items() if k not in ("preset", "quick", "workers")}
+    assert dataclasses.replace(scaled, preset="quick", quick=True, workers=None) == quick
 
 
 def _tiny_plan(run_dir, seed=0, variant="baseline"):

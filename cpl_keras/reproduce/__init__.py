@@ -57,13 +57,14 @@ from cpl_keras.reproduce.pipeline import (
 )
 from cpl_keras.reproduce.presets import (
     DEFAULT_TABLES, GPU_SIZED_PAIRS, MTL_VARIANTS, PAPER_SCALE, PRESETS, PROG, QUICK,
-    Job, Preset, REAL_ROOTS, REAL_SETS, RELEASED_RUN, TABLE1, cpu_cost, default_folders, gpu_sized,
-    has_accelerator, run_jobs, run_stems, settings,
+    Job, Preset, REAL_ROOTS, REAL_SETS, RELEASED_RUN, TABLE1, Settings, cpu_cost,
+    default_folders, gpu_sized, has_accelerator, run_jobs, run_stems, settings,
 )
 
 __all__ = [
     "DEFAULT_TABLES", "GPU_SIZED_PAIRS", "MTL_VARIANTS", "PAPER_SCALE", "PRESETS", "PROG",
-    "Job", "Preset", "QUICK", "REAL_ROOTS", "REAL_SETS", "RELEASED_RUN", "SLOW_VARIANTS", "SUMMARY", "TABLE1",
+    "Job", "Preset", "QUICK", "REAL_ROOTS", "REAL_SETS", "RELEASED_RUN", "SLOW_VARIANTS", "SUMMARY",
+    "Settings", "TABLE1",
     "add_arguments", "cpu_cost", "default_folders", "gpu_sized", "has_accelerator", "main",
     "make_datasets", "publish_run", "published_record", "read_summary", "rebuild",
     "rebuild_command", "reproduce", "resolve_args", "run", "run_jobs", "run_stems",

@@ -86,7 +86,7 @@ def add_arguments(parser):
 def resolve_args(parser, args):
     """Check the reproduction's options (``parser.error``: one line, exit 2,
     before anything is written) and fill in the folders and the settings
-    (``args.config``)."""
+    (``args.config``: a ``Settings``)."""
     if args.from_predictions is not None:
         given = [name for name in SCALE_OPTIONS if getattr(args, name, None) not in (None, False)]
         if given:
@@ -111,7 +111,7 @@ def resolve_args(parser, args):
         parser.error(str(error))
     if gpu_sized(args.config) and not args.allow_cpu and not has_accelerator():
         parser.error(cpu_cost(args.config, args.seed))
-    out, data_dir, runs_dir = default_folders(args.config["preset"])
+    out, data_dir, runs_dir = default_folders(args.config.preset)
     args.out = args.out or out
     args.data_dir = args.data_dir or data_dir
     args.runs_dir = args.runs_dir or runs_dir

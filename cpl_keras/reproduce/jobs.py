@@ -15,19 +15,18 @@ from cpl_keras.training import parallel, planning
 # ---------------------------------------------------------------------------
 def training_arguments(config, run_dir, job):
     """The keyword arguments of ``training.train`` for ``job`` (a ``Job``) of
-    ``config`` (the settings; those of before the disparity ceiling: "auto")."""
+    ``config`` (the ``Settings``)."""
     return dict(
-        variant=job.variant, run_dir=run_dir, epochs=config["epochs"],
-        batch_size=config["batch_size"], backbone=config["backbone"], split=job.split,
-        as_released=job.released, seed=job.seed, patience=config["patience"],
-        time_budget_s=config.get("run_budget_s"),
-        disparity_ceiling=config.get("disparity_ceiling", "auto"),
-        bn_statistics=config.get("bn_statistics"), monitor=config.get("monitor"),
+        variant=job.variant, run_dir=run_dir, epochs=config.epochs,
+        batch_size=config.batch_size, backbone=config.backbone, split=job.split,
+        as_released=job.released, seed=job.seed, patience=config.patience,
+        time_budget_s=config.run_budget_s, disparity_ceiling=config.disparity_ceiling,
+        bn_statistics=config.bn_statistics, monitor=config.monitor,
     )
 
 
 def train_all(config, paths, runs_dir, seed, jobs=1, out_dir=None):
-    """Stage 2: every run; returns ``{table key: {seed: [run dirs]}}``.
+    """Stage 2: every run of ``config`` (the ``Settings``); returns ``{table key: {seed: [run dirs]}}``.
     ``jobs`` > 1 trains that many runs at a time, each in its own process
     (``train_parallel``); the runs are the same either way.
 
@@ -71,7 +70,7 @@ def train_all(config, paths, runs_dir, seed, jobs=1, out_dir=None):
                                 jobs, on_finished=on_finished, log=log, prog=PROG)
         return trained
     for label, data, plan, publish in pending:
-        log(f"training {label} ({config['backbone']}, up to {config['epochs']} epochs)")
+        log(f"training {label} ({config.backbone}, up to {config.epochs} epochs)")
         summary = training.train(data, verbose=2, **plan)
         log(training.summary_line(summary))
         if summary["best_epoch"] is None:

@@ -24,41 +24,42 @@ def _stem_row(stem):
 
 
 def _budget_text(config):
-    budget = config.get("run_budget_s")
+    budget = config.run_budget_s
     return "" if budget is None else (f", or at a budget of {budget:g} s of training per run "
                                       f"(whichever ends it first)")
 
 
 def scale_text(config):
-    preset = config.get("preset")
-    if config.get("quick"):
+    """The settings' paragraph of REPORT.md (``config``: a ``Settings``)."""
+    preset = config.preset
+    if config.quick:
         scale = "quick (tiny settings, a smoke test of the pipeline)"
     elif preset:
         scale = f"preset `{preset}`, as set below"
     else:
         scale = "as set below"
-    counts = {TABLE1[t][2]: config[TABLE1[t][2]] for t in config.get("tables", DEFAULT_TABLES)}
-    if tuple(config.get("tables", DEFAULT_TABLES)) != DEFAULT_TABLES:
-        seeds = (f" Seeds per table: {', '.join(f'{t} {config[TABLE1[t][2]]}' for t in config['tables'])} "
+    counts = {t: getattr(config, TABLE1[t][2]) for t in config.tables}
+    if config.tables != DEFAULT_TABLES:
+        seeds = (f" Seeds per table: {', '.join(f'{t} {n}' for t, n in counts.items())} "
                  f"(each seed its own initial weights and, on the paper split, its own split; "
                  f"a table over several seeds gives mean ± spread)."
                  if max(counts.values()) > 1 else "")
     else:
-        seeds = (f" Seeds per protocol: cvgl {config['seeds']}, random {config['random_seeds']} "
+        seeds = (f" Seeds per protocol: cvgl {config.seeds}, random {config.random_seeds} "
                  f"(each seed its own split and initial weights; a table over several seeds "
-                 f"gives mean ± spread)." if max(config["seeds"], config["random_seeds"]) > 1
+                 f"gives mean ± spread)." if max(config.seeds, config.random_seeds) > 1
                  else "")
-    seeded = config.get("seeded_variants")
+    seeded = config.seeded_variants
     if seeds and seeded is not None:
         once = [stem for stem in run_stems(config) if stem not in seeded]
         if once:
             seeds += (f" Trained on every seed: {', '.join(_stem_row(s) for s in seeded)}; "
                       f"on the first seed only: {', '.join(_stem_row(s) for s in once)} (their "
                       f"rows are one run's values, without spread).")
-    return (f"Scale: {scale}. Backbone `{config['backbone']}`, {config['image_size']}x"
-            f"{config['image_size']} images, batch {config['batch_size']}, Adam (lr 1e-3, "
-            f"Deep-Homo 1.5e-3), up to {config['epochs']} epochs with early stopping "
-            f"(patience {config['patience']}, best weights restored){_budget_text(config)}."
+    return (f"Scale: {scale}. Backbone `{config.backbone}`, {config.image_size}x"
+            f"{config.image_size} images, batch {config.batch_size}, Adam (lr 1e-3, "
+            f"Deep-Homo 1.5e-3), up to {config.epochs} epochs with early stopping "
+            f"(patience {config.patience}, best weights restored){_budget_text(config)}."
             f"{seeds} The paper trained "
             f"up to 200 epochs on 123,017 pairs from ImageNet weights; here the towers start "
             f"from random weights (none can be downloaded).")
@@ -110,9 +111,10 @@ def _run_stem(run_summary):
 
 
 def write_report(out_dir, summary, tables, rebuilt_by=None):
-    """Stage 5: REPORT.md from the reproduction's summary (``reproduce.json``)
-    and its tables; ``rebuilt_by``: the command that rebuilt them from the
-    published predictions."""
+    """Stage 5: REPORT.md from the reproduction's summary (``reproduce.json``,
+    its settings a ``Settings``: ``pipeline.read_summary``) and its tables;
+    ``rebuilt_by``: the command that rebuilt them from the published
+    predictions."""
     config, info = summary["settings"], summary["machine"]
     lines = ["# Reproducing Tables 1 and 2", ""]
     lines += ["Everything on this page was produced by one command:", "", "```",
@@ -135,8 +137,8 @@ def write_report(out_dir, summary, tables, rebuilt_by=None):
               "wall time (min) | stopped |",
               "|---|---|---|---|---|---|---|---|---|"]
     for s in runs_list:
-        stopped = s["stopped"] or (f"epoch cap ({config['epochs']})"
-                                   if s["epochs_run"] == config["epochs"] else "")
+        stopped = s["stopped"] or (f"epoch cap ({config.epochs})"
+                                   if s["epochs_run"] == config.epochs else "")
         wall = "" if s["wall_time_s"] is None else f"{s['wall_time_s'] / 60:.1f}"
         loss = "" if s["best_val_loss"] is None else f"{s['best_val_loss']:.4g}"
         lines.append(f"| {s['protocol']} | {_run_name(s)} | {s['split']} | "

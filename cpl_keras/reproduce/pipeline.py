@@ -17,33 +17,33 @@ from cpl_keras.files import read_json, write_json
 from cpl_keras.real import build
 from cpl_keras.reproduce.jobs import train_all
 from cpl_keras.reproduce.page import write_report
-from cpl_keras.reproduce.presets import DEFAULT_TABLES, PROG, TABLE1, log
+from cpl_keras.reproduce.presets import PROG, TABLE1, Settings, log
 
 # ---------------------------------------------------------------------------
 # Stage 1: data
 # ---------------------------------------------------------------------------
 def real_set_folder(config, data_dir, seed):
     """Where the real sets of these settings go (one file per rig)."""
-    return os.path.join(data_dir, f"real_{config['image_size']}px_mb{config['crops']}_"
-                                  f"cb{config['chessboard_crops']}_s{seed}")
+    return os.path.join(data_dir, f"real_{config.image_size}px_mb{config.crops}_"
+                                  f"cb{config.chessboard_crops}_s{seed}")
 
 
 def make_datasets(config, data_dir, seed, real_roots=None):
     """Stage 1: the synthetic datasets and every real set (reused when
     present); ``{"cvgl": path, "random": path, "real": [paths]}``."""
-    size = config["image_size"]
+    size = config.image_size
     paths = {}
-    needed = {TABLE1[t][0] for t in config.get("tables", DEFAULT_TABLES)}
-    for protocol, pairs in (("cvgl", config["pairs"]), ("random", config["random_pairs"])):
+    needed = {TABLE1[t][0] for t in config.tables}
+    for protocol, pairs in (("cvgl", config.pairs), ("random", config.random_pairs)):
         if protocol not in needed:
             continue
         paths[protocol] = cached_dataset(data_dir, protocol=protocol, pairs=pairs, seed=seed,
-                                         image_size=size, workers=config["workers"], log=log)
+                                         image_size=size, workers=config.workers, log=log)
     # every real rig, through the one builder of ``python -m cpl_keras.real.build all``
     paths["real"] = build.build_all(
-        real_set_folder(config, data_dir, seed), roots=real_roots, stems=config["real_sets"],
-        crops_per_source={"middlebury": config["crops"], "chessboard": config["chessboard_crops"],
-                          "oakd": config["chessboard_crops"]},
+        real_set_folder(config, data_dir, seed), roots=real_roots, stems=config.real_sets,
+        crops_per_source={"middlebury": config.crops, "chessboard": config.chessboard_crops,
+                          "oakd": config.chessboard_crops},
         report=log, image_size=size, seed=seed)
     return paths
 
@@ -58,7 +58,7 @@ def _group_predictions(number, stem, prefix, run_dirs, data, config, out_dir, su
     folder = os.path.join(out_dir, "runs")
     key = json.dumps({"table": stem, "runs": [runs.relative(r, out_dir) for r in run_dirs],
                       "data": [runs.relative(p, out_dir) for p in data] if data else None,
-                      "geometric_max": config["geometric_max"],
+                      "geometric_max": config.geometric_max,
                       "format": predictions.FORMAT_VERSION}, sort_keys=True)
     rows = ["Average", "Average (release bug)"] + list(run_dirs) + ["Geometric"]
     stems = [None] if number == 1 else [os.path.splitext(os.path.basename(p))[0] for p in data]
@@ -75,12 +75,12 @@ def _group_predictions(number, stem, prefix, run_dirs, data, config, out_dir, su
     log(f"evaluating {stem}: {', '.join(os.path.basename(r) for r in run_dirs)}")
     if number == 1:
         context, raw = evaluation.table_rows(1, run_dirs, geometric=True,
-                                             geometric_max=config["geometric_max"], progress=log)
+                                             geometric_max=config.geometric_max, progress=log)
         files = predictions.table1_files(context, raw, out_dir=out_dir, prefix=prefix, stem=stem,
                                          key=key, suffix=suffix)
     else:
         run_list, rigs = evaluation.table2_rigs(run_dirs, data, geometric=True,
-                                                geometric_max=config["geometric_max"], progress=log)
+                                                geometric_max=config.geometric_max, progress=log)
         files = predictions.table2_files(run_list, rigs, out_dir=out_dir, prefix=prefix,
                                          stem=stem, key=key, suffix=suffix)
     if sorted(files) != sorted(names):
@@ -168,8 +168,8 @@ def dataset_lines(paths):
 
 def reproduce(*, out_dir, data_dir, runs_dir, config, seed=0, command="", discussion_file=None,
               real_roots=None, jobs=1):
-    """Run the whole pipeline; returns the path of REPORT.md. ``jobs``:
-    training runs at a time (``train_all``)."""
+    """Run the whole pipeline of ``config`` (the ``Settings``); returns the
+    path of REPORT.md. ``jobs``: training runs at a time (``train_all``)."""
     for directory in (out_dir, data_dir, runs_dir):
         os.makedirs(directory, exist_ok=True)
     start = time.time()
@@ -187,7 +187,7 @@ def reproduce(*, out_dir, data_dir, runs_dir, config, seed=0, command="", discus
             discussion = f.read()
     roots = {k: runs.relative(v, out_dir) for k, v in (real_roots or {}).items() if v}
     summary = {
-        "command": command, "settings": dict(config, variants=list(config["variants"])),
+        "command": command, "settings": config.to_dict(),
         "seed": seed, "real_roots": roots,
         "data": dict({k: runs.relative(paths[k], out_dir) for k in ("cvgl", "random")
                       if k in paths},
@@ -196,7 +196,7 @@ def reproduce(*, out_dir, data_dir, runs_dir, config, seed=0, command="", discus
         "predictions": [runs.relative(p, out_dir) for p in files], "tables": list(tables),
         "discussion": discussion}
     write_json(os.path.join(out_dir, SUMMARY), summary)
-    write_report(out_dir, summary, tables)
+    write_report(out_dir, dict(summary, settings=config), tables)
     return os.path.join(out_dir, "REPORT.md")
 
 
@@ -210,7 +210,23 @@ SUMMARY_KEYS = ("command", "settings", "datasets", "runs", "machine", "predictio
 
 
 def read_summary(out_dir):
-    """``out_dir/reproduce.json``, checked; ValueError (one line) otherwise."""
+    """``out_dir/reproduce.json``, checked, its settings a ``Settings`` (those
+    of an older file: the fields it has, the defaults for those added
+    since); ValueError (one line) otherwise."""
+    return _with_settings(_stored_summary(out_dir), out_dir)
+
+
+def _with_settings(stored, out_dir):
+    """The summary ``stored`` in ``out_dir`` with its settings as a ``Settings``."""
+    try:
+        return dict(stored, settings=Settings.from_dict(stored["settings"]))
+    except (AttributeError, TypeError, ValueError) as error:
+        raise ValueError(f"{os.path.join(out_dir, SUMMARY)}: settings: "
+                         f"{cli.one_line(error)}") from None
+
+
+def _stored_summary(out_dir):
+    """``out_dir/reproduce.json`` as stored, with every key of ``SUMMARY_KEYS``."""
     path = os.path.join(out_dir, SUMMARY)
     if not os.path.isdir(out_dir):
         raise ValueError(f"not a folder: {out_dir}")
@@ -245,18 +261,19 @@ def rebuild(out_dir, command="", discussion_file=None):
     ``discussion_file``: a new comparison with the paper (Markdown), stored
     in ``reproduce.json`` in place of the old one (written after the tables
     were seen). Returns the path of REPORT.md."""
-    summary = read_summary(out_dir)
+    stored = _stored_summary(out_dir)
+    summary = _with_settings(stored, out_dir)
     if discussion_file is not None:
         with open(discussion_file) as f:
-            summary["discussion"] = f.read()
+            stored["discussion"] = summary["discussion"] = f.read()
     files = [os.path.join(out_dir, p) for p in summary["predictions"]]
     tables = predictions.tables_from_files(files)
     if list(tables) != list(summary["tables"]):
         raise prediction_files.PredictionsError(
             f"the predictions make tables {list(tables)}, {SUMMARY} lists {summary['tables']}")
     make_tables(files, out_dir, summary["command"])
-    if discussion_file is not None:
-        write_json(os.path.join(out_dir, SUMMARY), summary)
+    if discussion_file is not None:  # (its settings as they were stored)
+        write_json(os.path.join(out_dir, SUMMARY), stored)
     write_report(out_dir, summary, tables, rebuilt_by=command)
     return os.path.join(out_dir, "REPORT.md")
 

@@ -243,26 +243,61 @@ PAPER_SCALE = PRESETS["paper"]
 QUICK = PRESETS["quick"]
 
 
+@dataclasses.dataclass(frozen=True)
+class Settings(Preset):
+    """The settings of one reproduction: a ``Preset``'s fields (checked as
+    there) and which preset they came from. ``to_dict`` / ``from_dict``:
+    their form in ``reproduce.json`` (``pipeline.SUMMARY``)."""
+
+    preset: str | None = None  #: the preset's name (``PRESETS``; None: the paper's scale)
+    quick: bool = False        #: the quick preset (``--quick``)
+
+    def __post_init__(self):
+        if self.preset is not None and self.preset not in PRESETS:
+            raise ValueError(f"unknown preset {self.preset!r}; choose one of "
+                             f"{', '.join(PRESETS)}")
+        if self.quick is not (self.preset == "quick"):
+            raise ValueError(f"quick must be {self.preset == 'quick'} with preset "
+                             f"{self.preset!r}, got {self.quick!r}")
+        super().__post_init__()
+
+    def to_dict(self):
+        """The JSON form: every field in order (the ``Preset``'s, then
+        ``preset`` and ``quick``), tuples as lists."""
+        return {key: list(value) if isinstance(value, tuple) else value
+                for key, value in dataclasses.asdict(self).items()}
+
+    @classmethod
+    def from_dict(cls, config):
+        """The settings of a ``to_dict`` form, also of an older one without
+        the fields added since (their defaults). ValueError (one line) on an
+        unknown or missing setting, or a bad value."""
+        names = [field.name for field in dataclasses.fields(cls)]
+        unknown = [key for key in config if key not in names]
+        if unknown:
+            raise ValueError(f"unknown setting {unknown[0]!r}")
+        required = [field.name for field in dataclasses.fields(cls)
+                    if field.default is dataclasses.MISSING]
+        missing = [key for key in required if key not in config]
+        if missing:
+            raise ValueError(f"setting {missing[0]!r} missing")
+        return cls(**config)
+
+
 def settings(quick=False, preset=None, **overrides):
-    """The run settings as a dict (the ``Preset``'s fields, ``preset`` and
-    ``quick``): a preset (``PRESETS``; default ``PAPER_SCALE``, ``quick=True``
-    is ``preset="quick"``) with ``overrides`` applied (None: keep the
-    preset's). ValueError (one line) on a bad value."""
+    """The run settings (``Settings``): a preset (``PRESETS``; default
+    ``PAPER_SCALE``, ``quick=True`` is ``preset="quick"``) with ``overrides``
+    applied (None: keep the preset's). ValueError (one line) on a bad value."""
     if quick and preset not in (None, "quick"):
         raise ValueError(f"--quick is --preset quick; it cannot go with --preset {preset}")
     name = "quick" if quick else preset
-    if name is not None and name not in PRESETS:
-        raise ValueError(f"unknown preset {name!r}; choose one of {', '.join(PRESETS)}")
-    fields = {field.name for field in dataclasses.fields(Preset)}
+    chosen = PRESETS.get(name, PAPER_SCALE)  # (an unknown name: Settings refuses it)
+    fields = {field.name: getattr(chosen, field.name) for field in dataclasses.fields(Preset)}
     for key in overrides:
         if key not in fields:
             raise ValueError(f"unknown setting {key!r}")
-    chosen = dataclasses.replace(PRESETS[name] if name else PAPER_SCALE,
-                                 **{k: v for k, v in overrides.items() if v is not None})
-    config = dataclasses.asdict(chosen)
-    config["preset"] = name
-    config["quick"] = name == "quick"
-    return config
+    fields.update({k: v for k, v in overrides.items() if v is not None})
+    return Settings(**fields, preset=name, quick=name == "quick")
 
 
 def log(message):
@@ -271,10 +306,10 @@ def log(message):
 
 
 def run_stems(config, protocol="cvgl"):
-    """The runs of the settings on ``protocol``, by name stem (the variant, or
-    ``RELEASED_RUN``)."""
-    stems = list(config["variants"])
-    if protocol == "cvgl" and config["released"]:
+    """The runs of the settings (a ``Settings``) on ``protocol``, by name stem
+    (the variant, or ``RELEASED_RUN``)."""
+    stems = list(config.variants)
+    if protocol == "cvgl" and config.released:
         stems.append(RELEASED_RUN)
     return tuple(stems)
 
@@ -297,18 +332,17 @@ class Job(NamedTuple):
 
 
 def run_jobs(config, seed):
-    """Every training run of the settings, a ``Job`` each. The runs of ``seeded_variants``
+    """Every training run of the settings (a ``Settings``), a ``Job`` each. The runs of ``seeded_variants``
     (None: all) are trained on every seed of a table, the others on its first
     seed only; a table trained over several seeds names its runs
     ``<stem>-s<seed>`` (``cpl-u-s1``, ``deep-homo-s0``, ``cpl-a-released-s0``).
     Within a table, the ``first_variants`` train on every seed before the
     other runs start (seed by seed in each group)."""
-    seeded = config.get("seeded_variants")
-    first = config.get("first_variants", ())
+    seeded, first = config.seeded_variants, config.first_variants
     jobs = []
-    for key in config.get("tables", DEFAULT_TABLES):
+    for key in config.tables:
         protocol, split, seeds_key = TABLE1[key]
-        count = config[seeds_key]
+        count = getattr(config, seeds_key)
         stems = run_stems(config, protocol)
         groups = [[s for s in stems if s in first], [s for s in stems if s not in first]]
         for group in groups:
@@ -330,8 +364,8 @@ CPU_SAMPLES_PER_S = 12
 
 
 def gpu_sized(config):
-    """Whether ``config`` trains InceptionV3 towers on GPU-sized data."""
-    return config["backbone"] == "inception_v3" and config["pairs"] >= GPU_SIZED_PAIRS
+    """Whether ``config`` (a ``Settings``) trains InceptionV3 towers on GPU-sized data."""
+    return config.backbone == "inception_v3" and config.pairs >= GPU_SIZED_PAIRS
 
 
 def has_accelerator():
@@ -343,10 +377,10 @@ def has_accelerator():
 
 def cpu_cost(config, seed=0):
     """The one line that refuses GPU-sized settings on a CPU, with their cost."""
-    train = config["pairs"] * (1 - 0.3) * (1 - 0.1)
+    train = config.pairs * (1 - 0.3) * (1 - 0.1)
     epoch_h = train / CPU_SAMPLES_PER_S / 3600
     count = len(run_jobs(config, seed))
-    return (f"these settings are sized for a GPU ({config['pairs']:,} pairs, InceptionV3 "
+    return (f"these settings are sized for a GPU ({config.pairs:,} pairs, InceptionV3 "
             f"towers, {count} runs) and JAX sees no GPU here: one epoch of one run would take "
             f"about {epoch_h:.1f} h on this CPU (~{CPU_SAMPLES_PER_S} samples/s); pass "
             f"--allow-cpu to go on, or use --preset cpu or cpu-8000")
