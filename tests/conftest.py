@@ -259,7 +259,7 @@ def pytest_collection_finish(session):
 SECOND_PROCESS_FILES = ("test_bench_diagnostics.py", "test_distributed.py",
                         "test_docs_commands.py", "test_inspect.py", "test_interrupt.py",
                         "test_learning_curves.py", "test_leave_one_rig_out.py",
-                        "test_models.py")
+                        "test_loss_health.py", "test_models.py")
 #: Set in the second process (which runs what it is given and splits nothing).
 WORKER = "CPL_KERAS_TEST_WORKER"
 
