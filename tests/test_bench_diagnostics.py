@@ -82,3 +82,29 @@ def test_a_missing_data_file_is_one_line_and_exit_2(script, tmp_path):
     assert done.returncode == 2, done.stderr
     assert done.stderr.strip().splitlines() == [
         f"bench/{script}: error: dataset not found: {missing}"], done.stderr
+
+
+def test_disparity_depth_is_eq_4a_with_fx_and_b_at_their_truth(capsys):
+    import numpy as np
+
+    script = _script("disparity_depth")
+    ones = np.ones(4)
+    raw = {"truth": {"fx": 100 * ones, "baseline": ones, "disparity": 10 * ones},
+           "pred": {"fx": 50 * ones, "baseline": 3 * ones,  # (not used: at their truth)
+                    "disparity": np.array([20.0, 20.0, 10.0, 5.0])}}
+    # depths 10 m; implied 5, 5, 10, 20 m: errors 5, 5, 0, 10 m
+    d, depth, median = script.disparity_and_depth(raw)
+    assert (d, depth, median) == (pytest.approx(6.25 / 10), pytest.approx(5.0 / 10), 0.5)
+
+    # the committed compact-2000 folder: each network row, seeds 0-2, once
+    rows = script.folder_rows(os.path.join(REPO, "paper_results", "compact-2000"))
+    assert list(rows) == ["table1_cvgl"]
+    assert {v: sorted(s for s, _ in r) for v, r in rows["table1_cvgl"].items()} == \
+        {v: [0, 1, 2] for v in script.VARIANTS}
+    assert script.main(["--folders", os.path.join(REPO, "paper_results", "compact-2000")]) == 0
+    out = capsys.readouterr().out
+    assert out.count("| mean |") == 3 and "| cpl-a | 2 | " in out
+
+    from cpl_keras.evaluation import EvaluationError
+    with pytest.raises(EvaluationError, match="no Table 1 network rows"):
+        script.folder_rows(os.path.join(REPO, "paper_results", "notes"))
