@@ -107,6 +107,17 @@ def positive_float(text):
     return value
 
 
+def momentum(text):
+    """argparse type: a number in [0, 1) (a moving average's momentum; 0: off)."""
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"must be a number in [0, 1), got {text!r}") from None
+    if not (math.isfinite(value) and 0 <= value < 1):
+        raise argparse.ArgumentTypeError(f"must be a number in [0, 1), got {text}")
+    return value
+
+
 # ---------------------------------------------------------------------------
 # Output files
 # ---------------------------------------------------------------------------

@@ -98,6 +98,8 @@ def normalise_config(config):
     # the per-epoch draw and the validation loss)
     config.setdefault("bn_statistics", "epoch")
     config.setdefault("monitor", "loss")
+    # (runs from before the weights' moving average: the weights as trained)
+    config.setdefault("weight_ema", 0.0)
     return config
 
 
@@ -159,6 +161,9 @@ class RunConfig:
     bn_recompute_batches: int | None = None
     bn_statistics: str | None = None
     monitor: str | None = None
+    # The momentum of the trained weights' moving average that validation,
+    # the kept epoch and the saved model use (0: the weights as trained).
+    weight_ema: float = 0.0
     # The per-output MAE's scaling ("none" or "std").
     target_scaling: str = "none"
     # Seconds of training the run may take (None: no budget).

@@ -809,9 +809,9 @@ FLAG_CASES = {
                     lambda c: c["build"]["disentangle"] == "partial"
                     and c["build"]["disparity_ceiling"] == 300.0
                     and c["build"]["bounded_pitch_head"] is False),
-    "cpl-a heads": (["--linear-focal-head", "--alpha-rate", "3"], "cpl-a",
+    "cpl-a heads": (["--linear-focal-head", "--alpha-rate", "3", "--weight-ema", "0.9"], "cpl-a",
                     lambda c: c["build"]["positive_focal_head"] is False
-                    and c["build"]["alpha_rate"] == 3.0),
+                    and c["build"]["alpha_rate"] == 3.0 and c["weight_ema"] == 0.9),
     "baseline steps": (["--target-scaling", "std", "--steps-per-execution", "2",
                         "--bn-recompute-batches", "0", "--split", "held-out-config",
                         "--augment", "photometric"], "baseline",

@@ -103,6 +103,9 @@ def build_parser(prog=PROG):
                         help="what early stopping and the kept epoch follow: nmae (default), the "
                         "sum of the ten parameters' validation NMAEs; loss, the validation loss "
                         "(the paper's; as released)")
+    parser.add_argument("--weight-ema", type=cli.momentum, default=0.0, metavar="M",
+                        help="validate, keep and save a moving average of the weights (momentum "
+                        "M, e.g. 0.99; 0, default, the paper's: the weights as trained)")
     parser.add_argument("--target-scaling", choices=("none", "std"), default="none",
                         help="MTL-Baseline: divide each output's MAE by the target's training "
                         "standard deviation (std; not the paper's) or not (none, default)")
@@ -234,7 +237,7 @@ def _train(args, demo, seed, epochs, backbone, run_dir, command, prog):
             alpha_rate=args.alpha_rate, disparity_ceiling=args.disparity_ceiling,
             bn_recompute_batches=args.bn_recompute_batches, bn_statistics=args.bn_statistics,
             monitor=args.monitor, target_scaling=args.target_scaling,
-            time_budget_s=args.time_budget, verbose=0 if args.quiet else 1,
+            weight_ema=args.weight_ema, time_budget_s=args.time_budget, verbose=0 if args.quiet else 1,
             augment=None if args.augment == "none" else args.augment,
             command=command, return_model=False,
         )

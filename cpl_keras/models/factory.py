@@ -247,7 +247,7 @@ def camera_projection_outputs(features, variant, as_released, floors, pitch_acti
 
 
 def compile_model(model, *, learning_rate=None, jit_compile="auto", steps_per_execution=1,
-                  target_scale=None):
+                  target_scale=None, weight_ema=0.0):
     """Compile with the paper's optimiser and loss.
 
     Adam, lr 1e-3 (Deep-Homo 1.5e-3). Loss: the model's own (see
@@ -259,6 +259,11 @@ def compile_model(model, *, learning_rate=None, jit_compile="auto", steps_per_ex
     targets, so that targets in hundreds of pixels or metres do not drown
     those in radians. Not the paper's (it summed the raw MAEs); only for the
     per-output MAE loss.
+
+    ``weight_ema`` (0 <= m < 1; 0, the paper's, is off): the optimizer also
+    keeps an exponential moving average of the trainable weights, momentum
+    m, updated after every step (Keras's ``use_ema``); training
+    (``cpl_keras.training``) validates and keeps those averaged weights.
     """
     if not isinstance(model, CalibrationModel):
         raise ValueError("compile_model expects a model made by cpl_keras.build_model")
@@ -266,6 +271,9 @@ def compile_model(model, *, learning_rate=None, jit_compile="auto", steps_per_ex
         learning_rate = variants.get(model.calibration.get("variant")).learning_rate
     if not (isinstance(learning_rate, numbers.Real) and learning_rate > 0):
         raise ValueError(f"learning rate must be a positive number, got {learning_rate!r}")
+    if not (isinstance(weight_ema, numbers.Real) and 0 <= weight_ema < 1):
+        raise ValueError(f"the weights' moving-average momentum must be in [0, 1), "
+                         f"got {weight_ema!r}")
     names = list(model.output_names)
     loss_weights = None
     if model.loss_mode == "mae":
@@ -284,7 +292,8 @@ def compile_model(model, *, learning_rate=None, jit_compile="auto", steps_per_ex
         loss_weights = {name: 1.0 / float(target_scale[name]) for name in names}
         metrics = {name: ["mae"] for name in names}  # the unscaled MAE in the logs
     model.compile(
-        optimizer=keras.optimizers.Adam(learning_rate=learning_rate),
+        optimizer=keras.optimizers.Adam(learning_rate=learning_rate, use_ema=weight_ema > 0,
+                                        ema_momentum=float(weight_ema) or 0.99),
         loss=loss, loss_weights=loss_weights, metrics=metrics, jit_compile=jit_compile,
         steps_per_execution=steps_per_execution,
     )

@@ -37,7 +37,8 @@ class RunState(keras.callbacks.Callback):
     """
 
     def __init__(self, run_dir, patience, sequence, bn_recompute_batches=0,
-                 time_budget_s=None, bn_sequence=None, nmae_scale=None, writes=True):
+                 time_budget_s=None, bn_sequence=None, nmae_scale=None, weight_ema=False,
+                 writes=True):
         super().__init__()
         self.run_dir = run_dir
         # whether this process writes the run directory (in a process group,
@@ -56,6 +57,14 @@ class RunState(keras.callbacks.Callback):
         # (name -> the training split's mean |y| of each camera parameter)
         # the sum of the validation NMAEs (``nmae_scores``), else val_loss.
         self.nmae_scale = nmae_scale
+        # With the optimizer's moving average of the weights (``use_ema``):
+        # validation, the best checkpoint and so the saved model use the
+        # averaged weights, swapped in for validation (BatchNorm statistics
+        # recomputed for them) and out again before the epoch's checkpoint,
+        # which keeps the weights as trained and the average among the
+        # optimizer's variables, so a resumed run goes on exactly.
+        self.weight_ema = weight_ema
+        self._averaged_in = False
         self.backup = os.path.join(run_dir, runs.BACKUP)
         self.state_path = os.path.join(run_dir, runs.STATE)
         self.patience = patience
@@ -93,6 +102,8 @@ class RunState(keras.callbacks.Callback):
             self.model.initialise_adaptive_weights(self.sequence.batch_targets(0))
 
     def on_test_begin(self, logs=None):
+        if self.weight_ema and not self._averaged_in:
+            self._swap_averaged_weights()
         # Validation (and so the checkpoints and the saved model) runs in
         # inference mode: give it BatchNorm statistics of these weights.
         if self.bn_sequence is not None:
@@ -126,9 +137,27 @@ class RunState(keras.callbacks.Callback):
             self.nan = {"epoch": self.state["epoch"], "batch": int(batch)}
             self.model.stop_training = True
 
+    def _swap_averaged_weights(self):
+        """Exchange the model's trainable weights with the optimizer's moving
+        average of them (in place: no variable is created)."""
+        optimizer = self.model.optimizer
+        for variable, average in zip(optimizer._trainable_variables,
+                                     optimizer._model_variables_moving_average):
+            trained = np.array(keras.ops.convert_to_numpy(variable))
+            variable.assign(average)
+            average.assign(trained)
+        self._averaged_in = not self._averaged_in
+
+    def _weights_as_trained(self):
+        """The trained weights back in the model after validation (for the
+        epoch's checkpoint and the next epoch)."""
+        if self._averaged_in:
+            self._swap_averaged_weights()
+
     def on_epoch_end(self, epoch, logs=None):
         keras_logs = logs
         if self.nan is not None:
+            self._weights_as_trained()
             self.state["stopped"] = (
                 f"non-finite training loss at epoch {self.nan['epoch'] + 1}, "
                 f"batch {self.nan['batch'] + 1}"
@@ -156,7 +185,8 @@ class RunState(keras.callbacks.Callback):
             if self.writes:
                 with distributed.alone():
                     self.model.save_weights(os.path.join(self.backup, best_name + ".weights.h5"))
-        else:
+        self._weights_as_trained()
+        if not improved:
             state["wait"] += 1
             if state["wait"] >= self.patience and epoch > 0:
                 monitored = "val_nmae" if self.nmae_scale is not None else "val_loss"

@@ -33,6 +33,7 @@ RESUME_KEYS = (
     "variant", "build", "data", "split", "seed", "batch_size", "learning_rate", "epochs",
     "data_parallel", "patience", "test_fraction", "val_fraction",
     "bn_recompute_batches", "bn_statistics", "monitor", "target_scaling", "augment",
+    "weight_ema",
 )
 #: Per-output MAE as the paper sums it ("none"), or each divided by the
 #: target's training standard deviation ("std": standardised targets).
@@ -80,10 +81,17 @@ class RunPlan:
     workers: int
 
 
+def _check_momentum(weight_ema):
+    if isinstance(weight_ema, bool) or not (isinstance(weight_ema, (int, float, np.floating))
+                                            and 0 <= weight_ema < 1):
+        raise TrainingError(f"the weights' moving-average momentum must be in [0, 1), "
+                            f"got {weight_ema!r}")
+
+
 def _check_arguments(*, variant, backbone, split, epochs, batch_size, workers, patience, seed,
                      as_released, bn_recompute_batches, bn_statistics, monitor, disentangle,
                      target_scaling, learning_rate, alpha_rate, time_budget_s,
-                     disparity_ceiling, augment):
+                     disparity_ceiling, augment, weight_ema):
     """``plan_run``'s checks of its arguments (TrainingError, one line);
     returns the variant's spec, the BatchNorm recompute batches, their
     statistics mode and the monitored quantity (defaults filled in)."""
@@ -106,6 +114,7 @@ def _check_arguments(*, variant, backbone, split, epochs, batch_size, workers, p
     if bn_statistics not in BN_STATISTICS:
         raise TrainingError(f"unknown BatchNorm statistics {bn_statistics!r}; choose one of "
                             f"{', '.join(BN_STATISTICS)}")
+    _check_momentum(weight_ema)
     if monitor is None:
         monitor = "loss" if as_released else "nmae"
     if monitor not in MONITORS:
@@ -206,7 +215,7 @@ def plan_run(data, *, variant, run_dir, epochs=200, batch_size=16, learning_rate
              workers=1, disentangle="exact", bounded_pitch_head=None,
              positive_focal_head=None, alpha_rate=None, disparity_ceiling="auto",
              bn_recompute_batches=None, bn_statistics=None, monitor=None,
-             target_scaling="none", time_budget_s=None, augment=None, command=None):
+             target_scaling="none", time_budget_s=None, augment=None, weight_ema=0.0, command=None):
     """Check the dataset and the arguments; return the run's plan (a
     ``RunPlan``: its ``config`` is what config.json will hold).
 
@@ -218,13 +227,12 @@ def plan_run(data, *, variant, run_dir, epochs=200, batch_size=16, learning_rate
     ``disparity_ceiling``: the CPL disparity head's largest output in px
     (``"auto"``: ``DISPARITY_CEILING_FACTOR`` times the largest training
     label; None: ``layers.MAX_OUTPUT``, the bound of runs made before it).
-    ``augment``: None, or ``"photometric"`` for the training batches
-    (``cpl_keras.training.augment``; not the paper's).
+    ``augment``: None, or ``"photometric"`` (``training.augment``; not the paper's).
     ``bn_statistics`` (``BN_STATISTICS``), ``bn_recompute_batches`` and
     ``monitor`` (``MONITORS``): the BatchNorm statistics validation runs
     with, and what early stopping follows (None: "fixed" over 64 batches and
-    "nmae"; as released: Keras's moving averages and "loss").
-    Raises ``DatasetError`` or ``TrainingError`` with a one-line message.
+    "nmae"; as released: Keras's moving averages and "loss"). ``weight_ema``:
+    ``runs.RunConfig``'s. Raises ``DatasetError`` or ``TrainingError`` with a one-line message.
     Writes nothing.
     """
     # (settings left at their defaults: a run directory resumes with its own)
@@ -238,7 +246,8 @@ def plan_run(data, *, variant, run_dir, epochs=200, batch_size=16, learning_rate
         bn_recompute_batches=bn_recompute_batches, bn_statistics=bn_statistics,
         monitor=monitor, disentangle=disentangle,
         target_scaling=target_scaling, learning_rate=learning_rate, alpha_rate=alpha_rate,
-        time_budget_s=time_budget_s, disparity_ceiling=disparity_ceiling, augment=augment)
+        time_budget_s=time_budget_s, disparity_ceiling=disparity_ceiling, augment=augment,
+        weight_ema=weight_ema)
     dataset = _read_dataset(data, image_size=image_size, split=split, seed=seed,
                             test_fraction=test_fraction, val_fraction=val_fraction,
                             as_released=as_released, batch_size=batch_size)
@@ -270,7 +279,7 @@ def plan_run(data, *, variant, run_dir, epochs=200, batch_size=16, learning_rate
         "learning_rate": None if learning_rate is None else float(learning_rate),
         "epochs": int(epochs), "patience": int(patience),
         "bn_recompute_batches": int(bn_recompute_batches), "bn_statistics": bn_statistics,
-        "monitor": monitor, "target_scaling": target_scaling,
+        "monitor": monitor, "weight_ema": float(weight_ema), "target_scaling": target_scaling,
         "time_budget_s": None if time_budget_s is None else float(time_budget_s),
         "augment": augment, "data_parallel": bool(data_parallel), "num_devices": devices,
         "num_processes": processes,

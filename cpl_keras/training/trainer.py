@@ -183,7 +183,8 @@ def _run(plan, steps_per_execution, verbose):
         model = models.build_model(config.variant, **config.build)
         models.compile_model(model, learning_rate=config.learning_rate,
                              steps_per_execution=steps_per_execution,
-                             target_scale=_target_scale(plan) if config.target_scaling == "std" else None)
+                             target_scale=_target_scale(plan) if config.target_scaling == "std" else None,
+                             weight_ema=config.weight_ema)
     except ValueError as error:
         raise TrainingError(f"cannot build {config.variant}: {error}") from None
     config = dataclasses.replace(
@@ -232,7 +233,7 @@ def _run_locked(plan, model, config, run_dir, verbose):
     run_state = RunState(run_dir, config.patience, train_seq, config.bn_recompute_batches,
                          time_budget_s=config.time_budget_s, bn_sequence=bn_seq,
                          nmae_scale=nmae_scale(plan) if config.monitor == "nmae" else None,
-                         writes=distributed.is_chief())
+                         weight_ema=config.weight_ema > 0, writes=distributed.is_chief())
     state = run_state.state
     done = state.get("stopped") is not None or state["epoch"] >= config.epochs
     try:
