@@ -10,6 +10,7 @@ import json
 import math
 import os
 
+import numpy as np
 import pytest
 
 from helpers import REPO
@@ -108,3 +109,25 @@ def test_disparity_depth_is_eq_4a_with_fx_and_b_at_their_truth(capsys):
     from cpl_keras.evaluation import EvaluationError
     with pytest.raises(EvaluationError, match="no Table 1 network rows"):
         script.folder_rows(os.path.join(REPO, "paper_results", "notes"))
+
+
+def test_monitor_steadiness_reads_the_swings_and_the_shared_training(tmp_path, capsys):
+    script = _script("monitor_steadiness")
+    val = np.array([4.0, 2.0, 3.0, 1.5, 1.5])
+    assert script.steadiness(val, 2) == (pytest.approx(0.5), pytest.approx(0.5), 1)
+    losses = [np.array([3.0, 2.0, 1.0]), np.array([3.0, 2.0, 1.5, 1.0])]
+    assert script.same_training(losses) == 2
+    assert script.same_training([losses[0], losses[0][:2]]) == 2
+    for name, rows in (("a", val), ("b", val / 2)):
+        with open(tmp_path / f"{name}.csv", "w") as f:
+            f.write("epoch,loss,val_nmae\n" + "".join(
+                f"{k + 1},{10 - k},{v}\n" for k, v in enumerate(rows)))
+    assert script.main(["--from-epoch", "2", str(tmp_path / "a.csv"),
+                        str(tmp_path / "b.csv")]) == 0
+    out = capsys.readouterr().out
+    assert "| 5 | 4 (1.500) | 50.0% | 50.0% | 1 of 3 |" in out
+    assert "| 5 | 4 (0.750) |" in out and "equal over the first 5 epochs" in out
+    (tmp_path / "c.csv").write_text("epoch,loss\n1,2\n")
+    from cpl_keras.evaluation import EvaluationError
+    with pytest.raises(EvaluationError, match="no val_nmae column"):
+        script.read(str(tmp_path / "c.csv"))
