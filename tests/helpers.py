@@ -185,3 +185,19 @@ def train_py(*args, cache, env=None):
     environment["JAX_COMPILATION_CACHE_DIR"] = cache
     environment["JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS"] = "0"
     return [sys.executable, os.path.join(REPO, "train.py"), *args], environment
+
+
+def interrupt_after_epoch(monkeypatch, epoch):
+    """Make training raise KeyboardInterrupt right after epoch ``epoch``'s
+    commit (1-based), as a kill at that moment would leave the run;
+    ``monkeypatch.undo()`` ends it."""
+    from cpl_keras.training import checkpointing
+
+    original = checkpointing.RunState.on_epoch_end
+
+    def interrupted(self, index, logs=None):
+        original(self, index, logs)
+        if index == epoch - 1:
+            raise KeyboardInterrupt
+
+    monkeypatch.setattr(checkpointing.RunState, "on_epoch_end", interrupted)

@@ -760,18 +760,11 @@ def test_old_zero_based_log_is_read_alike_and_renumbered_on_resume(dataset, tmp_
     CSVLogger convention) and resumed by this code: both logs read alike, and
     the resumed run's log.csv is numbered from 1 throughout."""
     from cpl_keras import learning_curves, runs
-    from cpl_keras.training import checkpointing
     from cpl_keras.training import train
+    from helpers import interrupt_after_epoch
 
     run_dir = str(tmp_path / "run")
-    original = checkpointing.RunState.on_epoch_end
-
-    def killed_after_epoch_2(self, epoch, logs=None):
-        original(self, epoch, logs)
-        if epoch == 1:
-            raise KeyboardInterrupt  # as a kill right after epoch 2's commit
-
-    monkeypatch.setattr(checkpointing.RunState, "on_epoch_end", killed_after_epoch_2)
+    interrupt_after_epoch(monkeypatch, 2)
     with pytest.raises(KeyboardInterrupt):
         train(dataset, variant="baseline", run_dir=run_dir, **dict(TINY, epochs=3))
     monkeypatch.undo()

@@ -73,17 +73,11 @@ def test_the_saved_model_is_the_validated_average(runs_compared, stereo40):
 
 def test_a_run_stopped_after_an_epoch_resumes_to_the_same_end(runs_compared, stereo40,
                                                               tmp_path, monkeypatch):
-    from cpl_keras.training import checkpointing, train
+    from cpl_keras.training import train
+    from helpers import interrupt_after_epoch
 
     run_dir = str(tmp_path / "run")
-    original = checkpointing.RunState.on_epoch_end
-
-    def killed_after_epoch_2(self, epoch, logs=None):
-        original(self, epoch, logs)
-        if epoch == 1:
-            raise KeyboardInterrupt  # as a kill right after epoch 2's commit
-
-    monkeypatch.setattr(checkpointing.RunState, "on_epoch_end", killed_after_epoch_2)
+    interrupt_after_epoch(monkeypatch, 2)  # as a kill right after epoch 2's commit
     with pytest.raises(KeyboardInterrupt):
         train(stereo40, run_dir=run_dir, epochs=3, weight_ema=0.5, **TINY)
     monkeypatch.undo()
