@@ -109,6 +109,28 @@ def test_single_run_writes_next_to_the_run(tiny, tmp_path):
     assert sorted(os.listdir(evaluation.PAPER_DIR)) == before
 
 
+def test_a_published_record_scores_its_test_split_as_its_run_did(tiny, tmp_path):
+    """A published record (no weights; its config names the dataset file
+    without a folder) scores the run's test split from its stored
+    predictions, as the run directory does with its weights."""
+    from cpl_keras import runs
+
+    run = tmp_path / "run"
+    shutil.copytree(tiny["run"], run)
+    evaluation.store_predictions(str(run), [])
+    runs.publish_run_dir(str(run), str(tmp_path / "record"))
+    for source in ("run", "record"):
+        assert evaluate.main(["--run", str(tmp_path / source), "--data", tiny["data"],
+                              "--no-geometric", "--out", str(tmp_path / "out")]) == 0
+    scored = [json.load(open(tmp_path / "out" / f"eval_{source}.json"))
+              for source in ("run", "record")]
+    assert scored[0]["num_pairs"] == scored[1]["num_pairs"] == len(
+        np.load(os.path.join(tiny["run"], "split.npz"))["test"])
+    rows = [{row: {k: v for k, v in cells.items() if k != "source"}
+             for row, cells in table["rows"].items()} for table in scored]
+    assert rows[0] == rows[1] and rows[0]["MTL-Baseline"]["targets"]["fx"]["nmae"] > 0
+
+
 def _fails(argv, capsys, match):
     assert evaluate.main(argv) == 2
     err = capsys.readouterr().err.strip()

@@ -144,8 +144,13 @@ def open_dataset(path):
 
 def evaluation_indices(run, data_path, num_pairs):
     """``(indices, description)``: the run's test split when ``data_path`` is
-    the run's own dataset, else every pair of the file."""
-    if _same_file(data_path, run.config.data):
+    the run's own dataset, else every pair of the file. A published record
+    (``runs.publish_run_dir``) names its dataset without a folder: a file of
+    that name and the run's number of pairs is its own."""
+    own = run.config.data
+    if _same_file(data_path, own) or (
+            os.path.basename(own) == own and os.path.basename(os.fspath(data_path)) == own
+            and num_pairs == run.config.num_pairs):
         test = run.split["test"]
         if len(test) == 0 or test.max() >= num_pairs:
             raise EvaluationError(f"{run.run_dir}: test split does not fit {data_path}")
