@@ -38,6 +38,7 @@ keras-team/keras#18560 (multi-process tracking), openxla/xla#16430
 
 from __future__ import annotations
 
+import atexit
 import contextlib
 import dataclasses
 import json
@@ -131,6 +132,8 @@ def set_environment(coordinator, num_processes, process_id, environ=None):
 # Joining a group
 # ---------------------------------------------------------------------------
 _state = {"group": None, "client": None, "calls": 0}
+#: Set at exit: the heartbeat thread ends (``_stop_watching``).
+_stopping = threading.Event()
 
 
 def current():
@@ -180,9 +183,21 @@ def join(group, prog="train.py"):
     if threading.current_thread() is threading.main_thread():
         signal.signal(signal.SIGTERM, cli.terminate)
         cli.on_interrupt(_announce_stop)
-    threading.Thread(target=_watch, args=(group, prog), daemon=True,
-                     name="cpl_keras-partners").start()
+    watcher = threading.Thread(target=_watch, args=(group, prog), daemon=True,
+                               name="cpl_keras-partners")
+    watcher.start()
+    atexit.register(_stop_watching, watcher)
     return group
+
+
+def _stop_watching(watcher):
+    """At exit, before JAX leaves the group: end the heartbeat thread. A
+    daemon thread still inside a call to the coordination service when the
+    interpreter finalises is unwound out of C++ and aborts the process; and
+    once process 0 has left, its partners' thread would take the service's
+    end for a failure."""
+    _stopping.set()
+    watcher.join(timeout=10 * BEAT_S)
 
 
 def peer_timeout_s():
@@ -215,7 +230,7 @@ def _watch(group, prog):
     client, beat, timeout = _state["client"], 0, peer_timeout_s()
     seen = {p: (None, time.monotonic()) for p in range(group.num_processes)
             if p != group.process_id}
-    while True:
+    while not _stopping.is_set():
         beat += 1
         try:
             client.key_value_set(f"cpl_keras/alive/{group.process_id}", str(beat),
@@ -234,12 +249,14 @@ def _watch(group, prog):
                                f"life for {timeout:g} s; ending this one too (run the same "
                                f"command on every process to resume)", PARTNER_FAILED)
         except Exception as error:  # the coordination service is gone: process 0 ended
+            if _stopping.is_set():
+                return
             if group.chief:
                 _end(prog, f"error: the process group's coordination failed "
                            f"({str(error).strip().splitlines()[0][:120]})", PARTNER_FAILED)
             _end(prog, f"error: lost process 0 at {group.coordinator}; ending this one too "
                        f"(run the same command on every process to resume)", PARTNER_FAILED)
-        time.sleep(BEAT_S)
+        _stopping.wait(BEAT_S)
 
 
 def _try_get(client, key):
