@@ -352,6 +352,14 @@ def test_a_preset_is_a_frozen_checked_record():
     old = {k: v for k, v in config.to_dict().items() if k not in ("real_sets", "monitor")}
     assert reproduce.Settings.from_dict(old) == dataclasses.replace(
         config, real_sets=reproduce.REAL_SETS, monitor=None)
+    # ... except the averaged weights: every summary written before them
+    # describes runs trained without them
+    quick = reproduce.settings(quick=True)
+    assert quick.weight_ema is None
+    assert reproduce.Settings.from_dict({k: v for k, v in quick.to_dict().items()
+                                         if k != "weight_ema"}).weight_ema == 0.0
+    with pytest.raises(ValueError, match="weight-ema must be in"):
+        dataclasses.replace(quick, weight_ema=1.0)
     with pytest.raises(ValueError, match="unknown setting 'pear'"):
         reproduce.Settings.from_dict(dict(old, pear=3))
     with pytest.raises(ValueError, match="setting 'pairs' missing"):
@@ -450,6 +458,12 @@ def test_presets_resolve():
         "disparity_ceiling"] is None
     assert training_arguments(config, "r", job)[
         "disparity_ceiling"] == "auto"
+    # the averaged weights: training's default, except the presets whose
+    # published runs were trained without them
+    for name in ("cpu", "cpu-8000", "compact-2000", "inception-2000"):
+        assert training_arguments(reproduce.settings(preset=name), "r", job)["weight_ema"] == 0.0
+    for name in ("inception-2000-ema", "compact-2000-ema", "paper", "paper-gpu"):
+        assert training_arguments(reproduce.settings(preset=name), "r", job)["weight_ema"] is None
     before = {k: v for k, v in config.to_dict().items() if k != "disparity_ceiling"}
     assert training_arguments(reproduce.Settings.from_dict(before), "r", job)[
         "disparity_ceiling"] == "auto"

@@ -793,7 +793,7 @@ def test_old_zero_based_log_is_read_alike_and_renumbered_on_resume(dataset, tmp_
 
 FLAG_CASES = {
     "as released": (["--as-released"], "cpl-a", lambda c: c["build"]["as_released"]
-                    and c["bn_recompute_batches"] == 0
+                    and c["bn_recompute_batches"] == 0 and c["weight_ema"] == 0.0
                     and c["build"]["disparity_ceiling"] is None
                     and not c["build"]["positive_focal_head"]
                     and not c["build"]["bounded_pitch_head"]),

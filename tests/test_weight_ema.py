@@ -89,3 +89,22 @@ def test_a_run_stopped_after_an_epoch_resumes_to_the_same_end(runs_compared, ste
     with pytest.raises(Exception, match="moving-average momentum"):
         train(stereo40, run_dir=str(tmp_path / "bad"), epochs=1, weight_ema=1.0, **TINY)
     assert not os.path.exists(tmp_path / "bad")
+
+
+def test_the_default_momentum_and_runs_made_before_it(runs_compared, stereo40, tmp_path):
+    """Left at its default the momentum is WEIGHT_EMA (0 as released), and a
+    run directory resumes with its own (a run made without the average is
+    not refused); a momentum given that differs from the run's is refused."""
+    from cpl_keras.training import TrainingError, planning, train
+
+    plan = planning.plan_run(stereo40, variant="cpl-a", backbone="small",
+                             run_dir=str(tmp_path / "new"))
+    assert plan.config.weight_ema == planning.WEIGHT_EMA == 0.99
+    assert planning.plan_run(stereo40, variant="cpl-a", backbone="small", as_released=True,
+                             run_dir=str(tmp_path / "new")).config.weight_ema == 0.0
+    assert not os.path.exists(tmp_path / "new")
+    trained = runs_compared["trained"]
+    assert planning.plan_run(stereo40, run_dir=trained, epochs=3, **{
+        k: v for k, v in TINY.items() if k != "verbose"}).config.weight_ema == 0.0
+    with pytest.raises(TrainingError, match="weight_ema: 0.0 there, 0.5 now"):
+        train(stereo40, run_dir=trained, epochs=3, weight_ema=0.5, **TINY)

@@ -103,9 +103,10 @@ def build_parser(prog=PROG):
                         help="what early stopping and the kept epoch follow: nmae (default), the "
                         "sum of the ten parameters' validation NMAEs; loss, the validation loss "
                         "(the paper's; as released)")
-    parser.add_argument("--weight-ema", type=cli.momentum, default=0.0, metavar="M",
-                        help="validate, keep and save a moving average of the weights (momentum "
-                        "M, e.g. 0.99; 0, default, the paper's: the weights as trained)")
+    parser.add_argument("--weight-ema", type=cli.momentum, metavar="M",
+                        help="validate, keep and save a moving average of the weights, momentum "
+                        "M (default 0.99, not the paper's; 0: the weights as trained, the "
+                        "paper's; as released: 0)")
     parser.add_argument("--target-scaling", choices=("none", "std"), default="none",
                         help="MTL-Baseline: divide each output's MAE by the target's training "
                         "standard deviation (std; not the paper's) or not (none, default)")

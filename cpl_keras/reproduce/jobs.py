@@ -22,6 +22,7 @@ def training_arguments(config, run_dir, job):
         as_released=job.released, seed=job.seed, patience=config.patience,
         time_budget_s=config.run_budget_s, disparity_ceiling=config.disparity_ceiling,
         bn_statistics=config.bn_statistics, monitor=config.monitor,
+        weight_ema=config.weight_ema,
     )
 
 
