@@ -539,3 +539,24 @@ def test_parallel_training_makes_the_same_runs(tiny_run, tmp_path):
     with pytest.raises(training.TrainingError, match="bad: training ended with exit status 2"):
         parallel.train_parallel(bad, 1)
     assert not (tmp_path / "c").exists()  # nothing started after the failure
+
+
+def test_settings_without_real_sets_make_table_1_alone(tmp_path, monkeypatch):
+    """inception-2000-ema has no real sets: stage 1 builds none and stage 3
+    makes Table 1 only (a Table 2 group would need the runs' weights)."""
+    from cpl_keras.reproduce import pipeline
+    config = reproduce.settings(preset="inception-2000-ema")
+    assert config.real_sets == () and config.tables == ("cvgl",)
+    tiny = dataclasses.replace(config, pairs=4, workers=1)
+    paths = pipeline.make_datasets(tiny, str(tmp_path), seed=0)
+    assert paths["real"] == [] and os.path.exists(paths["cvgl"])
+    assert sorted(os.listdir(tmp_path)) == [os.path.basename(paths["cvgl"])]
+    groups = []
+    monkeypatch.setattr(pipeline, "_group_predictions",
+                        lambda number, stem, *rest: groups.append((number, stem)) or [])
+    trained = {"cvgl": {0: ["cpl-a-s0", "baseline-s0"], 1: ["cpl-a-s1", "baseline-s1"]}}
+    pipeline.make_predictions(config, paths, trained, str(tmp_path))
+    assert groups == [(1, "table1_cvgl"), (1, "table1_cvgl")]
+    # with real sets the same runs make Table 2 on each seed as well
+    pipeline.make_predictions(config, dict(paths, real=["x.h5"]), trained, str(tmp_path))
+    assert groups[2:] == [(1, "table1_cvgl")] * 2 + [(2, "table2")] * 2

@@ -30,7 +30,8 @@ def real_set_folder(config, data_dir, seed):
 
 def make_datasets(config, data_dir, seed, real_roots=None):
     """Stage 1: the synthetic datasets and every real set (reused when
-    present); ``{"cvgl": path, "random": path, "real": [paths]}``."""
+    present); ``{"cvgl": path, "random": path, "real": [paths]}``. Settings
+    with no ``real_sets`` and no ``real_roots`` have none (and no Table 2)."""
     size = config.image_size
     paths = {}
     needed = {TABLE1[t][0] for t in config.tables}
@@ -39,6 +40,9 @@ def make_datasets(config, data_dir, seed, real_roots=None):
             continue
         paths[protocol] = cached_dataset(data_dir, protocol=protocol, pairs=pairs, seed=seed,
                                          image_size=size, workers=config.workers, log=log)
+    paths["real"] = []
+    if not (config.real_sets or any((real_roots or {}).values())):
+        return paths                                    # no Table 2
     # every real rig, through the one builder of ``python -m cpl_keras.real.build all``
     paths["real"] = build.build_all(
         real_set_folder(config, data_dir, seed), roots=real_roots, stems=config.real_sets,
@@ -97,7 +101,7 @@ def make_predictions(config, paths, trained, out_dir):
         for run_seed, run_dirs in by_seed.items():
             groups.append((1, f"table1_{key}", key, run_dirs, None,
                            f"-s{run_seed}" if len(by_seed) > 1 else ""))
-    cvgl = trained.get("cvgl", {})
+    cvgl = trained.get("cvgl", {}) if paths["real"] else {}     # no real sets: no Table 2
     for run_seed, run_dirs in cvgl.items():
         groups.append((2, "table2", "cvgl", run_dirs, paths["real"],
                        f"-s{run_seed}" if len(cvgl) > 1 else ""))
