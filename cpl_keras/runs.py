@@ -179,6 +179,9 @@ class RunConfig:
     command: str | None = None
     run_dir: str | None = None
     keras_backend: str | None = None
+    # The machines it trained on, in order (``backend.machine``: CPU, cores,
+    # accelerators, versions); a run resumed elsewhere adds one.
+    machines: list | None = None
     # The model built: its optimizer's learning rate and its parameter count.
     learning_rate_used: float | None = None
     num_parameters: int | None = None
@@ -197,7 +200,7 @@ class RunConfig:
     other: dict = dataclasses.field(default_factory=dict)
 
     #: Fields written once set, and fields written once the run has ended.
-    LATE = ("learning_rate_used", "num_parameters")
+    LATE = ("machines", "learning_rate_used", "num_parameters")
     FINAL = ("best_score", "adaptive_weights")
 
     def to_dict(self):

@@ -81,6 +81,11 @@ def test_every_variant_writes_the_run_directory(variant, dataset, variant_run, t
         assert key in config
     # each fact once: as_released is a build argument, not also a top-level key
     assert config["build"]["as_released"] is False and "as_released" not in config
+    # the machine it trained on: one entry, this process's cores and versions
+    (machine,) = config["machines"]
+    assert machine["cpu_count"] == os.cpu_count() and machine["cpu"]
+    assert machine["keras"] == keras.__version__ and machine["keras_backend"] == "jax"
+    assert machine["devices"] and all(d.startswith("cpu:") for d in machine["devices"])
 
     rows = read_log(run_dir)
     assert [int(r["epoch"]) for r in rows] == [1, 2]  # numbered from 1

@@ -34,7 +34,7 @@ import sys
 
 import numpy as np
 
-from cpl_keras import distributed, files, models, runs
+from cpl_keras import backend, distributed, files, models, runs
 from cpl_keras.baselines.average import save_statistics, training_statistics
 from cpl_keras.camera import PARAMETERS
 from cpl_keras.data.storage import StereoFile
@@ -261,11 +261,14 @@ def _run_locked(plan, model, config, run_dir, verbose):
 
 
 def _write_run_files(plan, config, run_dir):
-    """config.json (status "running"), split.npz and train_stats.json: what a
-    run directory holds from its start. Returns ``config`` as written (a
+    """config.json (status "running", this machine added to ``machines``),
+    split.npz and train_stats.json: what a run directory holds from its start. Returns ``config`` as written (a
     resumed run keeps its outcome so far)."""
     previous = runs.read_config(run_dir, {})
-    config = dataclasses.replace(config, status="running", **{
+    machines = list(previous.get("machines") or [])
+    if not machines or machines[-1] != backend.machine():
+        machines.append(backend.machine())
+    config = dataclasses.replace(config, status="running", machines=machines, **{
         key: previous.get(key) for key in ("epochs_run", "best_epoch", "best_val_loss",
                                            "wall_time_s", "stopped")})
     runs.write_config(run_dir, config)
