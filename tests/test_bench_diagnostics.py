@@ -131,3 +131,38 @@ def test_monitor_steadiness_reads_the_swings_and_the_shared_training(tmp_path, c
     from cpl_keras.evaluation import EvaluationError
     with pytest.raises(EvaluationError, match="no val_nmae column"):
         script.read(str(tmp_path / "c.csv"))
+
+
+def test_equal_epochs_compares_two_runs_column_by_column(tmp_path, capsys):
+    from cpl_keras.camera import PARAMETERS
+    from cpl_keras.evaluation import EvaluationError
+
+    script = _script("equal_epochs")
+    header = "epoch,loss,val_nmae," + ",".join(f"val_nmae_{p}" for p in PARAMETERS)
+
+    def log(name, rows):
+        path = tmp_path / f"{name}.csv"
+        path.write_text(header + "\n" + "".join(
+            f"{epoch},1.0,{sum(nmae)},{','.join(map(str, nmae))}\n"
+            for epoch, nmae in enumerate(rows, 1)))
+        return str(path)
+
+    # A: lower on fx..v0 at every epoch, far higher on the disparity; B
+    # runs longer and its monitor falls below A's from epoch 2 on.
+    a = log("a", [[0.1] * 4 + [0.2, 0.9, 0.2, 0.2, 0.2, 0.2],
+                  [0.1] * 4 + [0.2, 1.5, 0.2, 0.2, 0.2, 0.2]])
+    b = log("b", [[0.2] * 4 + [0.2, 0.5, 0.2, 0.2, 0.2, 0.2],
+                  [0.2] * 4 + [0.1, 0.4, 0.1, 0.1, 0.1, 0.1],
+                  [0.2] * 4 + [0.1, 0.3, 0.1, 0.1, 0.1, 0.1]])
+    assert script.main([a, b]) == 0
+    out = capsys.readouterr().out
+    assert "2 epochs, kept 1 (val_nmae 2.300)" in out
+    assert "3 epochs, kept 3 (val_nmae 1.600)" in out
+    assert "| 1 | A | 2.300 |" in out and "| 4 (fx, fy, u0, v0) |" in out
+    assert "| 1 | B | 2.300 |" in out and "| 1 (disparity) |" in out
+    assert "| 2 | B | 1.700 |" in out and "| 6 (baseline, disparity, tx, ty, tz, pitch) |" in out
+    assert "| 3 |" not in out  # B's epoch 3: A never ran it
+    assert "A's val_nmae is lower at 0." in out  # 2.3 against 2.3, 2.9 against 1.7
+    (tmp_path / "c.csv").write_text("epoch,loss,val_nmae\n1,2,3\n")
+    with pytest.raises(EvaluationError, match="no per-parameter val_nmae columns"):
+        script.validation(str(tmp_path / "c.csv"))
