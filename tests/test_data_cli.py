@@ -132,3 +132,31 @@ def test_demonstration_next_step_states_disk_and_time(tmp_path):
     assert "--pairs 123017" in text
     assert re.search(r"about [\d.]+ GB of disk \([\d.]+ KB a pair at 32 px, measured on the "
                      r"demonstration file\) and about [\d.]+ (s|min|h) to generate", text), text
+
+
+@pytest.mark.parametrize("flags, momentum", [
+    ([], 0.9),                          # the demonstration's own average
+    (["--weight-ema", "0.99"], 0.99),   # as given
+    (["--weight-ema", "0"], 0.0),
+    (["--as-released"], None),          # the release's (planning: 0)
+    (["--data", "X.h5"], None),         # training's default (planning: 0.99)
+])
+def test_the_demonstration_validates_a_short_average_of_the_weights(
+        flags, momentum, monkeypatch, tmp_path):
+    from cpl_keras.commands import train as command
+
+    seen = {}
+
+    class Stop(Exception):
+        pass
+
+    def fake_train(data, **kwargs):
+        seen.update(kwargs, data=data)
+        raise Stop
+
+    monkeypatch.setattr(command, "train", fake_train)
+    monkeypatch.setattr(command, "demo_dataset", lambda: "demo.h5")
+    with pytest.raises(Stop):
+        command.main(["--variant", "cpl-a", "--run-dir", str(tmp_path / "run"), *flags])
+    assert seen["weight_ema"] == momentum
+    assert seen["data"] == ("X.h5" if "--data" in flags else "demo.h5")
