@@ -30,6 +30,11 @@ out=${1:?usage: bash bench/gpu_train.sh OUT JOBS [--dry-run]}
 jobs_file=${2:?usage: bash bench/gpu_train.sh OUT JOBS [--dry-run]}
 mode=${3:-}
 [ -f "$jobs_file" ] || { echo "gpu_train: no jobs file $jobs_file" >&2; exit 2; }
+data_line=$(grep -m1 '^data ' "$jobs_file" || true)
+[ "$(wc -w <<< "$data_line")" = 4 ] || {
+    echo "gpu_train: $jobs_file: no line 'data PROTOCOL PAIRS SEED'" >&2; exit 2; }
+grep -qvE '^(#|data |[[:space:]]*$)' "$jobs_file" || {
+    echo "gpu_train: $jobs_file: no run (a line 'NAME train.py arguments')" >&2; exit 2; }
 mkdir -p "$out"
 start=$(date +%s)
 work=$(mktemp -d)
@@ -52,7 +57,7 @@ if [ "$mode" = "--dry-run" ]; then
     limit=${TRAIN_LIMIT:-600}
 fi
 
-read -r _ protocol pairs data_seed < <(grep -m1 '^data ' "$jobs_file")
+read -r _ protocol pairs data_seed <<< "$data_line"
 [ "$mode" = "--dry-run" ] && pairs=120
 data="$work/data/${protocol}_${pairs}_112px_s${data_seed}_v3.0.h5"
 {

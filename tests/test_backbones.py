@@ -153,6 +153,26 @@ def test_patch_convolutions_change_neither_weights_nor_outputs(monkeypatch):
         np.testing.assert_allclose(a, b, rtol=1e-4, atol=1e-4)
 
 
+def test_on_an_accelerator_the_faster_layers_keep_the_plain_computations(monkeypatch):
+    """The patch and view paths are for XLA:CPU; on a GPU or TPU each layer
+    computes as Conv2D / MaxPooling2D and the towers are built without them."""
+    assert fast_layers.on_accelerator() in (True, False)
+    monkeypatch.setattr(fast_layers, "on_accelerator", lambda: False)
+    channels = fast_layers.TAP_GRADIENT_MIN_CHANNELS
+    conv = fast_layers.PatchConv2D(5, 3, padding="same")
+    pool = fast_layers.ViewMaxPooling2D(3, strides=2)
+    tower = backbones.TOWERS["small_resnet"](64, 64, "tower")
+    assert conv.path((1, 2, 2, 4)) == "patches"
+    assert conv.path((1, 30, 30, channels)) == "tap-gradient"
+    assert pool.path((1, 9, 9, 2)) == "views"
+    assert backbones.with_faster_layers(tower) is not tower
+    monkeypatch.setattr(fast_layers, "on_accelerator", lambda: True)
+    assert conv.path((1, 2, 2, 4)) == "conv"
+    assert conv.path((1, 30, 30, channels)) == "conv"
+    assert pool.path((1, 9, 9, 2)) == "pool"
+    assert backbones.with_faster_layers(tower) is tower
+
+
 @pytest.mark.slow
 def test_inception_v3_at_112_takes_the_patch_paths_where_expected():
     """mixed9 and mixed10 each have one 3x3 convolution on 2 x 2 maps at 112 x 112

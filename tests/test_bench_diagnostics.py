@@ -85,6 +85,28 @@ def test_a_missing_data_file_is_one_line_and_exit_2(script, tmp_path):
         f"bench/{script}: error: dataset not found: {missing}"], done.stderr
 
 
+@pytest.mark.parametrize("jobs,message", [
+    (None, "no jobs file {jobs}"),
+    ("cvgl_baseline-s2 --variant baseline\n", "{jobs}: no line 'data PROTOCOL PAIRS SEED'"),
+    ("data cvgl 2000\nrun --variant baseline\n", "{jobs}: no line 'data PROTOCOL PAIRS SEED'"),
+    ("# only a comment\ndata cvgl 2000 0\n", "{jobs}: no run (a line 'NAME train.py arguments')"),
+])
+def test_gpu_train_refuses_a_bad_jobs_file_in_one_line(tmp_path, jobs, message):
+    """bench/gpu_train.sh: a missing or incomplete jobs file is one line and
+    exit status 2, before anything is written to OUT."""
+    import subprocess
+
+    path = tmp_path / "jobs.txt"
+    if jobs is not None:
+        path.write_text(jobs)
+    out = tmp_path / "out"
+    done = subprocess.run(["bash", os.path.join(BENCH, "gpu_train.sh"), str(out), str(path)],
+                          text=True, capture_output=True, timeout=60)
+    assert done.returncode == 2, done.stderr
+    assert done.stderr.strip().splitlines() == ["gpu_train: " + message.format(jobs=path)]
+    assert not out.exists()
+
+
 def test_disparity_depth_is_eq_4a_with_fx_and_b_at_their_truth(capsys):
     import numpy as np
 

@@ -7,7 +7,9 @@ inputs tie), computed another way where XLA:CPU's own kernels are slow for
 the shape (docs/performance.md). ``cpl_keras.models.backbones`` swaps them
 into the towers (``with_faster_layers``) and Deep-Homo is built with them
 (``cpl_keras.models.deep_homo``); ``xla_layers_only`` turns both back into
-XLA's computations for a benchmark.
+XLA's computations for a benchmark. On a GPU or TPU both always take the
+plain layers' computations (``on_accelerator``), and the towers keep
+``Conv2D`` and ``MaxPooling2D``.
 
 Both are registered with Keras as ``cpl_keras>PatchConv2D`` and
 ``cpl_keras>ViewMaxPooling2D`` (the names saved models carry), so a saved
@@ -18,6 +20,7 @@ model loads with ``safe_mode=True`` once this module is imported
 from __future__ import annotations
 
 import contextlib
+import functools
 
 import keras
 from keras import ops
@@ -30,6 +33,22 @@ from keras import ops
 #: 11 x 11 maps and for small_resnet's 16-channel 28 x 28 maps).
 TAP_GRADIENT_MIN_SIDE = 24
 TAP_GRADIENT_MIN_CHANNELS = 32
+
+
+@functools.cache
+def on_accelerator():
+    """Whether Keras computes on a GPU or TPU (its first device is not a CPU).
+
+    Both layers' other paths exist for XLA:CPU's kernels; on an accelerator
+    they take ``Conv2D``'s and ``MaxPooling2D``'s own computations (cuDNN's
+    on a GPU), so the towers are built with neither. Measured on one H200
+    (JAX 0.11.2, ``bench/bench_train.py``, 2 InceptionV3 towers at 112 px,
+    batch 16): with the patch paths the run had not finished 40 timed steps
+    after 125 s; with ``--plain-conv`` it compiled and ran its first epoch in
+    53 s and trained 369 samples/s (docs/performance.md).
+    """
+    devices = keras.distribution.list_devices()
+    return bool(devices) and not str(devices[0]).lower().startswith("cpu")
 
 
 @keras.saving.register_keras_serializable(package="cpl_keras")
@@ -69,7 +88,10 @@ class PatchConv2D(keras.layers.Conv2D):
     """
 
     def path(self, input_shape):
-        """``"patches"``, ``"tap-gradient"`` or ``"conv"`` for inputs of this shape."""
+        """``"patches"``, ``"tap-gradient"`` or ``"conv"`` for inputs of this
+        shape (``"conv"`` on an accelerator: ``on_accelerator``)."""
+        if on_accelerator():
+            return "conv"
         height, width = input_shape[1], input_shape[2]
         kernel_h, kernel_w = self.kernel_size
         if (self.data_format != "channels_last" or tuple(self.strides) != (1, 1)
@@ -180,7 +202,10 @@ class ViewMaxPooling2D(keras.layers.MaxPooling2D):
     """
 
     def path(self, input_shape):
-        """``"views"`` or ``"pool"`` for inputs of this shape."""
+        """``"views"`` or ``"pool"`` for inputs of this shape (``"pool"`` on
+        an accelerator: ``on_accelerator``)."""
+        if on_accelerator():
+            return "pool"
         views = self.padding == "valid" and self.data_format == "channels_last"
         return "views" if views and None not in input_shape[1:3] else "pool"
 
