@@ -145,6 +145,54 @@ def test_published_runs_are_restored_not_trained_again(quick, tmp_path):
 
 
 @pytest.mark.slow
+def test_partial_tables_of_the_seeds_whose_runs_have_all_finished(quick, tmp_path):
+    """--partial trains nothing: with one cvgl run not finished (its record
+    gone), the cvgl table and Table 2 are left out, the random table is the
+    full reproduction's, and REPORT.md names what was left out."""
+    out = tmp_path / "out"
+    shutil.copytree(quick["out"], out)
+    shutil.rmtree(out / "runs" / "cvgl_cpl-u")
+    args = ["--reproduce", "--quick", "--partial", "--out", str(out), "--data-dir",
+            str(quick["data"]), "--runs-dir", str(tmp_path / "runs")]
+    result = run(*args)
+    assert result.returncode == 0, result.stderr[-3000:]
+    assert "training " not in result.stderr
+    partial = out / "partial"
+    assert not (partial / "table1_cvgl.json").exists() and not (partial / "table2.json").exists()
+    again = json.loads((partial / "table1_random.json").read_text())
+    first = json.loads((quick["out"] / "table1_random.json").read_text())
+    assert set(again["rows"]) == set(first["rows"])
+    for row in first["rows"]:
+        assert again["rows"][row]["targets"] == first["rows"][row]["targets"], row
+    text = (partial / "REPORT.md").read_text()
+    assert "**Partial**: the tables of the seeds whose runs have all finished (random: seed 0)" \
+        in text and "left out: cvgl seed 0 (not finished: cpl-u)." in text
+    # the full tables in OUT are the reproduction's, untouched
+    assert (out / "table1_cvgl.json").read_bytes() == (quick["out"] / "table1_cvgl.json").read_bytes()
+
+
+def test_complete_seeds_keeps_a_seed_only_with_all_its_runs():
+    from cpl_keras.reproduce import pipeline
+    config = reproduce.settings(preset="inception-2000-ema")
+    trained = {"cvgl": {0: ["r/cpl-a-s0", "r/baseline-s0"], 1: ["r/cpl-a-s1", "r/baseline-s1"],
+                        2: ["r/cpl-a-s2"]}}
+    kept, left_out = pipeline.complete_seeds(config, trained, seed=0)
+    assert kept == {"cvgl": {0: ["r/cpl-a-s0", "r/baseline-s0"],
+                             1: ["r/cpl-a-s1", "r/baseline-s1"]}}
+    assert left_out == ["cvgl seed 2 (not finished: baseline-s2)"]
+    kept, left_out = pipeline.complete_seeds(config, {}, seed=0)
+    assert kept == {} and len(left_out) == 3
+
+
+def test_partial_goes_with_a_reproduction_that_trains():
+    with pytest.raises(SystemExit):
+        _parsed("--from-predictions", "x", "--partial")
+    assert _parsed("--preset", "compact-2000-ema", "--partial").partial is True
+    with pytest.raises(SystemExit):
+        evaluate.parse_args(["--table", "1", "--runs", "x", "--partial"])
+
+
+@pytest.mark.slow
 def test_tables_rebuilt_from_predictions_alone(quick, tmp_path):
     """Weights and datasets moved away, --from-predictions rebuilds every table
     and REPORT.md exactly as the reproduction made them."""

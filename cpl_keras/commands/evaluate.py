@@ -48,7 +48,7 @@ def parse_args(argv=None, prog=PROG):
         if args.run is not None or args.table is not None:
             parser.error("--reproduce makes every table itself; drop --run/--table")
         return reproduce.resolve_args(parser, args)
-    for flag in ("quick", "preset", "from_predictions"):
+    for flag in ("quick", "preset", "from_predictions", "partial"):
         if getattr(args, flag) not in (None, False):
             parser.error(f"--{flag.replace('_', '-')} goes with --reproduce")
     if (args.run is None) == (args.table is None):

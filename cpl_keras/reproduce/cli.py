@@ -21,7 +21,7 @@ from cpl_keras.reproduce.presets import (
 SCALE_OPTIONS = ("quick", "preset", "pairs", "random_pairs", "epochs", "patience", "backbone",
                  "image_size", "crops", "chessboard_crops", "seeds", "random_seeds", "workers",
                  "data_dir", "runs_dir", "geometric_max", "jobs", "run_budget",
-                 "allow_cpu") + REAL_ROOTS
+                 "allow_cpu", "partial") + REAL_ROOTS
 
 
 def add_arguments(parser):
@@ -63,6 +63,10 @@ def add_arguments(parser):
     group.add_argument("--jobs", type=positive, help="training runs at a time, each in its own "
                        "process (default 1; 2 did about 1.4x the work per unit time on a "
                        "2-core CPU); the runs and the tables are the same")
+    group.add_argument("--partial", action="store_true",
+                       help="train nothing: write the tables and REPORT.md of the seeds whose "
+                       "runs have all finished so far into OUT/partial/ (a reproduction still "
+                       "under way)")
     group.add_argument("--seed", type=non_negative, default=0,
                        help="seed of the datasets and the first run seed")
     group.add_argument("--kitti", help="Table 2: KITTI stereo 2015 root")
@@ -136,7 +140,7 @@ def run(args, command, prog=PROG):
                     config=args.config, seed=args.seed, command=command,
                     discussion_file=args.discussion,
                     real_roots={name: getattr(args, name) for name in REAL_ROOTS},
-                    jobs=args.jobs or 1)
+                    jobs=args.jobs or 1, partial=args.partial)
     except KeyboardInterrupt:  # every stage is resumable: the same command goes on
         return cli.interrupted(prog, resume=command)
     except (ValueError, DatasetError, OSError) as error:  # EvaluationError is a ValueError

@@ -26,10 +26,11 @@ def training_arguments(config, run_dir, job):
     )
 
 
-def train_all(config, paths, runs_dir, seed, jobs=1, out_dir=None):
+def train_all(config, paths, runs_dir, seed, jobs=1, out_dir=None, train=True):
     """Stage 2: every run of ``config`` (the ``Settings``); returns ``{table key: {seed: [run dirs]}}``.
     ``jobs`` > 1 trains that many runs at a time, each in its own process
-    (``train_parallel``); the runs are the same either way.
+    (``train_parallel``); the runs are the same either way. With ``train``
+    False nothing is trained: the runs not finished yet are left out.
 
     With ``out_dir``, each run is published the moment it ends
     (``publish_run``: its stored predictions, log, curves, config and split
@@ -52,6 +53,8 @@ def train_all(config, paths, runs_dir, seed, jobs=1, out_dir=None):
         # Refuses (TrainingError) a run directory that holds a run of other
         # settings, so a run made at another scale is never reused.
         planning.plan_run(paths[protocol], **plan)
+        if not (finished or train):
+            continue
         trained.setdefault(key, {}).setdefault(job.seed, []).append(run_dir)
         if finished:
             log(f"{key}/{name}: finished run found, reused")

@@ -123,6 +123,14 @@ def write_report(out_dir, summary, tables, rebuilt_by=None):
         lines += ["The tables and this page were rebuilt from the published predictions "
                   "(`runs/*_predictions.npz`), without weights or datasets, by:", "", "```",
                   rebuilt_by, "```", ""]
+    partial = summary.get("partial")
+    if partial:
+        seeds = "; ".join(f"{key}: seed{'s' if len(numbers) > 1 else ''} "
+                          f"{', '.join(map(str, numbers))}"
+                          for key, numbers in partial["seeds"].items())
+        lines += [f"**Partial**: the tables of the seeds whose runs have all finished "
+                  f"({seeds}), made without training; left out: "
+                  f"{'; '.join(partial['left_out']) or 'nothing'}.", ""]
     runs_list = summary["runs"]
     lines += [scale_text(config), "",
               f"Machine: {info['platform']}, Python {info['python']}, {info['cpus']} CPUs, "

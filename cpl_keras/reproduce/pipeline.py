@@ -17,7 +17,7 @@ from cpl_keras.files import read_json, write_json
 from cpl_keras.real import build
 from cpl_keras.reproduce.jobs import train_all
 from cpl_keras.reproduce.page import write_report
-from cpl_keras.reproduce.presets import PROG, TABLE1, Settings, log
+from cpl_keras.reproduce.presets import PROG, TABLE1, Settings, log, run_jobs
 
 # ---------------------------------------------------------------------------
 # Stage 1: data
@@ -170,17 +170,55 @@ def dataset_lines(paths):
     return lines
 
 
+#: Where ``partial`` reproductions write their tables, inside the output folder.
+PARTIAL = "partial"
+
+
+def complete_seeds(config, trained, seed):
+    """``trained`` (``train_all``'s ``{table key: {seed: [run dirs]}}``) cut
+    to the seeds whose runs have all finished, and a line for each seed left
+    out ("cvgl seed 2 (not finished: baseline-s2)")."""
+    expected = {}
+    for job in run_jobs(config, seed):
+        expected.setdefault((job.key, job.seed), []).append(job.name)
+    kept, left_out = {}, []
+    for (key, run_seed), names in expected.items():
+        run_dirs = trained.get(key, {}).get(run_seed, [])
+        done = {os.path.basename(run_dir) for run_dir in run_dirs}
+        missing = [name for name in names if name not in done]
+        if missing:
+            left_out.append(f"{key} seed {run_seed} (not finished: {', '.join(missing)})")
+        else:
+            kept.setdefault(key, {})[run_seed] = run_dirs
+    return kept, left_out
+
+
 def reproduce(*, out_dir, data_dir, runs_dir, config, seed=0, command="", discussion_file=None,
-              real_roots=None, jobs=1):
+              real_roots=None, jobs=1, partial=False):
     """Run the whole pipeline of ``config`` (the ``Settings``); returns the
-    path of REPORT.md. ``jobs``: training runs at a time (``train_all``)."""
+    path of REPORT.md. ``jobs``: training runs at a time (``train_all``).
+
+    ``partial``: train nothing; write the tables and REPORT.md of the seeds
+    whose runs have all finished (published or in ``runs_dir``) into
+    ``out_dir/partial/``, a look at a reproduction still under way. Its
+    REPORT.md names the seeds in and the runs not finished."""
     for directory in (out_dir, data_dir, runs_dir):
         os.makedirs(directory, exist_ok=True)
     start = time.time()
 
     enable_compile_cache()
     paths = make_datasets(config, data_dir, seed, real_roots)
-    trained = train_all(config, paths, runs_dir, seed, jobs, out_dir=out_dir)
+    trained = train_all(config, paths, runs_dir, seed, jobs, out_dir=out_dir, train=not partial)
+    partial_info = None
+    if partial:
+        trained, left_out = complete_seeds(config, trained, seed)
+        if not trained:
+            raise evaluation.EvaluationError(
+                "no seed has all its runs finished yet: " + "; ".join(left_out))
+        out_dir = os.path.join(out_dir, PARTIAL)
+        os.makedirs(out_dir, exist_ok=True)
+        partial_info = {"seeds": {key: sorted(by_seed) for key, by_seed in trained.items()},
+                        "left_out": left_out}
     files = make_predictions(config, paths, trained, out_dir)
     tables = make_tables(files, out_dir, command)
     summaries = collect_run_files(trained, out_dir)
@@ -198,7 +236,7 @@ def reproduce(*, out_dir, data_dir, runs_dir, config, seed=0, command="", discus
                      real=[runs.relative(p, out_dir) for p in paths["real"]]),
         "datasets": dataset_lines(paths), "runs": summaries, "machine": info,
         "predictions": [runs.relative(p, out_dir) for p in files], "tables": list(tables),
-        "discussion": discussion}
+        "discussion": discussion, "partial": partial_info}
     write_json(os.path.join(out_dir, SUMMARY), summary)
     write_report(out_dir, dict(summary, settings=config), tables)
     return os.path.join(out_dir, "REPORT.md")
