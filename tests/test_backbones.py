@@ -108,16 +108,20 @@ def test_patch_conv2d_matches_conv2d_values_and_gradients(kernel_size, spatial, 
     conv, patch = _conv_pair(kernel_size, shape, padding=padding, activation="relu")
     assert patch.path(shape) == path
     x = np.random.default_rng(0).standard_normal(shape).astype("float32")
-    np.testing.assert_allclose(np.asarray(patch(x)), np.asarray(conv(x)), atol=1e-5)
 
-    def gradients(layer):
+    def outputs_and_gradients(layer):
+        # one compiled program per layer (op by op, the patch paths' many
+        # small operations each compiled on their own)
         def loss(kernel, bias, inputs):
-            layer.kernel.assign(kernel)
-            layer.bias.assign(bias)
-            return keras.ops.sum(layer(inputs) ** 2)
-        return jax.grad(loss, argnums=(0, 1, 2))(conv.kernel.value, conv.bias.value, x)
+            outputs, _ = layer.stateless_call([kernel, bias], [], inputs)
+            return keras.ops.sum(outputs ** 2), outputs
+        grad = jax.jit(jax.grad(loss, argnums=(0, 1, 2), has_aux=True))
+        return grad(conv.kernel.value, conv.bias.value, x)
 
-    for got, expected in zip(gradients(patch), gradients(conv)):
+    (patch_gradients, patch_outputs), (conv_gradients, conv_outputs) = (
+        outputs_and_gradients(patch), outputs_and_gradients(conv))
+    np.testing.assert_allclose(np.asarray(patch_outputs), np.asarray(conv_outputs), atol=1e-5)
+    for got, expected in zip(patch_gradients, conv_gradients):
         np.testing.assert_allclose(np.asarray(got), np.asarray(expected), rtol=1e-4, atol=1e-4)
 
 
