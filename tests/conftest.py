@@ -40,11 +40,9 @@ import threading
 
 import pytest
 
-from helpers import (REPO, RESUME_ARGS, SUITE_XLA_FLAGS, quick_reproduction_args, train_py,
-                     write_stereo_fixture, xla_flags)
+from helpers import REPO, RESUME_ARGS, quick_reproduction_args, train_py, write_stereo_fixture
 
 os.environ.setdefault("KERAS_BACKEND", "jax")
-os.environ.setdefault("XLA_FLAGS", SUITE_XLA_FLAGS)  # before JAX's import reads it
 
 TINY_SIZE = 32
 #: The shared variant runs' settings: 40 pairs -> 25 train, 3 val, 12 test;
@@ -131,7 +129,7 @@ def _data_parallel(root):
     return train_py("--variant", "cpl-u", "--data", stereo40_file(), "--backbone", "small",
                     "--epochs", "2", "--batch-size", "5", "--data-parallel", "--run-dir",
                     os.path.join(root, "run"), "--quiet", cache=os.path.join(root, "xla"),
-                    env={"XLA_FLAGS": xla_flags("--xla_force_host_platform_device_count=2")})
+                    env={"XLA_FLAGS": "--xla_force_host_platform_device_count=2"})
 
 
 #: name -> (the fixture whose tests need it, ``(argv, environment)`` given

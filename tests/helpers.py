@@ -173,20 +173,6 @@ def quick_reproduction_args(root):
             "--data-dir", os.path.join(root, "data"), "--runs-dir", os.path.join(root, "runs")]
 
 
-#: XLA's flags for every process of the suite (conftest.py sets them unless
-#: ``XLA_FLAGS`` is already set; ``XLA_FLAGS=`` runs the suite with XLA's
-#: defaults). The suite compiles thousands of small programs and runs each a
-#: few times, so XLA's compile time is most of its CPU time; at optimisation
-#: level 0 a first model build of the compact backbone took 5.8 s of CPU
-#: instead of 15.9 s (paper_results/notes/pipeline-and-suite.md).
-SUITE_XLA_FLAGS = "--xla_backend_optimization_level=0"
-
-
-def xla_flags(*flags):
-    """``XLA_FLAGS`` for a subprocess: the suite's (this process's) and ``flags``."""
-    return " ".join([os.environ.get("XLA_FLAGS", ""), *flags]).strip()
-
-
 #: train.py's arguments for the run that the kill-and-resume tests compare with.
 RESUME_ARGS = ["--variant", "baseline", "--backbone", "small", "--epochs", "4",
                "--batch-size", "5", "--patience", "10", "--quiet"]

@@ -17,7 +17,7 @@ import pytest
 
 from cpl_keras import distributed
 from cpl_keras.training.sequence import StereoSequence
-from helpers import train_py, xla_flags
+from helpers import train_py
 
 #: Every subprocess of these tests ends within this many seconds or fails.
 TIMEOUT_S = 240
@@ -176,7 +176,7 @@ def compared_runs(fixture52, tmp_path_factory):
     runs = {name: str(root / name) for name in ("one", "two_devices", "two_processes")}
     for name, extra, env in (("one", [], None),
                              ("two_devices", ["--data-parallel"],
-                              {"XLA_FLAGS": xla_flags("--xla_force_host_platform_device_count=2")})):
+                              {"XLA_FLAGS": "--xla_force_host_platform_device_count=2"})):
         argv, environ = train_py(*ARGS, "--data", fixture52, "--epochs", "2", *extra,
                                  "--run-dir", runs[name], cache=cache, env=env)
         result = subprocess.run(argv, env=environ, capture_output=True, text=True,
