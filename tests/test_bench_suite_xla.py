@@ -1,0 +1,34 @@
+"""bench/bench_suite_xla.py: its settings and its CPU-time measurement (no model)."""
+
+import importlib.util
+import os
+import sys
+
+import pytest
+
+from cpl_keras.errors import Error
+
+PATH = os.path.join(os.path.dirname(os.path.dirname(__file__)), "bench", "bench_suite_xla.py")
+spec = importlib.util.spec_from_file_location("bench_suite_xla", PATH)
+bench = importlib.util.module_from_spec(spec)
+spec.loader.exec_module(bench)
+
+
+def test_default_settings_compare_xla_defaults_with_level_0():
+    args = bench.parse_args([])
+    assert args.settings == [("default", ""), ("level-0", "--xla_backend_optimization_level=0")]
+    args = bench.parse_args(["--flags", "a=", "--flags", "b=--x=1 --y=2", "--pytest", "t.py",
+                             "-k", "z"])
+    assert args.settings == [("a", ""), ("b", "--x=1 --y=2")]
+    assert args.pytest == ["t.py", "-k", "z"]
+    for bad in (["--flags", "no-equals-sign"], ["--flags", "=--x"], ["--rounds", "0"]):
+        with pytest.raises(SystemExit):
+            bench.parse_args(bad)
+
+
+def test_cpu_seconds_counts_the_child_and_passes_the_flags():
+    spin = "import os, time\nt = time.process_time()\nwhile time.process_time() - t < 0.3: pass\n"
+    check = "assert os.environ['XLA_FLAGS'] == '--z'\n"
+    assert bench.cpu_seconds([sys.executable, "-c", spin + check], "--z") >= 0.25
+    with pytest.raises(Error, match=r"failed \(exit 1\) with XLA_FLAGS='--w': AssertionError"):
+        bench.cpu_seconds([sys.executable, "-c", spin + check], "--w")
