@@ -158,13 +158,20 @@ class Interrupted(KeyboardInterrupt):
 
 
 _pending = threading.Event()
-#: Whether this process has printed its "interrupted" line (``interrupted``).
+#: Whether this process has claimed its "interrupted" line (``interrupted``):
+#: set under ``_claim`` by the one caller that prints it.
 _announced = threading.Event()
+#: Set once that line has been printed (the other callers wait for it).
+_printed = threading.Event()
+_claim = threading.Lock()
 #: Seconds ``run`` gives a command to end by itself after a Ctrl-C before it
 #: ends the process (``_watchdog``).
 GRACE_S = 5.0
 #: Seconds between deliveries of a Ctrl-C that could not be raised yet.
 REDELIVER_S = 0.2
+#: Seconds a caller of ``interrupted`` that did not claim the line waits for
+#: the one that did to print it.
+LINE_WAIT_S = 5.0
 
 
 def check_interrupt():
@@ -223,6 +230,8 @@ def interruptible():
     outermost = signal.getsignal(signal.SIGINT) is not _handler
     if outermost:
         _pending.clear()
+        _announced.clear()  # (a new command in this process: its own line)
+        _printed.clear()
     # (a block inside another, train.py's inside ``run``'s, keeps a Ctrl-C
     # that came before it pending)
     previous = signal.signal(signal.SIGINT, _handler)
@@ -248,13 +257,12 @@ def _watchdog(prog, note):
         deadline = time.monotonic() + GRACE_S
         while _pending.is_set() and time.monotonic() < deadline:
             time.sleep(REDELIVER_S)
-            if _pending.is_set():
-                _thread.interrupt_main()
+            if _pending.is_set() and not _announced.is_set():
+                _thread.interrupt_main()  # (not once the command is ending)
         if _pending.is_set():
             break
     files.remove_unfinished()
-    if not _announced.is_set():
-        interrupted(prog, note=note)
+    interrupted(prog, note=note)  # (prints nothing when the command has)
     _exit_interrupted()
 
 
@@ -292,14 +300,25 @@ def run(main, prog, note=None):
         with interruptible():
             status = main()
     except KeyboardInterrupt:
-        _ignore_interrupts()
-        status = INTERRUPTED if _announced.is_set() else interrupted(prog, note=note)
+        status = _end_interrupted(prog, note)
     except (Error, OSError) as error:  # (a missing or bad file: one line, 2)
         status = fail(prog, error)
     if status == INTERRUPTED:
         _ignore_interrupts()
         _exit_interrupted()
     sys.exit(status)
+
+
+def _end_interrupted(prog, note):
+    """``run``'s answer to a ``KeyboardInterrupt``: Ctrl-C ignored from here
+    on, the line printed unless the command or the watchdog has (a further
+    Ctrl-C that lands before it is ignored is absorbed); returns 130."""
+    while True:
+        try:
+            _ignore_interrupts()
+            return interrupted(prog, note=note)
+        except KeyboardInterrupt:
+            continue
 
 
 def _ignore_interrupts():
@@ -328,15 +347,29 @@ def terminate(signum, frame):
 
 def interrupted(prog, resume=None, note=None):
     """Print ``<prog>: interrupted`` on one line on stderr, with how to resume
-    (``resume``: the command) or another ``note``; return 130."""
-    first = not _announced.is_set()
-    _announced.set()
-    for callback in _interrupt_hooks if first else ():
-        callback()
+    (``resume``: the command) or another ``note``; return 130.
+
+    The line is printed once per command, whichever path ends it: the first
+    caller claims it (under a lock), calls the ``on_interrupt`` callbacks and
+    prints; a later or concurrent caller (``run``'s watchdog beside the main
+    thread, say) prints nothing and waits, up to ``LINE_WAIT_S``, until the
+    first caller's line is out, so that a caller that then ends the process
+    cannot cut it off."""
+    with _claim:
+        first = not _announced.is_set()
+        _announced.set()
+    if not first:
+        _printed.wait(LINE_WAIT_S)
+        return INTERRUPTED
     line = f"{prog}: interrupted"
     if resume:
         line += f"; to resume, run the same command again: {resume}"
     elif note:
         line += f"; {note}"
-    print(line, file=sys.stderr, flush=True)
+    try:
+        for callback in _interrupt_hooks:
+            callback()
+    finally:
+        print(line, file=sys.stderr, flush=True)
+        _printed.set()
     return INTERRUPTED

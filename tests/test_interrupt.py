@@ -345,3 +345,69 @@ def test_cli_run_exit_statuses(tmp_path):
             assert len(err) == 1 and err[0].startswith("prog: error: "), done.stderr
         else:
             assert err == lines, (what, done.stderr)
+
+
+_BOTH_PATHS = """
+import sys, threading, time
+from cpl_keras import cli
+
+cli.GRACE_S = 0.5
+first = sys.argv[1]
+cli.on_interrupt(lambda: time.sleep(0.6))  # the first caller is slow to print
+
+
+def swallowing(until):
+    # a command whose callbacks swallow the Ctrl-C (and its redeliveries)
+    while True:
+        try:
+            while not until():
+                time.sleep(0.005)
+            return
+        except KeyboardInterrupt:
+            pass
+
+
+def main():
+    cli._pending.set()  # a Ctrl-C that a callback swallowed
+    start = time.monotonic()
+    if first == "main":
+        # the command prints its line while the watchdog's grace runs out
+        swallowing(lambda: time.monotonic() - start > 0.3)
+        return cli.interrupted("prog", note="main")
+    if first == "watchdog":
+        # the watchdog has claimed the line; the command ends beside it
+        swallowing(cli._announced.is_set)
+        raise KeyboardInterrupt
+    barrier = threading.Barrier(8)
+
+    def call():
+        barrier.wait()
+        cli.interrupted("prog", note="threads")
+
+    threads = [threading.Thread(target=call) for _ in range(8)]
+    for thread in threads:
+        thread.start()
+    for thread in threads:
+        thread.join()
+    return 130
+
+
+cli.run(main, "prog", note="watchdog")
+"""
+
+
+@pytest.mark.parametrize("first, line", [("main", "prog: interrupted; main"),
+                                         ("watchdog", "prog: interrupted; watchdog"),
+                                         ("threads", "prog: interrupted; threads")])
+def test_the_interrupted_line_is_printed_once_whichever_paths_end_the_command(
+        tmp_path, first, line):
+    """The command's own handler and ``cli.run``'s watchdog (or 8 threads
+    at once) all end the same interrupted command: exactly one line, not
+    two glued together and not none (a path that found the line claimed
+    used to end the process before the other had printed it), exit 130."""
+    script = tmp_path / "both.py"
+    script.write_text(_BOTH_PATHS)
+    done = subprocess.run([sys.executable, str(script), first], text=True, capture_output=True,
+                          env=dict(os.environ, PYTHONPATH=REPO), timeout=60)
+    assert done.returncode == 130, done.stderr
+    assert done.stderr.splitlines() == [line], done.stderr
