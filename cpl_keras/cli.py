@@ -32,6 +32,7 @@ from __future__ import annotations
 import _thread
 import argparse
 import contextlib
+import gc
 import math
 import os
 import shlex
@@ -268,12 +269,18 @@ def _watchdog(prog, note):
 
 def _exit_interrupted():
     """End the process now with status 130, stdout and stderr flushed."""
+    _exit_now(INTERRUPTED)
+
+
+def _exit_now(status):
+    """End the process now with ``status``, stdout and stderr flushed, and
+    without the interpreter's teardown."""
     for stream in (sys.stdout, sys.stderr):
         try:
             stream.flush()
         except (OSError, ValueError):
             pass
-    os._exit(INTERRUPTED)
+    os._exit(status)
 
 
 def run(main, prog, note=None):
@@ -306,6 +313,9 @@ def run(main, prog, note=None):
     if status == INTERRUPTED:
         _ignore_interrupts()
         _exit_interrupted()
+    if files.teardown_unsafe():  # (a file library left in a failed state)
+        gc.collect()  # (what else the command let go of is released first)
+        _exit_now(status)
     sys.exit(status)
 
 

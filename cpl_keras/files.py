@@ -10,8 +10,10 @@ leaves the old file or the new one, never half of one. ``write_text``,
 from __future__ import annotations
 
 import contextlib
+import errno
 import json
 import os
+import sys
 
 
 def _partial(path):
@@ -46,6 +48,87 @@ def remove_unfinished():
             os.remove(tmp)
         except OSError:
             pass
+
+
+def write_failed(path, error):
+    """The one line of a failed write of ``path`` (``error``: an ``OSError``,
+    or the ``RuntimeError`` or ``OSError`` of a file library such as h5py,
+    which carries the system's errno in its text): a full disk and a file
+    over the system's size limit said in words."""
+    text = str(error)
+    number = getattr(error, "errno", None)
+    if number == errno.ENOSPC or "No space left" in text or "errno = 28" in text:
+        return f"cannot write {path}: no space left on the device"
+    if number == errno.EFBIG or "File too large" in text or "errno = 27" in text:
+        return f"cannot write {path}: the file is larger than this system allows"
+    first = text.strip().splitlines()[0] if text.strip() else type(error).__name__
+    return f"cannot write {path}: {first}"
+
+
+@contextlib.contextmanager
+def library_write(path):
+    """A file library (h5py under Keras's ``save_weights``) writing ``path``:
+    on a failure the process is marked to end without the interpreter's
+    teardown, where the library, left in a failed state, can crash, and the
+    exceptions that its handles print as they close are kept quiet from
+    then on (``abandon``; the caller reports the failure in one line,
+    ``write_failed``)."""
+    previous = _quiet_h5py()
+    try:
+        yield
+    except (OSError, RuntimeError):
+        abandon()
+        raise
+    except BaseException:
+        sys.excepthook, sys.unraisablehook = previous
+        raise
+    if not _abandoned:
+        sys.excepthook, sys.unraisablehook = previous
+
+
+def _from_h5py(tb):
+    """Whether the traceback ``tb`` starts in h5py's compiled handles."""
+    return tb is not None and "h5py" in tb.tb_frame.f_code.co_filename
+
+
+def _quiet_h5py():
+    """From now on, the exceptions that h5py's handles raise as they are
+    released (each printed as a traceback, through ``sys.excepthook``, and
+    an "Exception ignored" line, through ``sys.unraisablehook``) print
+    nothing: after a failed write they are the same failure, already said.
+    Returns the hooks it replaced."""
+    excepthook, unraisablehook = sys.excepthook, sys.unraisablehook
+
+    def quiet_excepthook(kind, value, tb):
+        if not _from_h5py(tb):
+            excepthook(kind, value, tb)
+
+    def quiet_unraisablehook(report):
+        if "h5py" not in repr(report.object) and not _from_h5py(report.exc_traceback):
+            unraisablehook(report)
+
+    sys.excepthook, sys.unraisablehook = quiet_excepthook, quiet_unraisablehook
+    return excepthook, unraisablehook
+
+
+#: Objects whose files could not be finished (``abandon``), kept alive.
+_abandoned = []
+
+
+def abandon(*handles):
+    """Keep ``handles`` (a file library's objects whose file a failed write
+    left unfinished: HDF5's after a full disk) alive until the process
+    ends, and mark the process to end without the interpreter's teardown,
+    where closing them would write again and crash (``teardown_unsafe``)."""
+    if not _abandoned and sys.excepthook.__name__ != "quiet_excepthook":
+        _quiet_h5py()
+    _abandoned.append(handles or (None,))
+
+
+def teardown_unsafe():
+    """Whether this process holds abandoned handles (``abandon``): then a
+    command ends with ``os._exit`` once its output is flushed (``cli.run``)."""
+    return bool(_abandoned)
 
 
 @contextlib.contextmanager

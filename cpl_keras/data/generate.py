@@ -219,9 +219,10 @@ def _generate(out, protocol, pairs, seed, image_size, workers, progress, command
     make_parent(out)
     with StereoWriter(out, pairs, image_size, metadata=meta,
                       label_descriptions=LABEL_DESCRIPTIONS, label_units=EXTRA_UNITS,
-                      int_labels=INT_LABELS) as writer:
-        for start, (left, right, labels) in _iter_blocks(protocol, seed, pairs, image_size,
-                                                         workers):
+                      int_labels=INT_LABELS) as writer, \
+            contextlib.closing(_iter_blocks(protocol, seed, pairs, image_size, workers)) as blocks:
+        # (closing: a failed write ends the worker pool at once, not at exit)
+        for start, (left, right, labels) in blocks:
             writer.write(start, left, right, labels)
             bar.update(len(left))
             # a Ctrl-C that landed where an exception is swallowed (a callback

@@ -25,6 +25,7 @@ problem as a one-line ``DatasetError`` that names it.
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 
@@ -32,7 +33,7 @@ import numpy as np
 
 from cpl_keras.camera import TARGETS, UNITS
 from cpl_keras.errors import Error
-from cpl_keras.files import commit
+from cpl_keras.files import _unfinished, abandon, commit, write_failed
 
 SCHEMA_VERSION = 1
 
@@ -87,18 +88,21 @@ class StereoWriter:
         directory = os.path.dirname(os.path.abspath(self.path))
         if not os.path.isdir(directory):
             raise DatasetError(f"output directory does not exist: {directory}")
+        _unfinished.add(self.tmp_path)  # (removed by a Ctrl-C's exit too)
         try:
             self._file = h5py.File(self.tmp_path, "w")
         except OSError as error:
-            raise DatasetError(f"cannot write {self.tmp_path}: {error}") from None
+            self._discard()
+            raise DatasetError(write_failed(self.path, error)) from None
         f = self._file
         n, (h, w, c) = self.num_pairs, self.shape
-        for side in ("left", "right"):
-            f.create_dataset(
-                side, shape=(n, h, w, c), dtype="uint8", chunks=(1, h, w, c),
-                compression=self._compression, compression_opts=self._compression_opts,
-            )
-        f.create_group("labels")
+        # (held for the file's life: a handle that HDF5 closes on its own,
+        # after a failed write, prints an ignored exception)
+        self._sets = {side: f.create_dataset(
+            side, shape=(n, h, w, c), dtype="uint8", chunks=(1, h, w, c),
+            compression=self._compression, compression_opts=self._compression_opts,
+        ) for side in ("left", "right")}
+        self._labels = f.create_group("labels")
         f.attrs["schema_version"] = SCHEMA_VERSION
         f.attrs["num_pairs"] = n
         f.attrs["image_height"] = h
@@ -117,36 +121,70 @@ class StereoWriter:
                 f"images must have shape (n, {self.shape[0]}, {self.shape[1]}, 3), "
                 f"got {left.shape} and {right.shape}"
             )
-        f["left"][start:stop] = left.astype(np.uint8, copy=False)
-        f["right"][start:stop] = right.astype(np.uint8, copy=False)
-        group = f["labels"]
-        for name, values in labels.items():
-            values = np.asarray(values)
-            if name not in group:
-                dtype = "int32" if name in self.int_labels else "float32"
-                ds = group.create_dataset(name, shape=(self.num_pairs,), dtype=dtype)
-                if name in self.units:
-                    ds.attrs["unit"] = self.units[name]
-                if name in self.descriptions:
-                    ds.attrs["description"] = self.descriptions[name]
-            group[name][start:stop] = values
+        try:
+            self._sets["left"][start:stop] = left.astype(np.uint8, copy=False)
+            self._sets["right"][start:stop] = right.astype(np.uint8, copy=False)
+            for name, values in labels.items():
+                values = np.asarray(values)
+                if name not in self._sets:
+                    dtype = "int32" if name in self.int_labels else "float32"
+                    ds = self._labels.create_dataset(name, shape=(self.num_pairs,), dtype=dtype)
+                    if name in self.units:
+                        ds.attrs["unit"] = self.units[name]
+                    if name in self.descriptions:
+                        ds.attrs["description"] = self.descriptions[name]
+                    self._sets[name] = ds
+                self._sets[name][start:stop] = values
+            f.flush()  # (a full disk shows at this block, not at the end)
+        except (OSError, RuntimeError) as error:
+            self._abandon()
+            raise DatasetError(write_failed(self.path, error)) from None
         self._written[start:stop] = True
 
     def __exit__(self, exc_type, exc, tb):
-        f, self._file = self._file, None
+        f = self._file
+        if f is None:  # (abandoned after a failed write)
+            return False
         try:
-            if f is not None:
-                f.close()
-        finally:
-            if exc_type is None and not self._written.all():
-                missing = int((~self._written).sum())
-                os.remove(self.tmp_path)
-                raise DatasetError(f"{missing} of {self.num_pairs} pairs were never written")
+            self._sets = self._labels = None
+            f.close()  # (HDF5 writes its cached chunks and metadata here)
+            self._file = None
+        except Exception as error:  # a full disk, say: the file is not whole
+            self._abandon()
             if exc_type is None:
-                commit(self.tmp_path, self.path)
-            elif os.path.exists(self.tmp_path):
-                os.remove(self.tmp_path)
+                raise DatasetError(write_failed(self.path, error)) from None
+            return False
+        if exc_type is not None:
+            self._discard()
+            return False
+        if not self._written.all():
+            missing = int((~self._written).sum())
+            self._discard()
+            raise DatasetError(f"{missing} of {self.num_pairs} pairs were never written")
+        try:
+            commit(self.tmp_path, self.path)
+        except OSError as error:
+            self._discard()
+            raise DatasetError(write_failed(self.path, error)) from None
+        finally:
+            _unfinished.discard(self.tmp_path)
         return False
+
+    def _abandon(self):
+        """After a failed write: the temporary file removed, its HDF5 handles
+        kept open for the rest of the process (closing them would write
+        again, print an ignored exception for each, and crash libhdf5 at
+        exit), and the process marked to end without the interpreter's
+        teardown (``files.abandon``)."""
+        abandon(self._file, self._sets, self._labels)
+        self._file = None
+        self._discard()
+
+    def _discard(self):
+        """Remove the temporary file (nothing appears under the final name)."""
+        _unfinished.discard(self.tmp_path)
+        with contextlib.suppress(OSError):
+            os.remove(self.tmp_path)
 
 
 def _has_hdf5_signature(path):

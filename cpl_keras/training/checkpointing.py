@@ -21,6 +21,7 @@ import numpy as np
 from cpl_keras import cli, distributed, files, runs
 from cpl_keras.models.batchnorm import recompute_batchnorm_statistics
 from cpl_keras.report.curves import plot_curves
+from cpl_keras.training.planning import TrainingError
 
 
 class RunState(keras.callbacks.Callback):
@@ -184,7 +185,7 @@ class RunState(keras.callbacks.Callback):
             best_name = f"best-{epoch:04d}"
             if self.writes:
                 with distributed.alone():
-                    self.model.save_weights(os.path.join(self.backup, best_name + ".weights.h5"))
+                    save_weights(self.model, os.path.join(self.backup, best_name + ".weights.h5"))
         self._weights_as_trained()
         if not improved:
             state["wait"] += 1
@@ -227,7 +228,7 @@ class RunState(keras.callbacks.Callback):
             name = f"epoch-{self.state['epoch']:04d}"
             # Model and optimizer variables (Keras saves both).
             with distributed.alone():
-                self.model.save_weights(os.path.join(self.backup, name + ".weights.h5"))
+                save_weights(self.model, os.path.join(self.backup, name + ".weights.h5"))
             self.state["checkpoint"] = name
         if best_name is not None:
             self.state["best_weights"] = best_name
@@ -239,6 +240,17 @@ class RunState(keras.callbacks.Callback):
                 if os.path.exists(path):
                     os.remove(path)
         publish_run_files(self.run_dir, self.state)
+
+
+def save_weights(model, path):
+    """``model.save_weights(path)``, atomically (``files.atomic_path``): a
+    failure (a full disk) leaves no file and raises ``TrainingError`` in one
+    line (``files.write_failed``)."""
+    try:
+        with files.atomic_path(path) as tmp, files.library_write(path):
+            model.save_weights(tmp)
+    except (OSError, RuntimeError) as error:
+        raise TrainingError(files.write_failed(path, error)) from None
 
 
 def nmae_scores(logs, scale):

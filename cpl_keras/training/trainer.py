@@ -264,6 +264,11 @@ def _write_run_files(plan, config, run_dir):
     """config.json (status "running", this machine added to ``machines``),
     split.npz and train_stats.json: what a run directory holds from its start. Returns ``config`` as written (a
     resumed run keeps its outcome so far)."""
+    split_path = os.path.join(run_dir, runs.SPLIT)
+    if os.path.exists(split_path):  # (checked before anything is written: a refusal writes nothing)
+        old = load_split(split_path)
+        if any(not np.array_equal(old[k], plan.split[k]) for k in old):
+            raise TrainingError(f"{split_path} differs from this run's split; use another --run-dir")
     previous = runs.read_config(run_dir, {})
     machines = list(previous.get("machines") or [])
     if not machines or machines[-1] != backend.machine():
@@ -272,12 +277,7 @@ def _write_run_files(plan, config, run_dir):
         key: previous.get(key) for key in ("epochs_run", "best_epoch", "best_val_loss",
                                            "wall_time_s", "stopped")})
     runs.write_config(run_dir, config)
-    split_path = os.path.join(run_dir, runs.SPLIT)
-    if os.path.exists(split_path):
-        old = load_split(split_path)
-        if any(not np.array_equal(old[k], plan.split[k]) for k in old):
-            raise TrainingError(f"{split_path} differs from this run's split; use another --run-dir")
-    else:
+    if not os.path.exists(split_path):
         with files.atomic_path(split_path) as tmp:
             save_split(tmp, plan.split)
     # The release's Average bug depends on the order of the training set: its
