@@ -52,6 +52,7 @@ import os
 import sys
 
 from cpl_keras import cli, exports, files, priors as known
+from cpl_keras.cache import enable_compile_cache
 from cpl_keras.calibration import (ASPECTS, Calibration, Calibrator, CalibrationError,
                                    RigCalibration)
 from cpl_keras.errors import Error
@@ -118,6 +119,7 @@ def main(argv=None):
         def warn(line):
             print(f"{PROG}: {line}", file=sys.stderr)
 
+        enable_compile_cache()  # (the next pair of the same model loads its programs)
         calibrator = Calibrator.from_run(args.run)
         if args.folder:
             calibration = calibrator.calibrate_folder(args.folder, aspect=args.aspect,

@@ -178,12 +178,13 @@ RESUME_ARGS = ["--variant", "baseline", "--backbone", "small", "--epochs", "4",
                "--batch-size", "5", "--patience", "10", "--quiet"]
 
 
-def train_py(*args, cache, env=None):
-    """``(argv, environment)`` of train.py with ``args`` and its XLA compile
-    cache in ``cache`` (every program kept)."""
+def train_py(*args, cache=None, env=None):
+    """``(argv, environment)`` of train.py with ``args``; its XLA compile
+    cache the session's (conftest.py), or ``cache`` (every program kept)."""
     environment = dict(os.environ, KERAS_BACKEND="jax", **(env or {}))
-    environment["JAX_COMPILATION_CACHE_DIR"] = cache
-    environment["JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS"] = "0"
+    if cache is not None:
+        environment["JAX_COMPILATION_CACHE_DIR"] = cache
+        environment["JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS"] = "0"
     return [sys.executable, os.path.join(REPO, "train.py"), *args], environment
 
 

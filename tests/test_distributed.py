@@ -156,7 +156,7 @@ def test_train_py_group_arguments_fail_in_one_line(fixture52, tmp_path):
                "--data-parallel"], "is not a process of")]
     for extra, message in cases:
         argv, environ = train_py(*ARGS, "--data", fixture52, "--run-dir",
-                                 str(tmp_path / "run"), *extra, cache=str(tmp_path / "xla"))
+                                 str(tmp_path / "run"), *extra, cache=None)
         result = subprocess.run(argv, env=environ, capture_output=True, text=True,
                                 timeout=TIMEOUT_S)
         assert result.returncode == 2, result.stderr
@@ -172,7 +172,7 @@ def compared_runs(fixture52, tmp_path_factory):
     """The same 2-epoch run on 1 device, on 2 forced devices of one process,
     and in 2 local processes of one device each: their run directories."""
     root = tmp_path_factory.mktemp("compared")
-    cache = str(root / "xla")
+    cache = None  # (the session's)
     runs = {name: str(root / name) for name in ("one", "two_devices", "two_processes")}
     for name, extra, env in (("one", [], None),
                              ("two_devices", ["--data-parallel"],
@@ -211,7 +211,7 @@ def test_two_processes_train_one_model_as_one_process_does(compared_runs):
 
 
 def test_processes_with_unequal_steps_stop_before_training(fixture52, fixture60, tmp_path):
-    group = _start_group(str(tmp_path), str(tmp_path / "xla"), [fixture52, fixture60],
+    group = _start_group(str(tmp_path), None, [fixture52, fixture60],
                          str(tmp_path / "run"), 2)
     for status, text in (_wait(process) for process in group):
         assert status == 2, text
@@ -238,7 +238,7 @@ def _when_logged(run_dir, rows, processes, timeout=TIMEOUT_S):
 
 def test_a_killed_or_stopped_partner_ends_the_group_and_the_same_command_resumes(
         fixture52, tmp_path):
-    run_dir, cache, epochs = str(tmp_path / "run"), str(tmp_path / "xla"), 12
+    run_dir, cache, epochs = str(tmp_path / "run"), None, 12
     slow = ["--patience", "100"]  # (every epoch, so that there is time to stop it)
 
     # kill -9 of process 1: process 0 ends with one line, never waits forever

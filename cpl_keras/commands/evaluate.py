@@ -15,6 +15,7 @@ import os
 import sys
 
 from cpl_keras import cli, evaluation, report, reproduce
+from cpl_keras.cache import enable_compile_cache
 from cpl_keras.errors import Error
 
 #: Where --table writes without --out (git-ignored, like every run).
@@ -86,6 +87,7 @@ def _main(argv, prog):
         cli.check_interrupt()  # (a Ctrl-C swallowed by a callback stops here)
         print(message, file=sys.stderr)
 
+    enable_compile_cache()  # (a second evaluation of a model loads its programs)
     with cli.interruptible():
         return _evaluate(args, command, progress, prog)
 

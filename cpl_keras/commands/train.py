@@ -122,9 +122,18 @@ def build_parser(prog=PROG):
     parser.add_argument("--augment", choices=("none",) + AUGMENTATIONS, default="none",
                         help="photometric augmentation of the training batches (exposure, grey, "
                              "blur, noise, JPEG; labels unchanged; not the paper's, default none)")
+    _add_output_arguments(parser)
+    return parser
+
+
+def _add_output_arguments(parser):
+    """What a run prints and logs beyond its results: --term-gradients, --quiet."""
+    parser.add_argument("--term-gradients", action="store_true",
+                        help="log, every epoch, the gradient that each loss term sends into the "
+                        "towers' shared features (grad_<target> in log.csv; a diagnostic, "
+                        "training is unchanged; not with --data-parallel)")
     parser.add_argument("--quiet", action="store_true",
                         help="no per-epoch lines or progress bar (the summary line stays)")
-    return parser
 
 
 def _add_group_arguments(parser):
@@ -254,7 +263,7 @@ def _train(args, demo, seed, epochs, backbone, run_dir, command, prog):
             weight_ema=_weight_ema(args, demo), time_budget_s=args.time_budget,
             verbose=0 if args.quiet else 1,
             augment=None if args.augment == "none" else args.augment,
-            command=command, return_model=False,
+            command=command, return_model=False, term_gradients=args.term_gradients,
         )
     except (Error, OSError) as error:  # (DatasetError, TrainingError, RunError, ...)
         return cli.fail(prog, error)

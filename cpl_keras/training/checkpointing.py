@@ -39,8 +39,11 @@ class RunState(keras.callbacks.Callback):
 
     def __init__(self, run_dir, patience, sequence, bn_recompute_batches=0,
                  time_budget_s=None, bn_sequence=None, nmae_scale=None, weight_ema=False,
-                 writes=True):
+                 writes=True, probe=None):
         super().__init__()
+        # ``probe()`` -> more of the epoch's log, at the weights as trained
+        # (the loss terms' gradients, ``--term-gradients``), or None
+        self.probe = probe
         self.run_dir = run_dir
         # whether this process writes the run directory (in a process group,
         # process 0 does; the others keep the same state in memory and
@@ -187,6 +190,8 @@ class RunState(keras.callbacks.Callback):
                 with distributed.alone():
                     save_weights(self.model, os.path.join(self.backup, best_name + ".weights.h5"))
         self._weights_as_trained()
+        if self.probe is not None:
+            logs.update(self.probe())
         if not improved:
             state["wait"] += 1
             if state["wait"] >= self.patience and epoch > 0:

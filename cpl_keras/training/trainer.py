@@ -40,12 +40,14 @@ from cpl_keras.camera import PARAMETERS
 from cpl_keras.data.storage import StereoFile
 from cpl_keras.datasets import load_split, save_split, targets_from_labels
 from cpl_keras.errors import Error
+from cpl_keras.training.gradients import TermGradients
 from cpl_keras.training.planning import RESUME_KEYS, TrainingError, plan_run
 
 # ---------------------------------------------------------------------------
 # Training
 # ---------------------------------------------------------------------------
-def train(data, *, steps_per_execution=1, verbose=1, return_model=True, **options):
+def train(data, *, steps_per_execution=1, verbose=1, return_model=True, term_gradients=False,
+          **options):
     """Train a variant on the dataset file ``data``; returns the summary dict.
 
     ``options`` are ``planning.plan_run``'s keyword arguments (``variant``
@@ -63,6 +65,10 @@ def train(data, *, steps_per_execution=1, verbose=1, return_model=True, **option
     summary's ``model`` is None (train.py: a finished run's command returns
     at once).
     ``steps_per_execution``: training steps per compiled call (Keras's).
+    ``term_gradients``: log, every epoch, the gradient that each loss term
+    sends into the towers' shared features (``grad_<target>`` columns of
+    log.csv; ``training.gradients``; not with data parallelism). A
+    diagnostic: it changes nothing of the training.
     ``verbose``: 0 prints nothing, 1 one short line per epoch (the loss, the
     validation loss and key validation MAEs; every metric is in log.csv)
     and a progress bar during the epoch when stdout is a terminal, 2 the
@@ -93,9 +99,9 @@ def train(data, *, steps_per_execution=1, verbose=1, return_model=True, **option
             devices=devices, auto_shard_dataset=group is None).scope()
     with scope:
         if group is None:
-            return _run(plan, steps_per_execution, verbose)
+            return _run(plan, steps_per_execution, verbose, term_gradients)
         try:
-            return _run(plan, steps_per_execution, verbose)
+            return _run(plan, steps_per_execution, verbose, term_gradients)
         except Error:  # (one line already: a bad file, a disagreement)
             raise
         except Exception as error:  # a collective failed: a partner stopped or died
@@ -175,7 +181,7 @@ def _finished_run(run_dir, load_model=True):
     }
 
 
-def _run(plan, steps_per_execution, verbose):
+def _run(plan, steps_per_execution, verbose, term_gradients=False):
     import keras
 
     config = plan.config
@@ -200,12 +206,12 @@ def _run(plan, steps_per_execution, verbose):
     os.makedirs(os.path.join(run_dir, runs.BACKUP), exist_ok=True)
     lock = _lock_run_dir(run_dir)
     try:  # (released however training ends: a Ctrl-C in a notebook, then train() again)
-        return _run_locked(plan, model, config, run_dir, verbose)
+        return _run_locked(plan, model, config, run_dir, verbose, term_gradients)
     finally:
         lock.close()
 
 
-def _run_locked(plan, model, config, run_dir, verbose):
+def _run_locked(plan, model, config, run_dir, verbose, term_gradients=False):
     from cpl_keras.training.sequence import StereoSequence
 
     finished = _finished_run(run_dir)  # (by the process this one waited for)
@@ -233,7 +239,11 @@ def _run_locked(plan, model, config, run_dir, verbose):
     run_state = RunState(run_dir, config.patience, train_seq, config.bn_recompute_batches,
                          time_budget_s=config.time_budget_s, bn_sequence=bn_seq,
                          nmae_scale=nmae_scale(plan) if config.monitor == "nmae" else None,
-                         weight_ema=config.weight_ema > 0, writes=distributed.is_chief())
+                         weight_ema=config.weight_ema > 0, writes=distributed.is_chief(),
+                         probe=_term_gradient_probe(model, StereoSequence(
+                             config.data, plan.split["train"][:PROBE_PAIRS], shuffle=False,
+                             **dict(common, workers=1, multiple_of=1)))
+                         if term_gradients and not config.data_parallel else None)
     state = run_state.state
     done = state.get("stopped") is not None or state["epoch"] >= config.epochs
     try:
@@ -258,6 +268,23 @@ def _run_locked(plan, model, config, run_dir, verbose):
     summary = _finish(model, run_dir, config, run_state.state)
     summary["model"] = model
     return summary
+
+
+#: Training pairs (the first of the split, the same every epoch) on which
+#: ``term_gradients`` measures each loss term's gradient.
+PROBE_PAIRS = 64
+
+
+def _term_gradient_probe(model, sequence):
+    """``probe()`` -> each loss term's gradient norm at the shared features
+    (``training.gradients``) on the pairs of ``sequence`` (read once, then
+    closed)."""
+    batches = [sequence[i] for i in range(len(sequence))]
+    sequence.close()
+    x = {name: np.concatenate([b[0][name] for b in batches]) for name in batches[0][0]}
+    y = {name: np.concatenate([b[1][name] for b in batches]) for name in batches[0][1]}
+    gradients = TermGradients(model)
+    return lambda: gradients(x, y)
 
 
 def _write_run_files(plan, config, run_dir):
