@@ -32,3 +32,28 @@ def test_cpu_seconds_counts_the_child_and_passes_the_flags():
     assert bench.cpu_seconds([sys.executable, "-c", spin + check], "--z") >= 0.25
     with pytest.raises(Error, match=r"failed \(exit 1\) with XLA_FLAGS='--w': AssertionError"):
         bench.cpu_seconds([sys.executable, "-c", spin + check], "--w")
+
+
+def _bench_suite():
+    path = os.path.join(os.path.dirname(PATH), "bench_suite.py")
+    spec = importlib.util.spec_from_file_location("bench_suite", path)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def test_bench_suite_lists_the_slowest_tests_with_their_files_and_whole_ids():
+    """bench/bench_suite.py: pytest's --durations lines, slowest first, the
+    node id split into file and test (parameters with spaces kept)."""
+    suite = _bench_suite()
+    output = ("===== slowest 3 durations =====\n"
+              "112.00s setup    tests/test_reproduce.py::test_quick_reproduction_end_to_end\n"
+              "14.30s call     tests/test_training.py::test_flag[cpl-a heads]\n"
+              "0.50s teardown tests/test_camera.py::test_round_trip\n"
+              "537 passed in 404.59s (0:06:44)\n")
+    assert suite.slowest(output, 2) == [
+        (112.0, "setup", "tests/test_reproduce.py", "test_quick_reproduction_end_to_end"),
+        (14.3, "call", "tests/test_training.py", "test_flag[cpl-a heads]")]
+    with pytest.raises(SystemExit):
+        suite.parse_args(["--slowest", "0"])
+    assert suite.parse_args(["--", "-m", "not slow"]).pytest_args == ["-m", "not slow"]
