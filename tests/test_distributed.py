@@ -191,6 +191,7 @@ def compared_runs(fixture52, tmp_path_factory):
     return runs, outputs
 
 
+@pytest.mark.slow
 def test_two_processes_train_one_model_as_one_process_does(compared_runs):
     runs, outputs = compared_runs
     config = json.load(open(os.path.join(runs["two_processes"], "config.json")))
@@ -236,6 +237,7 @@ def _when_logged(run_dir, rows, processes, timeout=TIMEOUT_S):
     raise AssertionError(f"no {rows} epochs logged within {timeout} s")
 
 
+@pytest.mark.slow
 def test_a_killed_or_stopped_partner_ends_the_group_and_the_same_command_resumes(
         fixture52, tmp_path):
     run_dir, cache, epochs = str(tmp_path / "run"), None, 12
