@@ -21,7 +21,6 @@ or "=".
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import sys
 

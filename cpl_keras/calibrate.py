@@ -51,7 +51,7 @@ from __future__ import annotations
 import os
 import sys
 
-from cpl_keras import cli, exports, files, priors as known
+from cpl_keras import cli, exports, priors as known
 from cpl_keras.cache import enable_compile_cache
 from cpl_keras.calibration import (ASPECTS, Calibration, Calibrator, CalibrationError,
                                    RigCalibration)
@@ -129,14 +129,9 @@ def main(argv=None):
                                                priors=priors, warn=warn)
         warn(calibration.real_camera_record["line"])
         text = calibration.to_json()
-        if args.json_out:
-            files.write_text(args.json_out, text + "\n")
-        if args.opencv_yaml:
-            exports.write_opencv_yaml(args.opencv_yaml, calibration)
-        if args.ros_yaml:
-            exports.write_ros_yaml(args.ros_yaml, calibration)
-        if args.colmap:
-            exports.write_colmap_cameras(args.colmap, calibration)
+        exports.write_all(calibration, json_text=text, json_out=args.json_out,
+                          opencv_yaml=args.opencv_yaml, ros_yaml=args.ros_yaml,
+                          colmap=args.colmap)  # (all of them or none)
     except (Error, OSError) as error:  # (CalibrationError, RunError, DatasetError, ...)
         return cli.fail(PROG, error)
     print(text)

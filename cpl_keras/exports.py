@@ -26,6 +26,7 @@ none), and the right camera's pose from ``pitch`` and ``(tx, ty, tz)``
 
 from __future__ import annotations
 
+import contextlib
 import os
 
 import numpy as np
@@ -49,23 +50,95 @@ def stereo_pose(parameters):
 
 def write_opencv_yaml(path, calibration):
     """Write ``calibration`` as an OpenCV stereo YAML (atomically)."""
+    with atomic_path(path) as tmp:
+        _opencv_yaml(tmp, calibration, path)
+    return path
+
+
+def _opencv_yaml(tmp, calibration, path):
+    """The OpenCV stereo YAML into the file ``tmp`` (``path``: its final
+    name, for the one-line ``OSError`` of a failure: OpenCV raises its own
+    error type, with a traceback's worth of text)."""
     import cv2
 
     K = camera_matrix(calibration.parameters)
     R, T = stereo_pose(calibration.parameters)
-    with atomic_path(path) as tmp:
+    try:
         fs = cv2.FileStorage(tmp, cv2.FILE_STORAGE_WRITE | cv2.FILE_STORAGE_FORMAT_YAML)
-        try:
-            fs.write("image_width", int(calibration.image_width))
-            fs.write("image_height", int(calibration.image_height))
-            for name, value in (("M1", K), ("D1", np.zeros((1, 5))), ("M2", K),
-                                ("D2", np.zeros((1, 5))), ("R", R), ("T", T.reshape(3, 1))):
-                fs.write(name, np.asarray(value, np.float64))
-            fs.write("baseline_m", float(calibration.parameters["baseline"]))
-            fs.write("source", f"cpl_keras.calibrate, run {calibration.run}")
-        finally:
-            fs.release()
-    return path
+    except cv2.error:
+        raise OSError(f"cannot write {path}") from None
+    if not fs.isOpened():
+        raise OSError(f"cannot write {path}")
+    try:
+        fs.write("image_width", int(calibration.image_width))
+        fs.write("image_height", int(calibration.image_height))
+        for name, value in (("M1", K), ("D1", np.zeros((1, 5))), ("M2", K),
+                            ("D2", np.zeros((1, 5))), ("R", R), ("T", T.reshape(3, 1))):
+            fs.write(name, np.asarray(value, np.float64))
+        fs.write("baseline_m", float(calibration.parameters["baseline"]))
+        fs.write("source", f"cpl_keras.calibrate, run {calibration.run}")
+    finally:
+        fs.release()
+
+
+def write_all(calibration, *, json_text=None, json_out=None, opencv_yaml=None, ros_yaml=None,
+              colmap=None):
+    """Every requested export of ``calibration`` (the JSON ``json_text`` to
+    ``json_out``, OpenCV's YAML, ROS's two files in ``ros_yaml``, COLMAP's
+    cameras.txt in ``colmap``), all or none: each is written under a
+    temporary name first, and all are renamed into place only once every one
+    has been written; on a failure none is, and the folders made for them
+    are removed again. Returns the paths written."""
+    writers = []
+    if json_out:
+        writers.append((json_out, lambda tmp: _text(tmp, json_text + "\n")))
+    if opencv_yaml:
+        writers.append((opencv_yaml, lambda tmp: _opencv_yaml(tmp, calibration, opencv_yaml)))
+    for side in ("left", "right") if ros_yaml else ():
+        text = ros_camera_info(calibration, side)
+        writers.append((os.path.join(ros_yaml, f"{side}.yaml"),
+                        lambda tmp, text=text: _text(tmp, text)))
+    if colmap:
+        text = colmap_cameras(calibration)
+        writers.append((os.path.join(colmap, "cameras.txt"), lambda tmp: _text(tmp, text)))
+    if not writers:
+        return []
+    made = _make_folders(path for path, _ in writers)
+    try:
+        with atomic_path(*[path for path, _ in writers]) as tmps:
+            for (_, write), tmp in zip(writers, tmps if len(writers) > 1 else [tmps]):
+                write(tmp)
+    except BaseException:
+        for folder in reversed(made):
+            with contextlib.suppress(OSError):
+                os.rmdir(folder)  # (only if it is still empty)
+        raise
+    return [path for path, _ in writers]
+
+
+def _text(path, text):
+    with open(path, "w") as f:
+        f.write(text)
+
+
+def _make_folders(paths):
+    """Create the missing folders above ``paths``, once every one is known
+    to be possible (``OSError`` in one line, and nothing made, when a file
+    stands where a folder must be); returns those it made, outermost first."""
+    missing = []
+    for path in paths:
+        folder = os.path.dirname(os.path.abspath(path))
+        while not os.path.isdir(folder):
+            if os.path.exists(folder):
+                raise OSError(f"cannot write {path}: {folder} is a file, not a folder")
+            missing.append(folder)
+            folder = os.path.dirname(folder)
+    made = []
+    for folder in sorted(set(missing), key=len):
+        if not os.path.isdir(folder):
+            os.makedirs(folder)
+            made.append(folder)
+    return made
 
 
 def _matrix(name, rows, cols, values):

@@ -580,3 +580,28 @@ def test_bad_arguments_to_the_python_api_are_one_line_calibration_errors(setup, 
     # known values go through as on the command line
     known_focal = calibrator.calibrate(left, right, priors=known.Priors(focal_px=50.0))
     assert known_focal.parameters["fx"] == 50.0 and known_focal.from_prior
+
+
+def test_exports_are_all_or_nothing(setup, tmp_path, capsys):
+    """An export that cannot be written (its folder would be under a file)
+    stops calibrate in one line, exit 2, with none of the others written
+    and no folder made for them; the same exports that can be written all
+    appear."""
+    blocker = tmp_path / "a-file"
+    blocker.write_text("")
+    (tmp_path / "out").mkdir()
+    outputs = ["--json-out", str(tmp_path / "out" / "calib.json"),
+               "--opencv-yaml", str(tmp_path / "out" / "stereo.yml"),
+               "--ros-yaml", str(tmp_path / "ros")]
+    assert calibrate.main(_pair_args(setup) + outputs
+                          + ["--colmap", str(blocker / "colmap")]) == 2
+    err = [line for line in capsys.readouterr().err.splitlines() if ": error: " in line]
+    assert err == [f"python -m cpl_keras.calibrate: error: cannot write "
+                   f"{blocker / 'colmap' / 'cameras.txt'}: {blocker} is a file, not a folder"]
+    assert sorted(os.listdir(tmp_path)) == ["a-file", "out"] and not os.listdir(tmp_path / "out")
+    assert calibrate.main(_pair_args(setup) + outputs
+                          + ["--colmap", str(tmp_path / "colmap")]) == 0
+    capsys.readouterr()
+    assert sorted(os.listdir(tmp_path / "out")) == ["calib.json", "stereo.yml"]
+    assert sorted(os.listdir(tmp_path / "ros")) == ["left.yaml", "right.yaml"]
+    assert os.listdir(tmp_path / "colmap") == ["cameras.txt"]
