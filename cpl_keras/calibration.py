@@ -93,7 +93,7 @@ class _Record:
         """The record as calibrate's JSON-ready dict (a copy: changing it
         leaves the record as it is)."""
         return {f.name: copy.deepcopy(getattr(self, f.name)) for f in dataclasses.fields(self)
-                if not (f.name == "notes" and getattr(self, f.name) is None)}
+                if not (f.name in ("notes", "impossible") and getattr(self, f.name) is None)}
 
     def to_json(self):
         """The JSON text ``python -m cpl_keras.calibrate`` prints."""
@@ -131,6 +131,7 @@ class Calibration(_Record):
     real_camera_record: dict  #: the run's record on real cameras (``real_record``)
     priors: dict              #: the known values given, where they came from
     from_prior: list          #: the outputs that came from, or through, a known value
+    impossible: list | None = None  #: what no pair can show (``impossible_geometry``; else left out)
 
 
 @dataclasses.dataclass(frozen=True, kw_only=True)
@@ -237,6 +238,22 @@ def _check_ranges(raw, ranges, warn):
              f"input units: {', '.join(outside)}")
 
 
+def impossible_geometry(values, width):
+    """What no pair of images can show, whatever a model was trained on: a
+    disparity at or beyond the image width (a point seen in both images
+    lies less than a width apart in them) and a focal length with no field
+    of view between 0 and 180 degrees. One line each (empty: none)."""
+    lines = []
+    d, fx = values["disparity"], values["fx"]
+    if d >= width:
+        lines.append(f"a disparity of {d:.4g} px is at or beyond the image width ({width} px): "
+                     "no point seen in both images can have it")
+    if not fx > 0:
+        lines.append(f"a focal length of {fx:.4g} px gives no field of view between 0 and "
+                     "180 degrees")
+    return lines
+
+
 def _check_spread(spread, values, aspect, warn, between="crops of the pair", of="value"):
     """Warn about fx (and the network's fy) moving by over SPREAD_WARNING."""
     for name in ("fx", "fy") if aspect == "model" else ("fx",):   # (square: fy is fx)
@@ -311,6 +328,9 @@ class Calibrator:
             raise CalibrationError("the model predicted non-finite values")
         ranges = label_ranges(run.stats)
         _check_ranges(raw[0], ranges, warn)
+        impossible = impossible_geometry(values, width)
+        for line in impossible:
+            warn(f"warning: impossible for any pair: {line}")
         spread = {name: float(np.std([v[name] for v in per_window], ddof=1))
                   for name in PARAMETERS + ("X", "Y", "Z")}
         _check_spread(spread, values, aspect, warn)
@@ -339,7 +359,7 @@ class Calibrator:
             real_camera_record=real_record.summarise(run),
             priors=known.describe(priors, factor=(
                 priors.baseline_m / network_baseline if priors.baseline_m else None)),
-            from_prior=known.from_prior(priors))
+            from_prior=known.from_prior(priors), impossible=impossible or None)
 
     def calibrate_folder(self, folder, *, aspect="square", priors=None, warn=None):
         """The ``RigCalibration`` of every pair of ``folder`` (``find_pairs``):

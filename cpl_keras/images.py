@@ -15,14 +15,33 @@ class ImageError(Error):
     """An image file is missing or cannot be read (one-line message)."""
 
 
+def check_whole(path, error=ImageError):
+    """``error`` unless the image file ``path`` decodes to its end: OpenCV
+    fills the missing part of a truncated JPEG or PNG with grey and goes on
+    (libjpeg's "Premature end of JPEG file" on stderr the only sign), so
+    Pillow decodes it first and says whether it is whole. A format Pillow
+    does not know is left to OpenCV."""
+    from PIL import Image, UnidentifiedImageError
+
+    try:
+        with Image.open(path) as image:
+            image.load()
+    except UnidentifiedImageError:
+        return
+    except (OSError, SyntaxError, ValueError) as reason:
+        first = str(reason).strip().splitlines()[0] if str(reason).strip() else "undecodable"
+        raise error(f"{path} is truncated or corrupt ({first})") from None
+
+
 def read_rgb(path, error=ImageError):
     """A uint8 RGB image from ``path``; ``error`` (a one-line ``Error``
-    class: the caller's own) when there is no such file or it is not an
-    image."""
+    class: the caller's own) when there is no such file, it is not an
+    image, or it is truncated (``check_whole``)."""
     import cv2
 
     if not os.path.isfile(path):
         raise error(f"image not found: {path}")
+    check_whole(path, error)
     image = cv2.imread(os.fspath(path), cv2.IMREAD_COLOR)
     if image is None:
         raise error(f"cannot read {path} as an image")
@@ -35,6 +54,7 @@ def read_gray(path, error=ImageError):
 
     if not os.path.isfile(path):
         raise error(f"image not found: {path}")
+    check_whole(path, error)
     image = cv2.imread(os.fspath(path), cv2.IMREAD_GRAYSCALE)
     if image is None:
         raise error(f"cannot read {path} as an image")

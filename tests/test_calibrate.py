@@ -605,3 +605,30 @@ def test_exports_are_all_or_nothing(setup, tmp_path, capsys):
     assert sorted(os.listdir(tmp_path / "out")) == ["calib.json", "stereo.yml"]
     assert sorted(os.listdir(tmp_path / "ros")) == ["left.yaml", "right.yaml"]
     assert os.listdir(tmp_path / "colmap") == ["cameras.txt"]
+
+
+def test_a_truncated_image_is_refused_in_one_line(setup, tmp_path, capsys):
+    """A left image cut to half its bytes (OpenCV would fill the rest with
+    grey and go on): one line naming it, exit 2, no JSON written."""
+    data = (setup["root"] / "left.png").read_bytes()
+    cut = tmp_path / "cut.png"
+    cut.write_bytes(data[:len(data) // 2])
+    out = tmp_path / "calib.json"
+    assert calibrate.main([str(cut), str(setup["root"] / "right.png"), "--run", setup["run"],
+                           "--json-out", str(out)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and f"{cut} is truncated or corrupt" in err[0], err
+    assert not out.exists()
+
+
+def test_impossible_geometry_is_named_whatever_the_training():
+    """A disparity at or beyond the image width (the demonstration model's
+    9,748 px on OpenCV's 640 px chessboard pair) and a focal length with no
+    field of view are impossible for any pair; a disparity inside the image
+    is not."""
+    from cpl_keras.calibration import impossible_geometry
+
+    assert impossible_geometry({"disparity": 120.0, "fx": 530.0}, 640) == []
+    [line] = impossible_geometry({"disparity": 9748.0, "fx": 530.0}, 640)
+    assert "9748 px is at or beyond the image width (640 px)" in line
+    assert len(impossible_geometry({"disparity": 640.0, "fx": 0.0}, 640)) == 2
