@@ -92,6 +92,18 @@ def positive_int(text):
     return _integer(text, 1, "a positive integer")
 
 
+def worker_count(text):
+    """argparse type: a number of worker processes or threads, from 1 to
+    this machine's CPUs (more would only crowd them: 100,000 started a storm
+    of processes)."""
+    value = _integer(text, 1, "a positive integer")
+    cpus = os.cpu_count() or 1
+    if value > cpus:
+        raise argparse.ArgumentTypeError(f"must be at most {cpus}, the CPUs of this machine, "
+                                         f"got {value}")
+    return value
+
+
 def non_negative_int(text):
     """argparse type: an integer >= 0."""
     return _integer(text, 0, "a non-negative integer")

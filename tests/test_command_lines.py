@@ -130,3 +130,22 @@ def test_every_subprocess_a_test_waits_for_has_a_timeout():
                     not any(k.arg == "timeout" for k in node.keywords):
                 missing.append(f"{os.path.basename(path)}:{node.lineno} {name}")
     assert not missing, missing
+
+
+def test_worker_counts_beyond_the_cpus_are_refused_when_parsed(capsys):
+    """--workers 100000 started a storm of processes; now train.py,
+    data.generate and the reproduction refuse more workers than CPUs in one
+    line (exit 2) before anything starts, and take the CPUs' own number."""
+    cpus = os.cpu_count() or 1
+    mains = main_functions()
+    for name, argv in (("train.py", ["--variant", "baseline", "--workers"]),
+                       ("data.generate", ["--pairs", "4", "--out", "x.h5", "--workers"]),
+                       ("reproduce", ["--quick", "--workers"])):
+        with pytest.raises(SystemExit) as stop:
+            mains[name](argv + [str(cpus + 1)])
+        assert stop.value.code == 2, name
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and f"must be at most {cpus}, the CPUs of this machine" in err[0], err
+    from cpl_keras import cli
+
+    assert cli.worker_count(str(cpus)) == cpus

@@ -78,7 +78,8 @@ def build_parser(prog=PROG):
                         "process's devices in a process group (docs/training.md)")
     _add_group_arguments(parser)
     parser.add_argument("--patience", type=cli.non_negative_int, default=5, help="early stopping patience")
-    parser.add_argument("--workers", type=cli.positive_int, default=1, help="data reading threads")
+    parser.add_argument("--workers", type=cli.worker_count, default=1,
+                        help="data reading threads (at most the CPUs)")
     parser.add_argument("--steps-per-execution", type=cli.positive_int, default=1,
                         help="training steps per compiled call (Keras's steps_per_execution; "
                         "default 1)")

@@ -404,7 +404,8 @@ def _parser():
     p.add_argument("--out", help="output HDF5 file (may be left out with --preview)")
     p.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
     p.add_argument("--image-size", type=int, default=112, help="square image side (default 112)")
-    p.add_argument("--workers", type=int, default=None, help="worker processes (default: all cores)")
+    p.add_argument("--workers", type=cli.worker_count, default=None,
+                   help="worker processes (default and most: all cores)")
     p.add_argument("--preview", help="also write a PNG contact sheet of a few pairs")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     return p

@@ -52,8 +52,8 @@ def add_arguments(parser):
     group.add_argument("--seeds", type=positive, help="cvgl runs per variant, seeds "
                        "SEED, SEED+1, ... (each its own split and initial weights)")
     group.add_argument("--random-seeds", type=positive, help="random-protocol runs per variant")
-    group.add_argument("--workers", type=positive, help="data generation processes "
-                       "(default: every core)")
+    group.add_argument("--workers", type=cli.worker_count, help="data generation processes "
+                       "(default and most: every core)")
     group.add_argument("--run-budget", type=cli.positive_float, metavar="SECONDS",
                        help="seconds of training each run may take (train.py --time-budget; "
                        "paper-gpu: 150; default: no limit)")
