@@ -109,14 +109,16 @@ def pair_markdown(name_a, name_b, verdicts):
     a, b = short(name_a), short(name_b)
     lines = [f"### {name_a} (A) vs {name_b} (B)", "",
              (f"| column | {a} | {b} | seed spread | bootstrap, seeds "
-              f"{', '.join(str(i.seed) for i in verdicts[0].per_seed)} | bootstrap | verdict |"),
-             "|---|---|---|---|---|---|---|"]
+              f"{', '.join(str(i.seed) for i in verdicts[0].per_seed)} | bootstrap | verdict "
+              "| Welch's p | rig bootstrap |"),
+             "|---|---|---|---|---|---|---|---|---|"]
     for v in verdicts:
         seeds = ", ".join({"A lower": "A", "B lower": "B"}.get(i.answer, "=") for i in v.per_seed)
         lines.append(f"| {v.column} | {v.mean_a:.3f} ± {v.spread_a:.3f} | {v.mean_b:.3f} ± "
                      f"{v.spread_b:.3f} | {answer_text(v.spread_rule, a, b)} | {seeds} | "
                      f"{answer_text(v.bootstrap_rule, a, b)} | "
-                     f"**{answer_text(v.verdict, a, b)}** |")
+                     f"**{answer_text(v.verdict, a, b)}** | {v.welch_p:.3g} | "
+                     f"{answer_text(v.rig_bootstrap, a, b)} |")
     counts = summary(verdicts)
     lines += ["", (f"Both rules: {a} lower on {len(counts['A lower'])} "
                    f"({', '.join(counts['A lower']) or 'none'}), {b} lower on "
@@ -130,7 +132,10 @@ RULES = {"seed_spread": "|mean A - mean B| > SD A + SD B over the seeds "
                         "(report.differences_beyond_spread)",
          "bootstrap": "per seed, the paired percentile interval of NMAE(A) - NMAE(B) over "
                       "resampled test pairs excludes 0; a side when every seed gives it",
-         "verdict": "the rules' answer where they agree, else undecided"}
+         "verdict": "the rules' answer where they agree, else undecided",
+         "welch_p": "for context: Welch's two-sided p of the seeds' NMAEs",
+         "rig_bootstrap": "for context: per seed, the percentile interval over resampled "
+                          "rigs (camera configurations); a side when every seed gives it"}
 
 
 def header(resamples, level, seed):
@@ -143,7 +148,11 @@ def header(resamples, level, seed):
              "(NMAE = MAE / mean|y| over the resampled pairs); a seed gives a side when its "
              f"{level:.0%} percentile interval excludes 0, the rule when every seed gives "
              "the same side. `=`: undecided. Cells: NMAE, mean ± sample SD over the seeds. "
-             f"`python analyses/verdicts.py` (bootstrap seed {seed})."), ""]
+             f"`python analyses/verdicts.py` (bootstrap seed {seed}). For context, not "
+             "the verdict: Welch's p, the two-sided p of Welch's t-test of the seeds' "
+             "NMAEs (3 a side), and the rig bootstrap, the same bootstrap resampling whole "
+             "rigs (camera configurations, known from the labels a rig fixes) instead of "
+             "single pairs, a side when every seed gives it."), ""]
 
 
 def decide_split(folder, split, resamples, seed):

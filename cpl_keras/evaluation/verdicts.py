@@ -73,6 +73,12 @@ class ColumnVerdict:
     bootstrap_rule: str   # the per-seed bootstrap's answer (a side only if every seed gives it)
     verdict: str          # the two rules' answer where they agree, else UNDECIDED
     per_seed: tuple       # SeedInterval per seed, in seed order
+    # For context, not the verdict: Welch's t-test of the seeds' NMAEs (its
+    # two-sided p; nan where both rows have one value each), and the rig
+    # bootstrap (``rig_intervals``: whole camera configurations resampled,
+    # a side when every seed gives it).
+    welch_p: float = float("nan")
+    rig_bootstrap: str = UNDECIDED
 
 
 def _check_pairing(seed, a, b):
@@ -140,6 +146,57 @@ def seed_intervals(seed, a, b, *, resamples=RESAMPLES, level=LEVEL,
     return out
 
 
+def welch_p(values_a, values_b):
+    """Welch's two-sided p for the seeds' NMAEs of two rows (nan when it is
+    undefined: one seed a side, or no spread on either)."""
+    from scipy import stats
+
+    a, b = np.asarray(values_a, np.float64), np.asarray(values_b, np.float64)
+    if len(a) < 2 or len(b) < 2 or (np.ptp(a) == 0 and np.ptp(b) == 0):
+        return float("nan")
+    return float(stats.ttest_ind(a, b, equal_var=False).pvalue)
+
+
+def rig_keys(truth):
+    """One key per test pair: its rig (camera configuration), known from the
+    labels that a rig fixes (fx, fy, u0, v0, baseline, tx, ty, tz, pitch;
+    the disparity is the scene's). Returns an int array (rig index)."""
+    fixed = [name for name in PARAMETERS if name != "disparity"]
+    table = np.stack([np.round(np.asarray(truth[name], np.float64), 6) for name in fixed], 1)
+    return np.unique(table, axis=0, return_inverse=True)[1].reshape(-1)
+
+
+def rig_intervals(seed, a, b, *, resamples=RESAMPLES, level=LEVEL,
+                  bootstrap_seed=BOOTSTRAP_SEED):
+    """``{parameter: answer}``: one seed's bootstrap of NMAE(A) - NMAE(B)
+    that resamples whole rigs (``rig_keys``), not single pairs, so that the
+    pairs of one rig, which share its errors, count as one draw: the
+    interval of a seed whose test pairs come from few rigs is wider."""
+    _check_pairing(seed, a, b)
+    rigs = rig_keys(a["truth"])
+    count = int(rigs.max()) + 1 if rigs.size else 0
+    rng = np.random.default_rng([int(bootstrap_seed), int(seed), 1])
+    draws = rng.integers(0, max(count, 1), size=(int(resamples), count))
+    tails = 100 * (1 - level) / 2
+    out = {}
+    for name in PARAMETERS:
+        keep = np.ones(len(rigs), bool)
+        for raw in (a, b):
+            if "defined" in raw:
+                keep &= np.asarray(raw["defined"][name], bool)
+        truth = np.asarray(a["truth"][name], np.float64)[keep]
+        gap = (np.abs(np.asarray(a["pred"][name], np.float64)[keep] - truth)
+               - np.abs(np.asarray(b["pred"][name], np.float64)[keep] - truth))
+        gaps = np.bincount(rigs[keep], gap, minlength=count)
+        scales = np.bincount(rigs[keep], np.abs(truth), minlength=count)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            diffs = gaps[draws].sum(axis=1) / scales[draws].sum(axis=1)
+            low, high = np.percentile(diffs, [tails, 100 - tails])
+        defined = count > 1 and np.isfinite(low) and np.isfinite(high)
+        out[name] = _interval_answer(low, high) if defined else UNDECIDED
+    return out
+
+
 def _all_seeds(answers):
     """A side when every seed gives it, else UNDECIDED."""
     answers = set(answers)
@@ -177,6 +234,8 @@ def compare(rows_a, rows_b, *, resamples=RESAMPLES, level=LEVEL,
     nmae_a = {name: [i.nmae_a for i in per_seed[name]] for name in PARAMETERS}
     nmae_b = {name: [i.nmae_b for i in per_seed[name]] for name in PARAMETERS}
     by_spread = spread_rule(nmae_a, nmae_b)
+    by_rig = {s: rig_intervals(s, rows_a[s], rows_b[s], resamples=resamples, level=level,
+                               bootstrap_seed=bootstrap_seed) for s in seeds}
     verdicts = []
     for column, name in COLUMN_PARAMETER.items():
         mean_a, spread_a = _mean_and_spread(nmae_a[name])
@@ -187,7 +246,8 @@ def compare(rows_a, rows_b, *, resamples=RESAMPLES, level=LEVEL,
             mean_b=mean_b, spread_b=spread_b, spread_rule=by_spread[name],
             bootstrap_rule=by_bootstrap,
             verdict=by_spread[name] if by_spread[name] == by_bootstrap else UNDECIDED,
-            per_seed=per_seed[name]))
+            per_seed=per_seed[name], welch_p=welch_p(nmae_a[name], nmae_b[name]),
+            rig_bootstrap=_all_seeds(by_rig[s][name] for s in seeds)))
     return verdicts
 
 
