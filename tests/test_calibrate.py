@@ -11,6 +11,7 @@ import cv2
 import numpy as np
 import pytest
 
+from helpers import REPO
 from cpl_keras import calibrate, calibration, evaluation, exports
 from cpl_keras.calibrate import Calibration, CalibrationError, Calibrator, RigCalibration
 from cpl_keras.camera import PARAMETERS, fov_from_focal
@@ -632,3 +633,20 @@ def test_impossible_geometry_is_named_whatever_the_training():
     [line] = impossible_geometry({"disparity": 9748.0, "fx": 530.0}, 640)
     assert "9748 px is at or beyond the image width (640 px)" in line
     assert len(impossible_geometry({"disparity": 640.0, "fx": 0.0}, 640)) == 2
+
+
+def test_the_documented_python_snippet_runs_as_printed_and_catches_a_missing_run(tmp_path):
+    """docs/calibrate.md's Python example, run as printed in a folder
+    without the run it names: the package's one error class catches the
+    run directory's error (a ``RunError``), one line, no traceback."""
+    import re
+
+    with open(os.path.join(REPO, "docs", "calibrate.md")) as f:
+        [snippet] = re.findall(r"```python\n(.*?)```", f.read(), re.S)
+    done = subprocess.run([sys.executable, "-c", snippet], cwd=tmp_path, text=True,
+                          capture_output=True, timeout=120,
+                          env=dict(os.environ, PYTHONPATH=REPO, KERAS_BACKEND="jax"))
+    assert done.returncode == 0 and "Traceback" not in done.stderr, done.stderr
+    lines = done.stdout.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("cannot calibrate: "), done.stdout
+    assert "runs/cpl-a-paper-s0" in lines[0]
