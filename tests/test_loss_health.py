@@ -496,4 +496,22 @@ def test_alpha_rate_scales_the_step_of_the_adaptive_weights(rate):
     assert np.allclose(moved, rate * 1e-3, rtol=1e-2)
     assert model.calibration["alpha_rate"] == rate
     with pytest.raises(ValueError, match="alpha rate"):
-        build_model("cpl-a", backbone="small", image_size=SIZE, alpha_rate=0.0)
+        build_model("cpl-a", backbone="small", image_size=SIZE, alpha_rate=-1.0)
+
+
+def test_alpha_rate_zero_freezes_the_weights_at_their_first_batch_balance():
+    """Eq. 9 as a fixed range normalisation: with an alpha rate of 0 the
+    weights start balanced on the first batch (alpha_i = 1 / L_i, as
+    always) and no training step moves them, while the heads train."""
+    model = compile_model(build_model("cpl-a", backbone="small", image_size=SIZE, seed=0,
+                                      alpha_rate=0.0), learning_rate=1e-3)
+    x, y = batch(8)
+    start = model.initialise_adaptive_weights(y)
+    rated = build_model("cpl-a", backbone="small", image_size=SIZE, seed=0, alpha_rate=1.0)
+    assert start == pytest.approx(rated.initialise_adaptive_weights(y), rel=1e-5)
+    heads = ops.convert_to_numpy(model.get_layer("fx").kernel)
+    for _ in range(2):
+        model.train_on_batch(x, y)
+    assert model.adaptive_weights() == start
+    assert not np.allclose(ops.convert_to_numpy(model.get_layer("fx").kernel), heads)
+    assert "log_variances" not in [v.name for v in model.trainable_variables]

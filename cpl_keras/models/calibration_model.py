@@ -49,9 +49,11 @@ class CalibrationModel(keras.Model):
             # stored divided by the alpha rate (``log_variance_values``), and
             # their floors (set with the starting values, see
             # ``initialise_adaptive_weights``; until then no floor).
+            # (an alpha rate of 0: the weights frozen at their first-batch
+            # balance, Eq. 9 as a fixed range normalisation)
             self.log_variances = self.add_weight(
                 shape=(len(camera.TARGETS),), initializer="zeros",
-                name="log_variances", trainable=True,
+                name="log_variances", trainable=self.alpha_rate > 0,
             )
             self.log_variance_floor = self.add_weight(
                 shape=(len(camera.TARGETS),),
@@ -70,12 +72,18 @@ class CalibrationModel(keras.Model):
         learning rate whatever the gradient's scale, moves ``log alpha_i``
         ``alpha_rate`` times as fast as an ordinary weight. 1 is Eq. 9
         trained like every other weight (models saved before the rate
-        existed); see ``variants.ALPHA_RATE``."""
+        existed); see ``variants.ALPHA_RATE``. 0: the weights do not move
+        at all after ``initialise_adaptive_weights`` (``s_i = w_i``, not
+        trained): Eq. 9 as a fixed normalisation of the terms' ranges."""
         return float(self.calibration.get("alpha_rate", 1.0))
+
+    def _scale(self):
+        """``s_i / w_i``: the alpha rate, or 1 for frozen weights (rate 0)."""
+        return self.alpha_rate or 1.0
 
     def log_variance_values(self):
         """The tensor of Eq. 9's s_i (alpha_i = exp(-s_i)), in TARGETS order."""
-        return self.alpha_rate * self.log_variances.value
+        return self._scale() * self.log_variances.value
 
     def adaptive_weights(self):
         """The learned alpha_i of Eq. 9 by target name (None for other modes)."""
@@ -126,7 +134,7 @@ class CalibrationModel(keras.Model):
         start, floor = losses.initial_log_variances(
             [float(ops.convert_to_numpy(t)) for t in terms]
         )
-        self.log_variances.assign(start / self.alpha_rate)
+        self.log_variances.assign(start / self._scale())
         self.log_variance_floor.assign(floor)
         return self.adaptive_weights()
 

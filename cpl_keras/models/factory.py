@@ -92,8 +92,8 @@ def build_model(variant, *, backbone="inception_v3", image_size=112, as_released
             pixel heads u, v) or ``"partial"`` (they reach every head the
             camera graph reads). CPL variants as the paper writes them only.
         alpha_rate: how fast MTL-CPL-A's adaptive weights move (default
-            ``variants.ALPHA_RATE``; 1 is Eq. 9 trained like every other weight,
-            see ``CalibrationModel``).
+            ``variants.ALPHA_RATE``; 1 is Eq. 9 trained like every other weight;
+            0 freezes them at their first-batch balance; see ``CalibrationModel``).
         disparity_ceiling: the largest disparity (px) the CPL variants' exp
             head can output (``layers.PositiveDisparity``; default
             ``layers.MAX_OUTPUT``). Training sets it from its labels.
@@ -116,8 +116,8 @@ def build_model(variant, *, backbone="inception_v3", image_size=112, as_released
     if alpha_rate is None:
         alpha_rate = variants.ALPHA_RATE
     if isinstance(alpha_rate, bool) or not (isinstance(alpha_rate, numbers.Real)
-                                            and math.isfinite(alpha_rate) and alpha_rate > 0):
-        raise ValueError(f"alpha rate must be a positive number, got {alpha_rate!r}")
+                                            and math.isfinite(alpha_rate) and alpha_rate >= 0):
+        raise ValueError(f"alpha rate must be a number >= 0 (0: frozen), got {alpha_rate!r}")
     if disentangle not in DISENTANGLE:
         raise ValueError(
             f"unknown disentangle {disentangle!r}; choose one of {', '.join(DISENTANGLE)}"

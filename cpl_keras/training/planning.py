@@ -164,9 +164,9 @@ def _check_arguments(*, variant, backbone, split, epochs, batch_size, workers, p
     ):
         raise TrainingError(f"learning rate must be a positive number, got {learning_rate!r}")
     if alpha_rate is not None and (isinstance(alpha_rate, bool) or not (
-        isinstance(alpha_rate, (int, float)) and math.isfinite(alpha_rate) and alpha_rate > 0
+        isinstance(alpha_rate, (int, float)) and math.isfinite(alpha_rate) and alpha_rate >= 0
     )):
-        raise TrainingError(f"alpha rate must be a positive number, got {alpha_rate!r}")
+        raise TrainingError(f"alpha rate must be a number >= 0 (0: frozen), got {alpha_rate!r}")
     if disparity_ceiling not in (None, "auto") and (
         isinstance(disparity_ceiling, bool)
         or not isinstance(disparity_ceiling, (int, float, np.floating))
