@@ -91,10 +91,9 @@ def build_parser(prog=PROG):
     parser.add_argument("--linear-focal-head", action="store_true",
                         help="CPL: linear fx, fy heads (the release's; default clipped at 1 px, "
                         "straight-through, since the camera graph divides by them)")
-    parser.add_argument("--alpha-rate", type=cli.non_negative_float,
-                        help="MTL-CPL-A: how many times an ordinary weight's pace the adaptive "
-                        "weights move (default 10; 1 = Eq. 9 as the paper trains it; 0 = "
-                        "frozen at their first-batch balance)")
+    parser.add_argument("--alpha-rate", type=cli.non_negative_float, help="MTL-CPL-A: how "
+                        "many times an ordinary weight's pace the adaptive weights move (default "
+                        "10; 1 = Eq. 9 as the paper trains it; 0 = frozen at the first batch's)")
     parser.add_argument("--disparity-ceiling", type=disparity_ceiling, default="auto",
                         metavar="auto|none|PX",
                         help="CPL: the exp disparity head's largest output (auto, default: twice "
