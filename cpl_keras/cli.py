@@ -315,7 +315,9 @@ def run(main, prog, note=None):
     ``OSError`` (a missing or malformed file, a bad argument) its one-line
     message, exit status 2. Whenever the status is 130 (an interruption,
     handled here or by ``main``), further Ctrl-Cs are ignored and the
-    process ends with ``os._exit(130)`` once stdout and stderr are flushed:
+    process ends with ``os._exit(130)`` once stdout and stderr are flushed
+    (once ``main`` has returned, whatever its status, a Ctrl-C is ignored:
+    the command's work is done):
     Python's teardown would wait on, or crash in, the XLA work a compiling
     command still has in flight (a segmentation fault, exit 139). Files are
     written atomically (``cpl_keras.files``), so an interrupted command has
@@ -333,8 +335,10 @@ def run(main, prog, note=None):
         status = _end_interrupted(prog, note)
     except (Error, OSError) as error:  # (a missing or bad file: one line, 2)
         status = fail(prog, error)
+    # The command is done: a Ctrl-C from here on, in the interpreter's
+    # teardown, would end a finished command by SIGINT (exit -2, no line).
+    _ignore_interrupts()
     if status == INTERRUPTED:
-        _ignore_interrupts()
         _exit_interrupted()
     if files.teardown_unsafe():  # (a file library left in a failed state)
         gc.collect()  # (what else the command let go of is released first)
