@@ -150,3 +150,32 @@ def test_the_rig_bootstrap_counts_a_rig_once():
     assert v.rig_intervals(0, a, b, resamples=500)["fx"] == v.UNDECIDED
     far = rig_row(np.array([0.01, 0.01, 0.02]))
     assert v.rig_intervals(0, far, b, resamples=500)["fx"] == v.A_LOWER
+
+
+def test_paired_runs_arguments_and_page():
+    """analyses/paired_runs.py: two references and at least one more run,
+    NAME=RUN_DIR each; the page lists each run's NMAEs and, per other run
+    and reference, the interval and the side it decides."""
+    import importlib.util
+    import os
+
+    path = os.path.join(os.path.dirname(os.path.dirname(__file__)), "analyses", "paired_runs.py")
+    spec = importlib.util.spec_from_file_location("paired_runs", path)
+    script = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(script)
+    for bad in (["--data", "d.h5", "--run", "A=a", "--run", "B=b", "--out", "o.md"],
+                ["--data", "d.h5", "--run", "A", "--run", "B=b", "--run", "C=c", "--out", "o.md"],
+                ["--data", "d.h5", "--run", "A=a", "--run", "B=b", "--run", "C=c", "--out", "o"]):
+        with pytest.raises(SystemExit):
+            script.parse_args(bad)
+    args = script.parse_args(["--data", "d.h5", "--run", "A=a", "--run", "B=b", "--run", "C=c",
+                              "--out", "o.md"])
+    assert args.runs == [("A", "a"), ("B", "b"), ("C", "c")]
+    nmae = {c: 0.1 for c in v.COLUMNS}
+    result = {"seed": 0, "data": "d.h5", "references": ["A", "B"],
+              "runs": {n: {"epochs_run": 3, "best_epoch": 2, "nmae": nmae} for n in "ABC"},
+              "intervals": {f"C - {r}": {c: {"low": 0.01, "high": 0.02, "answer": "higher"}
+                                         for c in v.COLUMNS} for r in "AB"}}
+    page = script.markdown(result, "python analyses/paired_runs.py ...")
+    assert "| C | 3 (2) | " + " | ".join(["0.100"] * 10) + " |" in page
+    assert page.count("higher [+0.010, +0.020]") == 20 and "| 0 / 10 |" in page
