@@ -75,7 +75,7 @@ def test_undefined_disparity_is_left_out(setup, tmp_path):
     assert kitti["fx"]["nmae"] is not None
     pooled = table["rows"]["MTL-Baseline"]["targets"]
     assert pooled["disparity"]["num_defined"] == 13 and pooled["fx"]["num_defined"] == 15
-    assert "defined on part of the pairs only" in open(out / "table2.md").read()
+    assert "Columns scored on part of the pairs only" in open(out / "table2.md").read()
 
 
 def _rig(name, n, rectified, geometric_pairs, seed):
@@ -109,27 +109,49 @@ def _rig(name, n, rectified, geometric_pairs, seed):
             "rows": rows}
 
 
-def test_pooled_table_compares_every_row_on_the_same_pairs():
-    """fx pools only the pairs every row has (Geometric ran on 4 of the 10
-    chessboard pairs and is degenerate on the rectified rig), pitch only the
-    rig that is not rectified; values derived by hand from the constructed
-    errors (|pred - y| / mean|y| = scale - 1 on any set of pairs)."""
+def test_pooled_table_scores_each_row_on_its_pairs_and_shared_on_the_same_pairs():
+    """Pooled, every row on every pair it has (Geometric ran on 4 of the 10
+    chessboard pairs and is degenerate on the rectified rig); ``shared``,
+    every row only on the pairs every row has; pitch only on the rig that is
+    not rectified. Values derived by hand from the constructed errors
+    (|pred - y| / mean|y| = scale - 1 on any set of pairs)."""
     from cpl_keras.evaluation import table2_from_rigs
+    from cpl_keras.report.text import table2_csv, table2_markdown
 
     rigs = [_rig("chessboard", 10, False, 4, 0), _rig("middlebury", 20, True, 20, 1)]
     table = table2_from_rigs(["run"], rigs)
-    pooled = table.rows
     fx_pairs = rigs[0]["rows"]["Average"]["truth"]["fx"][:4]
     for row, scale in (("Average", 1.5), ("MTL-CPL-A", 1.1), ("Geometric", 1.3)):
-        cells = pooled[row]["targets"]
-        assert cells["fx"]["num_defined"] == 4
-        assert cells["fx"]["nmae"] == pytest.approx(scale - 1.0)
-        assert cells["fx"]["mae"] == pytest.approx((scale - 1.0) * fx_pairs.mean())
-        assert cells["pitch"]["num_defined"] == 4       # only the chessboard rig's shared pairs
-        # u0: defined everywhere; the shared pairs are the 4 + 20 Geometric has
-        assert cells["u0"]["num_defined"] == 24
+        own, shared = table.rows[row]["targets"], table.shared.rows[row]["targets"]
+        assert shared["fx"]["num_defined"] == 4
+        assert shared["fx"]["nmae"] == pytest.approx(scale - 1.0)
+        assert shared["fx"]["mae"] == pytest.approx((scale - 1.0) * fx_pairs.mean())
+        assert shared["pitch"]["num_defined"] == 4       # only the chessboard rig's shared pairs
+        assert shared["u0"]["num_defined"] == 24         # the 4 + 20 Geometric has
+        assert own["fx"]["nmae"] == pytest.approx(scale - 1.0)
+        if row == "Geometric":
+            assert own["fx"]["num_defined"] == 4 and own["pitch"]["num_defined"] == 4
+            assert own["u0"]["num_defined"] == 24
+        else:                                            # every pair with truth
+            assert own["fx"]["num_defined"] == 30 and own["pitch"]["num_defined"] == 10
+            assert own["u0"]["num_defined"] == 30
     # per rig, each row keeps all of its own pairs
     assert table.rigs["chessboard"].rows["MTL-CPL-A"]["targets"]["fx"]["num_defined"] == 10
+    text = table2_markdown(table)
+    assert "## Pooled over all rigs, every row on the same pairs" in text
+    assert "Rows scored on fewer pairs than the others (pairs per column): Geometric: fx 4," in text
+    assert "\npooled on shared pairs,Geometric,nmae," in table2_csv(table)
+    # the JSON reads back, the shared table with it
+    from cpl_keras.evaluation.tables import table_from_json
+    back = table_from_json(table.to_json())
+    assert back.shared.rows["Geometric"]["targets"]["fx"]["num_defined"] == 4
+
+
+def test_pooled_table_has_no_shared_table_when_every_row_has_the_same_pairs():
+    from cpl_keras.evaluation import table2_from_rigs
+
+    table = table2_from_rigs(["run"], [_rig("chessboard", 10, False, 10, 0)])
+    assert table.shared is None and "shared" not in table.to_json()
 
 
 def _synthetic_rig(name, n, errors, rectified, subset=None, seed=0):
@@ -179,10 +201,19 @@ def test_table2_values_per_rig_and_pooled_against_hand_computed_nmae():
     for name in ("fx", "baseline", "Z"):
         y = np.concatenate([truth_a[name][:10], truth_b[name]])
         e = np.concatenate([np.full(10, 0.1), np.full(20, 0.05)])
+        assert cell(table.shared, "MTL-Baseline", name) == pytest.approx(
+            np.sum(y * e) / np.sum(y), rel=1e-12), name
+        assert table.shared.rows["MTL-Baseline"]["targets"][name]["num_defined"] == 30
+        # pooled over each row's own pairs: all of A's 30 for MTL-Baseline
+        y = np.concatenate([truth_a[name], truth_b[name]])
+        e = np.concatenate([baseline_a, np.full(20, 0.05)])
         assert cell(table, "MTL-Baseline", name) == pytest.approx(
             np.sum(y * e) / np.sum(y), rel=1e-12), name
-        assert table.rows["MTL-Baseline"]["targets"][name]["num_defined"] == 30
+        assert table.rows["MTL-Baseline"]["targets"][name]["num_defined"] == 50
+        assert table.rows["Average"]["targets"][name]["num_defined"] == 30
     # pitch pooled only where defined: rig B is rectified
-    assert cell(table, "MTL-Baseline", "pitch") == pytest.approx(0.1, rel=1e-12)
+    assert cell(table.shared, "MTL-Baseline", "pitch") == pytest.approx(0.1, rel=1e-12)
+    assert cell(table, "MTL-Baseline", "pitch") == pytest.approx(
+        np.sum(truth_a["pitch"] * baseline_a) / np.sum(truth_a["pitch"]), rel=1e-12)
     assert cell(table, "Average", "pitch") == pytest.approx(0.3, rel=1e-12)
     assert table.rows["Average"]["targets"]["pitch"]["num_defined"] == 10

@@ -140,7 +140,11 @@ def aggregate_seeds(tables, seeds):
                     for key in ("true_deg", "pred_deg")}
               for row in _row_order([t.fov_points[rig] for t in tables])}
         for rig in tables[0].fov_points}
+    # a seed whose rows all had the same pairs is its own table on shared pairs
+    shared = [t.shared or dataclasses.replace(t, rigs=None, fov_points=None, paper={})
+              for t in tables]
     return dataclasses.replace(
         table, rigs={rig: _aggregate_table([t.rigs[rig] for t in tables], seeds)
-                     for rig in rigs}, fov_points=jsonable(fov_points))
+                     for rig in rigs}, fov_points=jsonable(fov_points),
+        shared=_aggregate_table(shared, seeds) if any(t.shared for t in tables) else None)
 

@@ -21,11 +21,13 @@ Undefined values are never invented:
 * a zero mean (pitch, tx, tz of a rectified rig) leaves NMAE undefined
   (``n/a``; ``cpl_keras.metrics``).
 
-The pooled table compares every row on the same pairs: each column pools,
-rig by rig, only the pairs on which every row of the table has that column
-defined (so a Geometric row run on fewer pairs, or degenerate on a rig,
-narrows the column for all rows alike), and pitch only on rigs that are not
-rectified (a rectified rig's relative pitch is 0 by construction).
+The pooled table scores each row on every pair where it has the column
+defined, as the per-rig tables do: the networks and the Average row on every
+pair with ground truth, the Geometric row on the pairs it ran on (and not
+fx, fy on a rectified rig), and pitch only on rigs that are not rectified (a
+rectified rig's relative pitch is 0 by construction). Where the rows' pairs
+differ, the pooled table's ``shared`` holds the same rows on the same pairs:
+each column pools, rig by rig, only the pairs on which every row has it.
 """
 
 from __future__ import annotations
@@ -231,11 +233,34 @@ def table2_from_rigs(run_list, rigs):
             rig["rows"], number_of_pairs=rig["num_pairs"], width=width, data=rig["data"],
             description=rig["data_description"], source=rig["data_source"], runs=run_list,
             paper={}), rectified=bool(rig["rectified"]))
+    total = sum(r["num_pairs"] for r in rigs)
+    single = len(rigs) == 1
+    context = dict(number_of_pairs=total, width=width,
+                   data=rigs[0]["data"] if single else ", ".join(r["data"] for r in rigs),
+                   description=rigs[0]["data_description"] if single else (
+                       f"{total} pairs pooled over {len(rigs)} rigs: " + ", ".join(
+                           f"{r['rig']} {r['num_pairs']}" for r in rigs)),
+                   source=rigs[0]["data_source"] if single else "pooled real rigs", runs=run_list)
+    own = _pooled_rows(rigs, [dict.fromkeys(TARGETS) for _ in rigs])   # every row's own pairs
+    common = _pooled_rows(rigs, [_shared_pairs(rig) for rig in rigs])
+    shared = None
+    if any(not np.array_equal(own[row]["defined"][k], common[row]["defined"][k])
+           for row in own for k in TARGETS):
+        shared = Table2(**_table(common, **context, paper={}))
+    fov_points = {rig["rig"]: {row: _fov_points(r, width) for row, r in rig["rows"].items()}
+                  for rig in rigs}
+    return Table2(**_table(own, **context, paper=read_paper_table(2)), rigs=tables,
+                  shared=shared, fov_points=jsonable(fov_points))
+
+
+def _pooled_rows(rigs, pairs):
+    """Every row's truth, predictions and definedness concatenated over the
+    rigs, each target defined only on the pairs ``pairs`` gives per rig
+    (None: all the row's own; or ``_shared_pairs``; ``_on_pairs``)."""
     pooled_rows = {}
-    shared = [_shared_pairs(rig) for rig in rigs]
     for row in rigs[0]["rows"]:
-        parts = [_on_shared_pairs(rig["rows"][row], common, rig["rectified"])
-                 for rig, common in zip(rigs, shared) if row in rig["rows"]]
+        parts = [_on_pairs(rig["rows"][row], chosen, rig["rectified"])
+                 for rig, chosen in zip(rigs, pairs) if row in rig["rows"]]
         pooled_rows[row] = dict(parts[0], indices=np.concatenate([p["indices"] for p in parts]),
                                 truth={k: np.concatenate([p["truth"][k] for p in parts]) for k in TARGETS},
                                 pred={k: np.concatenate([np.asarray(p["pred"][k]) for p in parts])
@@ -246,18 +271,7 @@ def table2_from_rigs(run_list, rigs):
             pooled_rows[row]["statuses"] = [s for p in parts for s in p["statuses"]]
             pooled_rows[row]["degenerate"] = [
                 k for k in DEGENERATE_ON_RECTIFIED if not pooled_rows[row]["defined"][k].any()]
-    total = sum(r["num_pairs"] for r in rigs)
-    single = len(rigs) == 1
-    table = _table(pooled_rows, number_of_pairs=total, width=width,
-                   data=rigs[0]["data"] if single else ", ".join(r["data"] for r in rigs),
-                   description=rigs[0]["data_description"] if single else (
-                       f"{total} pairs pooled over {len(rigs)} rigs: " + ", ".join(
-                           f"{r['rig']} {r['num_pairs']}" for r in rigs)),
-                   source=rigs[0]["data_source"] if single else "pooled real rigs", runs=run_list,
-                   paper=read_paper_table(2))
-    fov_points = {rig["rig"]: {row: _fov_points(r, width) for row, r in rig["rows"].items()}
-                  for rig in rigs}
-    return Table2(**table, rigs=tables, fov_points=jsonable(fov_points))
+    return pooled_rows
 
 
 def _shared_pairs(rig):
@@ -271,14 +285,17 @@ def _shared_pairs(rig):
     return common
 
 
-def _on_shared_pairs(raw, common, rectified):
-    """A row of one rig for pooling: each target defined only on the pairs
-    every row has (``_shared_pairs``), and pitch not at all on a rectified
-    rig (its true relative pitch is 0 by construction: nothing to measure)."""
+def _on_pairs(raw, chosen, rectified):
+    """A row of one rig for pooling: each target defined only on its
+    ``chosen`` pairs (a set of pair indices, or None for all the row's), and
+    pitch not at all on a rectified rig (its true relative pitch is 0 by
+    construction: nothing to measure)."""
     indices = np.asarray(raw["indices"])
     defined = {}
     for name in TARGETS:
-        mask = np.asarray(raw["defined"][name], bool) & np.isin(indices, list(common[name]))
+        mask = np.asarray(raw["defined"][name], bool)
+        if chosen[name] is not None:
+            mask = mask & np.isin(indices, list(chosen[name]))
         if rectified and name in UNDEFINED_ON_RECTIFIED:
             mask = np.zeros_like(mask)
         defined[name] = mask

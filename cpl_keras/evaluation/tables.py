@@ -77,11 +77,14 @@ class Table2(_Table):
     # pooled: rig name -> its Table2, and rig -> row -> true and predicted FOVs (deg)
     rigs: dict | None = None
     fov_points: dict | None = None
+    # pooled, where the rows' pairs differ (a Geometric row on fewer pairs): the
+    # same rows, each column on the pairs every row has it on
+    shared: Table2 | None = None
 
     ORDER = ("table", "data", "data_description", "data_source", "num_pairs", "image_width",
-             "runs", "rows", "paper", "paper_convention", "rectified", "rigs", "fov_points",
-             "seeds", "spread")
-    OPTIONAL = ("rectified", "rigs", "fov_points", "seeds", "spread")
+             "runs", "rows", "paper", "paper_convention", "rectified", "rigs", "shared",
+             "fov_points", "seeds", "spread")
+    OPTIONAL = ("rectified", "rigs", "shared", "fov_points", "seeds", "spread")
 
     @property
     def pooled(self):
@@ -93,6 +96,8 @@ class Table2(_Table):
         out = super().to_json()
         if self.rigs is not None:
             out["rigs"] = {name: rig.to_json() for name, rig in self.rigs.items()}
+        if self.shared is not None:
+            out["shared"] = self.shared.to_json()
         return out
 
 
@@ -104,4 +109,6 @@ def table_from_json(data):
         return Table1(**data)
     if data.get("rigs") is not None:
         data["rigs"] = {name: table_from_json(rig) for name, rig in data["rigs"].items()}
+    if data.get("shared") is not None:
+        data["shared"] = table_from_json(data["shared"])
     return Table2(**data)

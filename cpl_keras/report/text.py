@@ -41,14 +41,19 @@ def best_rows(rows, convention):
 
     The paper bolded the smallest *signed* value, so a large negative NMAE
     could be marked best; a magnitude is what an error ratio means, so the
-    smallest magnitude wins here."""
+    smallest magnitude wins here. Only the rows scored on the most pairs
+    compete (a Geometric row run on fewer pairs of a real rig does not)."""
     best = {}
     if len(rows) < 2:
         return best
     for column in COLUMNS:
+        pairs = {row: m["targets"].get(COLUMN_PARAMETER[column], {}).get("num_defined")
+                 for row, m in rows.items()}
+        most = max((n for n in pairs.values() if n is not None), default=None)
         candidates = [(abs(cell(m, column, convention)), row)
                       for row, m in rows.items()
-                      if math.isfinite(cell(m, column, convention))]
+                      if math.isfinite(cell(m, column, convention))
+                      and pairs[row] in (None, most)]
         if candidates:
             smallest = min(value for value, _ in candidates)
             best[column] = {row for value, row in candidates if value == smallest}
@@ -183,13 +188,30 @@ def notes(table):
         if geo.get("degenerate"):
             lines += ["Geometric fx, fy: degenerate on a rectified rig (Bougnoux's formula is "
                       "0/0 when the optical axes are coplanar); no number is reported.", ""]
-    first = next(iter(table.rows.values()), {"targets": {}})
-    undefined = [f"{name} ({m['num_defined']} of {table.num_pairs} pairs)"
-                 for name, m in first["targets"].items()
-                 if m.get("num_defined", table.num_pairs) < table.num_pairs]
-    if undefined:
-        lines += ["Ground truth defined on part of the pairs only: " + ", ".join(undefined)
-                  + "; the other pairs are left out of those columns.", ""]
+    return lines + coverage_notes(table)
+
+
+def coverage_notes(table):
+    """Markdown lines: the columns scored on part of the pairs, and the rows
+    scored on fewer pairs than the others (a Geometric row run on fewer)."""
+    counts = {row: {name: m.get("num_defined", table.num_pairs) for name, m in r["targets"].items()}
+              for row, r in table.rows.items()}
+    if not counts:
+        return []
+    most = {name: max(c[name] for c in counts.values()) for name in next(iter(counts.values()))}
+    lines = []
+    partial = [f"{name} ({n} of {table.num_pairs} pairs)" for name, n in most.items()
+               if n < table.num_pairs]
+    if partial:
+        lines += ["Columns scored on part of the pairs only (the other pairs have no ground "
+                  "truth for them, or, for theta_p, are of a rectified rig, whose relative "
+                  "pitch is 0 by construction): " + ", ".join(partial) + ".", ""]
+    fewer = [f"{row_label(table, row)}: " + ", ".join(
+        f"{name} {c[name]}" for name in most if c[name] < most[name])
+        for row, c in counts.items() if any(c[name] < most[name] for name in most)]
+    if fewer:
+        lines += ["Rows scored on fewer pairs than the others (pairs per column): "
+                  + "; ".join(fewer) + ".", ""]
     return lines
 
 
@@ -334,17 +356,24 @@ def table2_markdown(table, command=None):
     if command:
         lines += ["Command:", "", "```", command, "```", ""]
     lines += [f"Pooled: {table.data_description}; image width {table.image_width} px. "
-              "Forward pass only (no fine-tuning). `n/a` = undefined (zero mean, or no "
-              "ground truth on that rig).", ""] + seeds_lines(table) + [
-              "## Pooled over all rigs", ""]
+              "Forward pass only (no fine-tuning). Each row is scored on every pair that "
+              "has ground truth for the column, the Geometric row on the pairs it ran on. "
+              "`n/a` = undefined (zero mean, or no pair with ground truth).",
+              ""] + seeds_lines(table) + ["## Pooled over all rigs", ""]
     lines += _table2_sections(table, "###")
+    if table.shared is not None:
+        lines += ["## Pooled over all rigs, every row on the same pairs", "",
+                  "Each column only on the pairs on which every row above has it (the "
+                  "Geometric row's pairs).", ""]
+        lines += nmae_tables(table.shared, "###") + coverage_notes(table.shared)
     for name, rig in table.rigs.items():
         kind = "rectified" if rig.rectified else "not rectified"
         lines += [f"## Rig: {name} ({kind})", "",
                   f"Data: `{rig.data}` ({rig.data_description}; source: "
                   f"{rig.data_source}).", ""]
         lines += _table2_sections(rig, "###")
-    lines += ["Best per column (smallest |NMAE|) in bold. The paper's Average row is placed "
+    lines += ["Best per column (smallest |NMAE|) in bold, among the rows scored on the most "
+              "pairs. The paper's Average row is placed "
               "beside 'Average (release bug)'. Plot of predicted against true horizontal field "
               "of view per rig: `*_fov_scatter.png`.", ""]
     return "\n".join(lines)
@@ -353,7 +382,8 @@ def table2_markdown(table, command=None):
 def table2_csv(table):
     """Table 2 as CSV: ``rig,method,metric,<columns>[,seeds]``; rig ``pooled`` for the pooled table."""
     lines = [csv_header(table, "rig,method,metric")]
-    for rig, sub in [("pooled", table)] + list(table.rigs.items()):
+    shared = [] if table.shared is None else [("pooled on shared pairs", table.shared)]
+    for rig, sub in [("pooled", table)] + shared + list(table.rigs.items()):
         lines += csv_rows(sub, prefix=f"{rig},")
     return "\n".join(lines) + "\n"
 
