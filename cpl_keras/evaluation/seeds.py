@@ -36,6 +36,22 @@ def _mean_and_spread(values):
     return float(np.mean(a)), float(np.std(a, ddof=1)) if len(a) > 1 else 0.0
 
 
+def beyond_spread(mean_a, spread_a, mean_b, spread_b):
+    """The seed-spread rule on one column: ``"<"`` where row A's mean NMAE is
+    lower than B's by more than the sum of their spreads, ``">"`` where B's
+    is, ``"="`` within the spreads, ``"n/a"`` where a value is undefined
+    (None or not finite). The reports claim an ordering only where this
+    says so."""
+    values = np.array([np.nan if v is None else v for v in (mean_a, spread_a, mean_b, spread_b)],
+                      np.float64)
+    if not np.all(np.isfinite(values)):
+        return "n/a"
+    mean_a, spread_a, mean_b, spread_b = values
+    if abs(mean_a - mean_b) <= spread_a + spread_b:
+        return "="
+    return "<" if mean_a < mean_b else ">"
+
+
 def _row_order(row_sets):
     """Every row of ``row_sets`` (each a table's row names; a row may be
     missing from some), in the tables' order (``ROWS``, each followed by its

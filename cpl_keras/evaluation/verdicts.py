@@ -3,7 +3,7 @@
 A column's verdict between rows A and B (two variants, each trained on the
 same seeds) is decided only where both rules give it:
 
-* the seed-spread rule of the reports (``report.differences_beyond_spread``):
+* the seed-spread rule of the reports (``seeds.beyond_spread``):
   the difference of the two means over the seeds exceeds the sum of their
   sample standard deviations (``evaluation.seeds``);
 * a paired bootstrap per seed: the seed's test pairs are resampled (the same
@@ -28,8 +28,7 @@ import numpy as np
 from cpl_keras import metrics
 from cpl_keras.camera import PARAMETERS
 from cpl_keras.evaluation.predict import EvaluationError
-from cpl_keras.evaluation.seeds import _mean_and_spread
-from cpl_keras.report.text import differences_beyond_spread
+from cpl_keras.evaluation.seeds import _mean_and_spread, beyond_spread
 
 #: The paper table's columns, in its order, and the target each one is.
 COLUMNS = ("fx", "fy", "u0", "v0", "b", "d", "tx", "ty", "tz", "pitch")
@@ -206,17 +205,13 @@ def _all_seeds(answers):
 def spread_rule(nmae_a, nmae_b):
     """``{parameter: answer}`` of the seed-spread rule from each row's NMAE
     per seed (``{parameter: [value per seed]}``): the means and sample SDs
-    of ``evaluation.seeds``, judged by ``report.differences_beyond_spread``."""
-    rows = {}
-    for label, values in (("A", nmae_a), ("B", nmae_b)):
-        stats = {name: _mean_and_spread(values[name]) for name in PARAMETERS}
-        rows[label] = {"targets": {k: {"nmae": m} for k, (m, _) in stats.items()},
-                       "spread": {"targets": {k: {"nmae": s} for k, (_, s) in stats.items()}}}
-    lines = differences_beyond_spread(rows)
-    if len(lines) != 3:
+    of ``evaluation.seeds``, judged by ``seeds.beyond_spread`` (the rule the
+    reports' ``differences_beyond_spread`` renders)."""
+    if min(len(values) for values in list(nmae_a.values()) + list(nmae_b.values())) < 2:
         raise EvaluationError("the seed-spread rule needs 2 or more seeds")
-    cells = [c.strip() for c in lines[2].strip().strip("|").split("|")][1:1 + len(PARAMETERS)]
-    return {name: _SPREAD_CELLS[cell] for name, cell in zip(PARAMETERS, cells)}
+    return {name: _SPREAD_CELLS[beyond_spread(*_mean_and_spread(nmae_a[name]),
+                                              *_mean_and_spread(nmae_b[name]))]
+            for name in PARAMETERS}
 
 
 def compare(rows_a, rows_b, *, resamples=RESAMPLES, level=LEVEL,

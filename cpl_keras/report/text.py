@@ -13,10 +13,10 @@ from __future__ import annotations
 
 import math
 
-import numpy as np
 
 from cpl_keras import metrics
 from cpl_keras.camera import PARAMETERS
+from cpl_keras.evaluation.seeds import beyond_spread
 from cpl_keras.evaluation.tables import Table2
 from cpl_keras.runs import RELEASED
 
@@ -285,32 +285,13 @@ def differences_beyond_spread(rows):
              "|---|" + "---|" * (len(COLUMNS) + 1)]
     for i, (first, a) in enumerate(rows):
         for second, b in rows[i + 1:]:
-            cells, counts = [], [0, 0, 0]
-            for parameter in PARAMETERS:
-                mean_a = _number(a["targets"][parameter]["nmae"])
-                mean_b = _number(b["targets"][parameter]["nmae"])
-                spread = (_number(a["spread"]["targets"][parameter]["nmae"])
-                          + _number(b["spread"]["targets"][parameter]["nmae"]))
-                if not (np.isfinite(mean_a) and np.isfinite(mean_b) and np.isfinite(spread)):
-                    cells.append("n/a")
-                    continue
-                if abs(mean_a - mean_b) <= spread:
-                    cells.append("=")
-                    counts[2] += 1
-                elif mean_a < mean_b:
-                    cells.append("<")
-                    counts[0] += 1
-                else:
-                    cells.append(">")
-                    counts[1] += 1
+            cells = [beyond_spread(a["targets"][p]["nmae"], a["spread"]["targets"][p]["nmae"],
+                                   b["targets"][p]["nmae"], b["spread"]["targets"][p]["nmae"])
+                     for p in PARAMETERS]
+            counts = [cells.count(answer) for answer in ("<", ">", "=")]
             lines.append(f"| {first} vs {second} | " + " | ".join(cells)
                          + f" | {counts[0]} / {counts[1]} / {counts[2]} |")
     return lines
-
-
-def _number(value):
-    """A JSON cell as a float (None, an undefined cell: NaN)."""
-    return math.nan if value is None else float(value)
 
 
 
