@@ -1,12 +1,14 @@
-"""The camera-graph CLI (cpl_keras.graph) prints the graph and draws it."""
+"""The camera-graph CLI (cpl_keras.graph) prints the graph, draws it and
+writes it as Graphviz text."""
 
+import re
 import subprocess
 import sys
 
 import pytest
 
 from cpl_keras import build_model
-from cpl_keras.graph import camera_graph, main
+from cpl_keras.graph import camera_graph, layout, main, to_dot
 
 
 def test_camera_graph_lists_every_equation():
@@ -28,10 +30,15 @@ def test_released_cpl_a_graph_has_the_gates():
 
 def test_cli_prints_the_table_and_writes_the_diagram(tmp_path, capsys):
     out = tmp_path / "new" / "graph.png"  # (missing folders are made)
-    assert main(["--variant", "cpl-a", "--image-size", "32", "--out", str(out)]) == 0
+    dot = tmp_path / "other" / "graph.dot"
+    assert main(["--variant", "cpl-a", "--image-size", "32", "--out", str(out),
+                 "--dot", str(dot)]) == 0
     text = capsys.readouterr().out
     assert "xCam = fx * b / d" in text and "4a" in text
+    assert text.endswith(f"diagram written to {out}\nGraphviz text written to {dot}\n")
     assert out.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    assert '"xCam_over_fy" -> "zCam";' in dot.read_text()
+    assert sorted(p.name for p in tmp_path.rglob("*")) == ["graph.dot", "graph.png", "new", "other"]
     svg = tmp_path / "graph.svg"
     assert main(["--variant", "cpl-u", "--image-size", "32", "--out", str(svg)]) == 0
     assert b"<svg" in svg.read_bytes()[:2000]
@@ -50,97 +57,68 @@ def test_cli_bad_arguments_exit_2_without_output(tmp_path):
     assert not out.exists()
 
 
+def test_cli_bad_output_paths_exit_2_before_building(tmp_path, capsys):
+    (tmp_path / "file").write_text("")
+    out = tmp_path / "graph.png"
+    for args, message in (
+            (["--dot", str(out)], "--dot and --out name the same file"),
+            (["--dot", str(tmp_path / "file" / "g.dot")], "is a file"),
+            (["--dot", str(tmp_path)], "output path is a directory")):
+        assert main(["--variant", "cpl-u", "--out", str(out), *args]) == 2
+        err = capsys.readouterr().err
+        assert message in err and len(err.strip().splitlines()) == 1, err
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["file"]
+
+
 # ---------------------------------------------------------------------------
-# The drawing: every edge visibly ends at its own box
+# The graph's forms: Graphviz text and the drawing's layout
 # ---------------------------------------------------------------------------
-def _passes_through(p, q, box, inset=1e-6):
-    """Whether the segment p-q enters the interior of ``box`` (x0, y0, x1, y1)
-    shrunk by ``inset`` (Liang-Barsky clipping)."""
-    x0, y0, x1, y1 = box[0] + inset, box[1] + inset, box[2] - inset, box[3] - inset
-    (px, py), (qx, qy) = p, q
-    dx, dy = qx - px, qy - py
-    low, high = 0.0, 1.0
-    for step, room in ((-dx, px - x0), (dx, x1 - px), (-dy, py - y0), (dy, y1 - py)):
-        if step == 0:
-            if room < 0:
-                return False
-            continue
-        t = room / step
-        if step < 0:
-            low = max(low, t)
-        else:
-            high = min(high, t)
-        if low > high:
-            return False
-    return True
+def _graph(as_released):
+    return camera_graph(build_model("cpl-a", backbone="small", image_size=32,
+                                    as_released=as_released))
 
 
-def _boxes_crossed(points, boxes, skip=()):
-    return sorted({name for name, box in boxes.items() if name not in skip
-                   for p, q in zip(points, points[1:]) if _passes_through(p, q, box)})
-
-
-def _straight_edges_of_the_first_drawing(graph, boxes):
-    """The first drawing's geometry (one column per depth, heads in the first,
-    2.3 x 0.62 inches a cell, straight lines from box to box), with these boxes."""
-    depth = {}
-    for node in graph:
-        for name in node["inputs"]:
-            depth.setdefault(name, 0)
-        depth[node["name"]] = 1 + max(depth[i] for i in node["inputs"])
-    columns = {}
-    for name, d in depth.items():
-        columns.setdefault(d, []).append(name)
-    moved = {}
-    for d, names in columns.items():
-        for k, name in enumerate(names):
-            x0, y0, x1, y1 = boxes[name]
-            cx, cy = 2.3 * d, 0.62 * (k - (len(names) - 1) / 2)
-            moved[name] = (cx - (x1 - x0) / 2, cy - (y1 - y0) / 2, cx + (x1 - x0) / 2, cy + (y1 - y0) / 2)
-    edges = {(s, g["name"]): [(moved[s][2], (moved[s][1] + moved[s][3]) / 2),
-                              (moved[g["name"]][0], (moved[g["name"]][1] + moved[g["name"]][3]) / 2)]
-             for g in graph for s in g["inputs"]}
-    return moved, edges
+def _edges(graph):
+    return {(s, g["name"]) for g in graph for s in g["inputs"]}
 
 
 @pytest.mark.parametrize("as_released", [False, True])
-def test_every_edge_ends_at_its_own_box_and_passes_through_none(as_released):
-    from cpl_keras.graph import layout
+def test_dot_text_has_every_layer_and_edge(as_released):
+    graph = _graph(as_released)
+    text = to_dot(graph, 'a "title"')
+    assert text.startswith("// dashed: ") and "\ndigraph camera_graph {\n" in text
+    assert text.endswith("\n}\n") and 'label="a \\"title\\""' in text
+    nodes = dict(re.findall(r'^  "(\w+)" \[label="([^"]*)"', text, re.M))
+    edges = re.findall(r'^  "(\w+)" -> "(\w+)"( \[style=dashed\])?;$', text, re.M)
+    layers = {g["name"]: g for g in graph}
+    assert set(nodes) == set(layers) | {s for s, _ in _edges(graph)}
+    for name, g in layers.items():
+        assert nodes[name] == f"{name}\\n{g['op']}  (Eq. {g['equation']})"
+    assert len(edges) == len(_edges(graph)) and {(s, t) for s, t, _ in edges} == _edges(graph)
+    assert {(s, t) for s, t, dashed in edges if dashed} == {
+        (s, g["name"]) for g in graph for s in g["detached"]}
+    if not as_released:  # (the paper's form reads the parameters through stop_gradient)
+        assert ("fx", "fx_times_baseline", " [style=dashed]") in edges
 
-    graph = camera_graph(build_model("cpl-a", backbone="small", image_size=32,
-                                     as_released=as_released))
+
+@pytest.mark.parametrize("as_released", [False, True])
+def test_layout_puts_every_node_after_its_inputs(as_released):
+    graph = _graph(as_released)
     placed = layout(graph)
-    boxes = placed["boxes"]
-    assert {(e["source"], e["target"]) for e in placed["edges"]} == {
-        (s, g["name"]) for g in graph for s in g["inputs"]}
-    assert len(placed["edges"]) == sum(len(set(g["inputs"])) for g in graph)
+    column, boxes = placed["column"], placed["boxes"]
+    assert {(e["source"], e["target"]) for e in placed["edges"]} == _edges(graph)
+    for s, t in _edges(graph):
+        assert column[s] < column[t], (s, t)
+        assert boxes[s][2] < boxes[t][0], (s, t)  # (and drawn to its left)
+    assert {column[g["name"]] for g in graph if g["name"] in ("X", "Y", "Z")} == {max(column.values())}
+    assert set(boxes) == set(column) and all(placed["labels"][g["name"]].startswith(g["name"] + "\n")
+                                             for g in graph)
     names = list(boxes)
-    for i, a in enumerate(names):  # no two boxes overlap
+    for i, a in enumerate(names):  # no two boxes (labels) overlap
         for b in names[i + 1:]:
             A, B = boxes[a], boxes[b]
             assert A[2] <= B[0] or B[2] <= A[0] or A[3] <= B[1] or B[3] <= A[1], (a, b)
-    for edge in placed["edges"]:
-        points = edge["points"]
-        source, target = boxes[edge["source"]], boxes[edge["target"]]
-        # it leaves from the source's right side and ends on the target's left side ...
-        assert points[0][0] == source[2] and source[1] < points[0][1] < source[3]
-        assert points[-1][0] == target[0] and target[1] < points[-1][1] < target[3]
-        # ... arriving from the left, and enters no box on its way, its own included
-        assert points[-2][0] < points[-1][0]
-        assert _boxes_crossed(points, boxes) == [], edge
-    # two inputs of one box end at two different points
-    ends = [(e["target"], e["points"][-1]) for e in placed["edges"]]
-    assert len(set(ends)) == len(ends)
-
-
-def test_the_check_catches_the_first_drawings_edges():
-    """The first drawing's straight edges ran behind other boxes (disparity ->
-    xCam and fy -> xCam_over_fy behind fx_times_baseline): the check above
-    finds them."""
-    from cpl_keras.graph import layout
-
-    graph = camera_graph(build_model("cpl-a", backbone="small", image_size=32))
-    boxes, edges = _straight_edges_of_the_first_drawing(graph, layout(graph)["boxes"])
-    crossed = {edge: _boxes_crossed(points, boxes, skip=edge) for edge, points in edges.items()}
-    assert "fx_times_baseline" in crossed["fy", "xCam_over_fy"]
-    assert "fx_times_baseline" in crossed["disparity", "xCam"]
+    for edge in placed["edges"]:  # each edge ends on its own target's left side
+        x, y = edge["path"][0][-1]
+        target = boxes[edge["target"]]
+        assert x == target[0] and target[1] < y < target[3]
