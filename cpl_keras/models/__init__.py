@@ -2,20 +2,22 @@
 
 The names the command lines offer (``VARIANTS``, ``BACKBONES``, from
 ``variants``) come without Keras, so that arguments are checked before it
-is imported; ``build_model``, ``compile_model``, ``CalibrationModel`` and
-``LOSS_MODES`` import it on first use. Importing this package alone does not
+is imported, and so do the training losses (``LOSSES``, ``LOSS_MODES``);
+``build_model``, ``compile_model`` and ``CalibrationModel`` import it on
+first use. Importing this package alone does not
 register the custom functions and layers with Keras; ``cpl_keras.saving``
 does (``cpl_keras.load_model(path)``, or ``import cpl_keras.saving`` before
 ``keras.saving.load_model(path, safe_mode=True)``).
 """
 
-from cpl_keras.models.variants import BACKBONES, VARIANTS
+from cpl_keras.models.variants import BACKBONES, LOSS_MODES, LOSSES, VARIANTS
 
 __all__ = [
-    "BACKBONES", "LOSS_MODES", "VARIANTS", "CalibrationModel", "build_model", "compile_model",
+    "BACKBONES", "LOSSES", "LOSS_MODES", "VARIANTS", "CalibrationModel", "build_model",
+    "compile_model",
 ]
 #: The names that import Keras, by the module that holds them.
-_KERAS = {"LOSS_MODES": "calibration_model", "CalibrationModel": "calibration_model",
+_KERAS = {"CalibrationModel": "calibration_model",
           "build_model": "factory", "compile_model": "factory"}
 
 

@@ -23,8 +23,7 @@ from keras import ops
 
 from cpl_keras import camera, losses
 from cpl_keras.layers import PACKAGE
-
-LOSS_MODES = ("mae", "projection-uniform", "projection-adaptive", "euclidean")
+from cpl_keras.models.variants import LOSS_MODES, LOSSES
 #: The log-variance floor before ``initialise_adaptive_weights``: none.
 NO_FLOOR = -1e4
 
@@ -44,7 +43,7 @@ class CalibrationModel(keras.Model):
         self.calibration = dict(calibration or {"loss": "mae"})
         if self.calibration["loss"] not in LOSS_MODES:
             raise ValueError(f"unknown loss mode {self.calibration['loss']!r}")
-        if self.calibration["loss"] == "projection-adaptive":
+        if self.training_loss.adaptive:
             # s_i of Eq. 9 (alpha_i = exp(-s_i)), one per disentangled term,
             # stored divided by the alpha rate (``log_variance_values``), and
             # their floors (set with the starting values, see
@@ -63,7 +62,13 @@ class CalibrationModel(keras.Model):
 
     @property
     def loss_mode(self):
+        """The name of its training loss (``LOSS_MODES``)."""
         return self.calibration["loss"]
+
+    @property
+    def training_loss(self):
+        """Its training loss (``variants.Loss``)."""
+        return LOSSES[self.calibration["loss"]]
 
     @property
     def alpha_rate(self):
@@ -87,7 +92,7 @@ class CalibrationModel(keras.Model):
 
     def adaptive_weights(self):
         """The learned alpha_i of Eq. 9 by target name (None for other modes)."""
-        if self.loss_mode != "projection-adaptive":
+        if not self.training_loss.adaptive:
             return None
         alphas = ops.convert_to_numpy(ops.exp(-self.log_variance_values()))
         return {name: float(a) for name, a in zip(camera.TARGETS, alphas)}
@@ -123,7 +128,7 @@ class CalibrationModel(keras.Model):
         puts X at fx b / d, millions of metres.) A no-op for other loss
         modes. Returns the alphas.
         """
-        if self.loss_mode != "projection-adaptive":
+        if not self.training_loss.adaptive:
             return None
         y = {name: ops.convert_to_tensor(np.asarray(y[name], "float32")) for name in camera.TARGETS}
         average = {name: ops.broadcast_to(ops.mean(v, axis=0, keepdims=True), ops.shape(v))
@@ -144,25 +149,23 @@ class CalibrationModel(keras.Model):
         return dict(zip(self.output_names, y_pred))
 
     def compute_loss(self, x=None, y=None, y_pred=None, sample_weight=None, training=True):
-        mode = self.loss_mode
-        if mode == "mae":
+        kind = self.training_loss
+        if kind.per_output:
             return super().compute_loss(x, y, y_pred, sample_weight, training)
         if sample_weight is not None:
             raise ValueError(
-                f"the {mode} loss couples all 13 outputs and takes no sample_weight; "
+                f"the {kind.name} loss couples all 13 outputs and takes no sample_weight; "
                 "pass none (or train with the 'mae' loss)"
             )
         y_pred = self._as_dict(y_pred)
-        if mode == "euclidean":
+        if not kind.projection:
             loss = losses.euclidean_loss(y, y_pred)
+        elif kind.adaptive:
+            loss = losses.adaptive_projection_loss(
+                self.projection_terms(y, y_pred), self.log_variance_values(),
+                self.log_variance_floor)
         else:
-            terms = self.projection_terms(y, y_pred)
-            if mode == "projection-uniform":
-                loss = losses.uniform_projection_loss(terms)
-            else:
-                loss = losses.adaptive_projection_loss(
-                    terms, self.log_variance_values(), self.log_variance_floor
-                )
+            loss = losses.uniform_projection_loss(self.projection_terms(y, y_pred))
         if self.losses:
             loss = loss + ops.sum(self.losses)
         return loss

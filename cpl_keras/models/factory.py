@@ -153,24 +153,23 @@ def _build(spec, backbone, height, width, as_released, floors, bounded_pitch_hea
     left = keras.Input((height, width, 3), name="left_image")
     right = keras.Input((height, width, 3), name="right_image")
     scaled_left, scaled_right = _scale_inputs(left, right, as_released)
-    loss = spec.loss_mode(as_released)
+    loss = spec.training_loss(as_released)
     outputs = BUILDERS[spec.builder](
         spec, scaled_left, scaled_right, backbone=backbone, as_released=as_released,
         floors=floors, pitch_activation=bounded_pitch if bounded_pitch_head else None,
         positive_focal_head=positive_focal_head, disparity_activation=disparity,
-        detach=loss.startswith("projection") and disentangle == "exact",
+        detach=loss.projection and disentangle == "exact",
     )
     calibration = {
         "variant": spec.name, "backbone": backbone, "image_size": [height, width],
-        "as_released": as_released, "floors": floors, "loss": loss,
+        "as_released": as_released, "floors": floors, "loss": loss.name,
         "bounded_pitch_head": bounded_pitch_head and spec.builder != "deep_homo",
-        "positive_disparity_head": loss.startswith("projection"),
-        "disparity_ceiling": disparity.ceiling if loss.startswith("projection") else None,
-        "positive_focal_head": (positive_focal_head and loss.startswith("projection")
-                                and spec.camera_graph),
-        "disentangle": disentangle if loss.startswith("projection") else None,
+        "positive_disparity_head": loss.projection,
+        "disparity_ceiling": disparity.ceiling if loss.projection else None,
+        "positive_focal_head": positive_focal_head and loss.projection and spec.camera_graph,
+        "disentangle": disentangle if loss.projection else None,
     }
-    if loss == "projection-adaptive":
+    if loss.adaptive:
         calibration["alpha_rate"] = alpha_rate
     return CalibrationModel(
         inputs={"left_image": left, "right_image": right}, outputs=outputs,
@@ -276,12 +275,12 @@ def compile_model(model, *, learning_rate=None, jit_compile="auto", steps_per_ex
                          f"got {weight_ema!r}")
     names = list(model.output_names)
     loss_weights = None
-    if model.loss_mode == "mae":
+    if model.training_loss.per_output:
         loss, metrics = {name: "mae" for name in names}, None
     else:
         loss, metrics = None, {name: ["mae"] for name in names}
     if target_scale is not None:
-        if model.loss_mode != "mae":
+        if not model.training_loss.per_output:
             raise ValueError(
                 f"target scaling applies to the per-output MAE loss, not {model.loss_mode!r}"
             )

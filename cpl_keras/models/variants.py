@@ -15,6 +15,28 @@ from dataclasses import dataclass
 
 
 @dataclass(frozen=True)
+class Loss:
+    """A training loss, as the rest of the package asks about it (so that no
+    module compares loss names)."""
+
+    name: str            #: its name in model configs and run records (``LOSS_MODES``)
+    per_output: bool     #: Keras's per-output MAE, set at compile (target scaling applies)
+    projection: bool     #: the camera projection terms of Eq. 7 (X, Y, Z through the graph)
+    adaptive: bool       #: Eq. 9's learned weights alpha_i on those terms (MTL-CPL-A)
+
+
+#: Every training loss, by name.
+LOSSES = {loss.name: loss for loss in (
+    Loss("mae", per_output=True, projection=False, adaptive=False),
+    Loss("projection-uniform", per_output=False, projection=True, adaptive=False),
+    Loss("projection-adaptive", per_output=False, projection=True, adaptive=True),
+    Loss("euclidean", per_output=False, projection=False, adaptive=False),
+)}
+#: Their names.
+LOSS_MODES = tuple(LOSSES)
+
+
+@dataclass(frozen=True)
 class Variant:
     """One network of the paper's Table 1."""
 
@@ -33,7 +55,12 @@ class Variant:
     description: str = ""
 
     def loss_mode(self, as_released=False):
+        """The name of its loss (as released: the release's)."""
         return self.released_loss if as_released else self.loss
+
+    def training_loss(self, as_released=False):
+        """Its ``Loss`` (as released: the release's)."""
+        return LOSSES[self.loss_mode(as_released)]
 
 
 #: The towers a variant can be built with (``backbones``), and the smallest

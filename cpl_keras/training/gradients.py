@@ -31,14 +31,14 @@ from cpl_keras.backend import keras_backend
 
 #: The layer whose output both towers feed and every head reads.
 FEATURES = "stereo_features"
-#: Loss modes with terms to compare.
-MODES = ("mae", "projection-uniform", "projection-adaptive")
 
 
 def supported(model):
     """Whether ``term_gradient_norms`` applies to ``model``: a loss of several
     terms, shared features, the JAX backend."""
-    return (keras_backend() == "jax" and getattr(model, "loss_mode", None) in MODES
+    loss = getattr(model, "training_loss", None)
+    return (keras_backend() == "jax" and loss is not None
+            and (loss.per_output or loss.projection)
             and any(layer.name == FEATURES for layer in model.layers))
 
 
@@ -49,12 +49,11 @@ def weighted_terms(model, y, y_pred, log_variances=None, floor=None):
     Eq. 9's ``s_i`` and their floors (MTL-CPL-A)."""
     from keras import ops
 
-    mode = model.loss_mode
-    if mode == "mae":
+    if model.training_loss.per_output:
         return [ops.mean(ops.abs(y_pred[name] - ops.cast(y[name], "float32")))
                 for name in camera.TARGETS]
     terms = model.projection_terms(y, y_pred)
-    if mode == "projection-uniform":
+    if not model.training_loss.adaptive:
         return [term / float(len(terms)) for term in terms]
     s = ops.maximum(log_variances, floor)
     return [ops.exp(-s[i]) * term for i, term in enumerate(terms)]
@@ -95,7 +94,7 @@ class TermGradients:
     def __call__(self, x, y):
         model = self.model
         feature_values = self.towers.predict_on_batch(x)
-        adaptive = model.loss_mode == "projection-adaptive"
+        adaptive = model.training_loss.adaptive
         zeros = np.zeros(len(camera.TARGETS), "float32")
         log_variances = model.log_variance_values() if adaptive else zeros
         floor = model.log_variance_floor.value if adaptive else zeros

@@ -154,7 +154,7 @@ def _check_arguments(*, variant, backbone, split, epochs, batch_size, workers, p
         raise TrainingError(
             f"unknown target scaling {target_scaling!r}; choose one of {', '.join(TARGET_SCALINGS)}"
         )
-    if target_scaling != "none" and spec.loss_mode(as_released) != "mae":
+    if target_scaling != "none" and not spec.training_loss(as_released).per_output:
         raise TrainingError(
             "target scaling applies to the per-output MAE loss (MTL-Baseline, or CPL as "
             f"released), not to {variant}"
@@ -324,7 +324,7 @@ def _build_arguments(spec, *, backbone, image_size, as_released, bounded_pitch_h
         "disentangle": disentangle, "seed": int(seed),
         "disparity_ceiling": disparity_ceiling,
     }
-    if spec.loss_mode(as_released) == "projection-adaptive":
+    if spec.training_loss(as_released).adaptive:
         build["alpha_rate"] = float(ALPHA_RATE if alpha_rate is None else alpha_rate)
     return build
 
@@ -333,7 +333,7 @@ def _disparity_ceiling(setting, spec, as_released, train_disparities):
     """The build's ``disparity_ceiling`` (px): None where the disparity head
     is not the positive one (the direct variants, or as released), and with
     ``"auto"`` ``DISPARITY_CEILING_FACTOR`` times the largest training label."""
-    if as_released or not spec.loss_mode(as_released).startswith("projection"):
+    if as_released or not spec.training_loss(as_released).projection:
         return None
     if setting == "auto":
         return round(DISPARITY_CEILING_FACTOR * float(np.max(train_disparities)), 3)
