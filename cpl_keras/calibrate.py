@@ -48,6 +48,7 @@ exports describe the rig.
 
 from __future__ import annotations
 
+import argparse
 import os
 import sys
 
@@ -63,11 +64,15 @@ PROG = "python -m cpl_keras.calibrate"
 
 
 def focal_argument(text):
-    """argparse type of --focal: ``exif``, or a positive number of pixels;
-    ``(pixels or None, source)``."""
+    """argparse type of --focal: ``exif``, or a positive number of pixels up
+    to ``priors.MAX_FOCAL_PX``; ``(pixels or None, source)``."""
     if text == "exif":
         return None, "exif"
-    return cli.positive_float(text), "--focal"
+    value = cli.positive_float(text)
+    if value > known.MAX_FOCAL_PX:
+        raise argparse.ArgumentTypeError(f"must be at most {known.MAX_FOCAL_PX:,.0f} px (a focal "
+                                         f"length in pixels of the input images), got {text}")
+    return value, "--focal"
 
 
 def main(argv=None):
@@ -86,9 +91,10 @@ def main(argv=None):
                         help="the rig's known baseline: baseline, tx, ty, tz and X, Y, Z are "
                         "scaled to it (the output names what came from it)")
     parser.add_argument("--focal", type=focal_argument, metavar="PX|exif",
-                        help="the known focal length in pixels of the input images, or exif: "
-                        "the left image's 35 mm equivalent (JPEG EXIF); fx, fy and the depth "
-                        "X, Y, Z follow it")
+                        help="the known focal length in pixels of the input images (a "
+                        f"positive number up to {known.MAX_FOCAL_PX:,.0f}), or exif: the left "
+                        "image's 35 mm equivalent (JPEG EXIF); fx, fy and the depth X, Y, Z "
+                        "follow it")
     parser.add_argument("--json-out", help="also write the JSON to this file")
     parser.add_argument("--opencv-yaml", metavar="FILE",
                         help="also write the calibration as OpenCV's stereo YAML (M1, D1, M2, "

@@ -370,6 +370,26 @@ def test_folder_and_pair_arguments_are_one_or_the_other(setup, tmp_path, capsys)
     assert "no stereo pairs" in capsys.readouterr().err and not out.exists()
 
 
+@pytest.mark.parametrize("focal, message", [
+    ("1e30", "at most 1,000,000 px"), ("1000001", "at most 1,000,000 px"),
+    ("inf", "positive number"), ("nan", "positive number"), ("0", "positive number")])
+def test_a_known_focal_length_must_be_finite_and_plausible(tmp_path, capsys, focal, message):
+    """--focal is a positive number of pixels up to priors.MAX_FOCAL_PX (a
+    field of view of 0.34 deg across 6,000 px): one line, exit 2, before
+    any run or image is read; the Python API's Priors likewise."""
+    from cpl_keras import priors as known
+
+    with pytest.raises(SystemExit) as exit_:
+        calibrate.main(["a.png", "b.png", "--run", str(tmp_path), "--focal", focal])
+    assert exit_.value.code == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err[-1].startswith(f"{calibrate.PROG}: error: argument --focal: ") and \
+        message in err[-1], err
+    assert calibrate.focal_argument("1e6") == (1e6, "--focal")
+    with pytest.raises(known.PriorError, match="at most 1,000,000 px"):
+        known.Priors(focal_px=2e6)
+
+
 @pytest.mark.parametrize("rig, pair", [("chessboard", "01"), ("oakd", "desk")])
 def test_a_shipped_real_pair_calibrates_with_spreads_warnings_and_both_exports(
         setup, rig, pair, tmp_path, capsys):
