@@ -17,9 +17,10 @@ output file is written then. A grey image, and predictions outside the range
 of the run's training labels (train_stats.json), are warned about on stderr,
 one line each. The JSON says what the run was trained on (``training``: its
 protocol, split and training label ranges, in the model's input units), the
-spread of each value over crops of the pair (``spread``), which quantities
-one pair determines and which are scale priors (``scale_free``,
-``scale_priors``), what every field means (``fields``), and whether the run
+spread of each value over crops of the pair (``spread``: its standard
+deviation over the whole image and 8 crops, ``spread_method`` says so), what
+rests on the pair rather than on a scene scale and which values are scale
+priors (``from_the_pair``, ``scale_priors``), what every field means (``fields``), and whether the run
 is the demonstration model (then also warned about). One line on stderr,
 and ``real_camera_record`` in the JSON, give the run's record on real
 cameras (``cpl_keras.real_record``): the real rigs it was scored on without

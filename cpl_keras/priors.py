@@ -16,7 +16,7 @@ the user knows them, they replace it:
   baseline / depth = disparity / fx and the fields of view.
 * ``Priors.baseline_m``: every metric quantity (baseline, tx, ty, tz, X, Y,
   Z) is scaled by ``baseline_m / baseline``; pitch, the intrinsics and the
-  disparity are scale-free and stay.
+  disparity are not in metres and stay.
 
 ``exif_focal_px(path, width, height)`` reads a JPEG's 35 mm equivalent focal
 length (EXIF ``FocalLengthIn35mmFilm``) and converts it to pixels over the
@@ -132,7 +132,7 @@ def describe(priors, factor=None):
     if priors.focal_px is not None:
         said["focal_px"] = {"value": priors.focal_px, "source": priors.focal_source or "--focal",
                             "outputs": list(FOCAL_DEPENDENT) + [
-                                "scale_free.baseline_over_depth", "fov_horizontal_deg",
+                                "from_the_pair.baseline_over_depth", "fov_horizontal_deg",
                                 "fov_vertical_deg"]}
     if priors.baseline_m is not None:
         said["baseline_m"] = {"value": priors.baseline_m, "source": "--baseline",
