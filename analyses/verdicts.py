@@ -12,7 +12,9 @@ paired bootstrap of every seed's test pairs agree
     python analyses/verdicts.py --folder paper_results/compact-2000
 
 A folder's splits are those with a ``table1_<split>.json``; a pair is
-compared where the folder has both variants.
+compared where the folder has both variants, over 2 or more seeds (a folder
+with one seed's runs, such as a reproduction's ``partial/`` after its first
+seed, is refused with one line: the seed-spread rule needs a spread).
 
 Produces: ``verdicts.md`` and ``verdicts.json`` in ``--folder``; committed
 for paper_results/cpu-8000/ and paper_results/compact-2000/ (rebuilt from
@@ -68,7 +70,11 @@ def check_against_table(folder, split, name_a, name_b, verdicts):
     for v in verdicts:
         for interval in v.per_seed:
             for row, ours in ((name_a, interval.nmae_a), (name_b, interval.nmae_b)):
-                cell = table["rows"][row]["per_seed"][str(interval.seed)]["targets"]
+                per_seed = table["rows"].get(row, {}).get("per_seed", {})
+                if str(interval.seed) not in per_seed:
+                    raise EvaluationError(f"table1_{split}.json in {folder} has no seed "
+                                          f"{interval.seed} values of {row} (per_seed)")
+                cell = per_seed[str(interval.seed)]["targets"]
                 stored = cell[v.parameter]["nmae"]
                 if abs(stored - ours) > 1e-9 * max(1.0, abs(stored)):
                     raise EvaluationError(f"{row} seed {interval.seed} {v.column}: NMAE "
@@ -167,6 +173,13 @@ def decide_split(folder, split, resamples, seed):
             continue  # (a folder without that variant: inception-2000 has no MTL-CPL-U)
         rows_a, name_a, files_a = load_rows(folder, split, variant_a)
         rows_b, name_b, files_b = load_rows(folder, split, variant_b)
+        if len(rows_a) < 2 or len(rows_b) < 2:
+            from cpl_keras.evaluation import EvaluationError
+
+            raise EvaluationError(
+                f"the verdicts need 2 or more seeds of each row: {folder} has {split} "
+                f"predictions of {name_a} seed(s) {sorted(rows_a)} and {name_b} seed(s) "
+                f"{sorted(rows_b)}")
         if "same_quantity" not in entry:
             same = rules.same_quantities([rows_b[s]["truth"] for s in sorted(rows_b)])
             entry["same_quantity"] = same

@@ -10,24 +10,28 @@ programs may share the cores, it also reports the CPU time the generator used
 time corresponds to on the machine's cores if they were all free.
 """
 
-import argparse
 import os
 import resource
 import tempfile
 import time
 
 
+from cpl_keras import cli  # noqa: E402
 from cpl_keras.data.generate import generate_dataset  # noqa: E402
 from cpl_keras.data.protocols import PROTOCOLS  # noqa: E402
 
 
-def main():
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--pairs", type=int, default=2000)
+def parse_args(argv=None):
+    parser = cli.Parser(prog="bench/bench_generate.py", description=__doc__.splitlines()[0])
+    parser.add_argument("--pairs", type=cli.positive_int, default=2000)
     parser.add_argument("--protocol", default="cvgl", choices=PROTOCOLS)
-    parser.add_argument("--image-size", type=int, default=112)
-    parser.add_argument("--workers", type=int, default=None)
-    args = parser.parse_args()
+    parser.add_argument("--image-size", type=cli.positive_int, default=112)
+    parser.add_argument("--workers", type=cli.worker_count, default=None)
+    return parser.parse_args(argv)
+
+
+def main(argv=None):
+    args = parse_args(argv)
     workers = args.workers or os.cpu_count()
     def cpu_seconds():
         total = 0.0
@@ -57,6 +61,4 @@ def main():
 
 
 if __name__ == "__main__":
-    from cpl_keras import cli
-
     cli.run(main, 'bench/bench_generate.py')

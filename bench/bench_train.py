@@ -14,7 +14,6 @@ goes to stdout (``--json`` writes them to a file as well).
 
 from __future__ import annotations
 
-import argparse
 import importlib.util
 import json
 import os
@@ -24,16 +23,19 @@ import time
 
 
 def parse_args(argv=None):
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    from cpl_keras import cli
+
+    parser = cli.Parser(prog="bench/bench_train.py", description=__doc__.splitlines()[0])
     parser.add_argument("--backend", default=os.environ.get("KERAS_BACKEND", "jax"),
                         choices=("jax", "tensorflow", "torch"))
     parser.add_argument("--variant", default="baseline")
     parser.add_argument("--backbone", default="inception_v3")
-    parser.add_argument("--image-size", type=int, default=112)
-    parser.add_argument("--batch-size", type=int, default=16)
-    parser.add_argument("--steps", type=int, default=12, help="timed training steps")
-    parser.add_argument("--repeats", type=int, default=2, help="timed runs; the best is kept")
-    parser.add_argument("--steps-per-execution", type=int, default=1)
+    parser.add_argument("--image-size", type=cli.positive_int, default=112)
+    parser.add_argument("--batch-size", type=cli.positive_int, default=16)
+    parser.add_argument("--steps", type=cli.positive_int, default=12, help="timed training steps")
+    parser.add_argument("--repeats", type=cli.positive_int, default=2,
+                        help="timed runs; the best is kept")
+    parser.add_argument("--steps-per-execution", type=cli.positive_int, default=1)
     parser.add_argument("--dtype-policy", default="float32",
                         help="Keras dtype policy for the model, e.g. mixed_bfloat16")
     parser.add_argument("--plain-conv", action="store_true",
@@ -41,16 +43,17 @@ def parse_args(argv=None):
                              "to measure what the patches gain")
     parser.add_argument("--no-jit", action="store_true", help="compile with jit_compile=False")
     parser.add_argument("--data", help="read batches from this HDF5 file (StereoSequence)")
-    parser.add_argument("--workers", type=int, default=1, help="StereoSequence threads")
+    parser.add_argument("--workers", type=cli.positive_int, default=1,
+                        help="StereoSequence threads")
     parser.add_argument("--in-memory", default="auto", choices=("auto", "on", "off"),
                         help="with --data: StereoSequence keeps the images in memory "
                              "(auto: when they fit its limit) or streams every batch (off)")
-    parser.add_argument("--matmul-size", type=int, default=4096)
+    parser.add_argument("--matmul-size", type=cli.positive_int, default=4096)
     parser.add_argument("--compare-tensorflow", action="store_true",
                         help="also run this benchmark under the TensorFlow backend, if installed")
-    parser.add_argument("--flops-per-step", type=float,
+    parser.add_argument("--flops-per-step", type=cli.positive_float,
                         help="FLOPs of one training step, for backends that cannot count them")
-    parser.add_argument("--predict-repeats", type=int, default=2,
+    parser.add_argument("--predict-repeats", type=cli.positive_int, default=2,
                         help="timed predict passes over the same samples; the best is kept")
     parser.add_argument("--json", help="append the result lines to this file")
     return parser.parse_args(argv)

@@ -16,7 +16,6 @@ and the warnings calibrate printed.
 
 from __future__ import annotations
 
-import argparse
 import dataclasses
 import math
 import os
@@ -24,6 +23,10 @@ import sys
 import tempfile
 
 os.environ.setdefault("KERAS_BACKEND", "jax")
+
+
+#: The shipped rigs, each calibrated with its ``without-<rig>`` run.
+RIGS = ("chessboard", "middlebury", "oakd")
 
 
 def truths():
@@ -61,12 +64,30 @@ def without_paths(result, folder_name):
     return {"rig": rig, "pairs": pairs}
 
 
+def held_out_runs(runs_dir):
+    """rig -> its ``without-<rig>`` run directory in ``runs_dir`` (the rigs
+    that have one); RunError when ``runs_dir`` is not a folder or holds none."""
+    from cpl_keras.runs import RunError
+
+    if not os.path.isdir(runs_dir):
+        raise RunError(f"--runs-dir is not a directory: {runs_dir}")
+    found = {rig: os.path.join(runs_dir, f"without-{rig}") for rig in RIGS
+             if os.path.isdir(os.path.join(runs_dir, f"without-{rig}"))}
+    if not found:
+        raise RunError(f"no without-<rig> run ({', '.join(RIGS)}) in {runs_dir}")
+    return found
+
+
 def main(argv=None):
-    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    from cpl_keras import cli
+
+    parser = cli.Parser(prog="bench/calibrate_held_out.py",
+                        description=__doc__.split("\n\n")[0])
     parser.add_argument("--runs-dir", required=True, help="folder of without-<rig> runs")
     parser.add_argument("--out", required=True, help="folder for the calibrations and summary.md")
     parser.add_argument("--aspect", default="square", choices=("square", "model"))
     args = parser.parse_args(argv)
+    runs = held_out_runs(args.runs_dir)  # (before anything is written)
 
     import numpy as np
 
@@ -79,9 +100,9 @@ def main(argv=None):
              "(rel. error) | network fy (rel. error) | hFoV true / calibrated | fx spread over "
              "pairs | warnings |", "|---|---|---|---|---|---|---|---|---|"]
     for rig, truth in truths().items():
-        run_dir = os.path.join(args.runs_dir, f"without-{rig}")
-        if not os.path.isdir(run_dir):
-            print(f"{rig}: no run {run_dir}, skipped", flush=True)
+        run_dir = runs.get(rig)
+        if run_dir is None:
+            print(f"{rig}: no run without-{rig} in {args.runs_dir}, skipped", flush=True)
             continue
         folder, fx, fy = truth()
         warnings = []

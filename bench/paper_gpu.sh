@@ -4,6 +4,7 @@
 #
 #   bash bench/paper_gpu.sh --fetch-wheels      # here, once: the wheels the GPU machine
 #                                               # lacks (Keras, namex, optree) into .whl/
+#                                               # (git-ignored by .gitignore)
 #   bash bench/paper_gpu.sh "$OUT"              # there (device run, carry [".whl"])
 #   bash bench/paper_gpu.sh runs/dry --dry-run  # here: every step of the plan, tiny
 #
@@ -25,7 +26,6 @@ set -euo pipefail
 cd "$(dirname "$0")/.."
 
 if [ "${1:-}" = "--fetch-wheels" ]; then
-    grep -qx '/.whl/' .git/info/exclude 2>/dev/null || echo '/.whl/' >> .git/info/exclude
     keras=$(python3 -c 'from importlib.metadata import version; print(version("keras"))')
     python3 -m pip download -q --no-deps --only-binary=:all: --python-version 3.12 \
         --implementation cp --platform manylinux_2_28_x86_64 --platform manylinux_2_17_x86_64 \

@@ -17,9 +17,10 @@ output file is written then. A grey image, and predictions outside the range
 of the run's training labels (train_stats.json), are warned about on stderr,
 one line each. The JSON says what the run was trained on (``training``: its
 protocol, split and training label ranges, in the model's input units), the
-spread of each value over crops of the pair (``spread``), which quantities
-one pair determines and which are scale priors (``scale_free``,
-``scale_priors``), what every field means (``fields``), and whether the run
+spread of each value over crops of the pair (``spread``: its standard
+deviation over the whole image and 8 crops, ``spread_method`` says so), what
+rests on the pair rather than on a scene scale and which values are scale
+priors (``from_the_pair``, ``scale_priors``), what every field means (``fields``), and whether the run
 is the demonstration model (then also warned about). One line on stderr,
 and ``real_camera_record`` in the JSON, give the run's record on real
 cameras (``cpl_keras.real_record``): the real rigs it was scored on without
@@ -48,6 +49,7 @@ exports describe the rig.
 
 from __future__ import annotations
 
+import argparse
 import os
 import sys
 
@@ -63,11 +65,15 @@ PROG = "python -m cpl_keras.calibrate"
 
 
 def focal_argument(text):
-    """argparse type of --focal: ``exif``, or a positive number of pixels;
-    ``(pixels or None, source)``."""
+    """argparse type of --focal: ``exif``, or a positive number of pixels up
+    to ``priors.MAX_FOCAL_PX``; ``(pixels or None, source)``."""
     if text == "exif":
         return None, "exif"
-    return cli.positive_float(text), "--focal"
+    value = cli.positive_float(text)
+    if value > known.MAX_FOCAL_PX:
+        raise argparse.ArgumentTypeError(f"must be at most {known.MAX_FOCAL_PX:,.0f} px (a focal "
+                                         f"length in pixels of the input images), got {text}")
+    return value, "--focal"
 
 
 def main(argv=None):
@@ -86,9 +92,10 @@ def main(argv=None):
                         help="the rig's known baseline: baseline, tx, ty, tz and X, Y, Z are "
                         "scaled to it (the output names what came from it)")
     parser.add_argument("--focal", type=focal_argument, metavar="PX|exif",
-                        help="the known focal length in pixels of the input images, or exif: "
-                        "the left image's 35 mm equivalent (JPEG EXIF); fx, fy and the depth "
-                        "X, Y, Z follow it")
+                        help="the known focal length in pixels of the input images (a "
+                        f"positive number up to {known.MAX_FOCAL_PX:,.0f}), or exif: the left "
+                        "image's 35 mm equivalent (JPEG EXIF); fx, fy and the depth X, Y, Z "
+                        "follow it")
     parser.add_argument("--json-out", help="also write the JSON to this file")
     parser.add_argument("--opencv-yaml", metavar="FILE",
                         help="also write the calibration as OpenCV's stereo YAML (M1, D1, M2, "

@@ -52,7 +52,7 @@ FIELDS = {
     "fy": "focal length along v (px)",
     "u0": "principal point u (px; pixel centres at integers)",
     "v0": "principal point v (px)",
-    "baseline": "distance between the camera centres (m; a scale prior, see scale_free)",
+    "baseline": "distance between the camera centres (m; a scale prior, see scale_priors)",
     "disparity": "disparity of the projection pixel (px; Eq. 4a: fx * baseline / xCam)",
     "tx": "right camera's position along the left camera's forward axis (m; scale prior)",
     "ty": "right camera's position along the left camera's left axis (m; scale prior)",
@@ -64,20 +64,26 @@ FIELDS = {
 }
 #: What the JSON says of the quantities a pair does not fix.
 SCALE_PRIORS = ("baseline", "tx", "ty", "tz", "X", "Y", "Z")
-SCALE_NOTE = ("the pair's matches fix the disparity in pixels; for a rectified or nearly "
-              "rectified rig (parallel optical axes) they carry nothing of fx, fy, u0, v0 "
-              "(its fundamental matrix does not depend on them), so those come from how "
-              "scenes looked in training, as does baseline / depth = disparity / fx through "
-              "fx; the metres of baseline, tx, ty, tz and X, Y, Z come from the scene scale "
-              "seen in training (scale priors)")
+SCALE_NOTE = ("what does not rest on the scene scale seen in training: the pair's matches "
+              "fix the disparity, in pixels of the input images (it scales with the images' "
+              "size: not scale-free); baseline / depth = disparity / fx is unitless, but for "
+              "a rectified or nearly rectified rig (parallel optical axes) the matches carry "
+              "nothing of fx, fy, u0, v0 (its fundamental matrix does not depend on them), so "
+              "fx, and through it baseline / depth, come from how scenes looked in training; "
+              "the metres of baseline, tx, ty, tz and X, Y, Z come from the scene scale seen "
+              "in training (scale_priors)")
 ASPECT_NOTES = {
     "square": "square pixels: fy = fx (px of the input images); network_fy is the network's "
               "own fy, which guesses the aspect ratio of the squashed image from content",
     "model": "fy is the network's fy head (the pair squashed to the model's square input)",
 }
-SPREAD_METHOD = (f"standard deviation over the whole image and {{}} crops of "
-                 f"{int(100 * TTA_FRACTION[0])}-{int(100 * TTA_FRACTION[1])} % of each side, "
-                 "each mapped back to the full image's pixels")
+SPREAD_METHOD = ("each value's sample standard deviation (n - 1 in the denominator), in its "
+                 "own unit, over {} predictions: the whole image and {} crops of "
+                 f"{int(100 * TTA_FRACTION[0])}-{int(100 * TTA_FRACTION[1])} % of each side at "
+                 "seeded positions, each crop's prediction mapped back to the full image's "
+                 "pixels, with any known value in place (a known focal length's fx: 0); how far "
+                 "the estimate moves with the framing, not its error (a confident wrong value "
+                 "has a small spread)")
 RELEASED_NOTE = ("run trained as released: pitch converted from degrees; disparity is the "
                  "release's StereoBM mean label, not a pixel disparity")
 #: The rig's parameters (the disparity belongs to each pair's scene).
@@ -118,8 +124,8 @@ class Calibration(_Record):
     fov_vertical_deg: float   #: vertical field of view from fy and H
     units: dict               #: each parameter's unit
     spread: dict              #: each value's standard deviation over crops of the pair
-    spread_method: str        #: how the spread was measured
-    scale_free: dict          #: what one pair fixes: the disparity, baseline / depth
+    spread_method: str        #: what the spread is and how it was measured
+    from_the_pair: dict       #: what rests on the pair, not on a scene scale (SCALE_NOTE)
     scale_priors: list        #: the values whose metres come from training's scene scale
     fields: dict              #: what each value means, with its unit
     demonstration_model: bool  #: the run is the demonstration model
@@ -348,10 +354,10 @@ class Calibrator:
             fov_horizontal_deg=float(np.degrees(fov_from_focal(values["fx"], width))),
             fov_vertical_deg=float(np.degrees(fov_from_focal(values["fy"], height))),
             units={name: UNITS[name] for name in PARAMETERS},
-            spread=spread, spread_method=SPREAD_METHOD.format(len(windows) - 1),
-            scale_free={"disparity_px": values["disparity"],
-                        "baseline_over_depth": values["disparity"] / values["fx"],
-                        "note": SCALE_NOTE},
+            spread=spread, spread_method=SPREAD_METHOD.format(len(windows), len(windows) - 1),
+            from_the_pair={"disparity_px": values["disparity"],
+                           "baseline_over_depth": values["disparity"] / values["fx"],
+                           "note": SCALE_NOTE},
             scale_priors=list(SCALE_PRIORS), fields=dict(FIELDS), demonstration_model=demo,
             aspect=aspect, network_fy=network_fy, aspect_note=ASPECT_NOTES[aspect],
             training=_training(run, ranges, size_w, size_h),

@@ -16,7 +16,7 @@ the user knows them, they replace it:
   baseline / depth = disparity / fx and the fields of view.
 * ``Priors.baseline_m``: every metric quantity (baseline, tx, ty, tz, X, Y,
   Z) is scaled by ``baseline_m / baseline``; pitch, the intrinsics and the
-  disparity are scale-free and stay.
+  disparity are not in metres and stay.
 
 ``exif_focal_px(path, width, height)`` reads a JPEG's 35 mm equivalent focal
 length (EXIF ``FocalLengthIn35mmFilm``) and converts it to pixels over the
@@ -41,6 +41,10 @@ METRIC = ("baseline", "tx", "ty", "tz", "X", "Y", "Z")
 FOCAL_DEPENDENT = ("fx", "fy", "X", "Y", "Z")
 #: The diagonal of a 36 x 24 mm frame.
 FULL_FRAME_DIAGONAL_MM = math.hypot(36.0, 24.0)
+#: The largest known focal length taken, pixels: a field of view of 0.34 deg
+#: across a 6,000 px wide image, beyond any lens (an 800 mm lens on such a
+#: full-frame sensor is 133,000 px); a larger one is a slip (units, a typo).
+MAX_FOCAL_PX = 1e6
 #: EXIF's Exif IFD pointer and its FocalLengthIn35mmFilm tag.
 EXIF_IFD, FOCAL_35MM = 0x8769, 0xA405
 
@@ -67,6 +71,9 @@ class Priors:
                                           math.isfinite(value) and value > 0):
                 raise PriorError(f"a known {name.replace('_', ' ')} must be a positive number, "
                                  f"got {value!r}")
+        if self.focal_px is not None and self.focal_px > MAX_FOCAL_PX:
+            raise PriorError(f"a known focal length must be at most {MAX_FOCAL_PX:,.0f} px, got "
+                             f"{self.focal_px:g} px")
 
     def __bool__(self):
         return self.baseline_m is not None or self.focal_px is not None
@@ -125,7 +132,7 @@ def describe(priors, factor=None):
     if priors.focal_px is not None:
         said["focal_px"] = {"value": priors.focal_px, "source": priors.focal_source or "--focal",
                             "outputs": list(FOCAL_DEPENDENT) + [
-                                "scale_free.baseline_over_depth", "fov_horizontal_deg",
+                                "from_the_pair.baseline_over_depth", "fov_horizontal_deg",
                                 "fov_vertical_deg"]}
     if priors.baseline_m is not None:
         said["baseline_m"] = {"value": priors.baseline_m, "source": "--baseline",

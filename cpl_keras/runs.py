@@ -393,6 +393,8 @@ def load_run(run_dir):
     """The run directory as a ``Run``. RunError naming the first missing or
     malformed file."""
     run_dir = os.path.abspath(os.fspath(run_dir))
+    if os.path.exists(run_dir) and not os.path.isdir(run_dir):
+        raise RunError(f"not a run directory (a file, not a directory): {run_dir}")
     if not os.path.isdir(run_dir):
         raise RunError(f"run directory not found: {run_dir}")
     paths = {name: os.path.join(run_dir, name) for name in REQUIRED + (MODEL,)}

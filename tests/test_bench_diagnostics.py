@@ -85,6 +85,34 @@ def test_a_missing_data_file_is_one_line_and_exit_2(script, tmp_path):
         f"bench/{script}: error: dataset not found: {missing}"], done.stderr
 
 
+@pytest.mark.parametrize("script, args, message", [
+    ("bench_generate.py", ["--pairs", "0"], "argument --pairs: must be a positive integer, got 0"),
+    ("bench_train.py", ["--steps", "-1"], "argument --steps: must be a positive integer, got -1"),
+    ("calibrate_held_out.py", ["--runs-dir", "{tmp}/none"], "--runs-dir is not a directory: "
+     "{tmp}/none"),
+    ("calibrate_held_out.py", ["--runs-dir", "{tmp}"],
+     "no without-<rig> run (chessboard, middlebury, oakd) in {tmp}"),
+])
+def test_bench_commands_refuse_bad_arguments_in_one_line(script, args, message, tmp_path):
+    """A count that is not positive, or a folder of held-out runs that is
+    missing or holds none: one line, exit status 2, no traceback and no
+    empty table, nothing written to --out."""
+    import subprocess
+    import sys
+
+    out = tmp_path / "out"
+    args = [a.format(tmp=tmp_path) for a in args]
+    if script == "calibrate_held_out.py":
+        args += ["--out", str(out)]
+    done = subprocess.run([sys.executable, os.path.join(BENCH, script), *args],
+                          env=dict(os.environ, KERAS_BACKEND="jax", PYTHONPATH=REPO), text=True,
+                          capture_output=True, timeout=120)
+    assert done.returncode == 2, done.stderr
+    assert done.stderr.strip().splitlines() == [
+        f"bench/{script}: error: " + message.format(tmp=tmp_path)], done.stderr
+    assert done.stdout == "" and not out.exists()
+
+
 @pytest.mark.parametrize("jobs,message", [
     (None, "no jobs file {jobs}"),
     ("cvgl_baseline-s2 --variant baseline\n", "{jobs}: no line 'data PROTOCOL PAIRS SEED'"),

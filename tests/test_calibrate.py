@@ -260,7 +260,7 @@ def test_from_window_maps_a_crop_prediction_back_by_hand():
 
 def test_spread_scale_priors_fields_and_the_demonstration_notice(setup, tmp_path, capsys):
     """The JSON gives a spread per parameter (crops of the pair), the
-    scale-free quantities beside the scale priors, a meaning for every
+    quantities that rest on the pair beside the scale priors, a meaning for every
     field; a demonstration run is announced as such on stderr."""
     root = setup["root"]
     args = [str(root / "left.png"), str(root / "right.png"), "--run"]
@@ -271,7 +271,12 @@ def test_spread_scale_priors_fields_and_the_demonstration_notice(setup, tmp_path
     assert all(np.isfinite(v) and v >= 0 for v in result["spread"].values())
     assert result["spread"]["fx"] > 0           # the crops do move the estimate
     p = result["parameters"]
-    assert result["scale_free"]["baseline_over_depth"] == pytest.approx(p["disparity"] / p["fx"])
+    assert result["from_the_pair"]["baseline_over_depth"] == \
+        pytest.approx(p["disparity"] / p["fx"])
+    assert result["from_the_pair"]["disparity_px"] == p["disparity"]
+    assert "in pixels" in result["from_the_pair"]["note"]
+    assert result["spread_method"].startswith("each value's sample standard deviation")
+    assert f"over {1 + calibration.TTA_CROPS} predictions" in result["spread_method"]
     assert set(result["scale_priors"]) == {"baseline", "tx", "ty", "tz", "X", "Y", "Z"}
     assert set(result["fields"]) == set(PARAMETERS) | {"X", "Y", "Z"}
     assert result["demonstration_model"] is False and "demonstration" not in captured.err
@@ -368,6 +373,26 @@ def test_folder_and_pair_arguments_are_one_or_the_other(setup, tmp_path, capsys)
     assert calibrate.main(["--folder", str(tmp_path), "--run", setup["run"],
                            "--json-out", str(out)]) == 2
     assert "no stereo pairs" in capsys.readouterr().err and not out.exists()
+
+
+@pytest.mark.parametrize("focal, message", [
+    ("1e30", "at most 1,000,000 px"), ("1000001", "at most 1,000,000 px"),
+    ("inf", "positive number"), ("nan", "positive number"), ("0", "positive number")])
+def test_a_known_focal_length_must_be_finite_and_plausible(tmp_path, capsys, focal, message):
+    """--focal is a positive number of pixels up to priors.MAX_FOCAL_PX (a
+    field of view of 0.34 deg across 6,000 px): one line, exit 2, before
+    any run or image is read; the Python API's Priors likewise."""
+    from cpl_keras import priors as known
+
+    with pytest.raises(SystemExit) as exit_:
+        calibrate.main(["a.png", "b.png", "--run", str(tmp_path), "--focal", focal])
+    assert exit_.value.code == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err[-1].startswith(f"{calibrate.PROG}: error: argument --focal: ") and \
+        message in err[-1], err
+    assert calibrate.focal_argument("1e6") == (1e6, "--focal")
+    with pytest.raises(known.PriorError, match="at most 1,000,000 px"):
+        known.Priors(focal_px=2e6)
 
 
 @pytest.mark.parametrize("rig, pair", [("chessboard", "01"), ("oakd", "desk")])
@@ -505,7 +530,7 @@ def test_a_known_focal_sets_fx_fy_and_moves_the_depth_by_eq_4a(setup, capsys):
     assert (u_known, v_known) == pytest.approx((u, v), rel=1e-5, abs=1e-5)
     assert xcam_known == pytest.approx(50.0 * p["baseline"] / p["disparity"], rel=1e-5)
     assert known["fov_horizontal_deg"] == pytest.approx(np.degrees(fov_from_focal(50.0, 64)))
-    assert known["scale_free"]["baseline_over_depth"] == pytest.approx(p["disparity"] / 50.0)
+    assert known["from_the_pair"]["baseline_over_depth"] == pytest.approx(p["disparity"] / 50.0)
     assert known["priors"]["focal_px"]["source"] == "--focal"
     assert set(known["from_prior"]) == {"fx", "fy", "X", "Y", "Z"}
     assert known["spread"]["fx"] == 0.0

@@ -86,6 +86,23 @@ def test_dataset_and_preview(tmp_path):
     assert sorted(os.listdir(tmp_path)) == ["d.h5", "p.png"]
 
 
+@pytest.mark.parametrize("protocol, seed", [("cvgl", 0), ("random", 1)])
+def test_the_committed_contact_sheets_are_the_current_generators(tmp_path, protocol, seed):
+    """docs/preview_<protocol>.png is what docs/data.md's command draws now
+    (pixels; a sheet drawn by an older generator moves its labels and the
+    projection pixel: 1-2 % of the pixels differ)."""
+    import numpy as np
+
+    from cpl_keras.data.generate import write_preview
+
+    sheet = write_preview(tmp_path / "p.png", protocol, 10000, seed)
+    with Image.open(sheet) as image, \
+            Image.open(os.path.join(REPO, "docs", f"preview_{protocol}.png")) as committed:
+        now, then = (np.asarray(i.convert("RGB"), np.int16) for i in (image, committed))
+    assert now.shape == then.shape
+    assert np.mean(np.any(now != then, axis=-1)) < 0.002
+
+
 def test_summary_reports_sky_at_the_release_pixel(tmp_path):
     import re
 

@@ -2,13 +2,17 @@
 its flags exist and its values pass their checks. Commands with a
 placeholder (a CAPITALISED name such as RUN_DIR or DATA.h5, ``...``, an
 optional ``[--flag]``, or ``$VARIABLE``) are templates, as README.md says;
-they are checked too once the placeholders are filled in with examples."""
+they are checked too once the placeholders are filled in with examples. The
+cheap ones also run, each in a fresh clone, and leave its `git status` clean."""
 
 import argparse
 import glob
 import os
 import re
 import shlex
+import shutil
+import subprocess
+import sys
 
 import pytest
 
@@ -92,45 +96,72 @@ def test_every_documented_command_parses(document, command, monkeypatch):
 
 
 #: The cheap documented commands run for real, at tiny scale (the flags added
-#: last override the printed ones), in a fresh directory: (entry, added flags).
+#: last override the printed ones), each in a fresh clone of the repository:
+#: (entry, added flags).
 CHEAP = {"cpl_keras.data.generate": ["--pairs", "6", "--image-size", "32", "--workers", "1",
                                      "--no-progress"],
          "cpl_keras.real.build": ["--image-size", "32", "--crops", "1"]}
 
 
-@pytest.mark.slow
-def test_the_cheap_documented_commands_run_in_a_fresh_directory(tmp_path):
-    """Every README and docs command of the data generator and the real-set
-    builder that is not a template runs as printed (at tiny scale) from an
-    empty directory, exits 0, and writes only there (two at a time, each in
-    a directory of its own)."""
-    import subprocess
-    import sys
+def _git(*args, cwd):
+    return subprocess.run(["git", *args], cwd=cwd, capture_output=True, text=True,
+                          timeout=60, check=True).stdout
 
+
+@pytest.mark.slow
+def test_the_cheap_documented_commands_leave_a_clean_checkout(tmp_path):
+    """Every README and docs command of the data generator and the real-set
+    builder that is not a template runs as printed (at tiny scale) from the
+    root of a fresh clone of the repository, exits 0, and leaves `git status
+    --porcelain` there empty: what it writes goes under the git-ignored
+    data/ and runs/, never over a tracked file nor beside them (two at a
+    time, each in a clone of its own, removed once checked). The repository
+    itself is left as it was."""
+    if subprocess.run(["git", "rev-parse", "--is-inside-work-tree"], cwd=REPO,
+                      capture_output=True, timeout=60).returncode != 0:
+        pytest.skip("the repository is not a git checkout")
     ran, pending = [], []
     env = dict(os.environ, KERAS_BACKEND="jax", PYTHONPATH=REPO)
-    before = subprocess.run(["git", "status", "--porcelain"], cwd=REPO, capture_output=True,
-                            text=True, timeout=60).stdout
+    before = _git("status", "--porcelain", cwd=REPO)
     for document, command in COMMANDS:
         entry, argv = _argv(command)
         if entry not in CHEAP or _fill(command) != command or (entry, tuple(argv)) in ran:
             continue
         ran.append((entry, tuple(argv)))
         pending.append((document, command, [sys.executable, "-m", entry, *argv, *CHEAP[entry]]))
-    # two at a time (the machine's two cores), each in an empty directory of its own
+    # two at a time (the machine's two cores), each in a clone of its own
     for start in range(0, len(pending), 2):
         running = []
         for number, (document, command, args) in enumerate(pending[start:start + 2], start):
-            cwd = tmp_path / str(number)
-            cwd.mkdir()
-            running.append((document, command, subprocess.Popen(
-                args, cwd=cwd, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+            clone = tmp_path / str(number)
+            _git("clone", "--quiet", "--shared", REPO, str(clone), cwd=tmp_path)
+            assert _git("status", "--porcelain", cwd=clone) == ""
+            running.append((document, command, clone, subprocess.Popen(
+                args, cwd=clone, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
                 text=True)))
-        for document, command, process in running:
+        for document, command, clone, process in running:
             _, err = process.communicate(timeout=600)
             assert process.returncode == 0, (document, command, err[-2000:])
+            status = _git("status", "--porcelain", cwd=clone)
+            assert status == "", (document, command, status)
+            assert any((clone / d).is_dir() for d in ("data", "runs")), command
+            shutil.rmtree(clone)
     assert {entry for entry, _ in ran} == set(CHEAP), ran
     assert len(ran) >= 5
-    after = subprocess.run(["git", "status", "--porcelain"], cwd=REPO, capture_output=True,
-                           text=True, timeout=60).stdout
-    assert after == before          # nothing written into the repository
+    assert _git("status", "--porcelain", cwd=REPO) == before   # nothing written into it
+
+
+def test_no_script_writes_gits_own_files():
+    """No command, script or benchmark of the repository edits .git/ (the
+    wheels bench/paper_gpu.sh fetches go to .whl/, which .gitignore
+    ignores)."""
+    sources = [os.path.join(REPO, name) for name in ("train.py", "evaluate.py")]
+    for folder in ("bench", "analyses", "cpl_keras"):
+        for root, _, files in os.walk(os.path.join(REPO, folder)):
+            sources += [os.path.join(root, f) for f in files if f.endswith((".py", ".sh"))]
+    assert len(sources) > 50
+    for path in sources:
+        with open(path) as f:
+            assert ".git/" not in f.read(), path
+    with open(os.path.join(REPO, ".gitignore")) as f:
+        assert "/.whl/" in f.read().split()

@@ -158,6 +158,10 @@ def test_bad_inputs(tiny, tmp_path, capsys):
     (tmp_path / "a_file").write_text("")
     _fails(["--run", tiny["run"], "--data", tiny["data"], "--out", str(tmp_path / "a_file")],
            capsys, "output directory")
+    _fails(["--run", str(tmp_path / "a_file"), "--data", tiny["data"], "--out", str(out)],
+           capsys, "not a directory")
+    _fails(["--run", str(tmp_path / "no_run"), "--data", tiny["data"], "--out", str(out)],
+           capsys, "run directory not found")
     with pytest.raises(SystemExit) as exit_info:
         evaluate.main(["--table", "3", "--runs", tiny["run"]])
     assert exit_info.value.code == 2

@@ -117,6 +117,45 @@ def test_different_test_pairs_raise_one_line():
         v.compare(a, {0: b[0]}, resamples=20)
 
 
+def test_one_seed_is_refused_in_one_line():
+    """The seed-spread rule needs a spread: one seed a side is refused."""
+    with pytest.raises(EvaluationError, match="2 or more seeds") as error:
+        v.compare(rows((0.01,)), rows((0.02,)), resamples=20)
+    assert "\n" not in str(error.value)
+
+
+def test_the_script_refuses_a_folder_of_one_seed(tmp_path):
+    """analyses/verdicts.py on a reproduction's partial/ folder after its
+    first seed (one seed's predictions, a table without per_seed values):
+    one line naming what is missing, exit 2, no verdicts written."""
+    import json
+    import os
+    import shutil
+    import subprocess
+    import sys
+
+    from helpers import REPO
+
+    source = os.path.join(REPO, "paper_results", "compact-2000")
+    (tmp_path / "runs").mkdir()
+    for variant in ("cpl-a", "baseline"):
+        name = f"cvgl_{variant}-s0_predictions.npz"
+        shutil.copy(os.path.join(source, "runs", name), tmp_path / "runs" / name)
+    with open(os.path.join(source, "table1_cvgl.json")) as f:
+        table = json.load(f)
+    for row in table["rows"].values():
+        row.pop("per_seed", None)
+    (tmp_path / "table1_cvgl.json").write_text(json.dumps(table))
+    result = subprocess.run([sys.executable, os.path.join(REPO, "analyses", "verdicts.py"),
+                             "--folder", str(tmp_path), "--resamples", "20"],
+                            capture_output=True, text=True, timeout=120,
+                            env=dict(os.environ, KERAS_BACKEND="jax", PYTHONPATH=REPO))
+    assert result.returncode == 2, result.stderr[-2000:]
+    assert result.stderr.count("\n") == 1 and "Traceback" not in result.stderr
+    assert "2 or more seeds" in result.stderr and "seed(s) [0]" in result.stderr
+    assert sorted(os.listdir(tmp_path)) == ["runs", "table1_cvgl.json"]
+
+
 def test_every_column_is_a_parameter():
     assert [v.COLUMN_PARAMETER[c] for c in v.COLUMNS] == list(PARAMETERS)
 

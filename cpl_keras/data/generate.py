@@ -3,7 +3,7 @@
 Usage::
 
     python -m cpl_keras.data.generate --protocol cvgl --pairs 10000 --out data/cvgl.h5
-    python -m cpl_keras.data.generate --protocol random --pairs 64 --preview sheet.png
+    python -m cpl_keras.data.generate --protocol random --pairs 64 --preview runs/sheet.png
 
 Each pair is rendered and labelled by ``cpl_keras.data.pair`` (the paper's
 13 targets, and what the release's labels need beside them). Pairs are

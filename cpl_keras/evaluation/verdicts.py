@@ -222,6 +222,9 @@ def compare(rows_a, rows_b, *, resamples=RESAMPLES, level=LEVEL,
     if sorted(rows_b) != seeds:
         raise EvaluationError(f"rows A and B have different seeds: {seeds} and "
                               f"{sorted(rows_b)}")
+    if len(seeds) < 2:
+        raise EvaluationError(f"the verdicts need 2 or more seeds (the seed-spread rule): "
+                              f"the rows have seed(s) {seeds}")
     intervals = {s: seed_intervals(s, rows_a[s], rows_b[s], resamples=resamples,
                                     level=level, bootstrap_seed=bootstrap_seed)
                  for s in seeds}
