@@ -202,8 +202,8 @@ def main(argv=None):
                         epochs=args.epochs, split=split, seed=args.seed,
                         augment=None if args.augment == "none" else args.augment,
                         time_budget_s=args.time_budget, verbose=2)
-        if summary["status"] != "finished":
-            raise SystemExit(f"{run_dir}: {summary['status']} ({summary.get('stopped')})")
+        if summary.config.status != "finished":
+            raise SystemExit(f"{run_dir}: {summary.config.status} ({summary.config.stopped})")
         publish(run_dir, os.path.join(args.out, "runs"), name)
         table = evaluation.make_table2([run_dir], [rigs[r] for r in tested], geometric=False)
         command = "python bench/leave_one_rig_out.py " + " ".join(argv or sys.argv[1:])

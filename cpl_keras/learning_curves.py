@@ -268,7 +268,8 @@ def run_experiment(*, data_dir, runs_dir, out_dir, pairs, backbone, image_size=1
                         backbone=backbone, split=split, seed=seed, patience=patience,
                         verbose=verbose, command="python -m cpl_keras.learning_curves --experiment")
         loads[name] = os.getloadavg()[2] if time.time() - start > 600 else os.getloadavg()[1]
-        print(f"{name}: {summary['epochs_run']} epochs, {summary['stopped']}", file=sys.stderr)
+        print(f"{name}: {summary.config.epochs_run} epochs, {summary.config.stopped}",
+              file=sys.stderr)
     run_dirs = [r for r in run_dirs if os.path.exists(os.path.join(r, "log.csv"))]
     return write_outputs(run_dirs, out_dir, loads)
 

@@ -163,9 +163,9 @@ def variant_run(stereo40, shared_folder):
             from cpl_keras.training import train
 
             os.makedirs(folder)
-            summary = train(stereo40, variant=variant, run_dir=os.path.join(folder, "run"),
-                            return_model=False, **VARIANT_RUN)
-            summary = {k: v for k, v in summary.items() if k != "model"}
+            result = train(stereo40, variant=variant, run_dir=os.path.join(folder, "run"),
+                           return_model=False, **VARIANT_RUN)
+            summary = result.config.to_dict()   # (the run's final config.json)
             with open(os.path.join(folder, "summary.json"), "w") as f:
                 json.dump(summary, f)
 

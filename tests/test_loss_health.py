@@ -274,7 +274,7 @@ def test_deep_homo_saved_by_training_has_statistics_of_its_weights(tmp_path, tin
     lagged = str(tmp_path / "r0")  # Keras's moving average, as released
     summary = train(tiny_cvgl, variant="deep-homo", run_dir=lagged, epochs=1, batch_size=5,
                     backbone="small", seed=0, bn_recompute_batches=0, verbose=0)
-    assert summary["status"] == "finished"
+    assert summary.config.status == "finished"
     lagging, truth = first_bn_mean(lagged)
     assert np.abs(lagging - truth).max() > 0.3 * np.abs(truth).max()
 

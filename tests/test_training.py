@@ -129,7 +129,7 @@ def test_every_variant_writes_the_run_directory(variant, dataset, variant_run, t
         assert runs.load_run(run_dir).config.build["disparity_ceiling"] is None
         # Running the same command on a finished run trains nothing more.
         again = train(dataset, variant=variant, run_dir=run_dir, seed=1, **TINY)
-        assert again["epochs_run"] == 2 and again["best_epoch"] == summary["best_epoch"]
+        assert again.config.epochs_run == 2 and again.config.best_epoch == summary["best_epoch"]
         assert len(read_log(run_dir)) == 2
 
 
@@ -361,9 +361,9 @@ def test_nan_loss_stops_and_keeps_the_best_weights(dataset, tmp_path, monkeypatc
     run_dir = tmp_path / "run"
     summary = train(dataset, variant="baseline", run_dir=str(run_dir), epochs=4, batch_size=8,
                     backbone="small", verbose=0, patience=10)
-    assert summary["status"] == "failed" and summary["best_epoch"] == 1
-    assert summary["stopped"] == "non-finite training loss at epoch 2, batch 1"
-    assert "non-finite" in summary_line(summary) and summary["epochs_run"] == 1
+    assert summary.config.status == "failed" and summary.config.best_epoch == 1
+    assert summary.config.stopped == "non-finite training loss at epoch 2, batch 1"
+    assert "non-finite" in summary_line(summary) and summary.config.epochs_run == 1
     assert json.loads((run_dir / "config.json").read_text())["status"] == "failed"
     model = keras.saving.load_model(run_dir / "model.keras", safe_mode=True)
     saved = model.get_weights()
@@ -405,9 +405,9 @@ def test_early_stopping_ends_the_run_and_model_keras_holds_the_best_epoch(
     run_dir = tmp_path / "run"
     summary = train(dataset, variant="baseline", run_dir=str(run_dir), epochs=6, batch_size=8,
                     backbone="small", verbose=0, patience=2, monitor="loss")
-    assert (summary["epochs_run"], summary["best_epoch"]) == (4, 2)
-    assert summary["stopped"] == "early stopping: no improvement of val_loss for 2 epochs"
-    assert summary["status"] == "finished" and summary["best_val_loss"] == 2.0
+    assert (summary.config.epochs_run, summary.config.best_epoch) == (4, 2)
+    assert summary.config.stopped == "early stopping: no improvement of val_loss for 2 epochs"
+    assert summary.config.status == "finished" and summary.config.best_val_loss == 2.0
     saved = keras.saving.load_model(run_dir / "model.keras", safe_mode=True).get_weights()
     for a, b in zip(saved, kept[1]):
         np.testing.assert_array_equal(a, b)
@@ -652,7 +652,7 @@ def test_resume_after_a_kill_during_the_final_save_keeps_the_optimizer_state(dat
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
         summary = train(dataset, **kwargs)
-    assert summary["status"] == "finished" and not summary.get("finished_before")
+    assert summary.config.status == "finished" and not summary.finished_before
     assert not [w for w in caught if "Skipping variable loading" in str(w.message)]
     again = keras.saving.load_model(run_dir / "model.keras", safe_mode=True)
     assert int(again.optimizer.iterations.numpy()) == steps
@@ -794,7 +794,7 @@ def test_old_zero_based_log_is_read_alike_and_renumbered_on_resume(dataset, tmp_
     assert runs.read_log(os.path.join(tmp_path, "new.csv")) == runs.read_log(log)
 
     summary = train(dataset, variant="baseline", run_dir=run_dir, **dict(TINY, epochs=3))
-    assert summary["status"] == "finished" and summary["epochs_run"] == 3
+    assert summary.config.status == "finished" and summary.config.epochs_run == 3
     with open(log) as f:
         resumed = f.read()
     assert resumed.startswith(new_text)  # the first two rows as before, renumbered
@@ -971,12 +971,12 @@ def test_the_nmae_monitor_keeps_the_epoch_of_the_lowest_validation_nmae(dataset,
             assert float(row[f"val_nmae_{name}"]) == pytest.approx(parts[name], rel=1e-6)
         assert float(row["val_nmae"]) == pytest.approx(sum(parts.values()), rel=1e-6)
     scores = [float(row["val_nmae"]) for row in rows]
-    assert summary["best_epoch"] == 1 + int(np.argmin(scores))
+    assert summary.config.best_epoch == 1 + int(np.argmin(scores))
     with open(os.path.join(run_dir, "config.json")) as f:
         config = json.load(f)
     assert config["monitor"] == "nmae" and config["bn_statistics"] == "fixed"
     assert config["best_score"] == pytest.approx(min(scores), rel=1e-6)
-    best_row = rows[summary["best_epoch"] - 1]
+    best_row = rows[summary.config.best_epoch - 1]
     assert config["best_val_loss"] == pytest.approx(float(best_row["val_loss"]), rel=1e-6)
 
 

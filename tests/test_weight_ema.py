@@ -28,7 +28,7 @@ def runs_compared(stereo40, tmp_path_factory):
     for name, momentum in (("averaged", 0.5), ("trained", 0.0)):
         made[name] = str(root / name)
         summary = train(stereo40, run_dir=made[name], epochs=3, weight_ema=momentum, **TINY)
-        assert summary["status"] == "finished"
+        assert summary.config.status == "finished"
     return made
 
 
@@ -81,8 +81,8 @@ def test_a_run_stopped_after_an_epoch_resumes_to_the_same_end(runs_compared, ste
     with pytest.raises(KeyboardInterrupt):
         train(stereo40, run_dir=run_dir, epochs=3, weight_ema=0.5, **TINY)
     monkeypatch.undo()
-    assert train(stereo40, run_dir=run_dir, epochs=3, weight_ema=0.5, **TINY)[
-        "epochs_run"] == 3
+    assert train(stereo40, run_dir=run_dir, epochs=3, weight_ema=0.5,
+                 **TINY).config.epochs_run == 3
     for resumed, whole in zip(_log(run_dir), _log(runs_compared["averaged"])):
         for key in ("loss", "val_loss", "val_fx_mae", "val_disparity_mae"):
             assert float(resumed[key]) == pytest.approx(float(whole[key]), rel=1e-4), key

@@ -268,11 +268,11 @@ def _train(args, demo, seed, epochs, backbone, run_dir, command, prog):
         )
     except (Error, OSError) as error:  # (DatasetError, TrainingError, RunError, ...)
         return cli.fail(prog, error)
-    if summary.get("finished_before"):
+    if summary.finished_before:
         # nothing trained, no file changed
-        print(f"already {summary['status']}, left as it is: {summary_line(summary)}")
+        print(f"already {summary.config.status}, left as it is: {summary_line(summary)}")
         return 0
-    if summary["status"] == "failed":
+    if summary.config.status == "failed":
         # diverged: the run directory says so (and keeps the best weights so
         # far); the next run into it replaces it
         return cli.fail(prog, summary_line(summary))

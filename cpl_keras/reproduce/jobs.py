@@ -77,9 +77,9 @@ def train_all(config, paths, runs_dir, seed, jobs=1, out_dir=None, train=True):
         log(f"training {label} ({config.backbone}, up to {config.epochs} epochs)")
         summary = training.train(data, verbose=2, **plan)
         log(training.summary_line(summary))
-        if summary["best_epoch"] is None:
+        if summary.config.best_epoch is None:
             raise training.TrainingError(f"{plan['run_dir']}: no epoch completed "
-                                         f"({summary['stopped']})")
+                                         f"({summary.config.stopped})")
         if publish:
             publish_run(plan["run_dir"], *publish)
     return trained

@@ -15,6 +15,6 @@ it): ``sequence``, ``checkpointing`` and ``progress`` import Keras, and
 """
 
 from cpl_keras.training.planning import TrainingError, plan_run
-from cpl_keras.training.trainer import summary_line, train
+from cpl_keras.training.trainer import TrainResult, summary_line, train
 
-__all__ = ["TrainingError", "plan_run", "summary_line", "train"]
+__all__ = ["TrainResult", "TrainingError", "plan_run", "summary_line", "train"]

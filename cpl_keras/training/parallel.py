@@ -63,7 +63,7 @@ def _train_job(data, options, parent, log, prog):
         print(f"{prog}: error: {options['run_dir']}: {error}", file=sys.stderr)
         sys.exit(2)
     log(trainer.summary_line(summary))
-    sys.exit(0 if summary["best_epoch"] is not None else 1)
+    sys.exit(0 if summary.config.best_epoch is not None else 1)
 
 
 def _interrupt(running):

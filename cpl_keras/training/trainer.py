@@ -48,7 +48,7 @@ from cpl_keras.training.planning import RESUME_KEYS, TrainingError, plan_run
 # ---------------------------------------------------------------------------
 def train(data, *, steps_per_execution=1, verbose=1, return_model=True, term_gradients=False,
           **options):
-    """Train a variant on the dataset file ``data``; returns the summary dict.
+    """Train a variant on the dataset file ``data``; returns a ``TrainResult``.
 
     ``options`` are ``planning.plan_run``'s keyword arguments (``variant``
     and ``run_dir`` required; ``epochs``, ``batch_size``, ``learning_rate``,
@@ -56,13 +56,13 @@ def train(data, *, steps_per_execution=1, verbose=1, return_model=True, term_gra
     ``time_budget_s``, ``disparity_ceiling``, ... with the paper's
     defaults): everything is validated before the run directory is created.
     An existing run directory holding the same run is resumed.
-    The summary has ``best_epoch`` (1-based), ``best_val_loss``,
-    ``epochs_run``, ``run_dir``, ``status``, ``stopped`` (why training
-    ended early, or None) and ``model`` (the trained model, best weights).
-    A run that has already ended is left untouched (``finished_before``:
-    True in its summary; its model.keras keeps its optimizer state); with
+    The result holds the run's final ``config`` (``best_epoch``, 1-based,
+    ``best_val_loss``, ``epochs_run``, ``run_dir``, ``status``, ``stopped``:
+    why training ended early, or None) and ``model`` (the trained model,
+    best weights). A run that has already ended is left untouched
+    (``finished_before``; its model.keras keeps its optimizer state); with
     ``return_model=False`` it is read without importing Keras and the
-    summary's ``model`` is None (train.py: a finished run's command returns
+    result's ``model`` is None (train.py: a finished run's command returns
     at once).
     ``steps_per_execution``: training steps per compiled call (Keras's).
     ``term_gradients``: log, every epoch, the gradient that each loss term
@@ -140,16 +140,16 @@ def group_fingerprint(plan, finished):
         **{key: getattr(config, key) for key in RESUME_KEYS if key != "data"},
         "dataset pairs": config.num_pairs,
         "labels and split (sha256)": digest.hexdigest()[:16],
-        "run status": "finished" if finished is not None else (
-            runs.read_config(config.run_dir, {}) or {}).get("status", "new"),
+        "run status": "finished" if finished is not None else getattr(
+            runs.read_run_config(config.run_dir), "status", None) or "new",
         "epochs completed": int(state.get("epoch", 0)),
     }
 
 
 def _failed_run(run_dir):
     """The config of the run in ``run_dir`` if it failed (a non-finite loss), else None."""
-    config = runs.read_config(run_dir, {}) if os.path.isdir(run_dir) else {}
-    return config if config.get("status") == "failed" else None
+    config = runs.read_run_config(run_dir) if os.path.isdir(run_dir) else None
+    return config if config is not None and config.status == "failed" else None
 
 
 def _replace_failed_run(run_dir):
@@ -158,27 +158,37 @@ def _replace_failed_run(run_dir):
     failed = _failed_run(run_dir)
     if failed is None:
         return
-    print(f"Replacing the failed run in {run_dir} ({failed.get('stopped')})", file=sys.stderr,
+    print(f"Replacing the failed run in {run_dir} ({failed.stopped})", file=sys.stderr,
           flush=True)
     shutil.rmtree(run_dir)
 
 
+@dataclasses.dataclass(frozen=True)
+class TrainResult:
+    """What ``train`` returns."""
+
+    # config.json as the run left it: status, stopped, epochs_run, best_epoch
+    # (1-based), best_val_loss, best_score, wall_time_s, ... (``runs.RunConfig``)
+    config: runs.RunConfig
+    # the trained model (best weights); None when not loaded (return_model=False)
+    model: object = None
+    # model.keras was written (an epoch completed)
+    has_model: bool = False
+    # the run had ended before this call: nothing was trained, no file changed
+    finished_before: bool = False
+
+
 def _finished_run(run_dir, load_model=True):
-    """The summary of the run in ``run_dir`` if it has finished, read without
-    changing a file; else None. ``finished_before`` is True in it;
-    ``model`` is model.keras, loaded (None without ``load_model``)."""
-    config = runs.read_config(run_dir, {}) if os.path.isdir(run_dir) else {}
-    if config.get("status") != "finished":
+    """The ``TrainResult`` of the run in ``run_dir`` if it has finished, read
+    without changing a file (``finished_before``; ``model`` is model.keras,
+    loaded, unless ``load_model`` is False); else None."""
+    config = runs.read_run_config(run_dir) if os.path.isdir(run_dir) else None
+    if config is None or config.status != "finished":
         return None
     path = os.path.join(run_dir, runs.MODEL)
     model = runs.load_model_file(path) if load_model and os.path.isfile(path) else None
-    return {
-        "run_dir": run_dir, "status": config["status"], "stopped": config.get("stopped"),
-        "epochs_run": config.get("epochs_run"), "best_epoch": config.get("best_epoch"),
-        "best_val_loss": config.get("best_val_loss"), "has_model": os.path.isfile(path),
-        "monitor": config.get("monitor"), "best_score": config.get("best_score"),
-        "finished_before": True, "model": model,
-    }
+    return TrainResult(config=dataclasses.replace(config, run_dir=run_dir), model=model,
+                       has_model=os.path.isfile(path), finished_before=True)
 
 
 def _run(plan, steps_per_execution, verbose, term_gradients=False):
@@ -265,9 +275,7 @@ def _run_locked(plan, model, config, run_dir, verbose, term_gradients=False):
         for sequence in (train_seq, val_seq, bn_seq):
             if sequence is not None:
                 sequence.close()
-    summary = _finish(model, run_dir, config, run_state.state)
-    summary["model"] = model
-    return summary
+    return dataclasses.replace(_finish(model, run_dir, config, run_state.state), model=model)
 
 
 #: Training pairs (the first of the split, the same every epoch) on which
@@ -416,12 +424,7 @@ def _finish(model, run_dir, config, state):
             if name.endswith(".weights.h5"):
                 os.remove(os.path.join(backup, name))
     distributed.barrier("run finished")
-    return {
-        "run_dir": run_dir, "status": config.status, "stopped": config.stopped,
-        "epochs_run": config.epochs_run, "best_epoch": config.best_epoch,
-        "best_val_loss": config.best_val_loss, "has_model": bool(best),
-        "monitor": config.monitor, "best_score": config.best_score,
-    }
+    return TrainResult(config=config, has_model=bool(best))
 
 
 def _best_row(state):
@@ -430,17 +433,18 @@ def _best_row(state):
     return next((row for row in state.get("rows", []) if row["epoch"] == best), {})
 
 
-def summary_line(summary):
-    """The one-line end-of-run summary."""
-    if summary["best_epoch"] is None:
-        return (f"no epoch completed ({summary['stopped']}); nothing saved as model.keras; "
-                f"run directory: {summary['run_dir']}")
+def summary_line(result):
+    """The one-line end-of-run summary of a ``TrainResult``."""
+    config = result.config
+    if config.best_epoch is None:
+        return (f"no epoch completed ({config.stopped}); nothing saved as model.keras; "
+                f"run directory: {config.run_dir}")
     score = ""
-    if summary.get("monitor") == "nmae" and summary.get("best_score") is not None:
-        score = f"val_nmae {summary['best_score']:.4g}, "
-    line = (f"best epoch {summary['best_epoch']} of {summary['epochs_run']}, "
-            f"best val_loss {summary['best_val_loss']:.6g}, {score}"
-            f"run directory: {summary['run_dir']}")
-    if summary["status"] == "failed":
-        line = f"stopped: {summary['stopped']}; kept the best weights: " + line
+    if config.monitor == "nmae" and config.best_score is not None:
+        score = f"val_nmae {config.best_score:.4g}, "
+    line = (f"best epoch {config.best_epoch} of {config.epochs_run}, "
+            f"best val_loss {config.best_val_loss:.6g}, {score}"
+            f"run directory: {config.run_dir}")
+    if config.status == "failed":
+        line = f"stopped: {config.stopped}; kept the best weights: " + line
     return line
