@@ -287,26 +287,22 @@ def plan_run(data, *, variant, run_dir, epochs=200, batch_size=16, learning_rate
         disentangle=disentangle, seed=seed, alpha_rate=alpha_rate,
         disparity_ceiling=_disparity_ceiling(disparity_ceiling, spec, as_released,
                                              targets["disparity"][indices["train"]]))
-    run_dir = os.path.abspath(os.fspath(run_dir))
-    config = {
-        "variant": variant, "build": build, "data": data, "num_pairs": num_pairs,
-        "protocol": protocol, "training_rigs": dataset["rigs"], "split": split,
-        "test_fraction": test_fraction, "val_fraction": val_fraction,
-        "num_train": len(indices["train"]), "num_val": len(indices["val"]),
-        "num_test": len(indices["test"]), "seed": int(seed), "batch_size": int(batch_size),
-        "learning_rate": None if learning_rate is None else float(learning_rate),
-        "epochs": int(epochs), "patience": int(patience),
-        "bn_recompute_batches": int(bn_recompute_batches), "bn_statistics": bn_statistics,
-        "monitor": monitor, "weight_ema": float(weight_ema), "target_scaling": target_scaling,
-        "time_budget_s": None if time_budget_s is None else float(time_budget_s),
-        "augment": augment, "data_parallel": bool(data_parallel), "num_devices": devices,
-        "num_processes": processes,
-        "device_batch_size": run_batch, "command": command, "run_dir": run_dir,
-        "keras_backend": keras_backend(),
-    }
-    _check_run_dir(run_dir, config, keep_ceiling=disparity_ceiling == "auto", keep=defaulted)
-    return RunPlan(config=runs.RunConfig(**config), targets=targets, split=indices,
-                   workers=int(workers))
+    config = runs.RunConfig(
+        variant=variant, build=build, data=data, num_pairs=num_pairs, protocol=protocol,
+        training_rigs=dataset["rigs"], split=split, test_fraction=test_fraction,
+        val_fraction=val_fraction, num_train=len(indices["train"]),
+        num_val=len(indices["val"]), num_test=len(indices["test"]), seed=int(seed),
+        batch_size=int(batch_size),
+        learning_rate=None if learning_rate is None else float(learning_rate),
+        epochs=int(epochs), patience=int(patience),
+        bn_recompute_batches=int(bn_recompute_batches), bn_statistics=bn_statistics,
+        monitor=monitor, weight_ema=float(weight_ema), target_scaling=target_scaling,
+        time_budget_s=None if time_budget_s is None else float(time_budget_s),
+        augment=augment, data_parallel=bool(data_parallel), num_devices=devices,
+        num_processes=processes, device_batch_size=run_batch, command=command,
+        run_dir=os.path.abspath(os.fspath(run_dir)), keras_backend=keras_backend())
+    config = _check_run_dir(config, keep_ceiling=disparity_ceiling == "auto", keep=defaulted)
+    return RunPlan(config=config, targets=targets, split=indices, workers=int(workers))
 
 
 def _build_arguments(spec, *, backbone, image_size, as_released, bounded_pitch_head,
@@ -346,21 +342,23 @@ def _device_count():
     return len(keras.distribution.list_devices())
 
 
-def _check_run_dir(run_dir, config, keep_ceiling=False, keep=()):
-    """A run directory is new, empty, or holds the same run (to resume).
-    With ``keep_ceiling`` (``disparity_ceiling="auto"``) a run is resumed
-    with its own disparity ceiling (a run of before the ceiling: None), and
-    with its own value of each config key of ``keep`` (settings left at
-    their defaults, whose defaults have changed since: the BatchNorm
-    statistics, the monitor and the weights' moving average)."""
+def _check_run_dir(config, keep_ceiling=False, keep=()):
+    """``config`` (a ``RunConfig``) for its run directory, which must be new,
+    empty, or hold the same run (to resume). With ``keep_ceiling``
+    (``disparity_ceiling="auto"``) a run is resumed with its own disparity
+    ceiling (a run of before the ceiling: None), and with its own value of
+    each config key of ``keep`` (settings left at their defaults, whose
+    defaults have changed since: the BatchNorm statistics, the monitor and
+    the weights' moving average)."""
+    run_dir = config.run_dir
     if not os.path.exists(run_dir):
-        return
+        return config
     if not os.path.isdir(run_dir):
         raise TrainingError(f"run directory is not a directory: {run_dir}")
+    path = os.path.join(run_dir, runs.CONFIG)
     try:
         old = runs.read_config(run_dir)
     except runs.RunError:
-        path = os.path.join(run_dir, runs.CONFIG)
         raise TrainingError(f"{path} is unreadable; use another --run-dir") from None
     if old is None:
         backup = os.path.join(run_dir, runs.BACKUP)
@@ -369,19 +367,25 @@ def _check_run_dir(run_dir, config, keep_ceiling=False, keep=()):
         started = os.listdir(run_dir) == [runs.BACKUP] and set(os.listdir(backup)) <= {"lock"}
         if os.listdir(run_dir) and not started:
             raise TrainingError(f"run directory {run_dir} is not empty and holds no run")
-        return
-    if old.get("status") == "failed":
-        return  # (replaced by the next run: ``_replace_failed_run``)
+        return config
+    try:
+        old = runs.RunConfig.from_dict(old, path)
+    except runs.RunError as error:  # (no variant, build or data: not a run of this package)
+        raise TrainingError(f"run directory {run_dir} holds a different run ({error}); use "
+                            f"another --run-dir") from None
+    if old.status == "failed":
+        return config  # (replaced by the next run: ``_replace_failed_run``)
     if keep_ceiling:
-        config["build"]["disparity_ceiling"] = old["build"]["disparity_ceiling"]
-    for key in keep:
-        if key in old:
-            config[key] = old[key]
-    config = runs.normalise_config(config)
+        config = dataclasses.replace(config, build=dict(
+            config.build, disparity_ceiling=old.build["disparity_ceiling"]))
+    config = dataclasses.replace(config, **{key: getattr(old, key) for key in keep
+                                            if getattr(old, key) is not None})
     for key in RESUME_KEYS:
-        if old.get(key) != config.get(key):
+        if getattr(old, key) != getattr(config, key):
             raise TrainingError(
                 f"run directory {run_dir} holds a different run ({key}: "
-                f"{old.get(key)!r} there, {config.get(key)!r} now); use another --run-dir"
+                f"{getattr(old, key)!r} there, {getattr(config, key)!r} now); use another "
+                f"--run-dir"
             )
+    return config
 
