@@ -13,6 +13,9 @@
   checked without writing anything (its missing folders may be created:
   their nearest existing ancestor is a writable folder), then its folders
   created just before it is written;
+* ``check_room(what, path, disk, memory)``: a command's estimate of the disk
+  space and memory it needs, checked against what this machine has before
+  any work (one line naming both, ``size_text`` for the sizes);
 * ``interruptible()``, ``check_interrupt()``, ``interrupted(prog, resume)``:
   Ctrl-C (SIGINT). Inside ``interruptible()`` one SIGINT raises ``Interrupted``
   in the main thread and is remembered, so that a library that swallows the
@@ -36,6 +39,7 @@ import gc
 import math
 import os
 import shlex
+import shutil
 import signal
 import sys
 import threading
@@ -168,6 +172,53 @@ def check_output_file(path):
 def make_parent(path):
     """Create the missing folders above the output file ``path``."""
     os.makedirs(os.path.dirname(os.path.abspath(os.fspath(path))), exist_ok=True)
+
+
+def size_text(size):
+    """A number of bytes in words: ``512 bytes``, ``75.3 KB``, ``9.3 GB``
+    (decimal units, up to PB)."""
+    if size < 1000:
+        return f"{size:.0f} bytes"
+    for unit in ("KB", "MB", "GB", "TB"):
+        size /= 1000
+        if size < 1000:
+            return f"{size:.1f} {unit}"
+    return f"{size / 1000:,.0f} PB"
+
+
+def available_memory():
+    """Bytes of memory a new allocation can have now (``MemAvailable`` of
+    /proc/meminfo; elsewhere the free pages), or None when unknown."""
+    try:
+        with open("/proc/meminfo") as f:
+            for line in f:
+                if line.startswith("MemAvailable:"):
+                    return int(line.split()[1]) * 1024
+    except (OSError, ValueError, IndexError):
+        pass
+    try:
+        return os.sysconf("SC_AVPHYS_PAGES") * os.sysconf("SC_PAGE_SIZE")
+    except (OSError, ValueError, AttributeError):
+        return None
+
+
+def check_room(what, path, disk=0, memory=0):
+    """Raise ValueError (one line) when ``what`` (a plural phrase, "500
+    crops at 112 px") needs more disk space (``disk``: the fewest bytes its
+    output file ``path`` can take, in the folder that holds or will hold
+    it) or more memory (``memory`` bytes, an estimate) than this machine
+    has free. Writes nothing."""
+    folder = os.path.dirname(os.path.abspath(os.fspath(path)))
+    while not os.path.isdir(folder):
+        folder = os.path.dirname(folder)
+    free = shutil.disk_usage(folder).free
+    if disk > free:
+        raise ValueError(f"{what} need at least {size_text(disk)} of disk; {size_text(free)} is "
+                         f"free in {folder}")
+    available = available_memory()
+    if available is not None and memory > available:
+        raise ValueError(f"{what} need about {size_text(memory)} of memory; "
+                         f"{size_text(available)} is available")
 
 
 # ---------------------------------------------------------------------------

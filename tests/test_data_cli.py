@@ -24,6 +24,9 @@ def _cli(*args):
     (["--pairs", "4", "--image-size", "8"], "image_size"),
     (["--pairs", "four"], "pairs"),
     (["--pairs", "4", "--workers", "0"], "workers"),
+    # refused before any work: the file cannot fit on any disk
+    (["--pairs", "10000000000000"], "10000000000000 cvgl pairs at 112 px (at least 19.0 KB a "
+     "pair on disk) need at least 190 PB of disk;"),
 ])
 def test_bad_arguments_one_line_exit_2_no_file(tmp_path, args, needle):
     out = tmp_path / "d.h5"

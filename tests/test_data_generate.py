@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from cpl_keras import camera
-from cpl_keras.data import generate
+from cpl_keras.data import blocks, generate
 from cpl_keras.data.generate import generate_dataset
 from cpl_keras.data.pair import released_disparity
 from cpl_keras.data.protocols import PROTOCOLS
@@ -227,9 +227,11 @@ def test_released_disparity_is_the_raw_stereobm_mean():
     assert released_disparity(left[:20, :20], right[:20, :20]) == -16.0
 
 
-def test_exception_mid_write_leaves_no_file(tmp_path, monkeypatch):
+def _crash_after_first_block(monkeypatch):
+    """Blocks of 2 pairs, and a renderer that crashes at the second one;
+    returns a callable that mends it (the blocks stay of 2 pairs)."""
+    original = blocks.render_block
     calls = []
-    original = generate.render_block
 
     def failing(*args):
         if calls:
@@ -237,11 +239,75 @@ def test_exception_mid_write_leaves_no_file(tmp_path, monkeypatch):
         calls.append(1)
         return original(*args)
 
-    monkeypatch.setattr(generate, "render_block", failing)
-    monkeypatch.setattr(generate, "BLOCK", 2)
+    monkeypatch.setattr(blocks, "BLOCK", 2)
+    monkeypatch.setattr(blocks, "render_block", failing)
+    return lambda: monkeypatch.setattr(blocks, "render_block", original)
+
+
+def test_a_crash_keeps_the_partial_file_and_the_next_call_continues_it_byte_for_byte(
+        tmp_path, monkeypatch):
+    mend = _crash_after_first_block(monkeypatch)
     out = tmp_path / "d.h5"
+    kwargs = dict(pairs=6, image_size=16, workers=1, progress=False)
     with pytest.raises(RuntimeError):
-        generate_dataset(out, pairs=6, image_size=16, workers=1, progress=False)
+        generate_dataset(out, **kwargs)
+    assert os.listdir(tmp_path) == ["d.h5.partial"]       # nothing under the final name
+    with h5py.File(tmp_path / "d.h5.partial", "r") as f:
+        assert f.attrs["pairs_complete"] == 2
+    mend()
+    lines = []
+    assert generate_dataset(out, log=lines.append, **kwargs) == str(out)
+    assert lines == [f"resuming {out}.partial at pair 2 of 6"]
+    assert os.listdir(tmp_path) == ["d.h5"]
+    (tmp_path / "whole").mkdir()
+    whole = generate_dataset(tmp_path / "whole" / "d.h5", **kwargs)
+    with open(out, "rb") as a, open(whole, "rb") as b:
+        assert a.read() == b.read()                       # the very same file
+
+
+def test_a_partial_file_of_other_arguments_is_refused_untouched_or_restarted(
+        tmp_path, monkeypatch):
+    mend = _crash_after_first_block(monkeypatch)
+    out, partial = tmp_path / "d.h5", tmp_path / "d.h5.partial"
+    kwargs = dict(pairs=6, image_size=16, workers=1, progress=False)
+    with pytest.raises(RuntimeError):
+        generate_dataset(out, seed=0, **kwargs)
+    mend()
+    before = partial.read_bytes()
+    with pytest.raises(ValueError, match=r"d\.h5\.partial holds an interrupted run of other "
+                       r"settings \(seed 0, not 1\); delete it, or start again with --restart$"):
+        generate_dataset(out, seed=1, **kwargs)
+    assert partial.read_bytes() == before and not out.exists()
+    lines = []
+    generate_dataset(out, seed=1, restart=True, log=lines.append, **kwargs)
+    assert lines == [] and os.listdir(tmp_path) == ["d.h5"]
+    with StereoFile(out) as data:
+        assert data.metadata["seed"] == 1 and len(data) == 6
+
+
+def test_an_unreadable_partial_file_is_started_again(tmp_path):
+    out = tmp_path / "d.h5"
+    (tmp_path / "d.h5.partial").write_bytes(b"\x89HDF\r\n\x1a\n" + b"x" * 100)
+    lines = []
+    generate_dataset(out, pairs=3, image_size=16, workers=1, progress=False, log=lines.append)
+    assert lines == [f"{out}.partial cannot be read (an interrupted write); starting again "
+                     "from the first pair"]
+    assert os.listdir(tmp_path) == ["d.h5"]
+
+
+def test_tables_beyond_the_free_memory_are_refused_before_any_work(tmp_path, monkeypatch):
+    from cpl_keras import cli
+
+    def never(*args):
+        raise AssertionError("rendered a block")
+
+    monkeypatch.setattr(blocks, "render_block", never)
+    monkeypatch.setattr(cli, "available_memory", lambda: 10**6)
+    # random: a rig every 8 pairs, its configuration held by the parent and each worker
+    with pytest.raises(ValueError, match=r"^8000 random pairs at 16 px .* need about 24\.0 MB "
+                       r"of memory; 1\.0 MB is available$"):
+        generate_dataset(tmp_path / "d.h5", protocol="random", pairs=8000, image_size=16,
+                         workers=2, progress=False)
     assert os.listdir(tmp_path) == []
 
 

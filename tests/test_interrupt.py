@@ -4,6 +4,7 @@ training run that the same command resumes (cpl_keras.cli.interruptible)."""
 
 import json
 import os
+import re
 import signal
 import subprocess
 import sys
@@ -11,6 +12,7 @@ import time
 
 import pytest
 
+from cpl_keras.data.storage import StereoFile
 from helpers import REPO, write_stereo_fixture
 
 
@@ -105,15 +107,51 @@ def test_ctrl_c_stops_training_resumably(tmp_path, train_cache):
     assert config["status"] == "finished" and config["epochs_run"] == 6
 
 
-def test_ctrl_c_stops_generation_and_leaves_no_partial_file(tmp_path):
-    out = tmp_path / "cvgl.h5"
-    process = _start(["-m", "cpl_keras.data.generate", "--pairs", "4000", "--image-size", "32",
-                      "--workers", "2", "--no-progress", "--out", str(out)])
-    assert _wait_for(lambda: os.path.exists(str(out) + ".partial"))
-    time.sleep(0.5)
+def test_ctrl_c_stops_generation_and_the_same_command_continues_it_to_the_same_bytes(tmp_path):
+    """Ctrl-C once the first block is written (the progress bar says so):
+    the bar's line ended, one line, exit 130, the worker pool ended without
+    a leaked semaphore, ``.partial`` kept; the same command says where it
+    resumes and makes the very file that a run never interrupted makes."""
+    import threading
+
+    command = ["-m", "cpl_keras.data.generate", "--pairs", "480", "--image-size", "16",
+               "--workers", "2", "--out", "x.h5"]
+    (tmp_path / "a").mkdir()
+    (tmp_path / "b").mkdir()
+    env = dict(os.environ, KERAS_BACKEND="jax", PYTHONPATH=REPO)
+    process = subprocess.Popen([sys.executable, *command], cwd=tmp_path / "a", env=env,
+                               stdout=subprocess.DEVNULL, stderr=subprocess.PIPE,
+                               start_new_session=True)
+    err = bytearray()
+    reader = threading.Thread(target=lambda: err.extend(process.stderr.read()), daemon=True)
+    chunks = iter(lambda: os.read(process.stderr.fileno(), 4096), b"")
+    for chunk in chunks:                   # until the bar shows the first block
+        err.extend(chunk)
+        if b"/480 pairs" in err:
+            break
+    assert b"/480 pairs" in err, err
     _ctrl_c(process)
-    _one_line_130(process, "python -m cpl_keras.data.generate")
-    assert os.listdir(tmp_path) == []
+    reader.start()
+    assert process.wait(timeout=60) == 130
+    reader.join(timeout=60)
+    text = err.decode()
+    assert "Traceback" not in text and "leaked" not in text, text
+    last = text.split("\n")[-2]           # (its own line, not after the bar's \r)
+    assert last == ("python -m cpl_keras.data.generate: interrupted; x.h5.partial keeps the "
+                    "blocks written in full; the same command continues it"), text
+    assert os.listdir(tmp_path / "a") == ["x.h5.partial"]
+
+    resumed = subprocess.run([sys.executable, *command], cwd=tmp_path / "a", env=env,
+                             capture_output=True, text=True, timeout=300)
+    assert resumed.returncode == 0, resumed.stderr
+    start = int(re.search(r"^resuming x\.h5\.partial at pair (\d+) of 480$",
+                          resumed.stderr, re.M).group(1))
+    assert 32 <= start < 480 and start % 32 == 0
+    whole = subprocess.run([sys.executable, *command], cwd=tmp_path / "b", env=env,
+                           capture_output=True, text=True, timeout=300)
+    assert whole.returncode == 0 and "resuming" not in whole.stderr, whole.stderr
+    assert os.listdir(tmp_path / "a") == ["x.h5"]
+    assert (tmp_path / "a" / "x.h5").read_bytes() == (tmp_path / "b" / "x.h5").read_bytes()
 
 
 def test_a_ctrl_c_swallowed_during_generation_stops_it_before_the_file_is_written(
@@ -136,7 +174,7 @@ def test_a_ctrl_c_swallowed_during_generation_stops_it_before_the_file_is_writte
                           "--no-progress", "--out", str(out)]) == 130
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and "data.generate: interrupted" in err, err
-    assert os.listdir(tmp_path) == []
+    assert os.listdir(tmp_path) == ["cvgl.h5.partial"]  # (its first block, to be continued)
 
 
 def test_ctrl_c_stops_the_reproduction_resumably(tmp_path):
@@ -149,7 +187,9 @@ def test_ctrl_c_stops_the_reproduction_resumably(tmp_path):
     _ctrl_c(process)
     line = _one_line_130(process, "evaluate.py")
     assert "run the same command again: python evaluate.py --reproduce --quick" in line
-    assert not [n for n in os.listdir(data_dir) if n.endswith(".partial")]
+    for name in os.listdir(data_dir):  # (a .partial file is continued by the same command)
+        if not name.endswith(".partial"):
+            StereoFile(data_dir / name).close()  # whole, or it would not be there
 
 
 def test_a_ctrl_c_swallowed_by_a_callback_prints_nothing_and_stays_pending(capsys):

@@ -179,11 +179,51 @@ def test_bad_inputs_one_line_errors(tmp_path, capsys):
     assert build.main(["tsinghua", "--root", str(tmp_path / "none"),
                        "--out", str(tmp_path / "new" / "x.h5")]) == 2
     assert "root not found" in capsys.readouterr().err and not (tmp_path / "new").exists()
-    assert build.main(["middlebury", "--crops", "0", "--out", str(out)]) == 2
-    assert "crops" in capsys.readouterr().err and not out.exists()
+    with pytest.raises(SystemExit) as exit_info:
+        build.main(["middlebury", "--crops", "0", "--out", str(out)])
+    assert exit_info.value.code == 2
+    assert "--crops" in capsys.readouterr().err and not out.exists()
     with pytest.raises(SystemExit) as exit_info:
         build.main(["carla", "--out", str(out)])
     assert exit_info.value.code == 2
+
+
+@pytest.mark.parametrize("limit", ["0", "-3"])
+def test_a_limit_below_one_is_refused(tmp_path, capsys, limit):
+    out = tmp_path / "m.h5"
+    with pytest.raises(SystemExit) as exit_info:
+        build.main(["middlebury", "--limit", limit, "--out", str(out)])
+    assert exit_info.value.code == 2
+    assert capsys.readouterr().err == ("python -m cpl_keras.real.build: error: argument --limit: "
+                                       f"must be a positive integer, got {limit}\n")
+    assert os.listdir(tmp_path) == []
+
+
+def test_crops_beyond_the_free_disk_or_memory_are_refused_before_any_work(
+        tmp_path, capsys, monkeypatch):
+    from cpl_keras import cli
+    from cpl_keras.real import chessboard, oakd
+
+    def never(*args, **kwargs):
+        raise AssertionError("started the work")
+
+    for module, name in ((middlebury, "middlebury_samples"), (oakd, "oakd_samples"),
+                         (chessboard, "calibrate")):
+        monkeypatch.setattr(module, name, never)
+    out = tmp_path / "m.h5"
+    for source, crops in (("middlebury", "1000000000000"), ("oakd", "1000000000000"),
+                          ("chessboard", "1000000000000")):
+        assert build.main([source, "--crops", crops, "--out", str(out)]) == 2
+        err = capsys.readouterr().err
+        assert err.startswith("python -m cpl_keras.real.build: error: ") and \
+            " crops at 112 px need at least " in err and " PB of disk; " in err, err
+        assert err.count("\n") == 1
+    monkeypatch.setattr(cli, "available_memory", lambda: 10**9)
+    assert build.main(["middlebury", "--crops", "20000", "--out", str(out)]) == 2
+    assert capsys.readouterr().err == ("python -m cpl_keras.real.build: error: 20000 crops at "
+                                       "112 px need about 1.6 GB of memory; 1.0 GB is "
+                                       "available\n")
+    assert os.listdir(tmp_path) == []
 
 
 def test_cli_builds_middlebury(tmp_path, capsys):

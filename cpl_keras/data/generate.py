@@ -7,79 +7,49 @@ Usage::
 
 Each pair is rendered and labelled by ``cpl_keras.data.pair`` (the paper's
 13 targets, and what the release's labels need beside them). Pairs are
-rendered in blocks by worker processes and written in order through
-``storage.StereoWriter`` (atomic: a killed run leaves no file at the final
-path); pair i depends only on (seed, i), so the bytes do not depend on the
-number of workers. The CLI prints a one-line ``summary_text``; ``--preview``
-draws a contact sheet of a few pairs.
+rendered in blocks by worker processes (``cpl_keras.data.blocks``) and
+written in order through ``storage.StereoWriter`` (atomic: a killed run
+leaves no file at the final path); pair i depends only on (seed, i), so the
+bytes do not depend on the number of workers. An interrupted or crashed run
+keeps ``<out>.partial`` with its complete blocks, and the same call
+continues it from the first incomplete one (the same bytes as a run never
+interrupted). Before any work, the file's size and the tables held in
+memory are checked against what this machine has free (``check_room``).
+The CLI prints a one-line ``summary_text``; ``--preview`` draws a contact
+sheet of a few pairs.
 """
 
 from __future__ import annotations
 
 import contextlib
 import math
-import multiprocessing as mp
 import os
 import signal
 import sys
 import threading
 import time
-import types
 
 import numpy as np
 
 from cpl_keras import camera, cli
 from cpl_keras.cli import check_interrupt, check_output_file, make_parent, Parser
 from cpl_keras.data import protocols, scenes
+from cpl_keras.data.blocks import iter_blocks, render_block
 from cpl_keras.data.pair import (EXTRA_UNITS, FLOAT_LABELS, INT_LABELS, LABEL_DESCRIPTIONS,
                                  render_pair)
 from cpl_keras.data.protocols import PROTOCOLS
 from cpl_keras.data.storage import GENERATOR_VERSION  # noqa: F401  (the generator's own)
-from cpl_keras.data.storage import StereoFile, StereoWriter
+from cpl_keras.data.storage import min_bytes_per_pair, StereoFile, StereoWriter
 from cpl_keras.files import atomic_path
 
 MIN_IMAGE_SIZE = 16
 MAX_IMAGE_SIZE = 1024
-BLOCK = 32
-
-
-# ---------------------------------------------------------------------------
-# Rendering blocks of pairs
-# ---------------------------------------------------------------------------
-def render_block(protocol, seed, pairs, image_size, start, stop):
-    """Pairs ``start .. stop``: (left, right, labels) with labels as arrays."""
-    lefts, rights, rows = [], [], []
-    for i in range(start, stop):
-        left, right, labels = render_pair(protocol, seed, pairs, image_size, i)
-        lefts.append(left)
-        rights.append(right)
-        rows.append(labels)
-    labels = {k: np.array([r[k] for r in rows], np.float32) for k in FLOAT_LABELS}
-    labels.update({k: np.array([r[k] for r in rows], np.int32) for k in INT_LABELS})
-    return np.stack(lefts), np.stack(rights), labels
-
-
-@contextlib.contextmanager
-def _sigint_ignored():
-    """SIGINT ignored within the block (in the main thread; elsewhere a no-op)."""
-    if threading.current_thread() is not threading.main_thread():
-        yield
-        return
-    previous = signal.signal(signal.SIGINT, signal.SIG_IGN)
-    try:
-        yield
-    finally:
-        signal.signal(signal.SIGINT, previous)
-
-
-def _ignore_sigint():
-    """Workers leave Ctrl-C to the parent, which stops the pool (one line, no
-    traceback per worker)."""
-    signal.signal(signal.SIGINT, signal.SIG_IGN)
-
-
-def _render_block_task(args):
-    return args[4], render_block(*args)
+#: Memory held from the start, per pair (the writer's record of written
+#: pairs) and per rig of a protocol that draws one every few pairs (its
+#: configuration, in the parent and in every worker, and the metadata's
+#: JSON: measured about 7.6 KB at most in the parent): ``check_room``.
+BYTES_PER_PAIR_HELD = 1
+BYTES_PER_RIG_HELD = 8000
 
 
 # ---------------------------------------------------------------------------
@@ -131,97 +101,108 @@ def metadata(protocol, pairs, seed, image_size, command_line=None):
 
 
 class _Progress:
-    def __init__(self, total, label, enabled):
+    """The progress bar on stderr: pairs done of ``total`` (``done`` of them
+    before this run, by the run it resumes), and the rate and time left
+    measured on this run's own pairs."""
+
+    def __init__(self, total, label, enabled, done=0):
         self.total, self.label, self.enabled = total, label, enabled
         self.start = time.perf_counter()
-        self.done = 0
+        self.done = self.initial = done
+        self.open_line = False  # (a bar line not yet ended by a newline)
 
     def update(self, n):
         self.done += n
         if not self.enabled:
             return
         elapsed = time.perf_counter() - self.start
-        rate = self.done / max(elapsed, 1e-9)
+        rate = (self.done - self.initial) / max(elapsed, 1e-9)
         width = 30
         filled = int(width * self.done / self.total)
         eta = (self.total - self.done) / max(rate, 1e-9)
+        # (the line's state first: a Ctrl-C lands just after the text as well)
+        self.open_line = self.done < self.total
         sys.stderr.write(f"\r{self.label} [{'#' * filled}{'.' * (width - filled)}] "
-                         f"{self.done}/{self.total} pairs {rate:6.1f} pairs/s ETA {eta:5.0f}s ")
-        if self.done >= self.total:
-            sys.stderr.write("\n")
+                         f"{self.done}/{self.total} pairs {rate:6.1f} pairs/s ETA {eta:5.0f}s "
+                         + ("" if self.open_line else "\n"))
         sys.stderr.flush()
 
-
-def _blocks(pairs, workers):
-    """Blocks of at most BLOCK pairs, small enough to keep every worker busy."""
-    size = max(1, min(BLOCK, math.ceil(pairs / (2 * workers))))
-    return [(s, min(s + size, pairs)) for s in range(0, pairs, size)]
-
-
-def _iter_blocks(protocol, seed, pairs, image_size, workers):
-    """(start, (left, right, labels)) for every block, in order, memory bounded."""
-    blocks = _blocks(pairs, workers)
-    if workers == 1 or len(blocks) == 1:
-        for start, stop in blocks:
-            yield start, render_block(protocol, seed, pairs, image_size, start, stop)
-        return
-
-    # The task is taken from the imported module (not ``__main__``), so the
-    # workers never need to re-import the caller's script.
-    from cpl_keras.data import generate as module
-
-    task = module._render_block_task
-    window = 2 * workers
-    # spawn: safe even when the caller has started threads (e.g. JAX).
-    with _without_main_module(), _sigint_ignored():
-        # (started with SIGINT ignored, which exec keeps: a Ctrl-C while a
-        # worker imports cannot print its traceback)
-        pool = mp.get_context("spawn").Pool(min(workers, len(blocks)),
-                                            initializer=module._ignore_sigint)
-    with pool:
-        pending = []
-        todo = iter(blocks)
-        for block in todo:
-            pending.append(pool.apply_async(task, ((protocol, seed, pairs, image_size) + block,)))
-            if len(pending) >= window:
-                break
-        while pending:
-            result = pending.pop(0).get()
-            block = next(todo, None)
-            if block is not None:
-                pending.append(pool.apply_async(
-                    task, ((protocol, seed, pairs, image_size) + block,)))
-            yield result
+    def close(self):
+        """End the bar's line (an interruption's or error's line then starts
+        on its own)."""
+        if self.open_line:
+            sys.stderr.write("\n")
+            sys.stderr.flush()
+            self.open_line = False
 
 
 @contextlib.contextmanager
-def _without_main_module():
-    """Hide the caller's ``__main__`` while workers start, so that ``spawn``
-    does not re-run a script that calls ``generate_dataset`` without an
-    ``if __name__ == "__main__"`` guard."""
-    main = sys.modules.get("__main__")
-    sys.modules["__main__"] = types.ModuleType("__main__")
+def _exits_uninterrupted():
+    """An ``ExitStack`` whose exits (the worker pool's end, the file's close)
+    run with SIGINT ignored, from the moment its block ends: after a Ctrl-C,
+    ``cli.run``'s watchdog delivers it again every ``cli.REDELIVER_S`` until
+    the command has said it was interrupted, and one landing in an exit
+    would cut it short. The handler is restored once they have run."""
+    previous = signal.getsignal(signal.SIGINT)
+    if threading.current_thread() is not threading.main_thread() or previous is None:
+        with contextlib.ExitStack() as stack:
+            yield stack
+        return
     try:
-        yield
+        with contextlib.ExitStack() as stack:
+            try:
+                yield stack
+            finally:
+                signal.signal(signal.SIGINT, signal.SIG_IGN)
     finally:
-        if main is not None:
-            sys.modules["__main__"] = main
+        signal.signal(signal.SIGINT, previous)
 
 
-def _generate(out, protocol, pairs, seed, image_size, workers, progress, command_line=None):
+def check_room(out, protocol, pairs, image_size, workers, restart=False):
+    """Raise ValueError (one line) when the dataset cannot fit: its file in
+    the free disk space beside ``out`` (at ``storage.min_bytes_per_pair``,
+    an estimate from below; a partial file there counted as written unless
+    ``restart``), or
+    what is held in memory from the start (``BYTES_PER_PAIR_HELD``, and
+    ``BYTES_PER_RIG_HELD`` in the parent and each worker) in the free
+    memory. Writes nothing."""
+    per_pair = min_bytes_per_pair(image_size, len(FLOAT_LABELS) + len(INT_LABELS))
+    partial = out + ".partial"
+    written = os.path.getsize(partial) if os.path.isfile(partial) and not restart else 0
+    rigs = protocols.num_configs(protocol, pairs)
+    cli.check_room(f"{pairs} {protocol} pairs at {image_size} px (at least "
+                   f"{cli.size_text(per_pair)} a pair on disk)", out,
+                   disk=max(0, pairs * per_pair - written),
+                   memory=pairs * BYTES_PER_PAIR_HELD + rigs * BYTES_PER_RIG_HELD * (1 + workers))
+
+
+def _generate(out, protocol, pairs, seed, image_size, workers, progress, command_line=None,
+              restart=False, log=None):
     pairs, seed, image_size, workers = _check_arguments(protocol, pairs, seed, image_size, workers)
     out = check_output_path(out)
     if workers is None:
         workers = os.cpu_count() or 1
+    check_room(out, protocol, pairs, image_size, workers, restart)
     meta = metadata(protocol, pairs, seed, image_size, command_line)
-    bar = _Progress(pairs, f"{protocol}", progress)
+    if log is None:
+        log = (lambda line: print(line, file=sys.stderr)) if progress else (lambda line: None)
 
     make_parent(out)
-    with StereoWriter(out, pairs, image_size, metadata=meta,
-                      label_descriptions=LABEL_DESCRIPTIONS, label_units=EXTRA_UNITS,
-                      int_labels=INT_LABELS) as writer, \
-            contextlib.closing(_iter_blocks(protocol, seed, pairs, image_size, workers)) as blocks:
+    writer = StereoWriter(out, pairs, image_size, metadata=meta,
+                          label_descriptions=LABEL_DESCRIPTIONS, label_units=EXTRA_UNITS,
+                          int_labels=INT_LABELS, resumable=True, restart=restart)
+    with _exits_uninterrupted() as stack:
+        stack.enter_context(writer)
+        if writer.note:
+            log(writer.note)
+        first = writer.resumed_at
+        if first:
+            log(f"resuming {writer.tmp_path} at pair {first} of {pairs}")
+        bar = _Progress(pairs, f"{protocol}", progress, done=first)
         # (closing: a failed write ends the worker pool at once, not at exit)
+        blocks = stack.enter_context(contextlib.closing(
+            iter_blocks(protocol, seed, pairs, image_size, workers, first)))
+        stack.callback(bar.close)
         for start, (left, right, labels) in blocks:
             writer.write(start, left, right, labels)
             bar.update(len(left))
@@ -233,15 +214,21 @@ def _generate(out, protocol, pairs, seed, image_size, workers, progress, command
 
 
 def generate_dataset(out, *, protocol="cvgl", pairs, seed=0, image_size=112, workers=None,
-                     progress=True):
+                     progress=True, restart=False, log=None):
     """Render ``pairs`` stereo pairs and write them to the HDF5 file ``out``.
 
     ``protocol`` is one of ``PROTOCOLS``; ``workers=None`` uses every core.
     The file is written atomically (``storage.StereoWriter``); the same
     ``seed`` gives the same images and labels whatever ``workers`` is.
-    Returns the path written. Raises ``ValueError`` (one line) on bad arguments.
+    An interruption or a crash keeps ``<out>.partial`` with the blocks
+    written in full, and the next call for ``out`` continues it (``log``
+    receives a line saying so; default: stderr when ``progress``). A
+    partial file of other arguments is refused unless ``restart``, which
+    starts again. Returns the path written. Raises ``ValueError`` (one
+    line) on bad arguments, or when the file cannot fit (``check_room``).
     """
-    return _generate(out, protocol, pairs, seed, image_size, workers, progress)
+    return _generate(out, protocol, pairs, seed, image_size, workers, progress,
+                     restart=restart, log=log)
 
 
 def dataset_name(protocol, pairs, seed, image_size, prefix=""):
@@ -255,7 +242,8 @@ def dataset_name(protocol, pairs, seed, image_size, prefix=""):
 def cached_dataset(folder, *, protocol, pairs, seed, image_size, prefix="", workers=None,
                    progress=True, log=None):
     """The dataset ``dataset_name(...)`` in ``folder``, generated first when it
-    is not there (``log(line)`` says so). Every dataset the project makes for
+    is not there (``log(line)`` says so; an interrupted one is continued from
+    its ``.partial`` file). Every dataset the project makes for
     itself (the demonstration run, the reproduction, the learning curves)
     comes through here. Returns its path."""
     path = os.path.join(folder, dataset_name(protocol, pairs, seed, image_size, prefix))
@@ -264,7 +252,7 @@ def cached_dataset(folder, *, protocol, pairs, seed, image_size, prefix="", work
         if log:
             log(f"generating {pairs} {protocol} pairs at {image_size}px -> {path}")
         generate_dataset(path, protocol=protocol, pairs=pairs, seed=seed, image_size=image_size,
-                         workers=workers, progress=progress)
+                         workers=workers, progress=progress, log=log)
     return path
 
 
@@ -408,6 +396,9 @@ def _parser():
                    help="worker processes (default and most: all cores)")
     p.add_argument("--preview", help="also write a PNG contact sheet of a few pairs")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    p.add_argument("--restart", action="store_true",
+                   help="discard the OUT.partial file of an interrupted run and start again "
+                   "(by default it is continued; one of other arguments is refused)")
     return p
 
 
@@ -422,10 +413,13 @@ def main(argv=None):
         with cli.interruptible():
             return _main(args, command_line)
     except KeyboardInterrupt:  # cli.Interrupted, or a Ctrl-C outside the block
+        note = None
         if args.out is not None and os.path.exists(args.out + ".partial"):
-            os.remove(args.out + ".partial")  # (StereoWriter removes it too)
-        return cli.interrupted(PROG, note=f"{args.out} was not written; the same command "
-                               "starts again from the first pair" if args.out else None)
+            note = (f"{args.out}.partial keeps the blocks written in full; the same command "
+                    "continues it")
+        elif args.out is not None:
+            note = f"{args.out} was not written; the same command starts again from the first pair"
+        return cli.interrupted(PROG, note=note)
 
 
 def _main(args, command_line):
@@ -437,7 +431,9 @@ def _main(args, command_line):
             check_output_path(args.preview)
         if args.out is not None:
             path = _generate(args.out, args.protocol, args.pairs, args.seed, args.image_size,
-                             args.workers, not args.no_progress, command_line)
+                             args.workers, not args.no_progress, command_line,
+                             restart=args.restart,
+                             log=lambda line: print(line, file=sys.stderr, flush=True))
             print(path)
             sys.stderr.write(f"summary: {summary_text(path)}\n")
         if args.preview is not None:

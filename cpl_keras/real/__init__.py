@@ -26,9 +26,10 @@ from __future__ import annotations
 
 import numpy as np
 
+from cpl_keras import cli
 from cpl_keras.camera import crop_resize_coordinate, crop_resize_intrinsics, image_to_world
 from cpl_keras.data.pair import released_disparity  # noqa: F401  (the builders' label)
-from cpl_keras.data.storage import StereoWriter
+from cpl_keras.data.storage import min_bytes_per_pair, StereoWriter
 from cpl_keras.errors import Error
 from cpl_keras.images import resize_image
 
@@ -94,6 +95,22 @@ def check_crop_settings(crops, image_size, what="crops per pair"):
         raise ValueError(f"image size must be at least 32 (StereoBM block 15 + 16 disparities), "
                          f"got {image_size}")
     return crops, image_size
+
+
+#: Memory a sample holds beside its images until the file is written (its
+#: labels as a dict of Python numbers): ``check_sample_room``.
+SAMPLE_LABEL_BYTES = 4096
+
+
+def check_sample_room(out, samples, image_size, what="samples"):
+    """Raise ValueError (one line) before any work when ``samples`` samples
+    of ``image_size`` px cannot be built into ``out``: ``write_samples``
+    holds them all in memory (two raw images and the labels each), and the
+    file needs at least ``storage.min_bytes_per_pair`` a sample on disk."""
+    raw = 2 * image_size * image_size * 3
+    cli.check_room(f"{samples} {what} at {image_size} px", out,
+                   disk=samples * min_bytes_per_pair(image_size, 32),  # (about 30 labels)
+                   memory=samples * (raw + SAMPLE_LABEL_BYTES))
 
 
 def write_samples(out, samples, image_size, metadata, label_descriptions, block=64):

@@ -18,8 +18,9 @@ Middlebury and the OAK-D rig) and each dataset whose root is given, one file per
 Options: ``--image-size`` (112), ``--seed`` (0), ``--crops`` (chessboard, oakd:
 per pair, default 20; middlebury: total, default 500), ``--right {warp,released}``
 and ``--labels {rig,vehicle}`` (Tsinghua-Daimler / Cityscapes only),
-``--limit N`` (first N images). Bad input prints one line and exits with
-status 2; the output file appears only when complete.
+``--limit N`` (first N images, N >= 1). Bad input prints one line and exits
+with status 2, as do crops that would not fit in memory or on disk (checked
+before any work); the output file appears only when complete.
 """
 
 from __future__ import annotations
@@ -70,7 +71,7 @@ def parse_args(argv=None):
     parser.add_argument("--image-size", type=int, default=112,
                         help="square side the pairs are resized to, intrinsics transformed "
                         "exactly (default 112)")
-    parser.add_argument("--crops", type=int, help="chessboard, oakd: crops per pair (20); "
+    parser.add_argument("--crops", type=cli.positive_int, help="chessboard, oakd: crops per pair (20); "
                         "middlebury: number of crops (500)")
     parser.add_argument("--seed", type=int, default=0,
                         help="seed of the crops and projection pixels (default 0)")
@@ -84,7 +85,8 @@ def parse_args(argv=None):
                         help="kitti: where the calibration files are when they are not beside "
                         "the images (the data_scene_flow_calib archive, or the raw data's "
                         "<date>_calib archives, unpacked there)")
-    parser.add_argument("--limit", type=int, help="use only the first N images")
+    parser.add_argument("--limit", type=cli.positive_int,
+                        help="use only the first N images (default: all)")
     parser.add_argument("--force", action="store_true", help="all: rebuild existing files")
     args = parser.parse_args(argv)
     if args.source == "all":

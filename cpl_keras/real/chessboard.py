@@ -64,7 +64,7 @@ from cpl_keras.camera import (
 )
 from cpl_keras.images import read_gray, resize_image
 from cpl_keras.real import (
-    RealDataError, check_crop_settings, released_disparity, write_samples,
+    RealDataError, check_crop_settings, check_sample_room, released_disparity, write_samples,
 )
 from cpl_keras.real.middlebury import _draw_window
 
@@ -321,6 +321,7 @@ def build_chessboard(out, *, root=DATA_DIR, crops=20, image_size=112, seed=0, co
     atomic); returns the path. ``report`` (a callable) receives one line on
     the skipped pairs, if any."""
     crops, image_size = check_crop_settings(crops, image_size)
+    check_sample_room(out, crops * len(find_pairs(root)), image_size, "crops")
     cal = calibrate(root)
     if cal["skipped"] and report is not None:
         report(f"skipped {len(cal['skipped'])} of {cal['num_found']} pairs: "

@@ -30,7 +30,8 @@ import numpy as np
 
 from cpl_keras.camera import crop_resize_coordinate
 from cpl_keras.real import (
-    RECTIFIED_LABEL_DESCRIPTIONS, check_crop_settings, rectified_crop, write_samples,
+    RECTIFIED_LABEL_DESCRIPTIONS, check_crop_settings, check_sample_room, rectified_crop,
+    write_samples,
 )
 
 #: Calibration of the pair as scikit-image documents it (pixels, metres).
@@ -117,6 +118,7 @@ def middlebury_samples(crops, image_size=112, seed=0):
 def build_middlebury(out, *, crops=500, image_size=112, seed=0, block=64, command=None):
     """Write the Middlebury test set to ``out`` (HDF5, atomic); returns the path."""
     crops, image_size = check_crop_settings(crops, image_size, what="number of crops")
+    check_sample_room(out, crops, image_size, "crops")
     metadata = {
         "source": "Middlebury 2014 Motorcycle (skimage.data.stereo_motorcycle, 4x down-sampled)",
         "rig": "middlebury", "rectified": True,

@@ -30,8 +30,8 @@ import numpy as np
 
 from cpl_keras.images import read_rgb
 from cpl_keras.real import (
-    RECTIFIED_LABEL_DESCRIPTIONS, RealDataError, check_crop_settings, rectified_crop,
-    write_samples,
+    RECTIFIED_LABEL_DESCRIPTIONS, RealDataError, check_crop_settings, check_sample_room,
+    rectified_crop, write_samples,
 )
 
 DATA_DIR = os.path.join(os.path.dirname(os.path.abspath(__file__)), "oakd_stereo")
@@ -181,6 +181,7 @@ def build_oakd(out, *, root=DATA_DIR, crops=20, image_size=112, seed=0, command=
     """Write the OAK-D test set to ``out`` (HDF5, atomic; ``crops`` per pair);
     returns the path."""
     crops, image_size = check_crop_settings(crops, image_size)
+    check_sample_room(out, crops * len(find_pairs(root)), image_size, "crops")
     cal = load_calibration(root)
     shipped = os.path.abspath(os.fspath(root)) == DATA_DIR
     metadata = {
