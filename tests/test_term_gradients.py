@@ -74,3 +74,47 @@ def test_training_logs_every_terms_gradient_each_epoch(stereo40, tmp_path):
     for row in rows:
         values = [float(row[f"grad_{name}"]) for name in TARGETS]
         assert all(math.isfinite(v) for v in values) and max(values) > 0, row
+
+
+def test_the_term_gradients_page_from_logs(tmp_path, capsys):
+    """analyses/term_gradients.py: per run and term the median norm, the
+    median share and the epochs a term was largest and smallest, from a
+    log.csv (RUN/log.csv or a published RUN_log.csv); a log without the
+    gradient columns is one line, exit 2, and nothing written."""
+    import importlib.util
+    import json
+
+    path = os.path.join(os.path.dirname(os.path.dirname(__file__)), "analyses",
+                        "term_gradients.py")
+    spec = importlib.util.spec_from_file_location("term_gradients", path)
+    script = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(script)
+    run = tmp_path / "runs" / "cvgl_cpl-a-s0"
+    run.mkdir(parents=True)
+    norms = [{t: 1.0 for t in TARGETS} for _ in range(3)]
+    norms[0]["v0"], norms[1]["v0"], norms[2]["disparity"] = 10.0, 10.0, 22.0
+    norms[0]["ty"], norms[1]["ty"], norms[2]["ty"] = 0.5, 0.25, 0.125
+    with open(str(run) + "_log.csv", "w", newline="") as f:
+        writer = csv.writer(f)
+        writer.writerow(["epoch", "loss"] + [f"grad_{t}" for t in TARGETS]
+                        + [f"alpha_{t}" for t in TARGETS])
+        for epoch, row in enumerate(norms, 1):
+            writer.writerow([epoch, 1.0] + [row[t] for t in TARGETS] + [2.0] * len(TARGETS))
+    out = tmp_path / "page.md"
+    assert script.main(["--run", f"A={run}", "--out", str(out)]) == 0
+    summary = json.loads((tmp_path / "page.json").read_text())["A"]
+    assert summary["epochs"] == [1, 2, 3]
+    v0, ty = summary["terms"]["v0"], summary["terms"]["ty"]
+    assert (v0["epochs_largest"], summary["terms"]["disparity"]["epochs_largest"]) == (2, 1)
+    assert ty["epochs_smallest"] == 3 and ty["median_norm"] == 0.25
+    assert v0["median_share"] == pytest.approx(10.0 / (10.0 + 11 * 1.0 + 0.5))  # epoch 1
+    assert summary["alphas"]["fx"] == 2.0
+    assert "| v0 | 10 | 0.465 | 2 | 0 | 2 |" in out.read_text()
+    bare = tmp_path / "bare"
+    bare.mkdir()
+    (bare / "log.csv").write_text("epoch,loss\n1,1.0\n")
+    capsys.readouterr()
+    assert script.main(["--run", f"B={bare}", "--out", str(tmp_path / "bare.md")]) == 2
+    err = capsys.readouterr().err
+    assert "no grad_<target> columns" in err and err.count("\n") == 1
+    assert not (tmp_path / "bare.md").exists()

@@ -1,0 +1,128 @@
+"""Which loss terms drive the towers: the gradient logs of several runs side
+by side.
+
+    python analyses/term_gradients.py \\
+        --run "MTL-CPL-A, rate 1=paper_results/inception-2000-ablations/runs/cvgl_cpl-a-rate1-s0" \\
+        --run "MTL-CPL-U=paper_results/inception-2000-ablations/runs/cvgl_cpl-u-s0" \\
+        --out paper_results/inception-2000-ablations/term-gradients.md
+
+Reads each run's log.csv (``RUN_log.csv`` beside a published run's folder,
+or ``RUN/log.csv``): the ``grad_<target>`` columns that ``train.py
+--term-gradients`` writes, the norm of the gradient that each weighted loss
+term sends into the towers' shared features on the run's first 64 training
+pairs, once an epoch (``cpl_keras.training.gradients``). Writes a Markdown
+page (and the same as JSON beside it) with, per run and term: the median
+norm over the logged epochs, its median share of the sum over the terms,
+and in how many epochs the term sent the largest and the smallest gradient;
+and, where the log has them, the median of Eq. 9's weights ``alpha_<target>``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import os
+import sys
+
+import numpy as np
+
+REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+TARGETS = ("fx", "fy", "u0", "v0", "baseline", "disparity", "tx", "ty", "tz", "pitch",
+           "X", "Y", "Z")
+
+
+def parse_args(argv=None):
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--run", action="append", required=True, metavar="NAME=RUN",
+                        help="a run and its name (repeatable)")
+    parser.add_argument("--out", required=True, help="the Markdown page to write (.md)")
+    args = parser.parse_args(argv)
+    args.runs = []
+    for spec in args.run:
+        name, sep, path = spec.partition("=")
+        if not sep or not name or not path:
+            parser.error(f"--run takes NAME=RUN, got {spec!r}")
+        args.runs.append((name, path))
+    if not args.out.endswith(".md"):
+        parser.error(f"--out must end in .md, got {args.out}")
+    return args
+
+
+def log_path(run):
+    """A run's log.csv: ``RUN/log.csv``, or ``RUN_log.csv`` of a published run."""
+    for path in (os.path.join(run, "log.csv"), run.rstrip("/") + "_log.csv"):
+        if os.path.isfile(path):
+            return path
+    raise ValueError(f"no log.csv for {run} (looked for RUN/log.csv and RUN_log.csv)")
+
+
+def summarise(path):
+    """``{"epochs": [...], "terms": {target: {...}}, "alphas": {...}}`` of one
+    log: the epochs with every ``grad_`` column filled, and per term its
+    median norm, median share and the epochs it was largest and smallest."""
+    with open(path, newline="") as f:
+        rows = list(csv.DictReader(f))
+    logged = [r for r in rows if all(r.get(f"grad_{t}") not in (None, "") for t in TARGETS)]
+    if not logged:
+        raise ValueError(f"{path} has no grad_<target> columns (train.py --term-gradients)")
+    norms = np.array([[float(r[f"grad_{t}"]) for t in TARGETS] for r in logged])
+    shares = norms / np.maximum(norms.sum(axis=1, keepdims=True), np.finfo(float).tiny)
+    largest, smallest = norms.argmax(axis=1), norms.argmin(axis=1)
+    terms = {t: {"median_norm": float(np.median(norms[:, i])),
+                 "median_share": float(np.median(shares[:, i])),
+                 "epochs_largest": int(np.sum(largest == i)),
+                 "epochs_smallest": int(np.sum(smallest == i))}
+             for i, t in enumerate(TARGETS)}
+    alphas = {t: float(np.median([float(r[f"alpha_{t}"]) for r in logged]))
+              for t in TARGETS if all(r.get(f"alpha_{t}") not in (None, "") for r in logged)}
+    return {"log": os.path.relpath(path, REPO), "epochs": [int(r["epoch"]) for r in logged],
+            "terms": terms, "alphas": alphas}
+
+
+def _figure(value):
+    return "0" if value == 0 else f"{value:.2g}"
+
+
+def page(summaries, command):
+    lines = ["# Which loss terms drive the towers", "", "Command:", "", "```", command, "```", "",
+             "Per run and loss term: the median over the logged epochs of the norm of the "
+             "gradient the weighted term sends into the towers' shared features (first 64 "
+             "training pairs), its median share of the sum over the 13 terms, and the "
+             "epochs in which it sent the largest (`max`) and the smallest (`min`) gradient; "
+             "alpha: the median of Eq. 9's weight where the run has them.", ""]
+    for name, s in summaries.items():
+        epochs = s["epochs"]
+        lines += [f"## {name}", "", f"`{s['log']}`: {len(epochs)} logged epochs "
+                  f"({epochs[0]}-{epochs[-1]}).", "",
+                  "| term | median norm | median share | max | min |"
+                  + (" alpha |" if s["alphas"] else ""),
+                  "|---|---|---|---|---|" + ("---|" if s["alphas"] else "")]
+        for t, m in s["terms"].items():
+            alpha = f" {_figure(s['alphas'][t])} |" if t in s["alphas"] else (
+                " |" if s["alphas"] else "")
+            lines.append(f"| {t} | {_figure(m['median_norm'])} | {m['median_share']:.3f} | "
+                         f"{m['epochs_largest']} | {m['epochs_smallest']} |{alpha}")
+        lines.append("")
+    return "\n".join(lines)
+
+
+def main(argv=None):
+    args = parse_args(argv)
+    try:
+        summaries = {name: summarise(log_path(run)) for name, run in args.runs}
+    except (OSError, ValueError) as error:
+        print(f"term_gradients: error: {error}", file=sys.stderr)
+        return 2
+    command = "python analyses/term_gradients.py " + " ".join(
+        f'--run "{name}={os.path.relpath(run, REPO)}"' for name, run in args.runs) + \
+        f" --out {os.path.relpath(args.out, REPO)}"
+    from cpl_keras import files
+
+    files.write_text(args.out, page(summaries, command))
+    files.write_json(args.out[:-3] + ".json", summaries)
+    print(f"wrote {args.out} and {args.out[:-3]}.json")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
