@@ -173,14 +173,7 @@ class RunState(keras.callbacks.Callback):
             return
         logs = {k: float(np.asarray(v)) for k, v in (logs or {}).items()}
         state = self.state
-        if self.nmae_scale is not None:
-            scores = nmae_scores(logs, self.nmae_scale)
-            logs.update(scores)
-            if keras_logs is not None:
-                keras_logs.update(scores)  # (for the epoch line, a later callback)
-            val = logs.get("val_nmae", logs.get("val_loss", logs.get("loss")))
-        else:
-            val = logs.get("val_loss", logs.get("loss"))
+        val = self._monitored(logs, keras_logs)
         improved = val is not None and math.isfinite(val) and (
             state["best"] is None or val < state["best"]
         )
@@ -201,7 +194,6 @@ class RunState(keras.callbacks.Callback):
                 state["stopped"] = (
                     f"early stopping: no improvement of {monitored} for {self.patience} epochs"
                 )
-                self.model.stop_training = True
         alphas = self.model.adaptive_weights() or {}
         logs.update({f"alpha_{name}": value for name, value in alphas.items()})
         took = time.perf_counter() - (self._epoch_start or time.perf_counter())
@@ -211,7 +203,6 @@ class RunState(keras.callbacks.Callback):
             # another epoch as long as this one would overrun the budget
             state["stopped"] = (f"time budget: another epoch would end after "
                                 f"{self.time_budget_s:g} s of training")
-            self.model.stop_training = True
         # (in a group, process 0's clock decides the time budget for all)
         state["stopped"] = self.processes.decide("stop", state["stopped"])
         self.model.stop_training = state["stopped"] is not None
@@ -227,6 +218,18 @@ class RunState(keras.callbacks.Callback):
             self.state["best_weights"] = best_name or self.state["best_weights"]
 
     # -- helpers -------------------------------------------------------
+    def _monitored(self, logs, keras_logs):
+        """The epoch's value that early stopping follows: with ``nmae_scale``
+        the validation NMAE (its terms added to ``logs`` and, for the epoch
+        line, a later callback, to Keras's ``keras_logs``), else val_loss."""
+        if self.nmae_scale is None:
+            return logs.get("val_loss", logs.get("loss"))
+        scores = nmae_scores(logs, self.nmae_scale)
+        logs.update(scores)
+        if keras_logs is not None:
+            keras_logs.update(scores)
+        return logs.get("val_nmae", logs.get("val_loss", logs.get("loss")))
+
     def _commit(self, checkpoint, best_name=None):
         os.makedirs(self.backup, exist_ok=True)
         old = (self.state.get("checkpoint"), self.state.get("best_weights"))
