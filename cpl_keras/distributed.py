@@ -1,10 +1,12 @@
 """Training over several processes: one model, every process's devices.
 
 Keras 3 on JAX trains one model over the devices of several processes (one
-per host, say): ``keras.distribution.initialize()`` connects them through
-``jax.distributed`` and ``keras.distribution.DataParallel`` shards each
-global batch over all of their devices, BatchNorm statistics included. What
-this module adds is the project's side of it:
+per host, say): ``jax.distributed`` connects them (``join``: what
+``keras.distribution.initialize()`` does, with timeouts) and
+``keras.distribution.DataParallel`` shards each global batch over all of
+their devices, BatchNorm statistics included. What this module adds is the
+project's side of it (the trainer reaches it through one object,
+``cpl_keras.training.processes``):
 
 * ``ProcessGroup`` and ``group_from_environment``: the group a process
   belongs to, from Keras's own variables (set on every process)::
@@ -162,6 +164,9 @@ def join(group, prog="train.py"):
         raise DistributedError(f"training over several processes needs the JAX backend "
                                f"(KERAS_BACKEND={keras.backend.backend()})")
     import jax
+    # (private: JAX exposes no public handle on the coordination service's
+    # key-value store and barriers, which the heartbeats need outside the
+    # devices' collectives; tests/test_private_apis.py checks it is there)
     from jax._src import distributed as jax_distributed
 
     jax.config.update("jax_enable_preemption_service", False)
@@ -177,6 +182,9 @@ def join(group, prog="train.py"):
                                f"process {group.process_id} of {group.num_processes}: "
                                f"{str(error).strip().splitlines()[0]}") from None
     _state.update(group=group, client=jax_distributed.global_state.client)
+    # (private: the second half of keras.distribution.initialize, one random
+    # seed for every process, whose first half cannot pass the timeouts above
+    # to jax.distributed.initialize; tests/test_private_apis.py checks it)
     from keras.src.backend.jax.distribution_lib import initialize_rng
 
     initialize_rng()
@@ -386,14 +394,14 @@ def alone():
     if current() is None:
         yield
         return
-    from keras.src.distribution import distribution_lib
+    import keras
 
-    previous = distribution_lib.distribution()
-    distribution_lib.set_distribution(None)
+    previous = keras.distribution.distribution()
+    keras.distribution.set_distribution(None)
     try:
         yield
     finally:
-        distribution_lib.set_distribution(previous)
+        keras.distribution.set_distribution(previous)
 
 
 def to_numpy(value):

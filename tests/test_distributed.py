@@ -9,6 +9,7 @@ import os
 import signal
 import socket
 import subprocess
+import sys
 import time
 
 import h5py
@@ -17,7 +18,7 @@ import pytest
 
 from cpl_keras import distributed
 from cpl_keras.training.sequence import StereoSequence
-from helpers import train_py
+from helpers import REPO, train_py
 
 #: Every subprocess of these tests ends within this many seconds or fails.
 TIMEOUT_S = 240
@@ -146,6 +147,101 @@ def test_group_from_environment():
     for environ, message in bad:
         with pytest.raises(distributed.DistributedError, match=message):
             distributed.group_from_environment(environ)
+
+
+# ---------------------------------------------------------------------------
+# The trainer's seam: one process, or a group
+# ---------------------------------------------------------------------------
+def test_one_process_writes_everything_and_waits_for_nobody():
+    from cpl_keras.training.processes import SingleProcess
+
+    calls = []
+    one = SingleProcess()
+    assert one.writes and one.part is None
+    assert one.write("what", lambda a, b: calls.append((a, b)) or a + b, 1, 2) == 3
+    assert calls == [(1, 2)]
+    assert one.decide("stop", "early stopping") == "early stopping"
+    one.agree("the run", lambda: calls.append("fingerprint"))  # (not computed)
+    assert calls == [(1, 2)]
+    with one.alone(), pytest.raises(RuntimeError, match="as it was"), one.failures():
+        raise RuntimeError("as it was")
+
+
+def test_a_group_writes_on_process_0_and_every_process_waits(monkeypatch):
+    from cpl_keras.training.processes import Group, join_processes
+    from cpl_keras.training.planning import TrainingError
+
+    calls = []
+    monkeypatch.setattr(distributed, "barrier", lambda what: calls.append(("barrier", what)))
+    monkeypatch.setattr(distributed, "broadcast", lambda what, value: f"process 0's {what}")
+    monkeypatch.setattr(distributed, "check_same", lambda what, values: calls.append(values))
+    write = lambda: calls.append("written") or "config"  # noqa: E731
+    other = Group(distributed.ProcessGroup("localhost:1", 2, 1))
+    assert not other.writes and other.part == (1, 2)
+    assert other.write("run directory ready", write) is None
+    assert calls == [("barrier", "run directory ready")]
+    chief = Group(distributed.ProcessGroup("localhost:1", 2, 0))
+    assert chief.writes and chief.part == (0, 2)
+    assert chief.write("run finished", write) == "config"
+    assert calls[1:] == ["written", ("barrier", "run finished")]
+    assert other.decide("stop", None) == "process 0's stop"
+    other.agree("the run", dict, {"epochs": 2})
+    assert calls[-1] == {"epochs": 2}
+
+    # a collective that fails becomes one line; the package's errors pass as they are
+    monkeypatch.setenv("CPL_KERAS_PEER_TIMEOUT_S", "0")
+    monkeypatch.setattr(distributed, "BEAT_S", 0.01)
+    with pytest.raises(distributed.DistributedError, match="^the process group failed: reset$"):
+        with other.failures():
+            raise RuntimeError("reset\nstack")
+    with pytest.raises(TrainingError, match="^bad file$"), other.failures():
+        raise TrainingError("bad file")
+
+    # no KERAS_DISTRIBUTION_* variables: one process; set, they need data parallelism
+    for name in distributed.ENVIRONMENT:
+        monkeypatch.delenv(name, raising=False)
+    assert join_processes(data_parallel=False).part is None
+    for name, value in _group_env(1, 0).items():
+        monkeypatch.setenv(name, value)
+    with pytest.raises(TrainingError, match="needs --data-parallel"):
+        join_processes(data_parallel=False)
+
+
+#: A group of one process, joined for real: the coordination service's
+#: key-value store and barrier (a private JAX handle), the text of a missing
+#: key, Keras's shared seed, and ``alone`` through the public distribution API.
+GROUP_OF_ONE = """
+import json, sys
+import keras
+from keras.src.utils import rng_utils
+from cpl_keras import distributed
+from cpl_keras.training.processes import join_processes
+processes = join_processes(data_parallel=True)
+out = dict(writes=processes.writes, part=processes.part,
+           written=processes.write("w", lambda a: a + 1, 1),
+           decided=processes.decide("stop", "early stopping"),
+           gathered=distributed.gather("g", {"a": 1}),
+           missing=distributed._try_get(distributed._state["client"], "cpl_keras/none"),
+           seed=rng_utils.get_random_seed() is not None)
+processes.agree("the run", dict, {"a": 1})
+keras.distribution.set_distribution(keras.distribution.DataParallel())
+with processes.alone():
+    out["alone"] = keras.distribution.distribution() is None
+out["after"] = type(keras.distribution.distribution()).__name__
+print(json.dumps(out))
+"""
+
+
+def test_a_group_of_one_process_joins_agrees_writes_and_saves_alone():
+    environ = {**os.environ, "KERAS_BACKEND": "jax", **_group_env(_free_port(), 0),
+               "KERAS_DISTRIBUTION_NUM_PROCESSES": "1"}
+    result = subprocess.run([sys.executable, "-c", GROUP_OF_ONE], env=environ,
+                            capture_output=True, text=True, timeout=TIMEOUT_S, cwd=REPO)
+    assert result.returncode == 0, result.stderr
+    assert json.loads(result.stdout.splitlines()[-1]) == {
+        "writes": True, "part": [0, 1], "written": 2, "decided": "early stopping",
+        "gathered": [{"a": 1}], "missing": None, "seed": True, "alone": True,
+        "after": "DataParallel"}
 
 
 def test_train_py_group_arguments_fail_in_one_line(fixture52, tmp_path):

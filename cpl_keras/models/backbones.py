@@ -133,6 +133,8 @@ def with_faster_layers(tower):
 @contextlib.contextmanager
 def _random_state_kept():
     """Python's, NumPy's and Keras's global random state as they were after the block."""
+    # (private: Keras has no public way to read and set its global seed
+    # generator's state; tests/test_private_apis.py checks it is there)
     from keras.src.random.seed_generator import global_seed_generator
 
     python_state, numpy_state = random.getstate(), np.random.get_state()

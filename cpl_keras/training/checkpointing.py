@@ -18,10 +18,11 @@ import time
 import keras
 import numpy as np
 
-from cpl_keras import cli, distributed, files, runs
+from cpl_keras import cli, files, runs
 from cpl_keras.models.batchnorm import recompute_batchnorm_statistics
 from cpl_keras.report.curves import plot_curves
 from cpl_keras.training.planning import TrainingError
+from cpl_keras.training.processes import SingleProcess
 
 
 class RunState(keras.callbacks.Callback):
@@ -39,16 +40,17 @@ class RunState(keras.callbacks.Callback):
 
     def __init__(self, run_dir, patience, sequence, bn_recompute_batches=0,
                  time_budget_s=None, bn_sequence=None, nmae_scale=None, weight_ema=False,
-                 writes=True, probe=None):
+                 processes=None, probe=None):
         super().__init__()
         # ``probe()`` -> more of the epoch's log, at the weights as trained
         # (the loss terms' gradients, ``--term-gradients``), or None
         self.probe = probe
         self.run_dir = run_dir
-        # whether this process writes the run directory (in a process group,
+        # the processes that train the run (``training.processes``): this one
+        # writes the run directory if ``processes.writes`` (in a group,
         # process 0 does; the others keep the same state in memory and
-        # follow its decision to stop: ``cpl_keras.distributed``)
-        self.writes = writes
+        # follow its decision to stop)
+        self.processes = SingleProcess() if processes is None else processes
         # wall-clock seconds of training the run may take (None: no limit)
         self.time_budget_s = time_budget_s
         self.bn_recompute_batches = int(bn_recompute_batches)
@@ -93,7 +95,7 @@ class RunState(keras.callbacks.Callback):
         model.load_weights(os.path.join(self.backup, ckpt + ".weights.h5"))
         # log.csv again from the state (atomically): a run begun by older code
         # has a 0-based log, renumbered from 1 here, before training goes on
-        if self.writes:
+        if self.processes.writes:
             write_log(os.path.join(self.run_dir, runs.LOG), self.state.get("rows", []))
         return int(self.state["epoch"])
 
@@ -166,19 +168,12 @@ class RunState(keras.callbacks.Callback):
                 f"non-finite training loss at epoch {self.nan['epoch'] + 1}, "
                 f"batch {self.nan['batch'] + 1}"
             )
-            if self.writes:
+            if self.processes.writes:
                 self._commit(checkpoint=False)
             return
         logs = {k: float(np.asarray(v)) for k, v in (logs or {}).items()}
         state = self.state
-        if self.nmae_scale is not None:
-            scores = nmae_scores(logs, self.nmae_scale)
-            logs.update(scores)
-            if keras_logs is not None:
-                keras_logs.update(scores)  # (for the epoch line, a later callback)
-            val = logs.get("val_nmae", logs.get("val_loss", logs.get("loss")))
-        else:
-            val = logs.get("val_loss", logs.get("loss"))
+        val = self._monitored(logs, keras_logs)
         improved = val is not None and math.isfinite(val) and (
             state["best"] is None or val < state["best"]
         )
@@ -186,8 +181,8 @@ class RunState(keras.callbacks.Callback):
         if improved:
             state["best"], state["best_epoch"], state["wait"] = val, epoch, 0
             best_name = f"best-{epoch:04d}"
-            if self.writes:
-                with distributed.alone():
+            if self.processes.writes:
+                with self.processes.alone():
                     save_weights(self.model, os.path.join(self.backup, best_name + ".weights.h5"))
         self._weights_as_trained()
         if self.probe is not None:
@@ -199,7 +194,6 @@ class RunState(keras.callbacks.Callback):
                 state["stopped"] = (
                     f"early stopping: no improvement of {monitored} for {self.patience} epochs"
                 )
-                self.model.stop_training = True
         alphas = self.model.adaptive_weights() or {}
         logs.update({f"alpha_{name}": value for name, value in alphas.items()})
         took = time.perf_counter() - (self._epoch_start or time.perf_counter())
@@ -209,30 +203,40 @@ class RunState(keras.callbacks.Callback):
             # another epoch as long as this one would overrun the budget
             state["stopped"] = (f"time budget: another epoch would end after "
                                 f"{self.time_budget_s:g} s of training")
-            self.model.stop_training = True
-        if distributed.current() is not None:
-            # process 0's clock decides the time budget for the whole group
-            state["stopped"] = distributed.broadcast("stop", state["stopped"])
-            self.model.stop_training = state["stopped"] is not None
+        # (in a group, process 0's clock decides the time budget for all)
+        state["stopped"] = self.processes.decide("stop", state["stopped"])
+        self.model.stop_training = state["stopped"] is not None
         # the run's training time so far and the machine's load, per epoch
         logs.update(wall_time_s=round(state["wall_time_s"], 3),
                     load_average=round(os.getloadavg()[0], 2))
         state["rows"].append({"epoch": epoch, **logs})
         state["epoch"] = epoch + 1
-        if self.writes:
+        if self.processes.writes:
             self._commit(checkpoint=True, best_name=best_name)
         else:
             self.state["checkpoint"] = f"epoch-{self.state['epoch']:04d}"
             self.state["best_weights"] = best_name or self.state["best_weights"]
 
     # -- helpers -------------------------------------------------------
+    def _monitored(self, logs, keras_logs):
+        """The epoch's value that early stopping follows: with ``nmae_scale``
+        the validation NMAE (its terms added to ``logs`` and, for the epoch
+        line, a later callback, to Keras's ``keras_logs``), else val_loss."""
+        if self.nmae_scale is None:
+            return logs.get("val_loss", logs.get("loss"))
+        scores = nmae_scores(logs, self.nmae_scale)
+        logs.update(scores)
+        if keras_logs is not None:
+            keras_logs.update(scores)
+        return logs.get("val_nmae", logs.get("val_loss", logs.get("loss")))
+
     def _commit(self, checkpoint, best_name=None):
         os.makedirs(self.backup, exist_ok=True)
         old = (self.state.get("checkpoint"), self.state.get("best_weights"))
         if checkpoint:
             name = f"epoch-{self.state['epoch']:04d}"
             # Model and optimizer variables (Keras saves both).
-            with distributed.alone():
+            with self.processes.alone():
                 save_weights(self.model, os.path.join(self.backup, name + ".weights.h5"))
             self.state["checkpoint"] = name
         if best_name is not None:

@@ -34,14 +34,14 @@ import sys
 
 import numpy as np
 
-from cpl_keras import backend, distributed, files, models, runs
+from cpl_keras import backend, files, models, runs
 from cpl_keras.baselines.average import save_statistics, training_statistics
 from cpl_keras.camera import PARAMETERS
 from cpl_keras.data.storage import StereoFile
 from cpl_keras.datasets import load_split, save_split, targets_from_labels
-from cpl_keras.errors import Error
 from cpl_keras.training.gradients import TermGradients
 from cpl_keras.training.planning import RESUME_KEYS, TrainingError, plan_run
+from cpl_keras.training.processes import join_processes
 
 # ---------------------------------------------------------------------------
 # Training
@@ -79,16 +79,15 @@ def train(data, *, steps_per_execution=1, verbose=1, return_model=True, term_gra
     ):
         raise TrainingError(
             f"steps per execution must be a positive integer, got {steps_per_execution!r}")
-    group = _join_group(options)  # (before any device is counted)
+    processes = join_processes(options.get("data_parallel"))  # (before any device is counted)
     plan = plan_run(data, **options)
     finished = _finished_run(plan.config.run_dir, return_model)
-    if group is not None:
-        distributed.check_same("the run", group_fingerprint(plan, finished))
+    processes.agree("the run", group_fingerprint, plan, finished)
     if finished is not None:
         return finished
     import keras
 
-    if distributed.is_chief():
+    if processes.writes:
         _replace_failed_run(plan.config.run_dir)
     scope = contextlib.nullcontext()
     if plan.config.data_parallel:
@@ -96,28 +95,9 @@ def train(data, *, steps_per_execution=1, verbose=1, return_model=True, term_gra
         # (across processes each one reads its own part of every batch:
         # StereoSequence's ``process``; Keras shards only tf.data itself)
         scope = keras.distribution.DataParallel(
-            devices=devices, auto_shard_dataset=group is None).scope()
-    with scope:
-        if group is None:
-            return _run(plan, steps_per_execution, verbose, term_gradients)
-        try:
-            return _run(plan, steps_per_execution, verbose, term_gradients)
-        except Error:  # (one line already: a bad file, a disagreement)
-            raise
-        except Exception as error:  # a collective failed: a partner stopped or died
-            raise distributed.group_failure(error) from None
-
-
-def _join_group(options):
-    """The process group of Keras's ``KERAS_DISTRIBUTION_*`` variables,
-    joined (``distributed.join``), or None where they are not set."""
-    group = distributed.group_from_environment()
-    if group is None:
-        return None
-    if not options.get("data_parallel"):
-        raise TrainingError(f"{distributed.ENVIRONMENT[0]} and the others are set: training "
-                            f"over several processes needs --data-parallel (data_parallel=True)")
-    return distributed.join(group)
+            devices=devices, auto_shard_dataset=processes.part is None).scope()
+    with scope, processes.failures():
+        return _run(plan, processes, steps_per_execution, verbose, term_gradients)
 
 
 def group_fingerprint(plan, finished):
@@ -191,7 +171,7 @@ def _finished_run(run_dir, load_model=True):
                        has_model=os.path.isfile(path), finished_before=True)
 
 
-def _run(plan, steps_per_execution, verbose, term_gradients=False):
+def _run(plan, processes, steps_per_execution, verbose, term_gradients=False):
     import keras
 
     config = plan.config
@@ -208,33 +188,23 @@ def _run(plan, steps_per_execution, verbose, term_gradients=False):
             f"{float(keras.ops.convert_to_numpy(model.optimizer.learning_rate)):.7g}"))
 
     # Nothing has been written so far; from here on the run directory exists
-    # (written by process 0 alone when several train together).
-    run_dir = config.run_dir
-    if not distributed.is_chief():
-        distributed.barrier("run directory ready")
-        return _run_locked(plan, model, config, run_dir, verbose)
-    os.makedirs(os.path.join(run_dir, runs.BACKUP), exist_ok=True)
-    lock = _lock_run_dir(run_dir)
-    try:  # (released however training ends: a Ctrl-C in a notebook, then train() again)
-        return _run_locked(plan, model, config, run_dir, verbose, term_gradients)
-    finally:
-        lock.close()
+    # (written by process 0 alone when several train together). The lock is
+    # released however training ends (a Ctrl-C in a notebook, then train() again).
+    with _lock_run_dir(config.run_dir) if processes.writes else contextlib.nullcontext():
+        return _run_locked(plan, model, config, processes, verbose, term_gradients)
 
 
-def _run_locked(plan, model, config, run_dir, verbose, term_gradients=False):
+def _run_locked(plan, model, config, processes, verbose, term_gradients=False):
     from cpl_keras.training.sequence import StereoSequence
 
+    run_dir = config.run_dir
+    written = processes.write("run directory ready", _open_run_dir, plan, config, run_dir)
     finished = _finished_run(run_dir)  # (by the process this one waited for)
     if finished is not None:
         return finished
-    if distributed.is_chief():
-        config = _write_run_files(plan, config, run_dir)
-        distributed.barrier("run directory ready")
-
-    group = distributed.current()
+    config = written or config  # (the config.json written; the other processes keep theirs)
     common = dict(targets=plan.targets, batch_size=config.device_batch_size,
-                  multiple_of=config.num_devices, workers=plan.workers,
-                  process=None if group is None else (group.process_id, group.num_processes))
+                  multiple_of=config.num_devices, workers=plan.workers, process=processes.part)
     train_seq = StereoSequence(config.data, plan.split["train"], shuffle=True,
                                seed=config.seed, augment=config.augment, **common)
     val_seq = StereoSequence(config.data, plan.split["val"], shuffle=False, **common)
@@ -249,7 +219,7 @@ def _run_locked(plan, model, config, run_dir, verbose, term_gradients=False):
     run_state = RunState(run_dir, config.patience, train_seq, config.bn_recompute_batches,
                          time_budget_s=config.time_budget_s, bn_sequence=bn_seq,
                          nmae_scale=nmae_scale(plan) if config.monitor == "nmae" else None,
-                         weight_ema=config.weight_ema > 0, writes=distributed.is_chief(),
+                         weight_ema=config.weight_ema > 0, processes=processes,
                          probe=_term_gradient_probe(model, StereoSequence(
                              config.data, plan.split["train"][:PROBE_PAIRS], shuffle=False,
                              **dict(common, workers=1, multiple_of=1)))
@@ -265,7 +235,7 @@ def _run_locked(plan, model, config, run_dir, verbose, term_gradients=False):
             # shuffle=False: the sequence shuffles itself, seeded per epoch; Keras's
             # own shuffle of the batch order uses Python's unseeded global RNG.
             callbacks = [run_state]
-            if verbose and distributed.is_chief():  # (Keras's bar: all 14-30 metrics a line)
+            if verbose and processes.writes:  # (Keras's bar: all 14-30 metrics a line)
                 callbacks.append(EpochLines(config.epochs, run_state,
                                             live=None if verbose == 1 else False))
             model.fit(train_seq, validation_data=val_seq, epochs=config.epochs,
@@ -275,7 +245,7 @@ def _run_locked(plan, model, config, run_dir, verbose, term_gradients=False):
         for sequence in (train_seq, val_seq, bn_seq):
             if sequence is not None:
                 sequence.close()
-    return dataclasses.replace(_finish(model, run_dir, config, run_state.state), model=model)
+    return dataclasses.replace(_finish(model, config, run_state.state, processes), model=model)
 
 
 #: Training pairs (the first of the split, the same every epoch) on which
@@ -293,6 +263,15 @@ def _term_gradient_probe(model, sequence):
     y = {name: np.concatenate([b[1][name] for b in batches]) for name in batches[0][1]}
     gradients = TermGradients(model)
     return lambda: gradients(x, y)
+
+
+def _open_run_dir(plan, config, run_dir):
+    """(The process that writes) ``_write_run_files``, unless the run has
+    finished meanwhile (by the process whose lock this one waited for:
+    ``_lock_run_dir``); returns the config as written, or ``config``."""
+    if _finished_run(run_dir, load_model=False) is not None:
+        return config
+    return _write_run_files(plan, config, run_dir)
 
 
 def _write_run_files(plan, config, run_dir):
@@ -333,6 +312,7 @@ def _lock_run_dir(run_dir):
     and then carries on from the state it left: the run ends as an
     uninterrupted one would. The lock ends with the run, however it ends (the
     caller closes the handle), or with the process."""
+    os.makedirs(os.path.join(run_dir, runs.BACKUP), exist_ok=True)
     handle = open(os.path.join(run_dir, runs.LOCK), "a+")
     try:
         fcntl.flock(handle, fcntl.LOCK_EX | fcntl.LOCK_NB)
@@ -385,14 +365,13 @@ def _target_scale(plan):
     return scale
 
 
-def _finish(model, run_dir, config, state):
-    """Best weights -> model.keras; final config.json; remove the checkpoint."""
+def _finish(model, config, state, processes):
+    """Best weights -> model.keras; final config.json; remove the checkpoint
+    (in a group, process 0 writes; the others read best.weights.h5)."""
     from cpl_keras.training.checkpointing import publish_run_files
 
-    chief = distributed.is_chief()  # (in a group, process 0 writes; the others read)
-    if chief:
-        publish_run_files(run_dir, state)
-    distributed.barrier("best weights written")
+    run_dir = config.run_dir
+    processes.write("best weights written", publish_run_files, run_dir, state)
     best = state.get("best_weights")
     if best:
         # The file holds the optimizer's variables too: a run resumed after a
@@ -402,9 +381,6 @@ def _finish(model, run_dir, config, state):
         if not model.optimizer.built:
             model.optimizer.build(model.trainable_variables)
         model.load_weights(os.path.join(run_dir, runs.BEST_WEIGHTS))
-        if chief:
-            with files.atomic_path(os.path.join(run_dir, runs.MODEL)) as tmp, distributed.alone():
-                model.save(tmp)
     nan = state.get("stopped") or ""
     failed = nan.startswith("non-finite")
     config = dataclasses.replace(
@@ -417,14 +393,23 @@ def _finish(model, run_dir, config, state):
         status="failed" if failed else "finished",
         adaptive_weights=model.adaptive_weights(),
     )
-    if chief:
-        runs.write_config(run_dir, config)
-        backup = os.path.join(run_dir, runs.BACKUP)
-        for name in os.listdir(backup):
-            if name.endswith(".weights.h5"):
-                os.remove(os.path.join(backup, name))
-    distributed.barrier("run finished")
+    processes.write("run finished", _write_final_files, model if best else None, config,
+                    processes)
     return TrainResult(config=config, has_model=bool(best))
+
+
+def _write_final_files(model, config, processes):
+    """(The process that writes) model.keras of ``model`` (unless None), the
+    final config.json, and no epoch checkpoint left in backup/."""
+    run_dir = config.run_dir
+    if model is not None:
+        with files.atomic_path(os.path.join(run_dir, runs.MODEL)) as tmp, processes.alone():
+            model.save(tmp)
+    runs.write_config(run_dir, config)
+    backup = os.path.join(run_dir, runs.BACKUP)
+    for name in os.listdir(backup):
+        if name.endswith(".weights.h5"):
+            os.remove(os.path.join(backup, name))
 
 
 def _best_row(state):
