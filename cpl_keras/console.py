@@ -8,9 +8,11 @@ is in place at once; the module's imports take a moment):
     cpl-evaluate     evaluate.py                       (cpl_keras.commands.evaluate)
     cpl-reproduce    python -m cpl_keras.reproduce
     cpl-calibrate    python -m cpl_keras.calibrate
-    cpl-graph        python -m cpl_keras.graph
+    cpl-graph        python -m cpl_keras.graph             (cpl_keras.commands.graph)
     cpl-generate     python -m cpl_keras.data.generate
-    cpl-real-build   python -m cpl_keras.real.build
+    cpl-real-build   python -m cpl_keras.real.build        (cpl_keras.commands.real_build)
+    cpl-mix          python -m cpl_keras.data.mix          (cpl_keras.commands.mix)
+    cpl-learning-curves  python -m cpl_keras.learning_curves  (cpl_keras.commands.learning_curves)
 
 ``cpl-train`` and ``cpl-evaluate`` go by those names in their lines and in
 the commands they record; the others by their ``python -m`` form, which
@@ -52,7 +54,7 @@ def calibrate():
 
 
 def graph():
-    cli.run(_main("cpl_keras.graph"), "python -m cpl_keras.graph")
+    cli.run(_main("cpl_keras.commands.graph"), "python -m cpl_keras.graph")
 
 
 def generate():
@@ -60,4 +62,12 @@ def generate():
 
 
 def real_build():
-    cli.run(_main("cpl_keras.real.build"), "python -m cpl_keras.real.build")
+    cli.run(_main("cpl_keras.commands.real_build"), "python -m cpl_keras.real.build")
+
+
+def mix():
+    cli.run(_main("cpl_keras.commands.mix"), "python -m cpl_keras.data.mix")
+
+
+def learning_curves():
+    cli.run(_main("cpl_keras.commands.learning_curves"), "python -m cpl_keras.learning_curves")

@@ -183,9 +183,9 @@ def real32(shared_folder):
     from pathlib import Path
 
     def make(real):
-        from cpl_keras.real import build
+        from cpl_keras.commands import real_build
 
-        assert build.main(["all", "--out-dir", real, "--crops", "1", "--image-size",
+        assert real_build.main(["all", "--out-dir", real, "--crops", "1", "--image-size",
                            str(TINY_SIZE)]) == 0
 
     return Path(made_once(shared_folder, "real32", make))

@@ -103,12 +103,12 @@ def main_functions():
     repository's train.py and evaluate.py."""
     import importlib.util
 
-    from cpl_keras import calibrate, graph, learning_curves, reproduce
-    from cpl_keras.data import generate, mix
-    from cpl_keras.real import build
+    from cpl_keras import calibrate, reproduce
+    from cpl_keras.commands import graph, learning_curves, mix, real_build
+    from cpl_keras.data import generate
 
     mains = {"reproduce": reproduce.main, "data.generate": generate.main, "data.mix": mix.main,
-             "calibrate": calibrate.main, "graph": graph.main, "real.build": build.main,
+             "calibrate": calibrate.main, "graph": graph.main, "real.build": real_build.main,
              "learning_curves": learning_curves.main}
     for script in ("train.py", "evaluate.py"):
         spec = importlib.util.spec_from_file_location(script[:-3] + "_cli",

@@ -64,7 +64,8 @@ print("exit", code, "heavy", ",".join(heavy) or "none")
     ("train", "cpl-train"), ("evaluate", "cpl-evaluate"),
     ("reproduce", "python -m cpl_keras.reproduce"), ("calibrate", "python -m cpl_keras.calibrate"),
     ("graph", "python -m cpl_keras.graph"), ("generate", "python -m cpl_keras.data.generate"),
-    ("real_build", "python -m cpl_keras.real.build"),
+    ("real_build", "python -m cpl_keras.real.build"), ("mix", "python -m cpl_keras.data.mix"),
+    ("learning_curves", "python -m cpl_keras.learning_curves"),
 ])
 def test_installed_commands_refuse_a_bad_argument_in_one_line(name, prog):
     """The cpl-* commands (pyproject.toml's [project.scripts]) run their

@@ -8,7 +8,8 @@ import sys
 import pytest
 
 from cpl_keras import build_model
-from cpl_keras.graph import camera_graph, layout, main, to_dot
+from cpl_keras.commands.graph import main
+from cpl_keras.graph import camera_graph, layout, to_dot
 
 
 def test_camera_graph_lists_every_equation():

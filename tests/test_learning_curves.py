@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 
 from cpl_keras import learning_curves
+from cpl_keras.commands import learning_curves as learning_curves_command
 from cpl_keras.camera import PARAMETERS
 from cpl_keras.data.storage import StereoFile
 from cpl_keras.datasets import load_split, targets_from_labels
@@ -42,7 +43,7 @@ def test_curves_are_the_logged_validation_mae_over_mean_abs_truth(tiny, tiny_run
 
 def test_outputs_figures_and_tables(tiny_run, tmp_path):
     out = str(tmp_path / "new" / "folder")
-    assert learning_curves.main([tiny_run, "--out", out]) == 0
+    assert learning_curves_command.main([tiny_run, "--out", out]) == 0
     name = os.path.basename(tiny_run)
     assert os.path.getsize(os.path.join(out, f"{name}.png")) > 10_000
     # the run's own log and curves are published beside the figures
@@ -68,7 +69,7 @@ def test_keep_earlier_keeps_rows_of_runs_not_given(tiny_run, tmp_path):
     os.makedirs(out)
     with open(os.path.join(out, "learning_curves.json"), "w") as f:
         json.dump(earlier, f)
-    assert learning_curves.main([tiny_run, "--out", out, "--keep-earlier"]) == 0
+    assert learning_curves_command.main([tiny_run, "--out", out, "--keep-earlier"]) == 0
     with open(os.path.join(out, "learning_curves.json")) as f:
         payload = json.load(f)
     assert [row["run"] for row in payload] == ["gone-run", os.path.basename(tiny_run)]
@@ -78,7 +79,7 @@ def test_keep_earlier_keeps_rows_of_runs_not_given(tiny_run, tmp_path):
     assert "| baseline, small, old.h5, split paper | 10/2 | 7 (4) |" in text
     assert "Kept from an earlier drawing (run directory not given this time): gone-run." in text
     # the equal-budget table: NMAE after 2 epochs, a run with fewer epochs said so
-    assert learning_curves.main([tiny_run, "--out", out, "--keep-earlier", "--at-epoch", "2"]) == 0
+    assert learning_curves_command.main([tiny_run, "--out", out, "--keep-earlier", "--at-epoch", "2"]) == 0
     with open(os.path.join(out, "learning_curves.json")) as f:
         mine = json.load(f)[1]
     with open(os.path.join(out, "learning_curves.md")) as f:
@@ -88,17 +89,17 @@ def test_keep_earlier_keeps_rows_of_runs_not_given(tiny_run, tmp_path):
     assert "## Validation NMAE after 2 epochs" in text
     assert f"| {mine['label']} | {mean:.3f} | " + " | ".join(cells) in text
     assert "| baseline, small, old.h5, split paper | 0.500 | 0.500 |" in text
-    assert learning_curves.main([tiny_run, "--out", out, "--keep-earlier", "--at-epoch", "9"]) == 0
+    assert learning_curves_command.main([tiny_run, "--out", out, "--keep-earlier", "--at-epoch", "9"]) == 0
     with open(os.path.join(out, "learning_curves.md")) as f:
         assert "| fewer than 9 epochs |" in f.read()
     # without the flag the table holds only the runs given
-    assert learning_curves.main([tiny_run, "--out", out]) == 0
+    assert learning_curves_command.main([tiny_run, "--out", out]) == 0
     with open(os.path.join(out, "learning_curves.json")) as f:
         assert [row["run"] for row in json.load(f)] == [os.path.basename(tiny_run)]
 
 
 def test_a_missing_run_is_one_line_and_exit_2(tmp_path, capsys):
-    assert learning_curves.main([str(tmp_path / "nothing"), "--out", str(tmp_path / "o")]) == 2
+    assert learning_curves_command.main([str(tmp_path / "nothing"), "--out", str(tmp_path / "o")]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "error:" in err[0]
 

@@ -11,7 +11,8 @@ import pytest
 from cpl_keras.camera import image_to_world, rotation_matrix
 from cpl_keras.data.storage import StereoFile
 from cpl_keras.camera import CV_TO_PROJECT, opencv_pose_to_rig
-from cpl_keras.real import build, chessboard
+from cpl_keras.commands import real_build
+from cpl_keras.real import chessboard
 
 SIZE = 32
 
@@ -178,7 +179,7 @@ def test_pair_without_corners_is_skipped_and_counted(tmp_path, capsys):
     import cv2
     cv2.imwrite(str(root / "right03.jpg"), blank)
     out = tmp_path / "cb.h5"
-    assert build.main(["chessboard", "--root", str(root), "--crops", "1", "--image-size",
+    assert real_build.main(["chessboard", "--root", str(root), "--crops", "1", "--image-size",
                        str(SIZE), "--out", str(out)]) == 0
     err = capsys.readouterr().err
     assert "skipped 1 of 4 pairs" in err and "right03.jpg" in err
@@ -192,12 +193,12 @@ def test_bad_chessboard_inputs(tmp_path, capsys):
                        names=("01", "02"))
     out = tmp_path / "cb.h5"
     # corners found in too few pairs
-    assert build.main(["chessboard", "--root", str(root), "--out", str(out)]) == 2
+    assert real_build.main(["chessboard", "--root", str(root), "--out", str(out)]) == 2
     err = capsys.readouterr().err.strip()
     assert err.startswith("python -m cpl_keras.real.build: error: chessboard corners") and "\n" not in err
     # a left image without its right image
     os.remove(root / "right02.jpg")
-    assert build.main(["chessboard", "--root", str(root), "--out", str(out)]) == 2
+    assert real_build.main(["chessboard", "--root", str(root), "--out", str(out)]) == 2
     err = capsys.readouterr().err.strip()
     assert "missing right image" in err and "right02.jpg" in err and "\n" not in err
     assert not out.exists() and not os.path.exists(str(out) + ".partial")

@@ -10,6 +10,7 @@ import pytest
 from cpl_keras.camera import image_to_camera, image_to_world
 from cpl_keras.data.storage import StereoFile
 from cpl_keras.camera import crop_resize_coordinate, crop_resize_intrinsics
+from cpl_keras.commands import real_build
 from cpl_keras.real import build
 from cpl_keras.real import middlebury, tsinghua_cityscapes
 
@@ -161,30 +162,30 @@ def test_bad_inputs_one_line_errors(tmp_path, capsys):
     _write_fixture(tmp_path, names=("x_1",))
     os.remove(tmp_path / "camera" / "test" / "tsinghuaDaimlerDataset" / "x_1_camera.json")
     out = tmp_path / "bad.h5"
-    assert build.main(["tsinghua", "--root", str(tmp_path), "--out", str(out)]) == 2
+    assert real_build.main(["tsinghua", "--root", str(tmp_path), "--out", str(out)]) == 2
     err = capsys.readouterr().err.strip()
     assert err.startswith("python -m cpl_keras.real.build: error: missing") and "\n" not in err
     assert not out.exists() and not os.path.exists(str(out) + ".partial")
 
     broken = tmp_path / "broken"
     _write_fixture(broken, camera={"intrinsic": {"fx": 1.0}, "extrinsic": {}})
-    assert build.main(["cityscapes", "--root", str(broken), "--out", str(out)]) == 2
+    assert real_build.main(["cityscapes", "--root", str(broken), "--out", str(out)]) == 2
     assert "intrinsic" in capsys.readouterr().err and not out.exists()
 
-    assert build.main(["tsinghua", "--out", str(out)]) == 2
+    assert real_build.main(["tsinghua", "--out", str(out)]) == 2
     assert "--root is required" in capsys.readouterr().err
     (tmp_path / "file.txt").write_text("x")
-    assert build.main(["middlebury", "--out", str(tmp_path / "file.txt" / "x.h5")]) == 2
+    assert real_build.main(["middlebury", "--out", str(tmp_path / "file.txt" / "x.h5")]) == 2
     assert "is a file" in capsys.readouterr().err
-    assert build.main(["tsinghua", "--root", str(tmp_path / "none"),
+    assert real_build.main(["tsinghua", "--root", str(tmp_path / "none"),
                        "--out", str(tmp_path / "new" / "x.h5")]) == 2
     assert "root not found" in capsys.readouterr().err and not (tmp_path / "new").exists()
     with pytest.raises(SystemExit) as exit_info:
-        build.main(["middlebury", "--crops", "0", "--out", str(out)])
+        real_build.main(["middlebury", "--crops", "0", "--out", str(out)])
     assert exit_info.value.code == 2
     assert "--crops" in capsys.readouterr().err and not out.exists()
     with pytest.raises(SystemExit) as exit_info:
-        build.main(["carla", "--out", str(out)])
+        real_build.main(["carla", "--out", str(out)])
     assert exit_info.value.code == 2
 
 
@@ -192,7 +193,7 @@ def test_bad_inputs_one_line_errors(tmp_path, capsys):
 def test_a_limit_below_one_is_refused(tmp_path, capsys, limit):
     out = tmp_path / "m.h5"
     with pytest.raises(SystemExit) as exit_info:
-        build.main(["middlebury", "--limit", limit, "--out", str(out)])
+        real_build.main(["middlebury", "--limit", limit, "--out", str(out)])
     assert exit_info.value.code == 2
     assert capsys.readouterr().err == ("python -m cpl_keras.real.build: error: argument --limit: "
                                        f"must be a positive integer, got {limit}\n")
@@ -213,13 +214,13 @@ def test_crops_beyond_the_free_disk_or_memory_are_refused_before_any_work(
     out = tmp_path / "m.h5"
     for source, crops in (("middlebury", "1000000000000"), ("oakd", "1000000000000"),
                           ("chessboard", "1000000000000")):
-        assert build.main([source, "--crops", crops, "--out", str(out)]) == 2
+        assert real_build.main([source, "--crops", crops, "--out", str(out)]) == 2
         err = capsys.readouterr().err
         assert err.startswith("python -m cpl_keras.real.build: error: ") and \
             " crops at 112 px need at least " in err and " PB of disk; " in err, err
         assert err.count("\n") == 1
     monkeypatch.setattr(cli, "available_memory", lambda: 10**9)
-    assert build.main(["middlebury", "--crops", "20000", "--out", str(out)]) == 2
+    assert real_build.main(["middlebury", "--crops", "20000", "--out", str(out)]) == 2
     assert capsys.readouterr().err == ("python -m cpl_keras.real.build: error: 20000 crops at "
                                        "112 px need about 1.6 GB of memory; 1.0 GB is "
                                        "available\n")
@@ -228,7 +229,7 @@ def test_crops_beyond_the_free_disk_or_memory_are_refused_before_any_work(
 
 def test_cli_builds_middlebury(tmp_path, capsys):
     out = tmp_path / "new" / "folder" / "m.h5"  # missing folders are created
-    assert build.main(["middlebury", "--crops", "3", "--image-size", "32", "--out", str(out)]) == 0
+    assert real_build.main(["middlebury", "--crops", "3", "--image-size", "32", "--out", str(out)]) == 0
     assert capsys.readouterr().out.strip() == str(out)
     with StereoFile(out) as data:
         assert data.num_pairs == 3

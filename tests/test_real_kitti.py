@@ -9,7 +9,8 @@ import pytest
 
 from cpl_keras.camera import image_to_world
 from cpl_keras.data.storage import StereoFile
-from cpl_keras.real import build, kitti
+from cpl_keras.commands import real_build
+from cpl_keras.real import kitti
 from helpers import (
     KITTI_CAM_TO_CAM as CAM_TO_CAM, KITTI_HEIGHT as HEIGHT, KITTI_OBJECT as OBJECT,
     KITTI_WIDTH as WIDTH, kitti_image, kitti_stereo_root,
@@ -71,7 +72,7 @@ def test_raw_layout(tmp_path):
         cv2.imwrite(str(drive / cam / "data" / "0000000000.png"), kitti_image(cam == "image_03"))
     shutil.copy(CAM_TO_CAM, tmp_path / "2011_09_26" / "calib_cam_to_cam.txt")
     out = tmp_path / "raw.h5"
-    assert build.main(["kitti", "--layout", "raw", "--root", str(tmp_path), "--image-size",
+    assert real_build.main(["kitti", "--layout", "raw", "--root", str(tmp_path), "--image-size",
                        str(SIZE), "--out", str(out)]) == 0
     with StereoFile(out) as data:
         labels, meta = data.labels, data.metadata
@@ -83,7 +84,7 @@ def test_raw_layout(tmp_path):
 
 
 def _fails(argv, capsys, *needles):
-    assert build.main(argv) == 2
+    assert real_build.main(argv) == 2
     err = capsys.readouterr().err.strip()
     assert err.startswith("python -m cpl_keras.real.build: error: ") and "\n" not in err, err
     for needle in needles:
@@ -123,10 +124,10 @@ def test_calibration_in_a_separate_root(tmp_path, capsys):
     separate.mkdir(parents=True)
     shutil.move(str(root / "training" / "calib_cam_to_cam" / "000000.txt"), separate)
     out = tmp_path / "k.h5"
-    assert build.main(["kitti", "--root", str(root), "--out", str(out), "--image-size",
+    assert real_build.main(["kitti", "--root", str(root), "--out", str(out), "--image-size",
                        str(SIZE)]) == 2
     assert "missing calibration file" in capsys.readouterr().err and not out.exists()
-    assert build.main(["kitti", "--root", str(root), "--out", str(out), "--image-size",
+    assert real_build.main(["kitti", "--root", str(root), "--out", str(out), "--image-size",
                        str(SIZE), "--kitti-calib", str(tmp_path / "calib_archive")]) == 0
     with StereoFile(out) as data:
         np.testing.assert_allclose(data.labels["fx"], FX * SIZE / WIDTH, rtol=1e-6)
@@ -141,7 +142,7 @@ def test_raw_calibration_in_a_separate_root(tmp_path):
     (tmp_path / "calib" / "2011_09_26").mkdir(parents=True)
     shutil.copy(CAM_TO_CAM, tmp_path / "calib" / "2011_09_26" / "calib_cam_to_cam.txt")
     out = tmp_path / "raw.h5"
-    assert build.main(["kitti", "--layout", "raw", "--root", str(tmp_path / "raw"),
+    assert real_build.main(["kitti", "--layout", "raw", "--root", str(tmp_path / "raw"),
                        "--image-size", str(SIZE), "--out", str(out), "--kitti-calib",
                        str(tmp_path / "calib")]) == 0
     with StereoFile(out) as data:

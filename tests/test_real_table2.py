@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 import evaluate
-from cpl_keras.real import build
+from cpl_keras.commands import real_build
 
 SIZE = 32
 
@@ -63,7 +63,7 @@ def test_undefined_disparity_is_left_out(setup, tmp_path):
     real = tmp_path / "real"
     real.mkdir()
     shutil.copy(setup["real"] / "chessboard.h5", real)
-    assert build.main(["kitti", "--root", str(root), "--image-size", str(SIZE), "--out",
+    assert real_build.main(["kitti", "--root", str(root), "--image-size", str(SIZE), "--out",
                        str(real / "kitti.h5")]) == 0
     out = tmp_path / "out"
     out.mkdir()

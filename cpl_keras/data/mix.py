@@ -29,7 +29,6 @@ complete; bad input prints one line and exits with status 2.
 from __future__ import annotations
 
 import os
-import sys
 
 import numpy as np
 
@@ -140,29 +139,7 @@ def training_rigs(metadata):
     return [metadata["rig"]] if metadata.get("rig") else []
 
 
-def main(argv=None):
-    parser = cli.Parser(prog=PROG, description=__doc__.split("\n")[0])
-    parser.add_argument("sources", nargs="+", help="dataset files (.h5) to mix, in order")
-    parser.add_argument("--out", required=True, help="the mixed dataset file (.h5)")
-    args = parser.parse_args(argv)
-    try:
-        cli.check_output_file(args.out)
-        with cli.interruptible():
-            cli.make_parent(args.out)
-            path = mix_datasets(args.out, args.sources, command=cli.command_line(PROG, argv))
-    except KeyboardInterrupt:
-        return cli.interrupted(PROG, note=f"{args.out} was not written")
-    except (ValueError, OSError) as error:
-        return cli.fail(PROG, error)
-    with StereoFile(path) as f:
-        counts = np.bincount(f.labels["source_index"])
-        rigs = f.metadata["rigs"]
-    print(path)
-    sys.stderr.write(f"summary: {int(counts.sum())} pairs from {len(counts)} files "
-                     f"({', '.join(str(c) for c in counts)}); real rigs: "
-                     f"{', '.join(rigs) or 'none'}\n")
-    return 0
+if __name__ == "__main__":  # the command line: cpl_keras/commands/mix.py
+    import runpy
 
-
-if __name__ == "__main__":
-    cli.run(main, PROG)
+    runpy.run_module("cpl_keras.commands.mix", run_name="__main__")
