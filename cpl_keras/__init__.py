@@ -8,7 +8,9 @@ Importing the package sets ``$KERAS_BACKEND`` to "jax" unless it names a
 backend (or to Keras's backend when Keras was imported first, so that the
 processes the package starts use the same one), and checks the backend the
 moment Keras is first imported (``cpl_keras.backend.check_backend``: one
-line, ``BackendError``, when it is not installed).
+line, ``BackendError``, when it is not installed). Started as ``python -m
+cpl_keras.X``, it also sets the command's Ctrl-C guard before the
+command's own imports (``cpl_keras.cli.guard_module_start``).
 """
 
 import os
@@ -36,6 +38,14 @@ class _KerasImport:
 
 if not any(type(finder).__name__ == "_KerasImport" for finder in sys.meta_path):
     sys.meta_path.insert(0, _KerasImport())
+
+if getattr(sys, "argv", [])[:1] == ["-m"]:
+    # ``python -m cpl_keras.X`` (runpy imports the packages above X while
+    # sys.argv[0] is "-m"): Ctrl-C ends the command in one line from here,
+    # before X's imports, until X's ``cli.run`` takes over.
+    from cpl_keras import cli as _cli
+
+    _cli.guard_module_start()
 
 __version__ = "0.1.0"
 

@@ -25,6 +25,9 @@
   process ends at once (``os._exit``) without the interpreter's teardown:
   that teardown, with XLA's compilation threads still at work, is where a
   Ctrl-C used to end in a segmentation fault (exit 139).
+* ``guard_module_start()``: ``python -m cpl_keras.X``'s Ctrl-C guard from the
+  package's import until ``run`` takes over (``cpl_keras/__init__.py`` sets
+  it, before X's own imports).
 """
 
 from __future__ import annotations
@@ -290,6 +293,41 @@ def _watchdog(prog, note):
     _exit_interrupted()
 
 
+def module_prog():
+    """``python -m <module>`` when this process was started so for a module
+    of the package (``sys.orig_argv``), else None."""
+    argv = list(getattr(sys, "orig_argv", []))
+    for i, arg in enumerate(argv[1:], 1):
+        if arg.startswith("-m") or arg == "-c":
+            module = arg[2:] or (argv[i + 1] if i + 1 < len(argv) else "")
+            if arg != "-c" and module.split(".")[0] == "cpl_keras":
+                return f"python -m {module}"
+            return None
+    return None
+
+
+def guard_module_start():
+    """Started as ``python -m cpl_keras.X``: until X's ``run`` sets its own
+    guard, a Ctrl-C ends the process at once with X's line (``<prog>:
+    interrupted``) and exit 130. X's module and the packages above it are
+    still being imported then (NumPy, h5py, ...), and nothing is written
+    yet; Python's own handler printed a ``KeyboardInterrupt`` traceback from
+    inside those imports (exit 1). The console scripts need none of this:
+    they import X inside ``run``. Nothing is done in a process started with
+    Ctrl-C ignored, nor outside the main thread."""
+    prog = module_prog()
+    if prog is None or threading.current_thread() is not threading.main_thread() or \
+            signal.getsignal(signal.SIGINT) is signal.SIG_IGN:
+        return
+
+    def at_start(signum, frame):
+        signal.signal(signal.SIGINT, signal.SIG_IGN)
+        interrupted(prog)
+        _exit_interrupted()
+
+    signal.signal(signal.SIGINT, at_start)
+
+
 def _exit_interrupted():
     """End the process now with status 130, stdout and stderr flushed."""
     _exit_now(INTERRUPTED)
@@ -313,7 +351,8 @@ def run(main, prog, note=None):
     A ``KeyboardInterrupt`` that ``main`` let through prints
     ``interrupted(prog, note=note)``'s line; an ``errors.Error`` or
     ``OSError`` (a missing or malformed file, a bad argument) its one-line
-    message, exit status 2. Whenever the status is 130 (an interruption,
+    message, exit status 2; a ``SystemExit`` (argparse's ``--help`` and
+    errors) its status. Whenever the status is 130 (an interruption,
     handled here or by ``main``), further Ctrl-Cs are ignored and the
     process ends with ``os._exit(130)`` once stdout and stderr are flushed
     (once ``main`` has returned, whatever its status, a Ctrl-C is ignored:
@@ -335,6 +374,8 @@ def run(main, prog, note=None):
         status = _end_interrupted(prog, note)
     except (Error, OSError) as error:  # (a missing or bad file: one line, 2)
         status = fail(prog, error)
+    except SystemExit as done:  # (argparse's --help and errors: the same way out)
+        status = _exit_status(done)
     # The command is done: a Ctrl-C from here on, in the interpreter's
     # teardown, would end a finished command by SIGINT (exit -2, no line).
     _ignore_interrupts()
@@ -344,6 +385,15 @@ def run(main, prog, note=None):
         gc.collect()  # (what else the command let go of is released first)
         _exit_now(status)
     sys.exit(status)
+
+
+def _exit_status(done):
+    """The exit status of the ``SystemExit`` ``done``, as Python would give
+    it (a message instead of a number is printed, and the status is 1)."""
+    if done.code is None or isinstance(done.code, int):
+        return done.code or 0
+    print(done.code, file=sys.stderr)
+    return 1
 
 
 def _end_interrupted(prog, note):
