@@ -18,7 +18,8 @@
   in the main thread and is remembered, so that a library that swallows the
   exception still stops at the next ``check_interrupt()`` (training checks
   between batches); the command then prints one line (with how to resume) and
-  exits 130.
+  exits 130. An exception that a Ctrl-C caused (what it stopped half-way
+  raised something else) ends the command the same way.
 * ``run(main, prog)``: every command's one exit path (``if __name__ ==
   "__main__": cli.run(main, PROG)``): ``main()``'s exit status, or after a
   Ctrl-C that ``main`` did not handle one line and 130. An interrupted
@@ -240,9 +241,11 @@ def _unraisable(report, chain):
 @contextlib.contextmanager
 def interruptible():
     """Within the block, SIGINT raises ``Interrupted`` (a ``KeyboardInterrupt``)
-    and is remembered for ``check_interrupt()``. Outside the main thread it
-    does nothing (signal handlers can be set there only), nor in a process
-    started with SIGINT ignored."""
+    and is remembered for ``check_interrupt()``; any other exception that
+    ends the block once a Ctrl-C has come is taken for the Ctrl-C (raised as
+    ``Interrupted`` from it). Outside the main thread it does nothing
+    (signal handlers can be set there only), nor in a process started with
+    SIGINT ignored."""
     if threading.current_thread() is not threading.main_thread():
         yield
         return
@@ -265,6 +268,13 @@ def interruptible():
     previous_hook, sys.unraisablehook = sys.unraisablehook, unraisable
     try:
         yield
+    except Exception as error:
+        if _pending.is_set():
+            # A Ctrl-C came first: this is what it stopped half-way (Keras
+            # raised TypeError from a variable whose initialiser it had
+            # cleared; its traceback, then Python's teardown, crashed).
+            raise Interrupted() from error
+        raise
     finally:
         signal.signal(signal.SIGINT, previous)
         sys.unraisablehook = previous_hook
