@@ -2,8 +2,9 @@
 of the package, so every module can use it).
 
 ``atomic_path`` is the one way the package writes a file: under a temporary
-name beside it, fsync'd, then renamed into place, so a kill at any moment
-leaves the old file or the new one, never half of one. ``write_text``,
+name beside it, fsync'd, then renamed into place and the rename fsync'd
+(its folder), so a kill at any moment leaves the old file or the new one,
+never half of one. ``write_text``,
 ``write_json`` and ``save_figure`` go through it; ``read_json`` reads back.
 """
 
@@ -30,10 +31,29 @@ def _partial(path):
 
 
 def commit(tmp, path):
-    """Flush the finished temporary file ``tmp`` to disk and rename it to ``path``."""
+    """Flush the finished temporary file ``tmp`` to disk, rename it to
+    ``path`` and flush the rename (``sync_folder``)."""
     with open(tmp, "rb") as f:
         os.fsync(f.fileno())
     os.replace(tmp, path)
+    sync_folder(os.path.dirname(os.path.abspath(path)))
+
+
+def sync_folder(folder):
+    """Flush ``folder``'s entries to disk (``fsync`` of the folder), so that
+    a rename into it outlives a power cut or a crash of the system, not
+    only of the process; nothing where the system or file system cannot
+    (an ``OSError``: no such folder, or no fsync of folders)."""
+    try:
+        fd = os.open(folder, os.O_RDONLY)
+    except OSError:
+        return
+    try:
+        os.fsync(fd)
+    except OSError:
+        pass
+    finally:
+        os.close(fd)
 
 
 #: The temporary files of the atomic writes now in progress (``remove_unfinished``).

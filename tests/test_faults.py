@@ -54,6 +54,34 @@ def small_disk(tmp_path):
         subprocess.run(["umount", str(folder)], capture_output=True, timeout=60)
 
 
+def test_an_atomic_write_flushes_the_file_then_the_rename(tmp_path, monkeypatch):
+    """``files.write_text`` (``atomic_path``, ``commit``): fsync of the
+    temporary file, the rename, then fsync of the folder (the rename itself
+    on disk); a folder that cannot be fsync'd (OSError) is let be."""
+    from cpl_keras import files
+
+    synced, fsync = [], os.fsync
+
+    def recording_fsync(fd):
+        synced.append((os.readlink(f"/proc/self/fd/{fd}"), os.path.exists(tmp_path / "a.txt")))
+        fsync(fd)
+
+    monkeypatch.setattr(os, "fsync", recording_fsync)
+    files.write_text(tmp_path / "a.txt", "text\n")
+    assert synced == [(str(tmp_path / ".a.partial.txt"), False), (str(tmp_path), True)]
+    assert (tmp_path / "a.txt").read_text() == "text\n"
+
+    def refusing_fsync(fd):
+        if os.path.isdir(os.readlink(f"/proc/self/fd/{fd}")):
+            raise OSError(22, "Invalid argument")
+        fsync(fd)
+
+    monkeypatch.setattr(os, "fsync", refusing_fsync)
+    files.write_text(tmp_path / "a.txt", "again\n")
+    assert (tmp_path / "a.txt").read_text() == "again\n"
+    assert sorted(os.listdir(tmp_path)) == ["a.txt"]
+
+
 def test_generation_beyond_the_file_size_limit_is_one_line_and_no_file(tmp_path):
     out = tmp_path / "g.h5"
     done = _command(["-m", "cpl_keras.data.generate", "--pairs", "300", "--image-size", "48",
