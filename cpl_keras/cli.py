@@ -9,10 +9,10 @@
   files a command writes (config.json, tables, dataset metadata);
 * ``positive_int``, ``non_negative_int``, ``positive_float``: argparse types
   whose errors name the flag (``argument --seed: must be ...``);
-* ``check_output_file(path)``, ``make_parent(path)``: an output file's path
-  checked without writing anything (its missing folders may be created:
-  their nearest existing ancestor is a writable folder), then its folders
-  created just before it is written;
+* ``check_output_file(path)``, ``check_output_dir(path)``, ``make_parent(path)``:
+  an output's path checked before the work, writing nothing (missing folders
+  can be made, its device has space left; ``OutputError`` otherwise), then
+  its folders created just before it is written;
 * ``interruptible()``, ``check_interrupt()``, ``interrupted(prog, resume)``:
   Ctrl-C (SIGINT). Inside ``interruptible()`` one SIGINT raises ``Interrupted``
   in the main thread and is remembered, so that a library that swallows the
@@ -26,9 +26,8 @@
   process ends at once (``os._exit``) without the interpreter's teardown:
   that teardown, with XLA's compilation threads still at work, is where a
   Ctrl-C used to end in a segmentation fault (exit 139).
-* ``guard_module_start()``: ``python -m cpl_keras.X``'s Ctrl-C guard from the
-  package's import until ``run`` takes over (``cpl_keras/__init__.py`` sets
-  it, before X's own imports).
+* ``guard_module_start()``: ``python -m cpl_keras.X``'s Ctrl-C guard before
+  X's imports, until ``run`` takes over (set by ``cpl_keras/__init__.py``).
 """
 
 from __future__ import annotations
@@ -149,24 +148,58 @@ def momentum(text):
 # ---------------------------------------------------------------------------
 # Output files
 # ---------------------------------------------------------------------------
+class OutputError(Error):
+    """An output path that cannot be written (one line naming it)."""
+
+
+#: An output's device with less free space than this is full (a command's
+#: tables, plots and exports take less).
+MIN_FREE_BYTES = 1 << 20
+
+
 def check_output_file(path):
     """``path`` as a string if a file can be written there, missing folders
-    included; ValueError (one line) otherwise. Writes nothing."""
+    included, on a device with space left (``MIN_FREE_BYTES``);
+    ``OutputError`` (one line) otherwise. Writes nothing."""
     if not isinstance(path, (str, os.PathLike)) or not os.fspath(path):
-        raise ValueError(f"output path must be a non-empty path, got {path!r}")
+        raise OutputError(f"output path must be a non-empty path, got {path!r}")
     path = os.fspath(path)
     if os.path.isdir(path):
-        raise ValueError(f"output path is a directory: {path}")
-    directory = os.path.dirname(os.path.abspath(path))
+        raise OutputError(f"output path is a directory: {path}")
+    _check_folder(os.path.dirname(os.path.abspath(path)))
+    return path
+
+
+def check_output_dir(path):
+    """``path`` as a string if files can be written in the folder ``path``,
+    made if missing, on a device with space left (``MIN_FREE_BYTES``);
+    ``OutputError`` (one line) otherwise. Writes nothing."""
+    path = os.fspath(path)
+    if os.path.exists(path) and not os.path.isdir(path):
+        raise OutputError(f"output directory is a file: {path}")
+    _check_folder(os.path.abspath(path))
+    return path
+
+
+def _check_folder(directory):
+    """``OutputError`` unless files can be written in ``directory`` or in
+    the folders that would be made down to it."""
     ancestor = directory
     while not os.path.exists(ancestor):
         ancestor = os.path.dirname(ancestor)
     if not os.path.isdir(ancestor):
-        raise ValueError(f"cannot create the output directory {directory}: {ancestor} is a file")
+        raise OutputError(f"cannot create the output directory {directory}: {ancestor} is a file")
     if not os.access(ancestor, os.W_OK):
         what = "output directory" if ancestor == directory else "directory"
-        raise ValueError(f"{what} is not writable: {ancestor}")
-    return path
+        raise OutputError(f"{what} is not writable: {ancestor}")
+    try:
+        device = os.statvfs(ancestor)
+    except OSError:  # (no such call here: the writes will tell)
+        return
+    blocks = device.f_bfree if os.geteuid() == 0 else device.f_bavail
+    free = blocks * device.f_frsize
+    if free < MIN_FREE_BYTES:
+        raise OutputError(f"no space left on the device of {ancestor}: {free // 1024} KiB free")
 
 
 def make_parent(path):
@@ -303,29 +336,24 @@ def _watchdog(prog, note):
     _exit_interrupted()
 
 
-def module_prog():
-    """``python -m <module>`` when this process was started so for a module
-    of the package (``sys.orig_argv``), else None."""
+def _module_prog():
+    """``python -m cpl_keras.X`` as this process was started, else None."""
     argv = list(getattr(sys, "orig_argv", []))
     for i, arg in enumerate(argv[1:], 1):
-        if arg.startswith("-m") or arg == "-c":
-            module = arg[2:] or (argv[i + 1] if i + 1 < len(argv) else "")
-            if arg != "-c" and module.split(".")[0] == "cpl_keras":
-                return f"python -m {module}"
-            return None
+        if arg.startswith(("-m", "-c")):
+            module = arg[2:] or "".join(argv[i + 1:i + 2])
+            ours = arg[1] == "m" and module.startswith("cpl_keras.")
+            return f"python -m {module}" if ours else None
     return None
 
 
 def guard_module_start():
     """Started as ``python -m cpl_keras.X``: until X's ``run`` sets its own
-    guard, a Ctrl-C ends the process at once with X's line (``<prog>:
-    interrupted``) and exit 130. X's module and the packages above it are
-    still being imported then (NumPy, h5py, ...), and nothing is written
-    yet; Python's own handler printed a ``KeyboardInterrupt`` traceback from
-    inside those imports (exit 1). The console scripts need none of this:
-    they import X inside ``run``. Nothing is done in a process started with
-    Ctrl-C ignored, nor outside the main thread."""
-    prog = module_prog()
+    guard, a Ctrl-C ends the process at once with X's line and exit 130
+    (nothing is written yet), not with Python's KeyboardInterrupt traceback
+    from inside X's imports (exit 1). Not in a process started with Ctrl-C
+    ignored, nor outside the main thread."""
+    prog = _module_prog()
     if prog is None or threading.current_thread() is not threading.main_thread() or \
             signal.getsignal(signal.SIGINT) is signal.SIG_IGN:
         return
