@@ -418,6 +418,7 @@ def run(main, prog, note=None):
     # teardown, would end a finished command by SIGINT (exit -2, no line).
     _ignore_interrupts()
     if status == INTERRUPTED:
+        gc.collect()  # (a process pool's semaphores released, not warned of as leaked)
         _exit_interrupted()
     if files.teardown_unsafe():  # (a file library left in a failed state)
         gc.collect()  # (what else the command let go of is released first)
@@ -426,8 +427,7 @@ def run(main, prog, note=None):
 
 
 def _exit_status(done):
-    """The exit status of the ``SystemExit`` ``done``, as Python would give
-    it (a message instead of a number is printed, and the status is 1)."""
+    """The exit status of the ``SystemExit`` ``done`` as Python gives it (a message: 1)."""
     if done.code is None or isinstance(done.code, int):
         return done.code or 0
     print(done.code, file=sys.stderr)
