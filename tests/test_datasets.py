@@ -349,11 +349,11 @@ def test_closing_a_sequence_stops_its_readers(tmp_path, monkeypatch):
 
     loader = threading.Thread(target=load)
     loader.start()
-    assert reading.wait(10)
+    assert reading.wait(timeout=10)
     start = time.monotonic()
     seq.close()
     waited = time.monotonic() - start
-    loader.join(10)
+    loader.join(timeout=10)
     assert waited < 1.0, waited
     assert errors == [f"the sequence of {seq.path} is closed"]
     monkeypatch.undo()
