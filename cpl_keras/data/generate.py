@@ -261,9 +261,10 @@ def cached_dataset(folder, *, protocol, pairs, seed, image_size, prefix="", work
     comes through here. Returns its path.
 
     The generation holds a lock (``<path>.lock``, released when its process
-    ends however it ends): another process that wants the same file waits
-    for it (``log`` says so, once) and then takes the finished file, or
-    makes it itself if the first process ended without it. Two demonstration
+    ends however it ends, and removed once the file is made): another
+    process that wants the same file waits for it (``log`` says so, once)
+    and then takes the finished file, or makes it itself if the first
+    process ended without it. Two demonstration
     runs started together on an empty cache used to make it both at once,
     and the second failed on HDF5's lock of the first's temporary file."""
     path = os.path.join(folder, dataset_name(protocol, pairs, seed, image_size, prefix))
@@ -285,6 +286,9 @@ def cached_dataset(folder, *, protocol, pairs, seed, image_size, prefix="", work
                              image_size=image_size, workers=workers, progress=progress)
     finally:
         lock.release()
+    if os.path.exists(path):  # (a failed generation leaves it for the others)
+        with contextlib.suppress(OSError):
+            os.remove(lock.lock_file)
     return path
 
 
