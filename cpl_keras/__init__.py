@@ -3,11 +3,49 @@
 The public entry points are ``build_model``, ``compile_model`` and
 ``load_model`` (a saved model.keras or run directory, ``safe_mode=True``:
 ``cpl_keras.saving``); the camera equations live in ``cpl_keras.camera``.
+
+Importing the package sets ``$KERAS_BACKEND`` to "jax" unless it names a
+backend (or to Keras's backend when Keras was imported first, so that the
+processes the package starts use the same one), and checks the backend the
+moment Keras is first imported (``cpl_keras.backend.check_backend``: one
+line, ``BackendError``, when it is not installed). Started as ``python -m
+cpl_keras.X``, it also sets the command's Ctrl-C guard before the
+command's own imports (``cpl_keras.cli.guard_module_start``).
 """
 
 import os
+import sys
 
-os.environ.setdefault("KERAS_BACKEND", "jax")
+from cpl_keras import backend as _backend
+
+if not os.environ.get("KERAS_BACKEND"):
+    # (JAX, or Keras's backend when Keras was imported first; an empty value
+    # would leave Keras to ~/.keras/keras.json's backend)
+    os.environ["KERAS_BACKEND"] = _backend.keras_backend() if "keras" in sys.modules else "jax"
+
+
+class _KerasImport:
+    """A finder on ``sys.meta_path`` that checks Keras's backend when
+    ``keras`` is first imported (``backend.check_backend``), then leaves the
+    import to Python's own finders: wherever the package (or its caller)
+    first imports Keras, a backend that is not installed is one line."""
+
+    def find_spec(self, fullname, path=None, target=None):
+        if fullname == "keras":
+            _backend.check_backend()
+        return None
+
+
+if not any(type(finder).__name__ == "_KerasImport" for finder in sys.meta_path):
+    sys.meta_path.insert(0, _KerasImport())
+
+if getattr(sys, "argv", [])[:1] == ["-m"]:
+    # ``python -m cpl_keras.X`` (runpy imports the packages above X while
+    # sys.argv[0] is "-m"): Ctrl-C ends the command in one line from here,
+    # before X's imports, until X's ``cli.run`` takes over.
+    from cpl_keras import cli as _cli
+
+    _cli.guard_module_start()
 
 __version__ = "0.1.0"
 

@@ -76,6 +76,26 @@ def focal_argument(text):
     return value, "--focal"
 
 
+def check_outputs(args):
+    """The output files and folders that ``args`` asks for, checked before
+    the work (``CalibrationError`` or ``cli.OutputError``, one line): the
+    folder of ``--json-out`` and ``--opencv-yaml`` exists, each output can
+    be written, and its device has space left."""
+    for flag, path in (("--json-out", args.json_out), ("--opencv-yaml", args.opencv_yaml)):
+        if path:
+            directory = os.path.dirname(os.path.abspath(path))
+            if not os.path.isdir(directory):
+                raise CalibrationError(f"output directory does not exist: {directory}")
+            if os.path.isdir(path):
+                raise CalibrationError(f"{flag} is a directory: {path}")
+            cli.check_output_file(path)
+    for flag, folder in (("--ros-yaml", args.ros_yaml), ("--colmap", args.colmap)):
+        if folder and os.path.exists(folder) and not os.path.isdir(folder):
+            raise CalibrationError(f"{flag} is a file, not a directory: {folder}")
+        if folder:
+            cli.check_output_dir(folder)
+
+
 def main(argv=None):
     parser = cli.Parser(prog=PROG, description=__doc__.split("\n")[0])
     parser.add_argument("left", nargs="?", help="left image file (PNG, JPEG, ...)")
@@ -111,16 +131,7 @@ def main(argv=None):
     if not args.folder and not (args.left and args.right):
         parser.error("give the two images of a pair (LEFT RIGHT) or --folder DIR")
     try:
-        for flag, path in (("--json-out", args.json_out), ("--opencv-yaml", args.opencv_yaml)):
-            if path:
-                directory = os.path.dirname(os.path.abspath(path))
-                if not os.path.isdir(directory):
-                    raise CalibrationError(f"output directory does not exist: {directory}")
-                if os.path.isdir(path):
-                    raise CalibrationError(f"{flag} is a directory: {path}")
-        for flag, folder in (("--ros-yaml", args.ros_yaml), ("--colmap", args.colmap)):
-            if folder and os.path.exists(folder) and not os.path.isdir(folder):
-                raise CalibrationError(f"{flag} is a file, not a directory: {folder}")
+        check_outputs(args)
         focal, source = args.focal or (None, None)
         priors = known.Priors(baseline_m=args.baseline, focal_px=focal, focal_source=source)
         def warn(line):

@@ -9,10 +9,10 @@
   files a command writes (config.json, tables, dataset metadata);
 * ``positive_int``, ``non_negative_int``, ``positive_float``: argparse types
   whose errors name the flag (``argument --seed: must be ...``);
-* ``check_output_file(path)``, ``make_parent(path)``: an output file's path
-  checked without writing anything (its missing folders may be created:
-  their nearest existing ancestor is a writable folder), then its folders
-  created just before it is written;
+* ``check_output_file(path)``, ``check_output_dir(path)``, ``make_parent(path)``:
+  an output's path checked before the work, writing nothing (missing folders
+  can be made, its device has space left; ``OutputError`` otherwise), then
+  its folders created just before it is written;
 * ``check_room(what, path, disk, memory)``: a command's estimate of the disk
   space and memory it needs, checked against what this machine has before
   any work (one line naming both, ``size_text`` for the sizes);
@@ -21,13 +21,16 @@
   in the main thread and is remembered, so that a library that swallows the
   exception still stops at the next ``check_interrupt()`` (training checks
   between batches); the command then prints one line (with how to resume) and
-  exits 130.
+  exits 130. An exception that a Ctrl-C caused (what it stopped half-way
+  raised something else) ends the command the same way.
 * ``run(main, prog)``: every command's one exit path (``if __name__ ==
   "__main__": cli.run(main, PROG)``): ``main()``'s exit status, or after a
   Ctrl-C that ``main`` did not handle one line and 130. An interrupted
   process ends at once (``os._exit``) without the interpreter's teardown:
   that teardown, with XLA's compilation threads still at work, is where a
   Ctrl-C used to end in a segmentation fault (exit 139).
+* ``guard_module_start()``: ``python -m cpl_keras.X``'s Ctrl-C guard before
+  X's imports, until ``run`` takes over (set by ``cpl_keras/__init__.py``).
 """
 
 from __future__ import annotations
@@ -149,24 +152,58 @@ def momentum(text):
 # ---------------------------------------------------------------------------
 # Output files
 # ---------------------------------------------------------------------------
+class OutputError(Error):
+    """An output path that cannot be written (one line naming it)."""
+
+
+#: An output's device with less free space than this is full (a command's
+#: tables, plots and exports take less).
+MIN_FREE_BYTES = 1 << 20
+
+
 def check_output_file(path):
     """``path`` as a string if a file can be written there, missing folders
-    included; ValueError (one line) otherwise. Writes nothing."""
+    included, on a device with space left (``MIN_FREE_BYTES``);
+    ``OutputError`` (one line) otherwise. Writes nothing."""
     if not isinstance(path, (str, os.PathLike)) or not os.fspath(path):
-        raise ValueError(f"output path must be a non-empty path, got {path!r}")
+        raise OutputError(f"output path must be a non-empty path, got {path!r}")
     path = os.fspath(path)
     if os.path.isdir(path):
-        raise ValueError(f"output path is a directory: {path}")
-    directory = os.path.dirname(os.path.abspath(path))
+        raise OutputError(f"output path is a directory: {path}")
+    _check_folder(os.path.dirname(os.path.abspath(path)))
+    return path
+
+
+def check_output_dir(path):
+    """``path`` as a string if files can be written in the folder ``path``,
+    made if missing, on a device with space left (``MIN_FREE_BYTES``);
+    ``OutputError`` (one line) otherwise. Writes nothing."""
+    path = os.fspath(path)
+    if os.path.exists(path) and not os.path.isdir(path):
+        raise OutputError(f"output directory is a file: {path}")
+    _check_folder(os.path.abspath(path))
+    return path
+
+
+def _check_folder(directory):
+    """``OutputError`` unless files can be written in ``directory`` or in
+    the folders that would be made down to it."""
     ancestor = directory
     while not os.path.exists(ancestor):
         ancestor = os.path.dirname(ancestor)
     if not os.path.isdir(ancestor):
-        raise ValueError(f"cannot create the output directory {directory}: {ancestor} is a file")
+        raise OutputError(f"cannot create the output directory {directory}: {ancestor} is a file")
     if not os.access(ancestor, os.W_OK):
         what = "output directory" if ancestor == directory else "directory"
-        raise ValueError(f"{what} is not writable: {ancestor}")
-    return path
+        raise OutputError(f"{what} is not writable: {ancestor}")
+    try:
+        device = os.statvfs(ancestor)
+    except OSError:  # (no such call here: the writes will tell)
+        return
+    blocks = device.f_bfree if os.geteuid() == 0 else device.f_bavail
+    free = blocks * device.f_frsize
+    if free < MIN_FREE_BYTES:
+        raise OutputError(f"no space left on the device of {ancestor}: {free // 1024} KiB free")
 
 
 def make_parent(path):
@@ -288,9 +325,11 @@ def _unraisable(report, chain):
 @contextlib.contextmanager
 def interruptible():
     """Within the block, SIGINT raises ``Interrupted`` (a ``KeyboardInterrupt``)
-    and is remembered for ``check_interrupt()``. Outside the main thread it
-    does nothing (signal handlers can be set there only), nor in a process
-    started with SIGINT ignored."""
+    and is remembered for ``check_interrupt()``; any other exception that
+    ends the block once a Ctrl-C has come is taken for the Ctrl-C (raised as
+    ``Interrupted`` from it). Outside the main thread it does nothing
+    (signal handlers can be set there only), nor in a process started with
+    SIGINT ignored."""
     if threading.current_thread() is not threading.main_thread():
         yield
         return
@@ -313,6 +352,13 @@ def interruptible():
     previous_hook, sys.unraisablehook = sys.unraisablehook, unraisable
     try:
         yield
+    except Exception as error:
+        if _pending.is_set():
+            # A Ctrl-C came first: this is what it stopped half-way (Keras
+            # raised TypeError from a variable whose initialiser it had
+            # cleared; its traceback, then Python's teardown, crashed).
+            raise Interrupted() from error
+        raise
     finally:
         signal.signal(signal.SIGINT, previous)
         sys.unraisablehook = previous_hook
@@ -341,6 +387,36 @@ def _watchdog(prog, note):
     _exit_interrupted()
 
 
+def _module_prog():
+    """``python -m cpl_keras.X`` as this process was started, else None."""
+    argv = list(getattr(sys, "orig_argv", []))
+    for i, arg in enumerate(argv[1:], 1):
+        if arg.startswith(("-m", "-c")):
+            module = arg[2:] or "".join(argv[i + 1:i + 2])
+            ours = arg[1] == "m" and module.startswith("cpl_keras.")
+            return f"python -m {module}" if ours else None
+    return None
+
+
+def guard_module_start():
+    """Started as ``python -m cpl_keras.X``: until X's ``run`` sets its own
+    guard, a Ctrl-C ends the process at once with X's line and exit 130
+    (nothing is written yet), not with Python's KeyboardInterrupt traceback
+    from inside X's imports (exit 1). Not in a process started with Ctrl-C
+    ignored, nor outside the main thread."""
+    prog = _module_prog()
+    if prog is None or threading.current_thread() is not threading.main_thread() or \
+            signal.getsignal(signal.SIGINT) is signal.SIG_IGN:
+        return
+
+    def at_start(signum, frame):
+        signal.signal(signal.SIGINT, signal.SIG_IGN)
+        interrupted(prog)
+        _exit_interrupted()
+
+    signal.signal(signal.SIGINT, at_start)
+
+
 def _exit_interrupted():
     """End the process now with status 130, stdout and stderr flushed."""
     _exit_now(INTERRUPTED)
@@ -364,7 +440,8 @@ def run(main, prog, note=None):
     A ``KeyboardInterrupt`` that ``main`` let through prints
     ``interrupted(prog, note=note)``'s line; an ``errors.Error`` or
     ``OSError`` (a missing or malformed file, a bad argument) its one-line
-    message, exit status 2. Whenever the status is 130 (an interruption,
+    message, exit status 2; a ``SystemExit`` (argparse's ``--help`` and
+    errors) its status. Whenever the status is 130 (an interruption,
     handled here or by ``main``), further Ctrl-Cs are ignored and the
     process ends with ``os._exit(130)`` once stdout and stderr are flushed
     (once ``main`` has returned, whatever its status, a Ctrl-C is ignored:
@@ -386,15 +463,26 @@ def run(main, prog, note=None):
         status = _end_interrupted(prog, note)
     except (Error, OSError) as error:  # (a missing or bad file: one line, 2)
         status = fail(prog, error)
+    except SystemExit as done:  # (argparse's --help and errors: the same way out)
+        status = _exit_status(done)
     # The command is done: a Ctrl-C from here on, in the interpreter's
     # teardown, would end a finished command by SIGINT (exit -2, no line).
     _ignore_interrupts()
     if status == INTERRUPTED:
+        gc.collect()  # (a process pool's semaphores released, not warned of as leaked)
         _exit_interrupted()
     if files.teardown_unsafe():  # (a file library left in a failed state)
         gc.collect()  # (what else the command let go of is released first)
         _exit_now(status)
     sys.exit(status)
+
+
+def _exit_status(done):
+    """The exit status of the ``SystemExit`` ``done`` as Python gives it (a message: 1)."""
+    if done.code is None or isinstance(done.code, int):
+        return done.code or 0
+    print(done.code, file=sys.stderr)
+    return 1
 
 
 def _end_interrupted(prog, note):

@@ -26,13 +26,12 @@ none), and the right camera's pose from ``pitch`` and ``(tx, ty, tz)``
 
 from __future__ import annotations
 
-import contextlib
 import os
 
 import numpy as np
 
 from cpl_keras.camera import rig_to_opencv_pose, rotation_matrix
-from cpl_keras.files import atomic_path, write_text
+from cpl_keras.files import atomic_path, new_folders, write_text
 
 
 def camera_matrix(parameters):
@@ -103,42 +102,16 @@ def write_all(calibration, *, json_text=None, json_out=None, opencv_yaml=None, r
         writers.append((os.path.join(colmap, "cameras.txt"), lambda tmp: _text(tmp, text)))
     if not writers:
         return []
-    made = _make_folders(path for path, _ in writers)
-    try:
-        with atomic_path(*[path for path, _ in writers]) as tmps:
-            for (_, write), tmp in zip(writers, tmps if len(writers) > 1 else [tmps]):
-                write(tmp)
-    except BaseException:
-        for folder in reversed(made):
-            with contextlib.suppress(OSError):
-                os.rmdir(folder)  # (only if it is still empty)
-        raise
-    return [path for path, _ in writers]
+    paths = [path for path, _ in writers]
+    with new_folders(*paths), atomic_path(*paths) as tmps:
+        for (_, write), tmp in zip(writers, tmps if len(writers) > 1 else [tmps]):
+            write(tmp)
+    return paths
 
 
 def _text(path, text):
     with open(path, "w") as f:
         f.write(text)
-
-
-def _make_folders(paths):
-    """Create the missing folders above ``paths``, once every one is known
-    to be possible (``OSError`` in one line, and nothing made, when a file
-    stands where a folder must be); returns those it made, outermost first."""
-    missing = []
-    for path in paths:
-        folder = os.path.dirname(os.path.abspath(path))
-        while not os.path.isdir(folder):
-            if os.path.exists(folder):
-                raise OSError(f"cannot write {path}: {folder} is a file, not a folder")
-            missing.append(folder)
-            folder = os.path.dirname(folder)
-    made = []
-    for folder in sorted(set(missing), key=len):
-        if not os.path.isdir(folder):
-            os.makedirs(folder)
-            made.append(folder)
-    return made
 
 
 def _matrix(name, rows, cols, values):

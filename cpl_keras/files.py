@@ -2,9 +2,13 @@
 of the package, so every module can use it).
 
 ``atomic_path`` is the one way the package writes a file: under a temporary
-name beside it, fsync'd, then renamed into place, so a kill at any moment
-leaves the old file or the new one, never half of one. ``write_text``,
+name beside it, fsync'd, then renamed into place and the rename fsync'd
+(its folder), so a kill at any moment leaves the old file or the new one,
+never half of one. ``write_text``,
 ``write_json`` and ``save_figure`` go through it; ``read_json`` reads back.
+A failed write is an ``OSError`` of one line naming the file
+(``write_failed``), and ``new_folders`` makes an output's folders, removed
+again if the write fails.
 """
 
 from __future__ import annotations
@@ -30,10 +34,29 @@ def _partial(path):
 
 
 def commit(tmp, path):
-    """Flush the finished temporary file ``tmp`` to disk and rename it to ``path``."""
+    """Flush the finished temporary file ``tmp`` to disk, rename it to
+    ``path`` and flush the rename (``sync_folder``)."""
     with open(tmp, "rb") as f:
         os.fsync(f.fileno())
     os.replace(tmp, path)
+    sync_folder(os.path.dirname(os.path.abspath(path)))
+
+
+def sync_folder(folder):
+    """Flush ``folder``'s entries to disk (``fsync`` of the folder), so that
+    a rename into it outlives a power cut or a crash of the system, not
+    only of the process; nothing where the system or file system cannot
+    (an ``OSError``: no such folder, or no fsync of folders)."""
+    try:
+        fd = os.open(folder, os.O_RDONLY)
+    except OSError:
+        return
+    try:
+        os.fsync(fd)
+    except OSError:
+        pass
+    finally:
+        os.close(fd)
 
 
 #: The temporary files of the atomic writes now in progress (``remove_unfinished``).
@@ -54,8 +77,11 @@ def write_failed(path, error):
     """The one line of a failed write of ``path`` (``error``: an ``OSError``,
     or the ``RuntimeError`` or ``OSError`` of a file library such as h5py,
     which carries the system's errno in its text): a full disk and a file
-    over the system's size limit said in words."""
+    over the system's size limit said in words. An error that says it
+    already (``atomic_path``'s) is left as it is."""
     text = str(error)
+    if text.startswith(f"cannot write {path}: "):
+        return text
     number = getattr(error, "errno", None)
     if number == errno.ENOSPC or "No space left" in text or "errno = 28" in text:
         return f"cannot write {path}: no space left on the device"
@@ -137,18 +163,71 @@ def atomic_path(*paths):
     to; when the block ends without an error, each file is fsync'd and
     renamed into place, all of them or (on an error) none: the temporary
     files are removed and the final files left as they were. With one path,
-    yields one temporary path; with several, a list."""
+    yields one temporary path; with several, a list. An ``OSError`` in the
+    block or the renames (a full disk's ENOSPC names no file) is raised
+    again as one naming the file, in one line (``_failed_write``)."""
     tmps = [_partial(os.fspath(p)) for p in paths]
     _unfinished.update(tmps)
     try:
-        yield tmps[0] if len(tmps) == 1 else tmps
-        for tmp, path in zip(tmps, paths):
-            commit(tmp, path)
+        try:
+            yield tmps[0] if len(tmps) == 1 else tmps
+            for tmp, path in zip(tmps, paths):
+                commit(tmp, path)
+        except OSError as error:
+            raise _failed_write(tmps, paths, error) from None
     finally:
         for tmp in tmps:
             if os.path.exists(tmp):
                 os.remove(tmp)
         _unfinished.difference_update(tmps)
+
+
+def _failed_write(tmps, paths, error):
+    """An ``OSError`` (``write_failed``'s line, ``error``'s errno) for the
+    ``OSError`` ``error`` of ``atomic_path`` that wrote ``tmps`` for
+    ``paths``: it names the file that ``error`` names, else the last one
+    whose temporary file was begun (the files are written in turn)."""
+    named = {os.path.abspath(t): os.fspath(p) for t, p in zip(tmps, paths)}
+    names = [getattr(error, name, None) for name in ("filename", "filename2")]
+    path = next((named[os.path.abspath(n)] for n in names
+                 if isinstance(n, str) and os.path.abspath(n) in named), None)
+    if path is None:
+        begun = [os.fspath(p) for t, p in zip(tmps, paths) if os.path.exists(t)]
+        path = begun[-1] if begun else os.fspath(paths[0])
+    failure = OSError(write_failed(path, error))
+    failure.errno = error.errno  # (its text stays the line: no strerror)
+    return failure
+
+
+@contextlib.contextmanager
+def new_folders(*paths):
+    """Create the missing folders above the files ``paths``, once every one
+    is known to be possible (``OSError`` in one line, and nothing made, when
+    a file stands where a folder must be); when the block ends with an
+    exception, remove those made again (each if still empty), so that a
+    failed command leaves no empty folder. Yields the folders made,
+    outermost first."""
+    missing = []
+    for path in paths:
+        folder = os.path.dirname(os.path.abspath(os.fspath(path)))
+        while not os.path.isdir(folder):
+            if os.path.exists(folder):
+                raise OSError(f"cannot write {os.fspath(path)}: {folder} is a file, "
+                              "not a folder")
+            missing.append(folder)
+            folder = os.path.dirname(folder)
+    made = []
+    try:
+        for folder in sorted(set(missing), key=len):
+            if not os.path.isdir(folder):
+                os.mkdir(folder)
+                made.append(folder)
+        yield made
+    except BaseException:
+        for folder in reversed(made):
+            with contextlib.suppress(OSError):
+                os.rmdir(folder)  # (only if it is still empty)
+        raise
 
 
 def write_text(path, text):

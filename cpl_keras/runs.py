@@ -309,6 +309,7 @@ def publish_run_dir(run_dir, target):
     if os.path.isdir(target):
         shutil.rmtree(target)
     os.replace(staging, target)
+    files.sync_folder(os.path.dirname(os.path.abspath(target)))
     return target
 
 
@@ -343,6 +344,7 @@ def restore_run_dir(folder, run_dir, data_path):
         os.rmdir(run_dir)
     os.makedirs(os.path.dirname(os.path.abspath(run_dir)), exist_ok=True)
     os.replace(staging, run_dir)
+    files.sync_folder(os.path.dirname(os.path.abspath(run_dir)))
     return run_dir
 
 

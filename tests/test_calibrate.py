@@ -610,9 +610,9 @@ def test_bad_arguments_to_the_python_api_are_one_line_calibration_errors(setup, 
 
 def test_exports_are_all_or_nothing(setup, tmp_path, capsys):
     """An export that cannot be written (its folder would be under a file)
-    stops calibrate in one line, exit 2, with none of the others written
-    and no folder made for them; the same exports that can be written all
-    appear."""
+    stops calibrate in one line, exit 2, before the work (``check_outputs``),
+    with none of the others written and no folder made for them; the same
+    exports that can be written all appear."""
     blocker = tmp_path / "a-file"
     blocker.write_text("")
     (tmp_path / "out").mkdir()
@@ -622,8 +622,8 @@ def test_exports_are_all_or_nothing(setup, tmp_path, capsys):
     assert calibrate.main(_pair_args(setup) + outputs
                           + ["--colmap", str(blocker / "colmap")]) == 2
     err = [line for line in capsys.readouterr().err.splitlines() if ": error: " in line]
-    assert err == [f"python -m cpl_keras.calibrate: error: cannot write "
-                   f"{blocker / 'colmap' / 'cameras.txt'}: {blocker} is a file, not a folder"]
+    assert err == [f"python -m cpl_keras.calibrate: error: cannot create the output directory "
+                   f"{blocker / 'colmap'}: {blocker} is a file"]
     assert sorted(os.listdir(tmp_path)) == ["a-file", "out"] and not os.listdir(tmp_path / "out")
     assert calibrate.main(_pair_args(setup) + outputs
                           + ["--colmap", str(tmp_path / "colmap")]) == 0

@@ -87,6 +87,47 @@ def test_cached_dataset_is_made_once_under_its_versioned_name(tmp_path, monkeypa
     assert os.path.basename(other) == f"cvgl_4_32px_s3_v{version}.h5" and len(made) == 2
 
 
+_CACHED = """
+import sys
+from cpl_keras.data.generate import cached_dataset
+path = cached_dataset(sys.argv[1], protocol="random", pairs=8, seed=0, image_size=16,
+                      workers=1, progress=False,
+                      log=lambda line: print(line, file=sys.stderr, flush=True))
+print(path)
+"""
+
+
+def test_two_processes_wanting_one_cached_dataset_make_it_once(tmp_path):
+    """Two processes that want the same cached dataset while a third holds
+    its lock (making it): each says once that it waits, then one makes the
+    file and the other takes it (two demonstration runs on an empty cache:
+    the second failed on HDF5's lock of the first's temporary file)."""
+    from filelock import FileLock
+
+    cache = tmp_path / "cache"
+    cache.mkdir()
+    path = os.path.join(cache, generate.dataset_name("random", 8, 0, 16))
+    lock = FileLock(path + ".lock")
+    lock.acquire()
+    try:
+        processes = [subprocess.Popen([sys.executable, "-c", _CACHED, str(cache)], cwd=REPO,
+                                      text=True, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                                      env=dict(os.environ, KERAS_BACKEND="jax"))
+                     for _ in range(2)]
+        for process in processes:
+            assert process.stderr.readline() == f"waiting for another process making {path}\n"
+    finally:
+        lock.release()
+    outcomes = [process.communicate(timeout=120) for process in processes]
+    assert [process.returncode for process in processes] == [0, 0], outcomes
+    assert [out for out, _ in outcomes] == [path + "\n"] * 2
+    made = [err for _, err in outcomes if err.startswith("generating 8 random pairs")]
+    assert len(made) == 1 and sorted(err for _, err in outcomes)[0] == "", outcomes
+    with StereoFile(path) as data:
+        assert data.num_pairs == 8
+    assert os.listdir(cache) == [os.path.basename(path)]  # (the lock removed)
+
+
 def test_different_seeds_give_different_images(tmp_path):
     a = generate_dataset(tmp_path / "a.h5", pairs=3, seed=0, image_size=24, workers=1,
                          progress=False)

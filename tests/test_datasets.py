@@ -315,6 +315,57 @@ def test_sequence_with_threads_matches_single_reader(tmp_path):
     assert isinstance(many, keras.utils.PyDataset)
 
 
+def test_closing_a_sequence_stops_its_readers(tmp_path, monkeypatch):
+    """``close()`` while a thread loads the images into memory stops the load
+    at its next block (a Ctrl-C of train.py --workers 2 waited for the whole
+    load, then the process was ended without the resume line); a closed
+    streaming sequence does not open its file again for a reading thread
+    that Keras left running."""
+    import threading
+    import time
+
+    from cpl_keras.data.storage import StereoFile
+    from cpl_keras.training import sequence
+
+    path = write_stereo_fixture(tmp_path / "d.h5", n=40, image_size=16)
+    targets = targets_from_labels(fixture_labels(40, 16))
+    read, reading = StereoFile.read_pairs, threading.Event()
+
+    def slow_read(self, indices):
+        reading.set()
+        time.sleep(0.2)
+        return read(self, indices)
+
+    monkeypatch.setattr(StereoFile, "read_pairs", slow_read)
+    monkeypatch.setattr(sequence, "LOAD_BLOCK", 4)  # 10 blocks: 2 s
+    seq = sequence.StereoSequence(path, np.arange(40), targets, batch_size=8, in_memory=True)
+    errors = []
+
+    def load():
+        try:
+            seq[0]
+        except ValueError as error:
+            errors.append(str(error))
+
+    loader = threading.Thread(target=load)
+    loader.start()
+    assert reading.wait(timeout=10)
+    start = time.monotonic()
+    seq.close()
+    waited = time.monotonic() - start
+    loader.join(timeout=10)
+    assert waited < 1.0, waited
+    assert errors == [f"the sequence of {seq.path} is closed"]
+    monkeypatch.undo()
+    streaming = sequence.StereoSequence(path, np.arange(40), targets, batch_size=8,
+                                        in_memory=False)
+    assert streaming[0][0]["left_image"].shape == (8, 16, 16, 3)
+    streaming.close()
+    with pytest.raises(ValueError, match="closed"):
+        streaming[1]
+    assert streaming._file is None
+
+
 def test_sequence_memory_does_not_grow_with_the_dataset(tmp_path):
     from cpl_keras.training.sequence import StereoSequence
 

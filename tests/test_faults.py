@@ -4,6 +4,7 @@ file size limit, ``RLIMIT_FSIZE``, gives every write beyond it EFBIG, as a
 full disk gives ENOSPC; where the tests run as root, a small tmpfs gives
 ENOSPC itself), and a refused command, which writes nothing."""
 
+import errno
 import os
 import resource
 import shutil
@@ -37,14 +38,14 @@ def _files(folder):
                   for root, _, names in os.walk(folder) for name in names)
 
 
-@pytest.fixture
-def small_disk(tmp_path):
-    """A 4 MiB tmpfs (root only; skipped elsewhere), unmounted afterwards."""
+def _tmpfs(tmp_path, options):
+    """A tmpfs mounted with ``options`` (root only; skipped elsewhere),
+    unmounted afterwards."""
     folder = tmp_path / f"disk-{uuid.uuid4().hex[:8]}"
     folder.mkdir()
     if os.geteuid() != 0 or not shutil.which("mount"):
         pytest.skip("mounting a tmpfs needs root")
-    done = subprocess.run(["mount", "-t", "tmpfs", "-o", "size=4m", "tmpfs", str(folder)],
+    done = subprocess.run(["mount", "-t", "tmpfs", "-o", options, "tmpfs", str(folder)],
                           capture_output=True, text=True, timeout=60)
     if done.returncode != 0:
         pytest.skip(f"cannot mount a tmpfs here: {done.stderr.strip()}")
@@ -52,6 +53,109 @@ def small_disk(tmp_path):
         yield folder
     finally:
         subprocess.run(["umount", str(folder)], capture_output=True, timeout=60)
+
+
+@pytest.fixture
+def small_disk(tmp_path):
+    """A 4 MiB tmpfs."""
+    yield from _tmpfs(tmp_path, "size=4m")
+
+
+@pytest.fixture
+def read_only_disk(tmp_path):
+    """A read-only tmpfs (root's writes fail there too, unlike a folder's mode)."""
+    yield from _tmpfs(tmp_path, "ro,size=1m")
+
+
+def _fill(folder):
+    """Write into ``folder`` until its device is full."""
+    with open(folder / "filler", "wb") as f:
+        try:
+            while True:
+                f.write(b"\0" * 65536)
+                f.flush()
+        except OSError:
+            pass
+
+
+def test_an_atomic_write_flushes_the_file_then_the_rename(tmp_path, monkeypatch):
+    """``files.write_text`` (``atomic_path``, ``commit``): fsync of the
+    temporary file, the rename, then fsync of the folder (the rename itself
+    on disk); a folder that cannot be fsync'd (OSError) is let be."""
+    from cpl_keras import files
+
+    synced, fsync = [], os.fsync
+
+    def recording_fsync(fd):
+        synced.append((os.readlink(f"/proc/self/fd/{fd}"), os.path.exists(tmp_path / "a.txt")))
+        fsync(fd)
+
+    monkeypatch.setattr(os, "fsync", recording_fsync)
+    files.write_text(tmp_path / "a.txt", "text\n")
+    assert synced == [(str(tmp_path / ".a.partial.txt"), False), (str(tmp_path), True)]
+    assert (tmp_path / "a.txt").read_text() == "text\n"
+
+    def refusing_fsync(fd):
+        if os.path.isdir(os.readlink(f"/proc/self/fd/{fd}")):
+            raise OSError(22, "Invalid argument")
+        fsync(fd)
+
+    monkeypatch.setattr(os, "fsync", refusing_fsync)
+    files.write_text(tmp_path / "a.txt", "again\n")
+    assert (tmp_path / "a.txt").read_text() == "again\n"
+    assert sorted(os.listdir(tmp_path)) == ["a.txt"]
+
+
+def test_a_failed_atomic_write_names_its_file_and_leaves_no_folder(small_disk):
+    """A full disk in the middle of writing several files (``atomic_path``;
+    ENOSPC names no file): one line naming the file being written; none of
+    the files, and none of the folders made for them (``new_folders``)."""
+    from cpl_keras import files
+
+    small, large = small_disk / "out" / "sub" / "a.txt", small_disk / "out" / "sub" / "b.txt"
+    with pytest.raises(OSError) as caught:
+        with files.new_folders(small, large), files.atomic_path(small, large) as (a, b):
+            with open(a, "w") as f:
+                f.write("small\n")
+            with open(b, "wb") as f:
+                f.write(b"\0" * (8 << 20))
+    assert str(caught.value) == f"cannot write {large}: no space left on the device"
+    assert caught.value.errno == errno.ENOSPC
+    assert files.write_failed(large, caught.value) == str(caught.value)
+    assert _files(small_disk) == [] and os.listdir(small_disk) == []
+
+
+def test_evaluate_and_calibrate_refuse_a_full_disk_before_the_work(small_disk):
+    """A full output disk is found before anything is evaluated or
+    calibrated (the run and the data need not even exist): one line naming
+    the folder, exit 2, no folder made. Both found it only once all the work
+    was done, in a line that named no file ([Errno 28]), and evaluate.py
+    left its empty output folder."""
+    _fill(small_disk)
+    out = small_disk / "tables" / "new"
+    done = _command(["evaluate.py", "--table", "1", "--runs", "no-such-run", "--out", str(out)])
+    assert done.returncode == 2, done.stderr
+    [line] = done.stderr.splitlines()
+    assert line.startswith(f"evaluate.py: error: no space left on the device of {small_disk}: ")
+    done = _command(["-m", "cpl_keras.calibrate", "l.png", "r.png", "--run", "no-such-run",
+                     "--ros-yaml", str(out)])
+    assert done.returncode == 2, done.stderr
+    assert done.stderr.splitlines() == [
+        line.replace("evaluate.py", "python -m cpl_keras.calibrate")], done.stderr
+    assert _files(small_disk) == ["filler"] and os.listdir(small_disk) == ["filler"]
+
+
+def test_evaluate_and_calibrate_refuse_a_read_only_folder_before_the_work(read_only_disk):
+    for args, prog in ((["evaluate.py", "--run", "no-such-run", "--data", "no.h5", "--out",
+                         str(read_only_disk / "out")], "evaluate.py"),
+                       (["-m", "cpl_keras.calibrate", "l.png", "r.png", "--run", "no-such-run",
+                         "--json-out", str(read_only_disk / "c.json")],
+                        "python -m cpl_keras.calibrate")):
+        done = _command(args)
+        assert done.returncode == 2, done.stderr
+        what = "directory" if prog == "evaluate.py" else "output directory"
+        assert done.stderr.splitlines() == [
+            f"{prog}: error: {what} is not writable: {read_only_disk}"], done.stderr
 
 
 def test_generation_beyond_the_file_size_limit_is_one_line_and_no_file(tmp_path):

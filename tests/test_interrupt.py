@@ -56,6 +56,7 @@ def _wait_for(condition, timeout=120):
 
 def _one_line_130(process, prog, timeout=30):
     out, err = process.communicate(timeout=timeout)
+    process.stderr_text = err
     assert process.returncode == 130, err
     assert "Traceback" not in err, err
     lines = [line for line in err.splitlines() if "interrupted" in line]
@@ -154,6 +155,39 @@ def test_ctrl_c_stops_generation_and_the_same_command_continues_it_to_the_same_b
     assert (tmp_path / "a" / "x.h5").read_bytes() == (tmp_path / "b" / "x.h5").read_bytes()
 
 
+@pytest.mark.parametrize("module", ["cpl_keras.calibrate", "cpl_keras.real.build",
+                                    "cpl_keras.reproduce"])
+def test_ctrl_c_during_the_imports_of_python_m_is_one_line(tmp_path, module):
+    """``python -m cpl_keras.X`` interrupted while X's module (and the
+    packages above it, NumPy and h5py for ``cpl_keras.real``) are imported:
+    one line, exit 130, no file (Python's handler printed a KeyboardInterrupt
+    traceback from inside those imports, exit 1, when a Ctrl-C came 0.2 to
+    0.7 s after the start). The Ctrl-C is sent as soon as ``-X importtime``
+    says the package ``cpl_keras`` is imported, the rest of the imports
+    still to come."""
+    out = tmp_path / "out.json"
+    args = {"cpl_keras.calibrate": ["l.png", "r.png", "--run", str(tmp_path / "run"),
+                                    "--json-out", str(out)],
+            "cpl_keras.real.build": ["middlebury", "--out", str(out)],
+            "cpl_keras.reproduce": ["--quick", "--out", str(tmp_path / "paper")]}[module]
+    process = _start(["-X", "importtime", "-m", module, *args])
+    try:
+        seen = []
+        while not (seen and seen[-1].split("|")[-1].strip() == "cpl_keras"):
+            seen.append(process.stderr.readline())
+            assert seen[-1], "".join(seen)
+        _ctrl_c(process)
+        _, err = process.communicate(timeout=60)
+    finally:
+        if process.poll() is None:
+            process.kill()
+    assert process.returncode == 130, err
+    assert "Traceback" not in err, err
+    assert [line for line in err.splitlines() if not line.startswith("import time:")] == [
+        f"python -m {module}: interrupted"], err
+    assert os.listdir(tmp_path) == []
+
+
 def test_a_ctrl_c_swallowed_during_generation_stops_it_before_the_file_is_written(
         tmp_path, monkeypatch, capsys):
     """A SIGINT that lands where an exception is swallowed (an h5py
@@ -190,6 +224,22 @@ def test_ctrl_c_stops_the_reproduction_resumably(tmp_path):
     for name in os.listdir(data_dir):  # (a .partial file is continued by the same command)
         if not name.endswith(".partial"):
             StereoFile(data_dir / name).close()  # whole, or it would not be there
+
+
+def test_an_error_after_a_ctrl_c_is_taken_for_the_ctrl_c():
+    """An exception that ends an ``interruptible()`` block once a Ctrl-C has
+    come is what the Ctrl-C stopped half-way (Keras's TypeError from a
+    variable it was initialising, seen at 1 of 3 Ctrl-Cs of train.py at
+    40 s: a traceback, then Python's teardown): ``Interrupted``, from it.
+    Without a Ctrl-C it is left as it is."""
+    from cpl_keras import cli
+
+    with pytest.raises(cli.Interrupted) as caught, cli.interruptible():
+        cli._pending.set()
+        raise TypeError("'NoneType' object is not callable")
+    assert isinstance(caught.value.__cause__, TypeError)
+    with pytest.raises(TypeError), cli.interruptible():
+        raise TypeError("a bug")
 
 
 def test_a_ctrl_c_swallowed_by_a_callback_prints_nothing_and_stays_pending(capsys):
@@ -367,7 +417,9 @@ def test_every_installed_command_leaves_through_cli_run():
 
 def test_cli_run_exit_statuses(tmp_path):
     """``cli.run``: main's status; a KeyboardInterrupt -> one line and 130;
-    a package error or OSError -> one line and 2."""
+    a package error or OSError -> one line and 2; a SystemExit with a
+    message -> the message and 1, as Python gives it; any exception after a
+    Ctrl-C -> the Ctrl-C's line and 130."""
     script = tmp_path / "command.py"
     script.write_text(
         "import sys\n"
@@ -379,12 +431,15 @@ def test_cli_run_exit_statuses(tmp_path):
         "    if what == 'ctrl-c': raise KeyboardInterrupt\n"
         "    if what == 'error': raise Error('dataset not found: x.h5')\n"
         "    if what == 'oserror': open('/nonexistent/x')\n"
+        "    if what == 'exit': raise SystemExit('prog: error: said by main')\n"
+        "    if what == 'ctrl-c-then-bug': cli._pending.set(); raise TypeError('half-way')\n"
         "    return 3\n"
         "cli.run(main, 'prog')\n")
     env = dict(os.environ, PYTHONPATH=REPO)
     expected = {"ok": (0, []), "ctrl-c": (130, ["prog: interrupted"]),
                 "error": (2, ["prog: error: dataset not found: x.h5"]),
-                "oserror": (2, None), "other": (3, [])}
+                "oserror": (2, None), "other": (3, []), "exit": (1, ["prog: error: said by main"]),
+                "ctrl-c-then-bug": (130, ["prog: interrupted"])}
     for what, (status, lines) in expected.items():
         done = subprocess.run([sys.executable, str(script), what], env=env, text=True,
                               capture_output=True, timeout=60)
@@ -462,10 +517,12 @@ def test_the_interrupted_line_is_printed_once_whichever_paths_end_the_command(
     assert done.stderr.splitlines() == [line], done.stderr
 
 
-def test_a_ctrl_c_after_the_command_is_done_is_ignored(tmp_path):
-    """A Ctrl-C that lands once ``main`` has returned (the interpreter's
-    teardown: an atexit callback here) leaves the finished command's exit
-    status as it was; it used to end it by SIGINT (exit -2, no line)."""
+@pytest.mark.parametrize("end", ["return 0", "raise SystemExit(0)"])
+def test_a_ctrl_c_after_the_command_is_done_is_ignored(tmp_path, end):
+    """A Ctrl-C that lands once ``main`` has returned, or left through
+    ``SystemExit`` (argparse's ``--help``), in the interpreter's teardown
+    (an atexit callback here) leaves the finished command's exit status as
+    it was; it used to end it by SIGINT (exit -2, no line)."""
     script = tmp_path / "done.py"
     script.write_text(
         "import atexit, sys, time\n"
@@ -473,7 +530,7 @@ def test_a_ctrl_c_after_the_command_is_done_is_ignored(tmp_path):
         "def main():\n"
         "    atexit.register(time.sleep, 1.5)  # (the teardown, slow)\n"
         "    print('done', flush=True)\n"
-        "    return 0\n"
+        f"    {end}\n"
         "cli.run(main, 'prog')\n")
     process = subprocess.Popen([sys.executable, str(script)], text=True, stdout=subprocess.PIPE,
                                stderr=subprocess.PIPE, env=dict(os.environ, PYTHONPATH=REPO),

@@ -1,4 +1,5 @@
-"""The core model tests under Keras's TensorFlow and PyTorch backends, where installed.
+"""The core model tests under Keras's TensorFlow and PyTorch backends, where installed,
+and the one line that a backend which is not installed gets.
 
 The package's model code is ``keras.ops`` only. These tests run the model,
 camera, backbone and training test files in a subprocess with
@@ -34,3 +35,82 @@ def test_core_model_tests_pass_under_another_backend(backend):
         cwd=REPO, env=dict(os.environ, KERAS_BACKEND=backend, TF_CPP_MIN_LOG_LEVEL="3"),
         capture_output=True, text=True, timeout=1800)
     assert done.returncode == 0, f"{backend}:\n{done.stdout[-4000:]}\n{done.stderr[-2000:]}"
+
+
+# ---------------------------------------------------------------------------
+# A backend that is not installed: one line, never Keras's traceback
+# ---------------------------------------------------------------------------
+def _missing_backend():
+    """TensorFlow or PyTorch, whichever is not installed (None: both are)."""
+    return next((b for b in ("tensorflow", "torch") if importlib.util.find_spec(b) is None), None)
+
+
+def _python(args, tmp_path, **env):
+    """``python ARGS`` in the repository with HOME a fresh folder and ``env``
+    over this process's environment (a value of None: unset)."""
+    environment = dict(os.environ, HOME=str(tmp_path / "home"))
+    environment.pop("KERAS_HOME", None)
+    for name, value in env.items():
+        if value is None:
+            environment.pop(name, None)
+        else:
+            environment[name] = value
+    return subprocess.run([sys.executable, *args], cwd=REPO, env=environment,
+                          capture_output=True, text=True, timeout=180)
+
+
+def test_a_command_on_a_backend_that_is_not_installed_says_so_in_one_line(tmp_path):
+    """``KERAS_BACKEND=tensorflow python train.py ...`` without TensorFlow:
+    one line naming KERAS_BACKEND=jax, exit 2, no run directory (Keras's
+    ModuleNotFoundError traceback from deep inside its import, before)."""
+    from helpers import write_stereo_fixture
+
+    backend = _missing_backend()
+    if backend is None:
+        pytest.skip("TensorFlow and PyTorch are both installed")
+    data = write_stereo_fixture(tmp_path / "tiny.h5", n=20, image_size=32)
+    run_dir = tmp_path / "run"
+    done = _python(["train.py", "--variant", "baseline", "--backbone", "small", "--epochs", "1",
+                    "--batch-size", "4", "--data", str(data), "--run-dir", str(run_dir)],
+                   tmp_path, KERAS_BACKEND=backend)
+    assert done.returncode == 2, done.stderr
+    assert done.stderr.splitlines() == [
+        f"train.py: error: Keras's backend is {backend} (KERAS_BACKEND={backend}), which is not "
+        f"installed: run with KERAS_BACKEND=jax, the package's backend (or install {backend})"]
+    assert not run_dir.exists()
+
+
+def test_the_library_raises_its_backend_error_where_keras_is_first_imported(tmp_path):
+    """``import cpl_keras.saving`` (the first import of Keras) on a backend
+    that Keras does not have: ``BackendError``, a ``cpl_keras.errors.Error``."""
+    done = _python(["-c", "import cpl_keras.saving"], tmp_path, KERAS_BACKEND="tensorflw")
+    assert done.returncode == 1
+    assert done.stderr.splitlines()[-1] == (
+        "cpl_keras.backend.BackendError: Keras has no backend 'tensorflw' "
+        "(KERAS_BACKEND=tensorflw): run with KERAS_BACKEND=jax, the package's backend")
+    from cpl_keras.backend import BackendError
+    from cpl_keras.errors import Error
+
+    assert issubclass(BackendError, Error)
+
+
+def test_keras_json_naming_another_backend_does_not_override_the_package(tmp_path):
+    """~/.keras/keras.json saying TensorFlow, $KERAS_BACKEND unset or empty
+    (an empty one left Keras to keras.json): the package runs on JAX."""
+    (tmp_path / "home" / ".keras").mkdir(parents=True)
+    (tmp_path / "home" / ".keras" / "keras.json").write_text('{"backend": "tensorflow"}\n')
+    code = "import cpl_keras, keras; print(keras.backend.backend())"
+    for value in (None, ""):
+        done = _python(["-c", code], tmp_path, KERAS_BACKEND=value)
+        assert (done.returncode, done.stdout) == (0, "jax\n"), done.stderr
+
+
+def test_configured_backend_reads_keras_json_when_the_variable_is_empty(tmp_path, monkeypatch):
+    from cpl_keras import backend
+
+    (tmp_path / "keras.json").write_text('{"backend": "torch"}\n')
+    monkeypatch.setenv("KERAS_HOME", str(tmp_path))
+    monkeypatch.setenv("KERAS_BACKEND", "")
+    assert backend.configured_backend() == ("torch", str(tmp_path / "keras.json"))
+    monkeypatch.setenv("KERAS_BACKEND", "jax")
+    assert backend.configured_backend() == ("jax", "KERAS_BACKEND=jax")

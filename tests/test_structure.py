@@ -102,7 +102,11 @@ LAZY_BY_DESIGN = {("cpl_keras", "cpl_keras.models"), ("cpl_keras.models", "impor
                   # every command's first import, stays a few milliseconds, so its
                   # Ctrl-C guard is in place at once)
                   ("cpl_keras", "cpl_keras.camera"),
-                  ("cpl_keras.data.generate", "cpl_keras.data.generate")}
+                  ("cpl_keras.data.generate", "cpl_keras.data.generate"),
+                  # (``import cpl_keras`` imports cpl_keras.backend, to check Keras's
+                  # backend when Keras is imported; importlib.metadata, for the versions
+                  # a run records, would double the time of ``from cpl_keras import cli``)
+                  ("cpl_keras.backend", "importlib.metadata")}
 
 
 def _top_level_imports(module, modules):

@@ -94,8 +94,7 @@ def _main(argv, prog):
 
 def _evaluate(args, command, progress, prog):
     try:
-        if os.path.exists(args.out) and not os.path.isdir(args.out):
-            raise evaluation.EvaluationError(f"output directory is a file: {args.out}")
+        cli.check_output_dir(args.out)  # (a file, not writable, a full disk: before the work)
         if args.run is not None:
             table = evaluation.evaluate_run(args.run, args.data, args.batch_size)
             stem = "eval_" + os.path.basename(os.path.normpath(args.run))

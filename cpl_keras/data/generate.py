@@ -30,6 +30,7 @@ import threading
 import time
 
 import numpy as np
+from filelock import FileLock, Timeout
 
 from cpl_keras import camera, cli
 from cpl_keras.cli import check_interrupt, check_output_file, make_parent, Parser
@@ -245,14 +246,38 @@ def cached_dataset(folder, *, protocol, pairs, seed, image_size, prefix="", work
     is not there (``log(line)`` says so; an interrupted one is continued from
     its ``.partial`` file). Every dataset the project makes for
     itself (the demonstration run, the reproduction, the learning curves)
-    comes through here. Returns its path."""
+    comes through here. Returns its path.
+
+    The generation holds a lock (``<path>.lock``, released when its process
+    ends however it ends, and removed once the file is made): another
+    process that wants the same file waits for it (``log`` says so, once)
+    and then takes the finished file, or makes it itself if the first
+    process ended without it. Two demonstration
+    runs started together on an empty cache used to make it both at once,
+    and the second failed on HDF5's lock of the first's temporary file."""
     path = os.path.join(folder, dataset_name(protocol, pairs, seed, image_size, prefix))
-    if not os.path.exists(path):
-        os.makedirs(folder, exist_ok=True)
+    if os.path.exists(path):
+        return path
+    os.makedirs(folder, exist_ok=True)
+    lock = FileLock(path + ".lock")
+    try:
+        lock.acquire(timeout=0)
+    except Timeout:
         if log:
-            log(f"generating {pairs} {protocol} pairs at {image_size}px -> {path}")
-        generate_dataset(path, protocol=protocol, pairs=pairs, seed=seed, image_size=image_size,
-                         workers=workers, progress=progress, log=log)
+            log(f"waiting for another process making {path}")
+        lock.acquire()
+    try:
+        if not os.path.exists(path):
+            if log:
+                log(f"generating {pairs} {protocol} pairs at {image_size}px -> {path}")
+            generate_dataset(path, protocol=protocol, pairs=pairs, seed=seed,
+                             image_size=image_size, workers=workers, progress=progress,
+                             log=log)
+    finally:
+        lock.release()
+    if os.path.exists(path):  # (a failed generation leaves it for the others)
+        with contextlib.suppress(OSError):
+            os.remove(lock.lock_file)
     return path
 
 

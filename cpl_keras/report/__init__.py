@@ -99,11 +99,10 @@ def write_outputs(out_dir, stem, table, command, *, render_markdown=markdown,
                   render_csv=csv_text, plots=None):
     """Write ``stem``.md/.csv/.json and the plots (``(suffix, draw(table,
     path))``; by default the table's own, ``plots_for``; drawn when the table
-    has rows) into ``out_dir``, created if missing.
-    Paths in them are relative to ``out_dir`` (``portable``). Everything is
-    rendered to temporary files first and renamed only when all succeeded.
-    Returns the paths written."""
-    os.makedirs(out_dir, exist_ok=True)
+    has rows) into ``out_dir``, created if missing (and removed again if the
+    writes fail). Paths in them are relative to ``out_dir`` (``portable``).
+    Everything is rendered to temporary files first and renamed only when
+    all succeeded. Returns the paths written."""
     table = portable(table, out_dir)
     texts = {
         f"{stem}.md": render_markdown(table, command),
@@ -114,7 +113,7 @@ def write_outputs(out_dir, stem, table, command, *, render_markdown=markdown,
     drawn = list(plots_for(table) if plots is None else plots) if table.rows else []
     finals = [os.path.join(out_dir, name) for name in texts]
     finals += [os.path.join(out_dir, stem + suffix) for suffix, _ in drawn]
-    with files.atomic_path(*finals) as tmps:
+    with files.new_folders(*finals), files.atomic_path(*finals) as tmps:
         tmps = tmps if isinstance(tmps, list) else [tmps]
         for tmp, text in zip(tmps, texts.values()):
             with open(tmp, "w") as f:

@@ -20,6 +20,9 @@ from cpl_keras.training.augment import AUGMENTATIONS, photometric
 #: A sequence keeps its images in memory ("auto") when they take at most this
 #: many bytes (2 GiB: 27,000 pairs at 112x112).
 IN_MEMORY_LIMIT = 2 * 1024**3
+#: Pairs read at a time when the images are loaded into memory (a ``close``
+#: stops the load between two blocks).
+LOAD_BLOCK = 512
 
 
 class StereoSequence(keras.utils.PyDataset):
@@ -83,6 +86,7 @@ class StereoSequence(keras.utils.PyDataset):
         self._file = None
         self._pid = None
         self._lock = threading.Lock()
+        self._closed = False
         if targets is None:
             with StereoFile(self.path) as f:
                 targets = targets_from_labels(f.labels)
@@ -178,15 +182,18 @@ class StereoSequence(keras.utils.PyDataset):
     def _cached_images(self):
         """The images of every index of this sequence (uint8, in the order
         of ``np.unique(indices)``), read on first use in blocks of
-        increasing indices (far faster than random batches)."""
+        increasing indices (far faster than random batches). A ``close``
+        stops the load at the next block."""
         with self._lock:
             if self._images is None:
+                self._check_open()
                 f = StereoFile(self.path)
                 try:
                     shape = (len(self._unique),) + f.image_shape
                     left, right = np.empty(shape, np.uint8), np.empty(shape, np.uint8)
-                    for start in range(0, len(self._unique), 512):
-                        block = self._unique[start:start + 512]
+                    for start in range(0, len(self._unique), LOAD_BLOCK):
+                        self._check_open()
+                        block = self._unique[start:start + LOAD_BLOCK]
                         left[start:start + len(block)], right[start:start + len(block)] = \
                             f.read_pairs(block)
                 finally:
@@ -197,12 +204,24 @@ class StereoSequence(keras.utils.PyDataset):
     def _stereo_file(self):
         # One handle per process; h5py serialises access between threads.
         with self._lock:
+            self._check_open()
             if self._file is None or self._pid != os.getpid():
                 self._file = StereoFile(self.path)
                 self._pid = os.getpid()
             return self._file
 
+    def _check_open(self):
+        if self._closed:
+            raise ValueError(f"the sequence of {self.path} is closed")
+
     def close(self):
+        """Close the dataset file and read no more from it: a thread that
+        loads the images into memory stops at its next block (training's
+        Ctrl-C waited for the whole load, then ``cli.run`` ended the process
+        without the resume line), and a reading thread that Keras left
+        running cannot open the file again (HDF5 would then close it in
+        the interpreter's teardown). Batches held in memory stay served."""
+        self._closed = True
         with self._lock:
             if self._file is not None:
                 self._file.close()
