@@ -111,7 +111,7 @@ def main(argv=None):
     try:
         summaries = {name: summarise(log_path(run)) for name, run in args.runs}
     except (OSError, ValueError) as error:
-        print(f"term_gradients: error: {error}", file=sys.stderr)
+        print(f"analyses/term_gradients.py: error: {error}", file=sys.stderr)
         return 2
     command = "python analyses/term_gradients.py " + " ".join(
         f'--run "{name}={os.path.relpath(run, REPO)}"' for name, run in args.runs) + \
@@ -125,4 +125,7 @@ def main(argv=None):
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    sys.path.insert(0, REPO)
+    from cpl_keras import cli
+
+    cli.run(main, "analyses/term_gradients.py")

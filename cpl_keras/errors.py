@@ -3,12 +3,28 @@ malformed file, a bad argument, a run directory that does not fit. Each
 module's own error (``DatasetError``, ``RunError``, ``TrainingError``, ...)
 derives from ``Error``; its message is one line that names the problem, and
 a command line prints it as ``<prog>: error: <message>`` and exits with
-status 2 (``cli.fail``). ``Error`` is a ``ValueError``, so code that catches
+status 2 (``fail``, also ``cli.fail``). ``Error`` is a ``ValueError``, so code that catches
 ``ValueError`` keeps working. Like ``cpl_keras.files``, this module imports
 nothing of the package."""
 
 from __future__ import annotations
 
+import sys
+
 
 class Error(ValueError):
     """A problem the user can fix, said in one line."""
+
+
+def one_line(error):
+    """The first line of ``error``'s message (an exception or a string)."""
+    text = str(error).strip()
+    if text:
+        return text.splitlines()[0]
+    return type(error).__name__ if isinstance(error, BaseException) else "error"
+
+
+def fail(prog, error):
+    """Print ``<prog>: error: <one line>`` to stderr; return the exit status 2."""
+    print(f"{prog}: error: {one_line(error)}", file=sys.stderr)
+    return 2

@@ -141,7 +141,7 @@ class _Progress:
 def _exits_uninterrupted():
     """An ``ExitStack`` whose exits (the worker pool's end, the file's close)
     run with SIGINT ignored, from the moment its block ends: after a Ctrl-C,
-    ``cli.run``'s watchdog delivers it again every ``cli.REDELIVER_S`` until
+    ``cli.run``'s watchdog delivers it again every ``interrupts.REDELIVER_S`` until
     the command has said it was interrupted, and one landing in an exit
     would cut it short. The handler is restored once they have run."""
     previous = signal.getsignal(signal.SIGINT)
