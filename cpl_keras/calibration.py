@@ -34,10 +34,11 @@ import os
 import numpy as np
 
 from cpl_keras import evaluation, priors as known, real_record, runs
-from cpl_keras.camera import PARAMETERS, UNITS, from_window, fov_from_focal
+from cpl_keras.camera import PARAMETERS, UNITS, fov_from_focal
 from cpl_keras.data.storage import StereoFile
 from cpl_keras.image_pairs import CalibrationError, find_pairs, is_grey, read_pair
 from cpl_keras.images import resize_image
+from cpl_keras.stereo_camera import StereoCamera
 
 #: Test-time crops for the spread: how many, and their side as a share of the image.
 TTA_CROPS = 8
@@ -214,11 +215,26 @@ def label_ranges(stats):
             if name in stats["min"] and name in stats["max"]}
 
 
+def from_window(values, window, model_size, image_size):
+    """The model's outputs ``values`` (a dict of TARGETS' names) on the crop
+    ``window`` ``(x0, y0, w, h)`` of an image of ``image_size`` ``(W, H)``,
+    resized to its input ``model_size`` ``(S_w, S_h)``, in the image's own
+    pixels: the camera seen at the model's input resized back to the window
+    and placed in the image, the disparity scaled like u (a new dict)."""
+    x0, y0, w, h = window
+    seen = StereoCamera.from_labels(values, *model_size)
+    sx, _ = seen.resize_scales(w, h)
+    labels = seen.resize(w, h).uncrop(x0, y0, *image_size).to_labels(
+        disparity=values["disparity"] * sx)
+    return dict(values, **{name: labels[name] for name in PARAMETERS})
+
+
 def predict_windows(model, left, right, windows, released):
     """The model's outputs on each window of the pair (resized to its input):
     ``(raw, mapped)``, two lists of dicts, as the model gives them and in the
     full image's pixels with pitch in radians."""
     size_h, size_w = evaluation.model_image_shape(model)
+    height, width = left.shape[:2]
     pred = evaluation.predict_images(
         model, np.stack([resize_image(left[y:y + h, x:x + w], size_w, size_h)
                          for x, y, w, h in windows]),
@@ -230,7 +246,7 @@ def predict_windows(model, left, right, windows, released):
         raw.append(dict(one))
         if released:  # (the release predicted pitch in degrees)
             one["pitch"] = math.radians(one["pitch"])
-        mapped.append(from_window(one, window, size_w, size_h))
+        mapped.append(from_window(one, window, (size_w, size_h), (width, height)))
     return raw, mapped
 
 

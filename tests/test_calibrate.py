@@ -247,12 +247,16 @@ def test_exports_opencv_and_ros_yaml_that_opencv_reads_back(setup, calibrator, t
 
 
 def test_from_window_maps_a_crop_prediction_back_by_hand():
-    values = {"fx": 10.0, "fy": 12.0, "u0": 15.5, "v0": 7.0, "disparity": 4.0, "baseline": 0.3}
-    out = calibration.from_window(values, (20, 6, 50, 40), 32, 32)
+    values = {"fx": 10.0, "fy": 12.0, "u0": 15.5, "v0": 7.0, "baseline": 0.3, "disparity": 4.0,
+              "tx": 0.01, "ty": -0.3, "tz": 0.02, "pitch": 0.05, "X": 5.0, "Y": 1.0, "Z": -0.5}
+    out = calibration.from_window(values, (20, 6, 50, 40), (32, 32), (64, 40))
     assert out["fx"] == pytest.approx(10 * 50 / 32) and out["fy"] == pytest.approx(12 * 40 / 32)
     assert out["u0"] == pytest.approx((15.5 + 0.5) * 50 / 32 - 0.5 + 20)
     assert out["v0"] == pytest.approx((7.0 + 0.5) * 40 / 32 - 0.5 + 6)
     assert out["disparity"] == pytest.approx(4 * 50 / 32) and out["baseline"] == 0.3
+    # metres and radians stay; the dict keeps its names and order
+    assert list(out) == list(values)
+    assert all(out[name] == values[name] for name in ("tx", "ty", "tz", "pitch", "X", "Y", "Z"))
     windows = calibration.crop_windows(64, 40)
     assert windows[0] == (0, 0, 64, 40) and len(windows) == 1 + calibration.TTA_CROPS
     assert all(x + w <= 64 and y + h <= 40 and 0.75 * 64 < w < 64 for x, y, w, h in windows[1:])
