@@ -173,5 +173,9 @@ class Point:
     Y: float
     Z: float
 
+    def __post_init__(self):
+        for name in ("X", "Y", "Z"):
+            object.__setattr__(self, name, float(getattr(self, name)))
+
     def as_dict(self):
         return {"X": self.X, "Y": self.Y, "Z": self.Z}
