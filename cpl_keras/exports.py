@@ -2,7 +2,7 @@
 ``camera_info`` YAML and COLMAP's ``cameras.txt`` (``python -m
 cpl_keras.calibrate ... --opencv-yaml FILE --ros-yaml DIR --colmap DIR``).
 
-Each writer takes calibrate's record, a ``cpl_keras.calibration.Calibration``
+Each writer takes calibrate's record, a ``cpl_keras.calibration_records.Calibration``
 (one pair) or ``RigCalibration`` (a rig: the medians over its pairs), and
 describes its camera (a ``cpl_keras.stereo_camera.StereoCamera``) as
 calibrate found it, in the input images' pixels: one pinhole camera model
