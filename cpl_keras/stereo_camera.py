@@ -6,7 +6,7 @@ a rig: intrinsics ``fx, fy, u0, v0`` (pixels of its images, ``width`` x
 the right camera's pose in the left camera frame (``pitch``; ``yaw``,
 ``roll`` where a real rig has them; ``tx, ty, tz`` in metres; project axes,
 x forward, y left, z up; docs/data.md). What one does with a camera is a
-method of the record, each returning a new one::
+method of the record (a crop or a resize gives a new record)::
 
     camera = StereoCamera(fx=451.0, fy=451.0, u0=319.5, v0=239.5, width=640, height=480,
                           baseline=0.075, pitch=0.0, tx=0.0, ty=-0.075, tz=0.0)

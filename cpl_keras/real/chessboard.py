@@ -144,14 +144,12 @@ def detect_corners(gray, board=BOARD):
 def calibrate(root=DATA_DIR, board=BOARD, square=SQUARE):
     """Detect, calibrate and triangulate a folder of chessboard pairs.
 
-    Returns a dict: ``K_left``, ``D_left``, ``K_right``, ``D_right`` (OpenCV),
-    ``R``, ``T`` (OpenCV stereo extrinsics, metres), ``rms_px`` (stereo
-    reprojection RMS), ``rms_left_px``, ``rms_right_px`` (per-camera), the
-    rig's cameras ``camera`` and ``left_camera`` (``rig_cameras``), the
-    project-convention rig ``rig`` (full resolution, see ``rig_parameters``),
-    ``image_size`` (width, height), ``pairs`` (one dict per used pair: name,
-    paths, corners of both images, triangulated points, right depths) and
-    ``skipped`` (``(name, reason)`` of pairs without corners).
+    Returns a dict: ``K_left``, ``D_left``, ``K_right``, ``D_right``, ``R``, ``T``
+    (OpenCV; ``X_right = R X_left + T``, metres), ``rms_px`` (stereo reprojection
+    RMS), ``rms_left_px``, ``rms_right_px``, the rig's ``camera`` and ``left_camera``
+    (``rig_cameras``) and labels ``rig`` (``rig_parameters``; full resolution),
+    ``image_size`` (width, height), ``pairs`` (per used pair: name, paths, corners,
+    triangulated points, right depths), ``skipped`` (pairs without corners).
     """
     import cv2
 
