@@ -4,13 +4,15 @@
 
     calibrator = Calibrator.from_run("runs/cpl-a-paper-s0")    # the model, loaded once
     calibration = calibrator.calibrate("left.png", "right.png")
-    calibration.parameters["fx"], calibration.fov_horizontal_deg
+    calibration.camera.fx, calibration.camera.K, calibration.fov_horizontal_deg
     rig = calibrator.calibrate_folder("cpl_keras/real/oakd_stereo")   # medians over the pairs
 
 ``Calibration`` (one pair) and ``RigCalibration`` (a folder of pairs of one
-rig) are the records; ``as_dict()`` and ``to_json()`` give the JSON that
-``python -m cpl_keras.calibrate`` prints (its module doc says what each
-value is), and ``cpl_keras.exports`` writes them for OpenCV, ROS and
+rig) are the records (``cpl_keras.calibration_records``): each holds its
+``camera``, a ``cpl_keras.stereo_camera.StereoCamera`` (a pair's also its
+``disparity`` and its ``point``); ``as_dict()`` and ``to_json()`` give the
+JSON that ``python -m cpl_keras.calibrate`` prints (its module doc says what
+each value is), and ``cpl_keras.exports`` writes them for OpenCV, ROS and
 COLMAP. Bad input is a one-line ``CalibrationError``.
 
 The values are in the input images' own pixel units: the model sees the
@@ -26,151 +28,25 @@ the others, with a note that it is the release's quantity.
 from __future__ import annotations
 
 import copy
-import dataclasses
-import json
 import math
 import os
 
 import numpy as np
 
 from cpl_keras import evaluation, priors as known, real_record, runs
-from cpl_keras.camera import PARAMETERS, UNITS, from_window, fov_from_focal
+from cpl_keras.calibration_records import (
+    RIG_PARAMETERS, TTA_CROPS, TTA_FRACTION, Calibration, RigCalibration,
+)
+from cpl_keras.camera import PARAMETERS
 from cpl_keras.data.storage import StereoFile
 from cpl_keras.image_pairs import CalibrationError, find_pairs, is_grey, read_pair
 from cpl_keras.images import resize_image
+from cpl_keras.stereo_camera import Point, StereoCamera
 
-#: Test-time crops for the spread: how many, and their side as a share of the image.
-TTA_CROPS = 8
-TTA_FRACTION = (0.8, 0.95)
 #: A spread of fx or fy above this share of the value is warned about.
 SPREAD_WARNING = 0.2
 #: How fy is reported: "square" pixels (fy = fx), or the "model"'s fy head.
 ASPECTS = ("square", "model")
-#: What each printed field means, with its unit.
-FIELDS = {
-    "fx": "focal length along u (px of the input images)",
-    "fy": "focal length along v (px)",
-    "u0": "principal point u (px; pixel centres at integers)",
-    "v0": "principal point v (px)",
-    "baseline": "distance between the camera centres (m; a scale prior, see scale_priors)",
-    "disparity": "disparity of the projection pixel (px; Eq. 4a: fx * baseline / xCam)",
-    "tx": "right camera's position along the left camera's forward axis (m; scale prior)",
-    "ty": "right camera's position along the left camera's left axis (m; scale prior)",
-    "tz": "right camera's position along the left camera's up axis (m; scale prior)",
-    "pitch": "right camera's pitch relative to the left one (rad; positive: down)",
-    "X": "the projection pixel's point, forward (m, left camera frame; scale prior)",
-    "Y": "the point, to the left (m; scale prior)",
-    "Z": "the point, up (m; scale prior)",
-}
-#: What the JSON says of the quantities a pair does not fix.
-SCALE_PRIORS = ("baseline", "tx", "ty", "tz", "X", "Y", "Z")
-SCALE_NOTE = ("what does not rest on the scene scale seen in training: the pair's matches "
-              "fix the disparity, in pixels of the input images (it scales with the images' "
-              "size: not scale-free); baseline / depth = disparity / fx is unitless, but for "
-              "a rectified or nearly rectified rig (parallel optical axes) the matches carry "
-              "nothing of fx, fy, u0, v0 (its fundamental matrix does not depend on them), so "
-              "fx, and through it baseline / depth, come from how scenes looked in training; "
-              "the metres of baseline, tx, ty, tz and X, Y, Z come from the scene scale seen "
-              "in training (scale_priors)")
-ASPECT_NOTES = {
-    "square": "square pixels: fy = fx (px of the input images); network_fy is the network's "
-              "own fy, which guesses the aspect ratio of the squashed image from content",
-    "model": "fy is the network's fy head (the pair squashed to the model's square input)",
-}
-SPREAD_METHOD = ("each value's sample standard deviation (n - 1 in the denominator), in its "
-                 "own unit, over {} predictions: the whole image and {} crops of "
-                 f"{int(100 * TTA_FRACTION[0])}-{int(100 * TTA_FRACTION[1])} % of each side at "
-                 "seeded positions, each crop's prediction mapped back to the full image's "
-                 "pixels, with any known value in place (a known focal length's fx: 0); how far "
-                 "the estimate moves with the framing, not its error (a confident wrong value "
-                 "has a small spread)")
-RELEASED_NOTE = ("run trained as released: pitch converted from degrees; disparity is the "
-                 "release's StereoBM mean label, not a pixel disparity")
-#: The rig's parameters (the disparity belongs to each pair's scene).
-RIG_PARAMETERS = tuple(name for name in PARAMETERS if name != "disparity")
-RIG_METHOD = ("median over the pairs; spread_over_pairs: standard deviation over the pairs "
-              "(n - 1 in the denominator)")
-
-
-class _Record:
-    """``as_dict`` and ``to_json`` of the records below."""
-
-    def as_dict(self):
-        """The record as calibrate's JSON-ready dict (a copy: changing it
-        leaves the record as it is)."""
-        return {f.name: copy.deepcopy(getattr(self, f.name)) for f in dataclasses.fields(self)
-                if not (f.name in ("notes", "impossible") and getattr(self, f.name) is None)}
-
-    def to_json(self):
-        """The JSON text ``python -m cpl_keras.calibrate`` prints."""
-        return json.dumps(self.as_dict(), indent=2, allow_nan=False)
-
-
-@dataclasses.dataclass(frozen=True, kw_only=True)
-class Calibration(_Record):
-    """One pair calibrated by a run, in the input images' pixels."""
-
-    left: str                 #: the left image file (absolute path)
-    right: str                #: the right image file
-    image_width: int          #: W of the input images (px)
-    image_height: int         #: H
-    model_input: list         #: [S_h, S_w], the model's input the pair was resized to
-    run: str                  #: the run directory
-    variant: str              #: the run's model variant
-    parameters: dict          #: fx, fy, u0, v0, baseline, disparity, tx, ty, tz, pitch
-    point: dict               #: X, Y, Z: the projection pixel's point (m, left camera frame)
-    pitch_deg: float          #: pitch in degrees
-    fov_horizontal_deg: float  #: horizontal field of view from fx and W
-    fov_vertical_deg: float   #: vertical field of view from fy and H
-    units: dict               #: each parameter's unit
-    spread: dict              #: each value's standard deviation over crops of the pair
-    spread_method: str        #: what the spread is and how it was measured
-    from_the_pair: dict       #: what rests on the pair, not on a scene scale (SCALE_NOTE)
-    scale_priors: list        #: the values whose metres come from training's scene scale
-    fields: dict              #: what each value means, with its unit
-    demonstration_model: bool  #: the run is the demonstration model
-    aspect: str               #: "square" (fy = fx) or "model" (the network's fy)
-    network_fy: float         #: the network's own fy (px)
-    aspect_note: str          #: what ``aspect`` means
-    training: dict            #: the run's protocol, split and training label ranges
-    notes: list | None = None  #: a run trained as released: what differs (else left out)
-    real_camera_record: dict  #: the run's record on real cameras (``real_record``)
-    priors: dict              #: the known values given, where they came from
-    from_prior: list          #: the outputs that came from, or through, a known value
-    impossible: list | None = None  #: what no pair can show (``impossible_geometry``; else left out)
-
-
-@dataclasses.dataclass(frozen=True, kw_only=True)
-class RigCalibration(_Record):
-    """The pairs of one rig calibrated by a run, and the rig from them;
-    ``as_dict()`` is ``{"rig": ..., "pairs": [...]}``."""
-
-    folder: str               #: the folder of pairs (absolute path)
-    num_pairs: int            #: how many pairs it holds
-    run: str                  #: the run directory
-    variant: str              #: the run's model variant
-    image_width: int          #: W of the pairs' images (px; one rig, one size)
-    image_height: int         #: H
-    parameters: dict          #: each of RIG_PARAMETERS: the median over the pairs
-    spread_over_pairs: dict   #: their standard deviation over the pairs
-    method: str               #: how the two were worked out
-    pitch_deg: float          #: the median pitch in degrees
-    fov_horizontal_deg: float  #: horizontal field of view from the median fx
-    fov_vertical_deg: float   #: vertical field of view from the median fy
-    units: dict               #: each parameter's unit
-    scale_priors: list        #: the parameters whose metres come from training's scene scale
-    demonstration_model: bool  #: the run is the demonstration model
-    aspect: str               #: "square" or "model"
-    aspect_note: str          #: what ``aspect`` means
-    real_camera_record: dict  #: the run's record on real cameras
-    priors: dict              #: the known values given (without a pair's scale factor)
-    from_prior: list          #: the outputs that came from, or through, a known value
-    pairs: tuple = ()         #: each pair's ``Calibration``
-
-    def as_dict(self):
-        rig = {f.name: copy.deepcopy(getattr(self, f.name)) for f in dataclasses.fields(self)
-               if f.name != "pairs"}
-        return {"rig": rig, "pairs": [pair.as_dict() for pair in self.pairs]}
 
 
 def crop_windows(width, height, count=TTA_CROPS, seed=0):
@@ -214,11 +90,26 @@ def label_ranges(stats):
             if name in stats["min"] and name in stats["max"]}
 
 
+def from_window(values, window, model_size, image_size):
+    """The model's outputs ``values`` (a dict of TARGETS' names) on the crop
+    ``window`` ``(x0, y0, w, h)`` of an image of ``image_size`` ``(W, H)``,
+    resized to its input ``model_size`` ``(S_w, S_h)``, in the image's own
+    pixels: the camera seen at the model's input resized back to the window
+    and placed in the image, the disparity scaled like u (a new dict)."""
+    x0, y0, w, h = window
+    seen = StereoCamera.from_labels(values, *model_size)
+    sx, _ = seen.resize_scales(w, h)
+    labels = seen.resize(w, h).uncrop(x0, y0, *image_size).to_labels(
+        disparity=values["disparity"] * sx)
+    return dict(values, **{name: labels[name] for name in PARAMETERS})
+
+
 def predict_windows(model, left, right, windows, released):
     """The model's outputs on each window of the pair (resized to its input):
     ``(raw, mapped)``, two lists of dicts, as the model gives them and in the
     full image's pixels with pitch in radians."""
     size_h, size_w = evaluation.model_image_shape(model)
+    height, width = left.shape[:2]
     pred = evaluation.predict_images(
         model, np.stack([resize_image(left[y:y + h, x:x + w], size_w, size_h)
                          for x, y, w, h in windows]),
@@ -230,7 +121,7 @@ def predict_windows(model, left, right, windows, released):
         raw.append(dict(one))
         if released:  # (the release predicted pitch in degrees)
             one["pitch"] = math.radians(one["pitch"])
-        mapped.append(from_window(one, window, size_w, size_h))
+        mapped.append(from_window(one, window, (size_w, size_h), (width, height)))
     return raw, mapped
 
 
@@ -244,13 +135,13 @@ def _check_ranges(raw, ranges, warn):
              f"input units: {', '.join(outside)}")
 
 
-def impossible_geometry(values, width):
+def impossible_geometry(camera, disparity):
     """What no pair of images can show, whatever a model was trained on: a
     disparity at or beyond the image width (a point seen in both images
     lies less than a width apart in them) and a focal length with no field
     of view between 0 and 180 degrees. One line each (empty: none)."""
     lines = []
-    d, fx = values["disparity"], values["fx"]
+    d, fx, width = disparity, camera.fx, camera.width
     if d >= width:
         lines.append(f"a disparity of {d:.4g} px is at or beyond the image width ({width} px): "
                      "no point seen in both images can have it")
@@ -260,12 +151,13 @@ def impossible_geometry(values, width):
     return lines
 
 
-def _check_spread(spread, values, aspect, warn, between="crops of the pair", of="value"):
+def _check_spread(spread, camera, aspect, warn, between="crops of the pair", of="value"):
     """Warn about fx (and the network's fy) moving by over SPREAD_WARNING."""
     for name in ("fx", "fy") if aspect == "model" else ("fx",):   # (square: fy is fx)
-        if spread[name] > SPREAD_WARNING * abs(values[name]):
+        value = getattr(camera, name)
+        if spread[name] > SPREAD_WARNING * abs(value):
             warn(f"warning: {name} changes by {spread[name]:.4g} px (std) between {between}, "
-                 f"over {100 * SPREAD_WARNING:.0f} % of its {of} {values[name]:.4g}: "
+                 f"over {100 * SPREAD_WARNING:.0f} % of its {of} {value:.4g}: "
                  "an unreliable estimate")
 
 
@@ -309,15 +201,8 @@ class Calibrator:
         _check_arguments(aspect, priors)
         warn = warn or (lambda line: None)
         run, (size_h, size_w) = self.run, evaluation.model_image_shape(self.model)
-        left_image, right_image = read_pair(left, right)
+        left_image, right_image = _read_pair(left, right, size_w, size_h, warn)
         height, width = left_image.shape[:2]
-        if height < size_h or width < size_w:
-            raise CalibrationError(
-                f"images are {width}x{height}, smaller than the model's input {size_w}x{size_h}")
-        for side, path, image in (("left", left, left_image), ("right", right, right_image)):
-            if is_grey(image):
-                warn(f"warning: the {side} image {path} is grey; the model was trained on "
-                     "colour images")
         windows = crop_windows(width, height)
         raw, per_window = predict_windows(self.model, left_image, right_image, windows,
                                           run.as_released)
@@ -332,40 +217,29 @@ class Calibrator:
         values = per_window[0]                  # the whole image
         if not all(math.isfinite(v) for v in values.values()):
             raise CalibrationError("the model predicted non-finite values")
+        camera = StereoCamera.from_labels(values, width, height)
         ranges = label_ranges(run.stats)
         _check_ranges(raw[0], ranges, warn)
-        impossible = impossible_geometry(values, width)
+        impossible = impossible_geometry(camera, values["disparity"])
         for line in impossible:
             warn(f"warning: impossible for any pair: {line}")
         spread = {name: float(np.std([v[name] for v in per_window], ddof=1))
                   for name in PARAMETERS + ("X", "Y", "Z")}
-        _check_spread(spread, values, aspect, warn)
+        _check_spread(spread, camera, aspect, warn)
         demo = is_demonstration(run)
         if demo:
             warn("warning: this run is the demonstration model (800 pairs, small towers, 8 "
                  "epochs): its values show the pipeline working, not a calibration")
         return Calibration(
             left=os.path.abspath(left), right=os.path.abspath(right),
-            image_width=width, image_height=height, model_input=[size_h, size_w],
-            run=run.run_dir, variant=run.config.variant,
-            parameters={name: values[name] for name in PARAMETERS},
-            point={name: values[name] for name in ("X", "Y", "Z")},
-            pitch_deg=math.degrees(values["pitch"]),
-            fov_horizontal_deg=float(np.degrees(fov_from_focal(values["fx"], width))),
-            fov_vertical_deg=float(np.degrees(fov_from_focal(values["fy"], height))),
-            units={name: UNITS[name] for name in PARAMETERS},
-            spread=spread, spread_method=SPREAD_METHOD.format(len(windows), len(windows) - 1),
-            from_the_pair={"disparity_px": values["disparity"],
-                           "baseline_over_depth": values["disparity"] / values["fx"],
-                           "note": SCALE_NOTE},
-            scale_priors=list(SCALE_PRIORS), fields=dict(FIELDS), demonstration_model=demo,
-            aspect=aspect, network_fy=network_fy, aspect_note=ASPECT_NOTES[aspect],
-            training=_training(run, ranges, size_w, size_h),
-            notes=[RELEASED_NOTE] if run.as_released else None,
-            real_camera_record=real_record.summarise(run),
-            priors=known.describe(priors, factor=(
-                priors.baseline_m / network_baseline if priors.baseline_m else None)),
-            from_prior=known.from_prior(priors), impossible=impossible or None)
+            model_input=(size_h, size_w), run=run.run_dir, variant=run.config.variant,
+            camera=camera, disparity=values["disparity"],
+            point=Point(values["X"], values["Y"], values["Z"]), spread=spread,
+            windows=len(windows), demonstration_model=demo, aspect=aspect,
+            network_fy=network_fy, training=_training(run, ranges, size_w, size_h),
+            real_camera_record=real_record.summarise(run), priors=priors,
+            baseline_factor=priors.baseline_m / network_baseline if priors.baseline_m else None,
+            impossible=tuple(impossible))
 
     def calibrate_folder(self, folder, *, aspect="square", priors=None, warn=None):
         """The ``RigCalibration`` of every pair of ``folder`` (``find_pairs``):
@@ -398,6 +272,21 @@ def _training(run, ranges, size_w, size_h):
             "label_ranges_units": f"the model's input ({size_w}x{size_h} px), targets as trained"}
 
 
+def _read_pair(left, right, size_w, size_h, warn):
+    """The pair's images, checked against the model's input size; a grey
+    image is warned about."""
+    left_image, right_image = read_pair(left, right)
+    height, width = left_image.shape[:2]
+    if height < size_h or width < size_w:
+        raise CalibrationError(
+            f"images are {width}x{height}, smaller than the model's input {size_w}x{size_h}")
+    for side, path, image in (("left", left, left_image), ("right", right, right_image)):
+        if is_grey(image):
+            warn(f"warning: the {side} image {path} is grey; the model was trained on "
+                 "colour images")
+    return left_image, right_image
+
+
 def _rig(folder, results, aspect, warn):
     """The ``RigCalibration`` of ``folder`` from its pairs' ``results``."""
     sizes = sorted({(r.image_width, r.image_height) for r in results})
@@ -405,26 +294,16 @@ def _rig(folder, results, aspect, warn):
         raise CalibrationError(f"the pairs of {folder} have different image sizes "
                                f"({sizes[0][0]}x{sizes[0][1]}, {sizes[1][0]}x{sizes[1][1]}); "
                                "one rig has one")
-    width, height = sizes[0]
-    per_pair = {name: [r.parameters[name] for r in results] for name in RIG_PARAMETERS}
-    parameters = {name: float(np.median(v)) for name, v in per_pair.items()}
+    per_pair = {name: [getattr(r.camera, name) for r in results] for name in RIG_PARAMETERS}
+    camera = StereoCamera.from_labels({name: float(np.median(v)) for name, v in per_pair.items()},
+                                      *sizes[0])
     spread = {name: float(np.std(v, ddof=1)) if len(v) > 1 else 0.0
               for name, v in per_pair.items()}
-    _check_spread(spread, parameters, aspect, warn, between=f"the {len(results)} pairs",
+    _check_spread(spread, camera, aspect, warn, between=f"the {len(results)} pairs",
                   of="median")
     first = results[0]
     return RigCalibration(
-        folder=os.path.abspath(folder), num_pairs=len(results), run=first.run,
-        variant=first.variant, image_width=width, image_height=height,
-        parameters=parameters, spread_over_pairs=spread, method=RIG_METHOD,
-        pitch_deg=math.degrees(parameters["pitch"]),
-        fov_horizontal_deg=float(np.degrees(fov_from_focal(parameters["fx"], width))),
-        fov_vertical_deg=float(np.degrees(fov_from_focal(parameters["fy"], height))),
-        units={name: UNITS[name] for name in RIG_PARAMETERS},
-        scale_priors=[n for n in SCALE_PRIORS if n in RIG_PARAMETERS],
-        demonstration_model=first.demonstration_model, aspect=aspect,
-        aspect_note=ASPECT_NOTES[aspect], real_camera_record=copy.deepcopy(
-            first.real_camera_record),
-        priors={name: {k: v for k, v in said.items() if k != "scale_factor"}
-                for name, said in first.priors.items()},
-        from_prior=list(first.from_prior), pairs=tuple(results))
+        folder=os.path.abspath(folder), run=first.run, variant=first.variant, camera=camera,
+        spread_over_pairs=spread, demonstration_model=first.demonstration_model, aspect=aspect,
+        real_camera_record=copy.deepcopy(first.real_camera_record), priors=first.priors,
+        pairs=tuple(results))

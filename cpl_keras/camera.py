@@ -376,8 +376,9 @@ EQUATIONS = {
 
 
 # ---------------------------------------------------------------------------
-# OpenCV's camera frame, and the intrinsics of a crop + resize (numpy): the
-# real-data builders go one way, calibrate and its exports the other
+# OpenCV's camera frame, and pixel coordinates after a crop + resize (numpy):
+# the arithmetic of ``cpl_keras.stereo_camera.StereoCamera``, whose record the
+# real-data builders, calibrate and its exports, and the Geometric baseline use
 # ---------------------------------------------------------------------------
 #: OpenCV camera axes (x right, y down, z forward) -> project axes (x forward,
 #: y left, z up): ``p_project = CV_TO_PROJECT @ p_opencv``.
@@ -415,44 +416,7 @@ def crop_resize_coordinate(x, start, scale):
     Pixel centres sit at integer coordinates, as in OpenCV and scikit-image,
     so a resize by ``scale`` maps ``x -> (x + 0.5) * scale - 0.5`` (the mapping
     ``cv2.resize`` uses). Applies to u, u0 (with the crop's x start and the
-    horizontal scale) and to v, v0 (y start, vertical scale).
+    horizontal scale) and to v, v0 (y start, vertical scale); a camera's
+    crop and resize are ``StereoCamera.crop`` and ``StereoCamera.resize``.
     """
     return (np.asarray(x, dtype=np.float64) - start + 0.5) * scale - 0.5
-
-
-def crop_resize_intrinsics(fx, fy, u0, v0, x0, y0, crop_width, crop_height, out_width, out_height):
-    """Intrinsics after cropping the window ``(x0, y0, crop_width, crop_height)``
-    and resizing it to ``out_width`` x ``out_height``: a crop shifts the
-    principal point, a resize scales focal length and principal point per axis.
-
-    Returns ``(fx, fy, u0, v0, sx, sy)`` with the scales ``sx``, ``sy``.
-    A disparity (a difference of u coordinates) scales by ``sx``.
-    """
-    sx = out_width / float(crop_width)
-    sy = out_height / float(crop_height)
-    return (fx * sx, fy * sy, float(crop_resize_coordinate(u0, x0, sx)),
-            float(crop_resize_coordinate(v0, y0, sy)), sx, sy)
-
-
-def to_input_pixels(values, width, height, size_w, size_h):
-    """Scale predicted pixel quantities from the model's S x S grid back to
-    the input image's W x H grid: the inverse of the builders' resize,
-    ``crop_resize_coordinate`` with the inverse scale."""
-    sx, sy = width / size_w, height / size_h
-    out = dict(values)
-    out["fx"] = values["fx"] * sx
-    out["fy"] = values["fy"] * sy
-    out["u0"] = float(crop_resize_coordinate(values["u0"], 0, sx))
-    out["v0"] = float(crop_resize_coordinate(values["v0"], 0, sy))
-    out["disparity"] = values["disparity"] * sx
-    return out
-
-
-def from_window(values, window, size_w, size_h):
-    """Predictions made on a crop ``window`` resized to the model's input, in
-    the full image's pixels (the inverse of that crop and resize, per axis)."""
-    x0, y0, w, h = window
-    out = to_input_pixels(values, w, h, size_w, size_h)
-    out["u0"] += x0
-    out["v0"] += y0
-    return out

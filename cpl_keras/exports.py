@@ -2,13 +2,14 @@
 ``camera_info`` YAML and COLMAP's ``cameras.txt`` (``python -m
 cpl_keras.calibrate ... --opencv-yaml FILE --ros-yaml DIR --colmap DIR``).
 
-Each writer takes calibrate's record, a ``cpl_keras.calibration.Calibration``
+Each writer takes calibrate's record, a ``cpl_keras.calibration_records.Calibration``
 (one pair) or ``RigCalibration`` (a rig: the medians over its pairs), and
-describes the pair as calibrate found it, in the input images' pixels:
-one pinhole camera model ``K = [[fx, 0, u0], [0, fy, v0], [0, 0, 1]]`` for
-both cameras (the model predicts one), no distortion (the paper's model has
+describes its camera (a ``cpl_keras.stereo_camera.StereoCamera``) as
+calibrate found it, in the input images' pixels: one pinhole camera model
+``K = [[fx, 0, u0], [0, fy, v0], [0, 0, 1]]`` for both cameras (the model
+predicts one; ``StereoCamera.K``), no distortion (the paper's model has
 none), and the right camera's pose from ``pitch`` and ``(tx, ty, tz)``
-(yaw and roll are not predicted: 0).
+(``StereoCamera.to_opencv_pose``; yaw and roll are not predicted: 0).
 
 * OpenCV (``write_opencv_yaml``): ``cv2.FileStorage``'s own YAML, the keys of
   OpenCV's ``stereo_calib`` sample: ``M1, D1, M2, D2`` (intrinsics and
@@ -30,21 +31,7 @@ import os
 
 import numpy as np
 
-from cpl_keras.camera import rig_to_opencv_pose, rotation_matrix
 from cpl_keras.files import atomic_path, new_folders, write_text
-
-
-def camera_matrix(parameters):
-    """``K`` from a calibration's ``fx, fy, u0, v0``."""
-    p = parameters
-    return np.array([[p["fx"], 0.0, p["u0"]], [0.0, p["fy"], p["v0"]], [0.0, 0.0, 1.0]])
-
-
-def stereo_pose(parameters):
-    """OpenCV's ``(R, T)`` of the pair: the right camera's pose (pitch, and
-    the translation ``tx, ty, tz`` in the left camera frame, project axes)."""
-    R_lr = rotation_matrix(pitch=float(parameters["pitch"]))
-    return rig_to_opencv_pose(R_lr, [parameters["tx"], parameters["ty"], parameters["tz"]])
 
 
 def write_opencv_yaml(path, calibration):
@@ -60,8 +47,7 @@ def _opencv_yaml(tmp, calibration, path):
     error type, with a traceback's worth of text)."""
     import cv2
 
-    K = camera_matrix(calibration.parameters)
-    R, T = stereo_pose(calibration.parameters)
+    K, (R, T) = calibration.camera.K, calibration.camera.to_opencv_pose()
     try:
         fs = cv2.FileStorage(tmp, cv2.FILE_STORAGE_WRITE | cv2.FILE_STORAGE_FORMAT_YAML)
     except cv2.error:
@@ -69,12 +55,12 @@ def _opencv_yaml(tmp, calibration, path):
     if not fs.isOpened():
         raise OSError(f"cannot write {path}")
     try:
-        fs.write("image_width", int(calibration.image_width))
-        fs.write("image_height", int(calibration.image_height))
+        fs.write("image_width", calibration.camera.width)
+        fs.write("image_height", calibration.camera.height)
         for name, value in (("M1", K), ("D1", np.zeros((1, 5))), ("M2", K),
                             ("D2", np.zeros((1, 5))), ("R", R), ("T", T.reshape(3, 1))):
             fs.write(name, np.asarray(value, np.float64))
-        fs.write("baseline_m", float(calibration.parameters["baseline"]))
+        fs.write("baseline_m", calibration.camera.baseline)
         fs.write("source", f"cpl_keras.calibrate, run {calibration.run}")
     finally:
         fs.release()
@@ -121,14 +107,14 @@ def _matrix(name, rows, cols, values):
 
 def ros_camera_info(calibration, side):
     """The text of one ROS ``camera_info`` YAML (``side``: left or right)."""
-    K = camera_matrix(calibration.parameters)
+    K = calibration.camera.K
     if side == "left":
         P = np.hstack([K, np.zeros((3, 1))])
     else:
-        R, T = stereo_pose(calibration.parameters)
+        R, T = calibration.camera.to_opencv_pose()
         P = K @ np.hstack([R, T.reshape(3, 1)])
-    return (f"image_width: {int(calibration.image_width)}\n"
-            f"image_height: {int(calibration.image_height)}\n"
+    return (f"image_width: {calibration.camera.width}\n"
+            f"image_height: {calibration.camera.height}\n"
             f"camera_name: {side}\n"
             + _matrix("camera_matrix", 3, 3, K)
             + "distortion_model: plumb_bob\n"
@@ -158,16 +144,15 @@ def colmap_cameras(calibration):
     """The text of COLMAP's ``cameras.txt``: cameras 1 (left) and 2 (right),
     model PINHOLE (``fx fy cx cy``, no distortion), in the input images'
     pixels with COLMAP's pixel centres (``cx = u0 + 0.5``)."""
-    p = calibration.parameters
-    width, height = int(calibration.image_width), int(calibration.image_height)
+    cam = calibration.camera
     params = " ".join(repr(float(v)) for v in (
-        p["fx"], p["fy"], p["u0"] + COLMAP_PIXEL_OFFSET, p["v0"] + COLMAP_PIXEL_OFFSET))
+        cam.fx, cam.fy, cam.u0 + COLMAP_PIXEL_OFFSET, cam.v0 + COLMAP_PIXEL_OFFSET))
     return ("# Camera list with one line of data per camera:\n"
             "#   CAMERA_ID, MODEL, WIDTH, HEIGHT, PARAMS[]\n"
             "# Number of cameras: 2\n"
             f"# cpl_keras.calibrate, run {calibration.run}: 1 = left, 2 = right\n"
-            f"1 PINHOLE {width} {height} {params}\n"
-            f"2 PINHOLE {width} {height} {params}\n")
+            f"1 PINHOLE {cam.width} {cam.height} {params}\n"
+            f"2 PINHOLE {cam.width} {cam.height} {params}\n")
 
 
 def write_colmap_cameras(directory, calibration):

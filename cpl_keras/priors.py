@@ -3,7 +3,7 @@ guess: a known baseline and a known focal length (``python -m
 cpl_keras.calibrate ... --baseline METRES --focal PX|exif``).
 
 A pair's matches fix the disparity in pixels, but neither the focal length
-of a rectified rig nor the scale of the scene (``calibration.SCALE_NOTE``):
+of a rectified rig nor the scale of the scene (``calibration_records.SCALE_NOTE``):
 those the network can only guess from how scenes looked in training, and on
 real cameras that guess has been poor (paper_results/real-cameras). Where
 the user knows them, they replace it:

@@ -12,10 +12,11 @@ import numpy as np
 import pytest
 
 from helpers import REPO
-from cpl_keras import calibrate, calibration, evaluation, exports
+from cpl_keras import calibrate, calibration, calibration_records, evaluation, exports
 from cpl_keras.calibrate import Calibration, CalibrationError, Calibrator, RigCalibration
 from cpl_keras.camera import PARAMETERS, fov_from_focal
 from cpl_keras.image_pairs import find_pairs
+from cpl_keras.stereo_camera import Point, StereoCamera
 
 SIZE = 32
 
@@ -90,6 +91,35 @@ def test_calibrate_scales_back_to_input_pixels(setup, calibrator, tmp_path, caps
     assert model_fy["parameters"]["fx"] == p["fx"]
     assert model_fy["fov_vertical_deg"] == pytest.approx(
         np.degrees(fov_from_focal(model_fy["parameters"]["fy"], 40)), rel=1e-6)
+
+
+def test_the_record_holds_a_camera_and_writes_the_constant_prose_once(setup, calibrator):
+    """A ``Calibration`` holds typed values (its ``StereoCamera``, the
+    disparity, the ``Point``); what is the same for every pair (what each
+    field means, units, how the spread is measured, the notes) is written by
+    ``as_dict``, not carried by each record."""
+    root = setup["root"]
+    record = calibrator.calibrate(str(root / "left.png"), str(root / "right.png"))
+    cam = record.camera
+    assert isinstance(cam, StereoCamera) and isinstance(record.point, Point)
+    assert (cam.width, cam.height, record.image_width, record.image_height) == (64, 40, 64, 40)
+    assert (cam.yaw, cam.roll) == (0.0, 0.0)                       # not predicted
+    printed = record.as_dict()
+    assert printed["parameters"] == {name: cam.to_labels(disparity=record.disparity)[name]
+                                     for name in PARAMETERS}
+    assert printed["point"] == record.point.as_dict()
+    assert printed["fov_horizontal_deg"] == cam.fov_deg[0] == record.fov_horizontal_deg
+    names = {field.name for field in dataclasses.fields(Calibration)}
+    assert not names & {"fields", "units", "spread_method", "aspect_note", "scale_priors",
+                        "notes", "from_the_pair", "parameters", "from_prior"}
+    assert printed["fields"] == calibration_records.FIELDS
+    assert printed["aspect_note"] == calibration_records.ASPECT_NOTES["square"]
+    assert printed["spread_method"] == calibration_records.SPREAD_METHOD.format(
+        record.windows, record.windows - 1)
+    assert printed["from_the_pair"]["baseline_over_depth"] == record.disparity / cam.fx
+    # the exporters' K and pose are the camera's
+    assert f"data: [{', '.join(repr(float(v)) for v in cam.K.reshape(-1))}]" in \
+        exports.ros_camera_info(record, "left")
 
 
 def _fails(args, capsys, match, out=None):
@@ -247,12 +277,16 @@ def test_exports_opencv_and_ros_yaml_that_opencv_reads_back(setup, calibrator, t
 
 
 def test_from_window_maps_a_crop_prediction_back_by_hand():
-    values = {"fx": 10.0, "fy": 12.0, "u0": 15.5, "v0": 7.0, "disparity": 4.0, "baseline": 0.3}
-    out = calibration.from_window(values, (20, 6, 50, 40), 32, 32)
+    values = {"fx": 10.0, "fy": 12.0, "u0": 15.5, "v0": 7.0, "baseline": 0.3, "disparity": 4.0,
+              "tx": 0.01, "ty": -0.3, "tz": 0.02, "pitch": 0.05, "X": 5.0, "Y": 1.0, "Z": -0.5}
+    out = calibration.from_window(values, (20, 6, 50, 40), (32, 32), (64, 40))
     assert out["fx"] == pytest.approx(10 * 50 / 32) and out["fy"] == pytest.approx(12 * 40 / 32)
     assert out["u0"] == pytest.approx((15.5 + 0.5) * 50 / 32 - 0.5 + 20)
     assert out["v0"] == pytest.approx((7.0 + 0.5) * 40 / 32 - 0.5 + 6)
     assert out["disparity"] == pytest.approx(4 * 50 / 32) and out["baseline"] == 0.3
+    # metres and radians stay; the dict keeps its names and order
+    assert list(out) == list(values)
+    assert all(out[name] == values[name] for name in ("tx", "ty", "tz", "pitch", "X", "Y", "Z"))
     windows = calibration.crop_windows(64, 40)
     assert windows[0] == (0, 0, 64, 40) and len(windows) == 1 + calibration.TTA_CROPS
     assert all(x + w <= 64 and y + h <= 40 and 0.75 * 64 < w < 64 for x, y, w, h in windows[1:])
@@ -653,11 +687,14 @@ def test_impossible_geometry_is_named_whatever_the_training():
     field of view are impossible for any pair; a disparity inside the image
     is not."""
     from cpl_keras.calibration import impossible_geometry
+    from cpl_keras.stereo_camera import StereoCamera
 
-    assert impossible_geometry({"disparity": 120.0, "fx": 530.0}, 640) == []
-    [line] = impossible_geometry({"disparity": 9748.0, "fx": 530.0}, 640)
+    board = StereoCamera(fx=530.0, fy=530.0, u0=319.5, v0=239.5, width=640, height=480,
+                         baseline=0.08, pitch=0.0, tx=0.0, ty=-0.08, tz=0.0)
+    assert impossible_geometry(board, 120.0) == []
+    [line] = impossible_geometry(board, 9748.0)
     assert "9748 px is at or beyond the image width (640 px)" in line
-    assert len(impossible_geometry({"disparity": 640.0, "fx": 0.0}, 640)) == 2
+    assert len(impossible_geometry(dataclasses.replace(board, fx=0.0), 640.0)) == 2
 
 
 def test_the_documented_python_snippet_runs_as_printed_and_catches_a_missing_run(tmp_path):

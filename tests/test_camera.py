@@ -115,8 +115,8 @@ def test_square_pixel_fy_of_a_crop_and_resize():
     """A square-pixel camera (fx = fy = 500 px) cropped to 300 x 200 and
     resized to 100 x 100: fx becomes 500 / 3, fy 500 / 2 (by hand), and
     square_pixel_fy recovers fy from fx and the sides alone, as the real
-    crops' labels have it (crop_resize_intrinsics)."""
-    from cpl_keras.camera import crop_resize_intrinsics
+    crops' labels have it (``StereoCamera.crop`` and ``resize``)."""
+    from cpl_keras.stereo_camera import StereoCamera
 
     fx = 500.0 * 100 / 300
     assert camera.square_pixel_fy(fx, 300, 200, 100, 100) == pytest.approx(500.0 * 100 / 200)
@@ -124,5 +124,7 @@ def test_square_pixel_fy_of_a_crop_and_resize():
     assert camera.square_pixel_fy(1.0, 1242, 375, 112, 112) == pytest.approx(1242 / 375)
     # no squash, no change; arrays broadcast
     np.testing.assert_allclose(camera.square_pixel_fy([10.0, 20.0], 64, 48, 32, 24), [10.0, 20.0])
-    cfx, cfy, *_ = crop_resize_intrinsics(451.0, 451.0, 320.0, 240.0, 17, 30, 410, 260, 112, 112)
-    assert camera.square_pixel_fy(cfx, 410, 260, 112, 112) == pytest.approx(cfy)
+    rig = StereoCamera(fx=451.0, fy=451.0, u0=320.0, v0=240.0, width=640, height=480,
+                       baseline=0.075, pitch=0.0, tx=0.0, ty=-0.075, tz=0.0)
+    small = rig.crop(17, 30, 410, 260).resize(112, 112)
+    assert camera.square_pixel_fy(small.fx, 410, 260, 112, 112) == pytest.approx(small.fy)

@@ -43,7 +43,7 @@ def test_pitch_head_is_bounded_by_default_and_linear_as_released(variant):
             assert np.allclose(pitch, math.pi / 2)
         else:
             assert np.allclose(pitch, 40.0)
-        assert model.calibration["bounded_pitch_head"] is bounded
+        assert model.build_settings["bounded_pitch_head"] is bounded
 
 
 def _pitch_term(y, pitch_values):
@@ -385,9 +385,9 @@ def test_cpl_disparity_head_stops_at_its_ceiling_and_keeps_the_gradient(tmp_path
     loaded = keras.saving.load_model(path, safe_mode=True)
     assert loaded.get_layer("disparity").activation.ceiling == 300.0
     assert np.allclose(loaded.predict(x, verbose=0)[TARGETS.index("disparity")], 300.0)
-    assert model.calibration["disparity_ceiling"] == 300.0
+    assert model.build_settings["disparity_ceiling"] == 300.0
     # without one, the bound of before: 1e5 px
-    assert build_model("cpl-u", backbone="small", image_size=SIZE).calibration[
+    assert build_model("cpl-u", backbone="small", image_size=SIZE).build_settings[
         "disparity_ceiling"] == MAX_OUTPUT
     head = PositiveDisparity(ceiling=300.0)
     assert float(jax.grad(lambda z: head(z))(np.float32(30.0))) > 0
@@ -472,9 +472,9 @@ def test_focal_heads_are_positive_by_default_and_linear_as_released(variant):
             value = out[TARGETS.index(name)]
             # -3 is below the 1 px floor: clipped there
             assert np.allclose(value, camera.FLOORS["focal"] if positive else -3.0)
-        assert model.calibration["positive_focal_head"] is positive
+        assert model.build_settings["positive_focal_head"] is positive
     baseline = build_model("baseline", backbone="small", image_size=SIZE, seed=0)
-    assert baseline.calibration["positive_focal_head"] is False   # regresses fy directly
+    assert baseline.build_settings["positive_focal_head"] is False   # regresses fy directly
 
 
 # ---------------------------------------------------------------------------
@@ -494,7 +494,7 @@ def test_alpha_rate_scales_the_step_of_the_adaptive_weights(rate):
     moved = step[step > 0]
     assert len(moved) >= 10
     assert np.allclose(moved, rate * 1e-3, rtol=1e-2)
-    assert model.calibration["alpha_rate"] == rate
+    assert model.build_settings["alpha_rate"] == rate
     with pytest.raises(ValueError, match="alpha rate"):
         build_model("cpl-a", backbone="small", image_size=SIZE, alpha_rate=-1.0)
 

@@ -157,7 +157,7 @@ def test_keras_file_and_weights_round_trip(variant, tmp_path):
     path = os.fspath(tmp_path / "model.keras")
     model.save(path)
     loaded = keras.saving.load_model(path, safe_mode=True)
-    assert loaded.calibration == model.calibration
+    assert loaded.build_settings == model.build_settings
     for a, b in zip(expected, loaded.predict(x, verbose=0)):
         np.testing.assert_array_equal(a, b)
     if variant == "cpl-a":

@@ -9,10 +9,11 @@ import pytest
 
 from cpl_keras.camera import image_to_camera, image_to_world
 from cpl_keras.data.storage import StereoFile
-from cpl_keras.camera import crop_resize_coordinate, crop_resize_intrinsics
+from cpl_keras.camera import crop_resize_coordinate
 from cpl_keras.commands import real_build
 from cpl_keras.real import build
 from cpl_keras.real import middlebury, tsinghua_cityscapes
+from cpl_keras.stereo_camera import StereoCamera
 
 SIZE = 32
 
@@ -25,12 +26,14 @@ def middlebury_file(tmp_path_factory):
 
 def test_crop_resize_intrinsics_by_hand():
     # crop at (10, 20), 200 x 100 px, resized to 50 x 50: sx = 0.25, sy = 0.5
-    fx, fy, u0, v0, sx, sy = crop_resize_intrinsics(400.0, 400.0, 110.0, 70.0, 10, 20,
-                                                    200, 100, 50, 50)
-    assert (sx, sy) == (0.25, 0.5)
-    assert (fx, fy) == (100.0, 200.0)
-    assert u0 == pytest.approx((110.0 - 10 + 0.5) * 0.25 - 0.5)
-    assert v0 == pytest.approx((70.0 - 20 + 0.5) * 0.5 - 0.5)
+    full = StereoCamera(fx=400.0, fy=400.0, u0=110.0, v0=70.0, width=640, height=480,
+                        baseline=0.1, pitch=0.0, tx=0.0, ty=-0.1, tz=0.0)
+    crop = full.crop(10, 20, 200, 100)
+    assert crop.resize_scales(50, 50) == (0.25, 0.5)
+    small = crop.resize(50, 50)
+    assert (small.fx, small.fy, small.width, small.height) == (100.0, 200.0, 50, 50)
+    assert small.u0 == pytest.approx((110.0 - 10 + 0.5) * 0.25 - 0.5)
+    assert small.v0 == pytest.approx((70.0 - 20 + 0.5) * 0.5 - 0.5)
 
 
 def test_middlebury_point_reprojects_to_same_3d_point(middlebury_file):

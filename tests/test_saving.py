@@ -62,3 +62,33 @@ def test_load_model_names_a_missing_or_corrupt_file(tmp_path):
     broken.write_bytes(b"not a zip archive")
     with pytest.raises(runs.RunError, match="truncated or corrupt"):
         saving.load_model(tmp_path)
+
+
+def test_a_model_saved_under_the_former_config_key_still_loads(tiny_run, tmp_path):
+    """``CalibrationModel.build_settings`` was saved as ``calibration`` in
+    the model's config before it had its name: such a ``model.keras`` loads
+    with ``safe_mode=True``, its settings the same, and writes the new key."""
+    import json
+    import zipfile
+
+    with zipfile.ZipFile(os.path.join(tiny_run["run"], "model.keras")) as saved:
+        config = json.loads(saved.read("config.json"))
+        settings = config["config"].pop("build_settings")
+        config["config"]["calibration"] = settings
+        old = tmp_path / "old.keras"
+        with zipfile.ZipFile(old, "w") as out:
+            for item in saved.infolist():
+                out.writestr(item, json.dumps(config) if item.filename == "config.json"
+                             else saved.read(item.filename))
+    code = ("import json\nimport keras\nimport cpl_keras.saving\n"
+            f"model = keras.saving.load_model({str(old)!r}, safe_mode=True)\n"
+            "config = model.get_config()\n"
+            "print(json.dumps([model.build_settings, 'calibration' in config, "
+            "config['build_settings'] == model.build_settings]))\n")
+    done = subprocess.run([sys.executable, "-c", code], cwd=str(tmp_path), text=True,
+                          env=dict(os.environ, KERAS_BACKEND="jax", PYTHONPATH=REPO),
+                          capture_output=True, timeout=180)
+    assert done.returncode == 0, done.stderr
+    loaded, old_key_written, new_key_written = json.loads(done.stdout.splitlines()[-1])
+    assert loaded == settings and settings["variant"] == "baseline"
+    assert not old_key_written and new_key_written

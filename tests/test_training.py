@@ -849,7 +849,7 @@ def test_every_training_flag_reaches_the_run(case, tiny_run, tmp_path):
         split = load_split(str(run_dir / "split.npz"))
         assert not set(rig[split["test"]]) & set(rig[split["train"]])
     model = keras.saving.load_model(run_dir / "model.keras", safe_mode=True)
-    assert model.calibration["as_released"] == config["build"]["as_released"]
+    assert model.build_settings["as_released"] == config["build"]["as_released"]
     ceiling = config["build"]["disparity_ceiling"]
     if ceiling is not None:
         assert model.get_layer("disparity").activation.ceiling == ceiling

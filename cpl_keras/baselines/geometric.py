@@ -73,8 +73,8 @@ import math
 
 import numpy as np
 
-from cpl_keras import camera
 from cpl_keras.camera import TARGETS, focal_from_fov, fov_from_focal, image_to_world
+from cpl_keras.stereo_camera import StereoCamera
 
 #: Failure flags counted by ``failure_report``.
 FAILURE_FLAGS = (
@@ -251,40 +251,54 @@ def calibrate_from_matches(pts_left, pts_right, width, height, priors=None, min_
         status["few_matches"] = True
 
     # 2. focal length (Bougnoux), principal point at the centre
-    focal = float(prior["fx"])
-    if F is not None:
-        p = (cx, cy)
-        f_left_sq = bougnoux_focal_squared(F, p, p)
-        f_right_sq = bougnoux_focal_squared(F.T, p, p)
-        status["focal_sq"] = [f_left_sq, f_right_sq]
-        real = [f for f in (f_left_sq, f_right_sq) if np.isfinite(f) and f > 0]
-        if not real:
-            status["imaginary_focal"] = True
-        else:
-            candidate = float(np.prod(np.sqrt(real)) ** (1.0 / len(real)))
-            fov = math.degrees(float(fov_from_focal(candidate, width)))
-            if FOV_RANGE_DEG[0] <= fov <= FOV_RANGE_DEG[1]:
-                focal = candidate
-            else:
-                status["implausible_focal"] = True
+    focal = float(prior["fx"]) if F is None else _focal(F, cx, cy, width, prior["fx"], status)
 
-    # 3. pose: rotation and translation direction
-    pitch = float(prior["pitch"])
+    # 3. pose: the rig at unit baseline (the translation's length is unobservable)
     direction = np.asarray(prior["direction"], dtype=np.float64)
-    status["pose_failed"] = True
-    if F is not None:
-        K = np.array([[focal, 0.0, cx], [0.0, focal, cy], [0.0, 0.0, 1.0]])
-        E = K.T @ F @ K
-        good, R_cv, t_cv, _ = cv2.recoverPose(E, pts_l[inliers], pts_r[inliers], K)
-        if int(good) >= 5:
-            # OpenCV: X_right = R_cv X_left + t_cv, so X_left = R_cv^T X_right - R_cv^T t_cv
-            R_lr, t_lr = camera.opencv_pose_to_rig(R_cv, t_cv)
-            pitch = float(camera.euler_from_rotation(R_lr)[0])
-            direction = t_lr / max(float(np.linalg.norm(t_lr)), 1e-12)
-            status["pose_failed"] = False
-    result = {"fx": focal, "fy": focal, "u0": cx, "v0": cy, "pitch": pitch,
+    rig = StereoCamera(fx=focal, fy=focal, u0=cx, v0=cy, width=width, height=height,
+                       baseline=1.0, pitch=prior["pitch"], tx=direction[0], ty=direction[1],
+                       tz=direction[2])
+    found = None if F is None else _recover_pose(rig, F, pts_l[inliers], pts_r[inliers])
+    status["pose_failed"] = found is None
+    if found is not None:
+        rig = found
+        direction = np.array([rig.tx, rig.ty, rig.tz]) / max(rig.baseline, 1e-12)
+    result = {"fx": rig.fx, "fy": rig.fy, "u0": rig.u0, "v0": rig.v0, "pitch": rig.pitch,
               "direction": direction}
     return result, status
+
+
+def _focal(F, cx, cy, width, fallback, status):
+    """Step 2 of the module doc: Bougnoux's focal length of both cameras
+    (their geometric mean), principal point ``(cx, cy)``; ``fallback`` when
+    imaginary or implausible (``status`` says which, and holds both values)."""
+    p = (cx, cy)
+    f_left_sq = bougnoux_focal_squared(F, p, p)
+    f_right_sq = bougnoux_focal_squared(F.T, p, p)
+    status["focal_sq"] = [f_left_sq, f_right_sq]
+    real = [f for f in (f_left_sq, f_right_sq) if np.isfinite(f) and f > 0]
+    if not real:
+        status["imaginary_focal"] = True
+        return float(fallback)
+    candidate = float(np.prod(np.sqrt(real)) ** (1.0 / len(real)))
+    fov = math.degrees(float(fov_from_focal(candidate, width)))
+    if FOV_RANGE_DEG[0] <= fov <= FOV_RANGE_DEG[1]:
+        return candidate
+    status["implausible_focal"] = True
+    return float(fallback)
+
+
+def _recover_pose(rig, F, pts_left, pts_right):
+    """Step 3 of the module doc: the rig (intrinsics of ``rig``) with the
+    right camera's pose from the essential matrix ``K^T F K`` of the inlier
+    matches (``cv2.recoverPose``), its baseline the translation's length
+    (unobservable: 1); None when fewer than 5 points support it."""
+    K = rig.K
+    good, R_cv, t_cv, _ = _cv2().recoverPose(K.T @ F @ K, pts_left, pts_right, K)
+    if int(good) < 5:
+        return None
+    # OpenCV's X_right = R_cv X_left + t_cv, as the right camera's pose in the left frame
+    return StereoCamera.from_opencv_pose(R_cv, t_cv, K, rig.width, rig.height)
 
 
 def estimate_pair(left, right, u=None, v=None, priors=None, detector="sift", upscale=2.0,

@@ -34,15 +34,20 @@ class CalibrationModel(keras.Model):
 
     Args:
         *args, **kwargs: as for a functional ``keras.Model`` (inputs, outputs).
-        calibration: dict of the build arguments (variant, backbone,
-            image_size, as_released, floors, ...) and ``loss`` (a LOSS_MODE).
+        build_settings: dict of the build arguments (variant, backbone,
+            image_size, as_released, floors, ...) and ``loss`` (a LOSS_MODE),
+            kept in the model's config under that name.
+        calibration: the same dict under its former name, as models saved
+            before the rename hold it in their config (read, never written).
     """
 
-    def __init__(self, *args, calibration=None, **kwargs):
+    def __init__(self, *args, build_settings=None, calibration=None, **kwargs):
         super().__init__(*args, **kwargs)
-        self.calibration = dict(calibration or {"loss": "mae"})
-        if self.calibration["loss"] not in LOSS_MODES:
-            raise ValueError(f"unknown loss mode {self.calibration['loss']!r}")
+        if build_settings is not None and calibration is not None:
+            raise ValueError("give build_settings or the former calibration, not both")
+        self.build_settings = dict(build_settings or calibration or {"loss": "mae"})
+        if self.build_settings["loss"] not in LOSS_MODES:
+            raise ValueError(f"unknown loss mode {self.build_settings['loss']!r}")
         if self.training_loss.adaptive:
             # s_i of Eq. 9 (alpha_i = exp(-s_i)), one per disentangled term,
             # stored divided by the alpha rate (``log_variance_values``), and
@@ -63,12 +68,12 @@ class CalibrationModel(keras.Model):
     @property
     def loss_mode(self):
         """The name of its training loss (``LOSS_MODES``)."""
-        return self.calibration["loss"]
+        return self.build_settings["loss"]
 
     @property
     def training_loss(self):
         """Its training loss (``variants.Loss``)."""
-        return LOSSES[self.calibration["loss"]]
+        return LOSSES[self.build_settings["loss"]]
 
     @property
     def alpha_rate(self):
@@ -80,7 +85,7 @@ class CalibrationModel(keras.Model):
         existed); see ``variants.ALPHA_RATE``. 0: the weights do not move
         at all after ``initialise_adaptive_weights`` (``s_i = w_i``, not
         trained): Eq. 9 as a fixed normalisation of the terms' ranges."""
-        return float(self.calibration.get("alpha_rate", 1.0))
+        return float(self.build_settings.get("alpha_rate", 1.0))
 
     def _scale(self):
         """``s_i / w_i``: the alpha rate, or 1 for frozen weights (rate 0)."""
@@ -103,9 +108,9 @@ class CalibrationModel(keras.Model):
 
         Models saved before per-quantity floors stored one ``epsilon``.
         """
-        if "floors" in self.calibration:
-            return dict(self.calibration["floors"])
-        epsilon = float(self.calibration.get("epsilon", camera.EPSILON))
+        if "floors" in self.build_settings:
+            return dict(self.build_settings["floors"])
+        epsilon = float(self.build_settings.get("epsilon", camera.EPSILON))
         return {key: epsilon for key in camera.FLOORS}
 
     def projection_terms(self, y, y_pred):
@@ -172,5 +177,5 @@ class CalibrationModel(keras.Model):
 
     def get_config(self):
         config = super().get_config()
-        config["calibration"] = dict(self.calibration)
+        config["build_settings"] = dict(self.build_settings)
         return config

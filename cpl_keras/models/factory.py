@@ -160,7 +160,7 @@ def _build(spec, backbone, height, width, as_released, floors, bounded_pitch_hea
         positive_focal_head=positive_focal_head, disparity_activation=disparity,
         detach=loss.projection and disentangle == "exact",
     )
-    calibration = {
+    settings = {
         "variant": spec.name, "backbone": backbone, "image_size": [height, width],
         "as_released": as_released, "floors": floors, "loss": loss.name,
         "bounded_pitch_head": bounded_pitch_head and spec.builder != "deep_homo",
@@ -170,10 +170,10 @@ def _build(spec, backbone, height, width, as_released, floors, bounded_pitch_hea
         "disentangle": disentangle if loss.projection else None,
     }
     if loss.adaptive:
-        calibration["alpha_rate"] = alpha_rate
+        settings["alpha_rate"] = alpha_rate
     return CalibrationModel(
         inputs={"left_image": left, "right_image": right}, outputs=outputs,
-        name=name or spec.name.replace("-", "_"), calibration=calibration,
+        name=name or spec.name.replace("-", "_"), build_settings=settings,
     )
 
 
@@ -267,7 +267,7 @@ def compile_model(model, *, learning_rate=None, jit_compile="auto", steps_per_ex
     if not isinstance(model, CalibrationModel):
         raise ValueError("compile_model expects a model made by cpl_keras.build_model")
     if learning_rate is None:
-        learning_rate = variants.get(model.calibration.get("variant")).learning_rate
+        learning_rate = variants.get(model.build_settings.get("variant")).learning_rate
     if not (isinstance(learning_rate, numbers.Real) and learning_rate > 0):
         raise ValueError(f"learning rate must be a positive number, got {learning_rate!r}")
     if not (isinstance(weight_ema, numbers.Real) and 0 <= weight_ema < 1):

@@ -17,9 +17,9 @@
 
 The helpers below are shared by the builders: a rectified pair's crop and
 its labels, writing the samples (and, from ``cpl_keras.data.generate``, the
-release's StereoBM disparity label). The exact intrinsics of a crop + resize
-and the OpenCV-to-project axis change are the camera model's
-(``cpl_keras.camera``).
+release's StereoBM disparity label). A rig's camera, with the exact
+intrinsics of a crop + resize and the OpenCV-to-project axis change, is a
+``cpl_keras.stereo_camera.StereoCamera``.
 """
 
 from __future__ import annotations
@@ -27,11 +27,12 @@ from __future__ import annotations
 import numpy as np
 
 from cpl_keras import cli
-from cpl_keras.camera import crop_resize_coordinate, crop_resize_intrinsics, image_to_world
+from cpl_keras.camera import crop_resize_coordinate
 from cpl_keras.data.pair import released_disparity  # noqa: F401  (the builders' label)
 from cpl_keras.data.storage import min_bytes_per_pair, StereoWriter
 from cpl_keras.errors import Error
 from cpl_keras.images import resize_image
+from cpl_keras.stereo_camera import StereoCamera
 
 #: Label conventions a real-data builder can write (see docs/real-data.md).
 LABEL_MODES = ("rig", "vehicle")
@@ -41,8 +42,15 @@ class RealDataError(Error):
     """A real-data file or directory is missing or malformed (one-line message)."""
 
 
-def rectified_crop(left, right, window, pixel, match, disparity, intrinsics, baseline,
-                   image_size):
+def rectified_camera(fx, fy, u0, v0, width, height, baseline):
+    """The ``StereoCamera`` of a rectified rig in the "rig" convention: the
+    right camera's intrinsics, no rotation, the right camera ``baseline``
+    metres to the right (``ty = -baseline``)."""
+    return StereoCamera(fx=fx, fy=fy, u0=u0, v0=v0, width=width, height=height,
+                        baseline=baseline, pitch=0.0, tx=0.0, ty=-baseline, tz=0.0)
+
+
+def rectified_crop(left, right, window, pixel, match, disparity, camera, image_size):
     """One sample of a rectified pair: both images cropped at ``window``
     ``(x0, y0, w, h)`` and resized to ``image_size`` squared, with the labels
     of the "rig" convention (the module doc of ``real.middlebury``).
@@ -50,21 +58,22 @@ def rectified_crop(left, right, window, pixel, match, disparity, intrinsics, bas
     ``pixel`` = ``(u_left, v)``, a left pixel whose right match is ``match``
     pixels to its left; ``disparity`` is Eq. 4a's disparity there at full
     resolution (``match`` plus any offset of the principal points);
-    ``intrinsics`` = ``(fx, fy, cx of the right camera, cy)``. Returns ``(left
-    crop, right crop, labels)``, labels as Python floats/ints."""
+    ``camera`` the rig's ``StereoCamera`` at full resolution
+    (``rectified_camera``). Returns ``(left crop, right crop, labels)``,
+    labels as Python floats/ints."""
     x0, y0, cw, ch = window
     u_left, v_full = pixel
-    fx, fy, u0, v0, sx, sy = crop_resize_intrinsics(*intrinsics, x0, y0, cw, ch,
-                                                    image_size, image_size)
+    crop = camera.crop(x0, y0, cw, ch)
+    sx, sy = crop.resize_scales(image_size, image_size)
+    small = crop.resize(image_size, image_size)
     u = float(crop_resize_coordinate(u_left - match, x0, sx))
     v = float(crop_resize_coordinate(v_full, y0, sy))
     d = sx * disparity
-    X, Y, Z = image_to_world(fx, fy, u0, v0, baseline, d, 0.0, 0.0, -baseline, 0.0, u, v)
+    X, Y, Z = small.to_world(u, v, d)
     crop_l = resize_image(left[y0:y0 + ch, x0:x0 + cw], image_size, image_size)
     crop_r = resize_image(right[y0:y0 + ch, x0:x0 + cw], image_size, image_size)
     return crop_l, crop_r, {
-        "fx": fx, "fy": fy, "u0": u0, "v0": v0, "baseline": baseline, "disparity": d,
-        "tx": 0.0, "ty": -baseline, "tz": 0.0, "pitch": 0.0, "yaw": 0.0, "roll": 0.0,
+        **small.to_labels(disparity=d),
         "X": float(X), "Y": float(Y), "Z": float(Z), "u": u, "v": v,
         "disparity_released": released_disparity(crop_l, crop_r),
         "u_left": float(crop_resize_coordinate(u_left, x0, sx)),

@@ -13,7 +13,8 @@ is derived from the images themselves:
    then ``cv2.stereoCalibrate`` with those intrinsics fixed: the rotation R
    and translation T with ``X_right = R X_left + T`` (OpenCV axes, metres).
    The RMS reprojection error of the stereo calibration is recorded.
-3. R, T are converted to the project's convention (``opencv_pose_to_rig``):
+3. R, T are converted to the project's convention
+   (``StereoCamera.from_opencv_pose``, through ``opencv_pose_to_rig``):
    the right camera's pose in the left camera frame, x forward, y left, z up,
    ``P_left = R_lr P_right + t``; ``tx, ty, tz = t``, ``baseline = |t|``,
    ``pitch, yaw, roll = camera.euler_from_rotation(R_lr)`` (Eq. 5's pitch,
@@ -30,7 +31,7 @@ u0, v0`` are the right camera's intrinsics (the left camera's are kept as
 
 Samples: per pair, the whole image and ``crops - 1`` random windows (the
 Middlebury set's crop rule), each resized to ``image_size`` squared with the
-intrinsics transformed exactly (``crop_resize_intrinsics``). The projection
+intrinsics transformed exactly (``StereoCamera.crop`` and ``resize``). The projection
 pixel is the corner nearest the window's centre among those seen inside the
 window in both images (for the whole image: the corner nearest the image
 centre).
@@ -59,14 +60,15 @@ import numpy as np
 
 from cpl_keras import cli
 from cpl_keras.camera import (
-    CV_TO_PROJECT, PARAMETERS, UNITS, crop_resize_coordinate, crop_resize_intrinsics,
-    disparity_from_depth, euler_from_rotation, fov_from_focal, opencv_pose_to_rig,
+    CV_TO_PROJECT, PARAMETERS, UNITS, crop_resize_coordinate, disparity_from_depth,
+    opencv_pose_to_rig,
 )
 from cpl_keras.images import read_gray, resize_image
 from cpl_keras.real import (
     RealDataError, check_crop_settings, check_sample_room, released_disparity, write_samples,
 )
 from cpl_keras.real.middlebury import _draw_window
+from cpl_keras.stereo_camera import INTRINSICS, StereoCamera
 
 #: The project's copy of OpenCV's sample pairs.
 DATA_DIR = os.path.join(os.path.dirname(os.path.abspath(__file__)), "opencv_chessboard")
@@ -142,13 +144,12 @@ def detect_corners(gray, board=BOARD):
 def calibrate(root=DATA_DIR, board=BOARD, square=SQUARE):
     """Detect, calibrate and triangulate a folder of chessboard pairs.
 
-    Returns a dict: ``K_left``, ``D_left``, ``K_right``, ``D_right`` (OpenCV),
-    ``R``, ``T`` (OpenCV stereo extrinsics, metres), ``rms_px`` (stereo
-    reprojection RMS), ``rms_left_px``, ``rms_right_px`` (per-camera), the
-    project-convention rig ``rig`` (full resolution, see ``rig_parameters``),
-    ``image_size`` (width, height), ``pairs`` (one dict per used pair: name,
-    paths, corners of both images, triangulated points, right depths) and
-    ``skipped`` (``(name, reason)`` of pairs without corners).
+    Returns a dict: ``K_left``, ``D_left``, ``K_right``, ``D_right``, ``R``, ``T``
+    (OpenCV; ``X_right = R X_left + T``, metres), ``rms_px`` (stereo reprojection
+    RMS), ``rms_left_px``, ``rms_right_px``, the rig's ``camera`` and ``left_camera``
+    (``rig_cameras``) and labels ``rig`` (``rig_parameters``; full resolution),
+    ``image_size`` (width, height), ``pairs`` (per used pair: name, paths, corners,
+    triangulated points, right depths), ``skipped`` (pairs without corners).
     """
     import cv2
 
@@ -192,6 +193,7 @@ def calibrate(root=DATA_DIR, board=BOARD, square=SQUARE):
            "R": R, "T": T.reshape(3), "rms_px": float(rms), "rms_left_px": float(rms_l),
            "rms_right_px": float(rms_r), "image_size": size, "board": board,
            "square": float(square), "skipped": skipped, "num_found": len(pairs)}
+    cal["camera"], cal["left_camera"] = rig_cameras(cal)
     cal["rig"] = rig_parameters(cal)
     for pair in used:
         pair["points"], pair["depth_right"] = triangulate(cal, pair["corners_left"],
@@ -200,19 +202,27 @@ def calibrate(root=DATA_DIR, board=BOARD, square=SQUARE):
     return cal
 
 
+def rig_cameras(cal):
+    """``(right, left)``: the rig's ``StereoCamera`` at full resolution from
+    OpenCV's calibration, with the right camera's intrinsics (the labels'
+    camera) and with the left camera's (the same pose)."""
+    width, height = cal["image_size"]
+    return tuple(StereoCamera.from_opencv_pose(cal["R"], cal["T"], cal[key], width, height)
+                 for key in ("K_right", "K_left"))
+
+
 def rig_parameters(cal):
-    """The rig in the project's conventions, full resolution: ``fx, fy, u0,
-    v0`` (right camera), ``*_left`` (left camera), ``baseline``, ``tx, ty,
-    tz`` (metres), ``pitch, yaw, roll`` (radians)."""
-    R_lr, t = opencv_pose_to_rig(cal["R"], cal["T"])
-    pitch, yaw, roll = euler_from_rotation(R_lr)
-    K1, K2 = cal["K_left"], cal["K_right"]
+    """The rig in the project's conventions, full resolution, from its
+    cameras (``rig_cameras``): ``fx, fy, u0, v0`` (right camera), ``*_left``
+    (left camera), ``baseline``, ``tx, ty, tz`` (metres), ``pitch, yaw,
+    roll`` (radians), and the angle of the relative rotation."""
+    right, left = cal["camera"], cal["left_camera"]
+    R_lr, _ = opencv_pose_to_rig(cal["R"], cal["T"])
     return {
-        "fx": float(K2[0, 0]), "fy": float(K2[1, 1]), "u0": float(K2[0, 2]), "v0": float(K2[1, 2]),
-        "fx_left": float(K1[0, 0]), "fy_left": float(K1[1, 1]),
-        "u0_left": float(K1[0, 2]), "v0_left": float(K1[1, 2]),
-        "baseline": float(np.linalg.norm(t)), "tx": float(t[0]), "ty": float(t[1]),
-        "tz": float(t[2]), "pitch": float(pitch), "yaw": float(yaw), "roll": float(roll),
+        **{name: getattr(right, name) for name in INTRINSICS},
+        **{f"{name}_left": getattr(left, name) for name in INTRINSICS},
+        **{name: getattr(right, name) for name in ("baseline", "tx", "ty", "tz", "pitch", "yaw",
+                                                   "roll")},
         "rotation_deg": float(np.degrees(np.arccos(np.clip((np.trace(R_lr) - 1) / 2, -1, 1)))),
     }
 
@@ -256,7 +266,7 @@ def chessboard_samples(cal, crops=20, image_size=112, seed=0):
     import cv2
 
     rng = np.random.default_rng(seed)
-    rig = cal["rig"]
+    rig = cal["camera"]
     width, height = cal["image_size"]
     for index, pair in enumerate(cal["pairs"]):
         left_full = cv2.cvtColor(_read_gray(pair["left"]), cv2.COLOR_GRAY2RGB)
@@ -270,26 +280,23 @@ def chessboard_samples(cal, crops=20, image_size=112, seed=0):
             if k is None:
                 continue
             x0, y0, cw, ch = window
-            fx, fy, u0, v0, sx, sy = crop_resize_intrinsics(
-                rig["fx"], rig["fy"], rig["u0"], rig["v0"], x0, y0, cw, ch, image_size, image_size)
-            fxl, fyl, u0l, v0l, _, _ = crop_resize_intrinsics(
-                rig["fx_left"], rig["fy_left"], rig["u0_left"], rig["v0_left"], x0, y0, cw, ch,
-                image_size, image_size)
-            d_full = float(disparity_from_depth(rig["fx"], rig["baseline"], pair["depth_right"][k]))
+            crop = cal["camera"].crop(x0, y0, cw, ch)
+            sx, sy = crop.resize_scales(image_size, image_size)
+            small = crop.resize(image_size, image_size)
+            small_left = cal["left_camera"].crop(x0, y0, cw, ch).resize(image_size, image_size)
+            d_full = float(disparity_from_depth(rig.fx, rig.baseline, pair["depth_right"][k]))
             u_r, v_r = pair["corners_right"][k]
             u_l, v_l = pair["corners_left"][k]
             crop_l = resize_image(left_full[y0:y0 + ch, x0:x0 + cw], image_size, image_size)
             crop_r = resize_image(right_full[y0:y0 + ch, x0:x0 + cw], image_size, image_size)
             X, Y, Z = pair["points"][k]
             labels = {
-                "fx": fx, "fy": fy, "u0": u0, "v0": v0, "baseline": rig["baseline"],
-                "disparity": sx * d_full, "tx": rig["tx"], "ty": rig["ty"], "tz": rig["tz"],
-                "pitch": rig["pitch"], "yaw": rig["yaw"], "roll": rig["roll"],
+                **small.to_labels(disparity=sx * d_full),
                 "X": float(X), "Y": float(Y), "Z": float(Z),
                 "u": float(crop_resize_coordinate(u_r, x0, sx)),
                 "v": float(crop_resize_coordinate(v_r, y0, sy)),
                 "disparity_released": released_disparity(crop_l, crop_r),
-                "fx_left": fxl, "fy_left": fyl, "u0_left": u0l, "v0_left": v0l,
+                **{f"{name}_left": getattr(small_left, name) for name in INTRINSICS},
                 "u_left": float(crop_resize_coordinate(u_l, x0, sx)),
                 "v_left": float(crop_resize_coordinate(v_l, y0, sy)),
                 "corner_index": k, "crop_x0": x0, "crop_y0": y0, "crop_width": cw,
@@ -352,8 +359,8 @@ def calibration_report(cal, pair=None):
         "parameters": {name: rig[name] for name in PARAMETERS if name != "disparity"},
         "pitch_deg": math.degrees(rig["pitch"]), "yaw_deg": math.degrees(rig["yaw"]),
         "roll_deg": math.degrees(rig["roll"]), "rotation_deg": rig["rotation_deg"],
-        "fov_horizontal_deg": float(np.degrees(fov_from_focal(rig["fx"], width))),
-        "fov_vertical_deg": float(np.degrees(fov_from_focal(rig["fy"], height))),
+        "fov_horizontal_deg": cal["camera"].fov_deg[0],
+        "fov_vertical_deg": cal["camera"].fov_deg[1],
         "left_camera": {k: rig[k + "_left"] for k in ("fx", "fy", "u0", "v0")},
         "units": {name: UNITS[name] for name in PARAMETERS},
         "pairs_used": len(cal["pairs"]), "pairs_skipped": len(cal["skipped"]),

@@ -51,12 +51,11 @@ import re
 
 import numpy as np
 
-from cpl_keras.camera import (
-    CV_TO_PROJECT, crop_resize_coordinate, crop_resize_intrinsics, image_to_world,
-)
+from cpl_keras.camera import CV_TO_PROJECT, crop_resize_coordinate
 from cpl_keras.data.storage import StereoWriter
 from cpl_keras.images import read_rgb, resize_image
 from cpl_keras.real import RealDataError, released_disparity
+from cpl_keras.stereo_camera import StereoCamera
 
 LAYOUTS = ("stereo", "raw")
 #: Keys of the left / right rectified projection matrices, in lookup order.
@@ -272,14 +271,13 @@ def sample_from_frame(left_path, right_path, calib_path, disparity_path=None, im
         raise RealDataError(f"{right_path} is {right_full.shape[1]}x{right_full.shape[0]}, "
                             f"{left_path} is {left_full.shape[1]}x{left_full.shape[0]}")
     height, width = left_full.shape[:2]
-    fx, fy, u0, v0, sx, sy = crop_resize_intrinsics(
-        rig["fx"], rig["fy"], rig["u0"], rig["v0"], 0, 0, width, height, image_size, image_size)
+    full = StereoCamera.from_labels(rig, width, height)
+    sx, sy = full.resize_scales(image_size, image_size)
+    camera = full.resize(image_size, image_size)
     left = resize_image(left_full, image_size, image_size)
     right = resize_image(right_full, image_size, image_size)
-    b = rig["baseline"]
-    labels = {"fx": fx, "fy": fy, "u0": u0, "v0": v0, "baseline": b,
-              "tx": rig["tx"], "ty": rig["ty"], "tz": rig["tz"], "pitch": 0.0, "yaw": 0.0,
-              "roll": 0.0, "u0_left": float(crop_resize_coordinate(rig["u0_left"], 0, sx)),
+    labels = {**camera.to_labels(),
+              "u0_left": float(crop_resize_coordinate(rig["u0_left"], 0, sx)),
               "disparity_released": released_disparity(left, right),
               "full_width": width, "full_height": height}
     pixel = None
@@ -297,7 +295,7 @@ def sample_from_frame(left_path, right_path, calib_path, disparity_path=None, im
         u = float(crop_resize_coordinate(u_left - d_full, 0, sx))
         v = float(crop_resize_coordinate(v_full, 0, sy))
         d = sx * d_full
-        X, Y, Z = image_to_world(fx, fy, u0, v0, b, d, 0.0, rig["tx"], rig["ty"], rig["tz"], u, v)
+        X, Y, Z = camera.to_world(u, v, d)
         labels.update(u=u, v=v, disparity=d, X=float(X), Y=float(Y), Z=float(Z),
                       u_left=float(crop_resize_coordinate(u_left, 0, sx)), disparity_valid=1)
     else:

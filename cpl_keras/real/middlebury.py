@@ -12,7 +12,7 @@ paper Eq. 4a (``d = fx * b / xCam``, one shared principal point) is
 ``build_middlebury`` draws many crops (random size, aspect and position; some
 cover the whole image) of both images at the same window, resizes each to
 ``image_size`` x ``image_size`` and transforms the intrinsics exactly
-(``cpl_keras.camera.crop_resize_intrinsics``). Labels follow the project's
+(``StereoCamera.crop`` and ``resize``). Labels follow the project's
 conventions ("rig" mode): extrinsics are the right camera's pose in the left
 camera frame (x forward, y left, z up), so ``pitch = tx = tz = 0`` and
 ``ty = -baseline`` (the right camera is to the right); the projection pixel
@@ -30,8 +30,8 @@ import numpy as np
 
 from cpl_keras.camera import crop_resize_coordinate
 from cpl_keras.real import (
-    RECTIFIED_LABEL_DESCRIPTIONS, check_crop_settings, check_sample_room, rectified_crop,
-    write_samples,
+    RECTIFIED_LABEL_DESCRIPTIONS, check_crop_settings, check_sample_room, rectified_camera,
+    rectified_crop, write_samples,
 )
 
 #: Calibration of the pair as scikit-image documents it (pixels, metres).
@@ -97,7 +97,7 @@ def middlebury_samples(crops, image_size=112, seed=0):
     left, right, disparity, cal = load_motorcycle()
     height, width = disparity.shape
     f, cx0, cy, doffs, b = (cal[k] for k in ("focal", "cx0", "cy", "doffs", "baseline"))
-    cx1 = cx0 + doffs
+    rig = rectified_camera(f, f, cx0 + doffs, cy, width, height, b)
     rng = np.random.default_rng(seed)
     index = 0
     while index < crops:
@@ -108,7 +108,7 @@ def middlebury_samples(crops, image_size=112, seed=0):
         x0, y0, cw, ch = window
         d_full = float(disparity[pixel[1], pixel[0]])
         crop_l, crop_r, labels = rectified_crop(left, right, window, pixel, d_full,
-                                                d_full + doffs, (f, f, cx1, cy), b, image_size)
+                                                d_full + doffs, rig, image_size)
         labels.update(u0_left=float(crop_resize_coordinate(cx0, x0, image_size / cw)),
                       config_id=index, town_id=-1, frame_index=index)
         yield crop_l, crop_r, labels

@@ -18,7 +18,7 @@ Labels that rest on it (disparity, X, Y, Z) carry that measurement's error;
 intrinsics, baseline and pose are the calibration's. ``build_oakd`` draws
 crops of each pair (random size, aspect, position; some the whole image),
 resizes them to ``image_size`` squared and transforms the intrinsics
-exactly (``crop_resize_intrinsics``).
+exactly (``StereoCamera.crop`` and ``resize``).
 """
 
 from __future__ import annotations
@@ -31,7 +31,7 @@ import numpy as np
 from cpl_keras.images import read_rgb
 from cpl_keras.real import (
     RECTIFIED_LABEL_DESCRIPTIONS, RealDataError, check_crop_settings, check_sample_room,
-    rectified_crop, write_samples,
+    rectified_camera, rectified_crop, write_samples,
 )
 
 DATA_DIR = os.path.join(os.path.dirname(os.path.abspath(__file__)), "oakd_stereo")
@@ -150,7 +150,8 @@ def _draw_pixel(rng, disparity, window):
 def oakd_samples(crops_per_pair=20, image_size=112, seed=0, root=DATA_DIR):
     """Yield ``(left, right, labels)``: ``crops_per_pair`` crops of every pair."""
     cal = load_calibration(root)
-    f_x, f_y, cx, cy, b = (cal[k] for k in ("fx", "fy", "cx", "cy", "baseline"))
+    rig = rectified_camera(*(cal[k] for k in ("fx", "fy", "cx", "cy", "width", "height",
+                                              "baseline")))
     rng = np.random.default_rng(seed)
     index = 0
     for pair_index, (scene, left_path, right_path) in enumerate(find_pairs(root)):
@@ -170,7 +171,7 @@ def oakd_samples(crops_per_pair=20, image_size=112, seed=0, root=DATA_DIR):
                 continue
             d_full = float(disparity[pixel[1], pixel[0]])
             crop_l, crop_r, labels = rectified_crop(
-                left, right, window, pixel, d_full, d_full, (f_x, f_y, cx, cy), b, image_size)
+                left, right, window, pixel, d_full, d_full, rig, image_size)
             yield crop_l, crop_r, dict(labels, config_id=0, town_id=-1, frame_index=index,
                                        pair_index=pair_index)
             drawn += 1

@@ -50,12 +50,13 @@ import os
 
 import numpy as np
 
-from cpl_keras.camera import crop_resize_coordinate, crop_resize_intrinsics, image_to_world
+from cpl_keras.camera import crop_resize_coordinate
 from cpl_keras.data.storage import StereoWriter
 from cpl_keras.images import read_rgb, resize_image
 from cpl_keras.real import (  # noqa: F401  (RealDataError is re-exported)
-    LABEL_MODES, RealDataError, released_disparity,
+    LABEL_MODES, RealDataError, rectified_camera, released_disparity,
 )
+from cpl_keras.stereo_camera import StereoCamera
 
 DATASETS = ("tsinghua", "cityscapes")
 RIGHT_MODES = ("warp", "released")
@@ -195,9 +196,9 @@ def sample_from_files(left_path, disparity_path, camera_path, image_size=112, ri
             f"disparity {disparity_path} is {disparity.shape}, image is {left_full.shape[:2]}")
     height, width = disparity.shape
     intr, extr = camera["intrinsic"], camera["extrinsic"]
-    fx, fy, u0, v0, sx, sy = crop_resize_intrinsics(
-        intr["fx"], intr["fy"], intr["u0"], intr["v0"], 0, 0, width, height,
-        image_size, image_size)
+    full = _camera(intr, extr, width, height, labels)
+    sx, sy = full.resize_scales(image_size, image_size)
+    small = full.resize(image_size, image_size)
     left_small = resize_image(left_full, image_size, image_size)
     right_full, visible = warp_to_right(left_full, disparity)
     if right == "warp":
@@ -212,20 +213,13 @@ def sample_from_files(left_path, disparity_path, camera_path, image_size=112, ri
     k = int(rng.integers(len(rows)))
     v_full, u_left = int(rows[k]), int(cols[k])
     d_full = float(disparity[v_full, u_left])
-    b = extr["baseline"]
     d = sx * d_full
     v = float(crop_resize_coordinate(v_full, 0, sy))
-    if labels == "rig":
-        u = float(crop_resize_coordinate(u_left - d_full, 0, sx))
-        pitch, tx, ty, tz, yaw, roll = 0.0, 0.0, -b, 0.0, 0.0, 0.0
-    else:
-        u = float(crop_resize_coordinate(u_left, 0, sx))
-        pitch, tx, ty, tz = extr["pitch"], extr["x"], extr["y"], extr["z"]
-        yaw, roll = extr["yaw"], extr["roll"]
-    X, Y, Z = image_to_world(fx, fy, u0, v0, b, d, pitch, tx, ty, tz, u, v)
+    # rig: the pixel in the right image; vehicle: in the left (the dataset's camera)
+    u = float(crop_resize_coordinate(u_left - d_full if labels == "rig" else u_left, 0, sx))
+    X, Y, Z = small.to_world(u, v, d)
     out = {
-        "fx": fx, "fy": fy, "u0": u0, "v0": v0, "baseline": b, "disparity": d,
-        "tx": tx, "ty": ty, "tz": tz, "pitch": pitch, "yaw": yaw, "roll": roll,
+        **small.to_labels(disparity=d),
         "X": float(X), "Y": float(Y), "Z": float(Z), "u": u, "v": v,
         "disparity_released": released_disparity(left_small, right_small),
         "u_left": float(crop_resize_coordinate(u_left, 0, sx)),
@@ -234,6 +228,19 @@ def sample_from_files(left_path, disparity_path, camera_path, image_size=112, ri
         "full_width": width, "full_height": height,
     }
     return left_small, right_small, out
+
+
+def _camera(intr, extr, width, height, labels):
+    """The dataset's camera at full resolution: in the "rig" convention the
+    right camera of a rectified pair (``rectified_camera``), in the
+    "vehicle" one the left camera mounted on the vehicle (its extrinsics)."""
+    if labels == "rig":
+        return rectified_camera(intr["fx"], intr["fy"], intr["u0"], intr["v0"], width, height,
+                                extr["baseline"])
+    return StereoCamera(fx=intr["fx"], fy=intr["fy"], u0=intr["u0"], v0=intr["v0"],
+                        width=width, height=height, baseline=extr["baseline"],
+                        pitch=extr["pitch"], tx=extr["x"], ty=extr["y"], tz=extr["z"],
+                        yaw=extr["yaw"], roll=extr["roll"])
 
 
 def build_stereo_dataset(root, out, *, dataset="tsinghua", split=None, image_size=112,
