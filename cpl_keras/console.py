@@ -9,7 +9,7 @@ is in place at once; the module's imports take a moment):
     cpl-reproduce    python -m cpl_keras.reproduce
     cpl-calibrate    python -m cpl_keras.calibrate
     cpl-graph        python -m cpl_keras.graph             (cpl_keras.commands.graph)
-    cpl-generate     python -m cpl_keras.data.generate
+    cpl-generate     python -m cpl_keras.data.generate     (cpl_keras.commands.generate)
     cpl-real-build   python -m cpl_keras.real.build        (cpl_keras.commands.real_build)
     cpl-mix          python -m cpl_keras.data.mix          (cpl_keras.commands.mix)
     cpl-learning-curves  python -m cpl_keras.learning_curves  (cpl_keras.commands.learning_curves)
@@ -58,7 +58,7 @@ def graph():
 
 
 def generate():
-    cli.run(_main("cpl_keras.data.generate"), "python -m cpl_keras.data.generate")
+    cli.run(_main("cpl_keras.commands.generate"), "python -m cpl_keras.data.generate")
 
 
 def real_build():

@@ -104,8 +104,7 @@ def main_functions():
     import importlib.util
 
     from cpl_keras import calibrate, reproduce
-    from cpl_keras.commands import graph, learning_curves, mix, real_build
-    from cpl_keras.data import generate
+    from cpl_keras.commands import generate, graph, learning_curves, mix, real_build
 
     mains = {"reproduce": reproduce.main, "data.generate": generate.main, "data.mix": mix.main,
              "calibrate": calibrate.main, "graph": graph.main, "real.build": real_build.main,

@@ -194,7 +194,8 @@ def test_a_ctrl_c_swallowed_during_generation_stops_it_before_the_file_is_writte
     callback, say: the unraisable hook leaves it pending) still stops the
     generator at its next block: one line, exit 130, no file."""
     from cpl_keras import interrupts
-    from cpl_keras.data import generate, storage
+    from cpl_keras.commands import generate
+    from cpl_keras.data import storage
 
     write = storage.StereoWriter.write
 

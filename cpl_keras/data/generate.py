@@ -33,12 +33,11 @@ import numpy as np
 from filelock import FileLock, Timeout
 
 from cpl_keras import camera, cli
-from cpl_keras.cli import check_interrupt, check_output_file, make_parent, Parser
+from cpl_keras.cli import check_interrupt, check_output_file, make_parent
 from cpl_keras.data import protocols, scenes
 from cpl_keras.data.blocks import iter_blocks, render_block
 from cpl_keras.data.pair import (EXTRA_UNITS, FLOAT_LABELS, INT_LABELS, LABEL_DESCRIPTIONS,
                                  render_pair)
-from cpl_keras.data.protocols import PROTOCOLS
 from cpl_keras.data.storage import GENERATOR_VERSION  # noqa: F401  (the generator's own)
 from cpl_keras.data.storage import min_bytes_per_pair, StereoFile, StereoWriter
 from cpl_keras.files import atomic_path
@@ -71,7 +70,8 @@ def check_output_path(out):
     return check_output_file(out)
 
 
-def _check_arguments(protocol, pairs, seed, image_size, workers):
+def check_arguments(protocol, pairs, seed, image_size, workers):
+    """``(pairs, seed, image_size, workers)`` checked (ValueError naming the bad one)."""
     protocols.check_protocol(protocol)
     pairs = _check_int("pairs", pairs, 1)
     seed = _check_int("seed", seed, 0, 2**63 - 1)
@@ -177,9 +177,12 @@ def check_room(out, protocol, pairs, image_size, workers, restart=False):
                    memory=pairs * BYTES_PER_PAIR_HELD + rigs * BYTES_PER_RIG_HELD * (1 + workers))
 
 
-def _generate(out, protocol, pairs, seed, image_size, workers, progress, command_line=None,
-              restart=False, log=None):
-    pairs, seed, image_size, workers = _check_arguments(protocol, pairs, seed, image_size, workers)
+def generate_file(out, protocol, pairs, seed, image_size, workers, progress, command_line=None,
+                  restart=False, log=None):
+    """``generate_dataset`` with its checks first (arguments, the output path,
+    the disk and memory it needs), continuing ``out``'s interrupted
+    ``.partial`` file unless ``restart``; returns the path written."""
+    pairs, seed, image_size, workers = check_arguments(protocol, pairs, seed, image_size, workers)
     out = check_output_path(out)
     if workers is None:
         workers = os.cpu_count() or 1
@@ -228,7 +231,7 @@ def generate_dataset(out, *, protocol="cvgl", pairs, seed=0, image_size=112, wor
     starts again. Returns the path written. Raises ``ValueError`` (one
     line) on bad arguments, or when the file cannot fit (``check_room``).
     """
-    return _generate(out, protocol, pairs, seed, image_size, workers, progress,
+    return generate_file(out, protocol, pairs, seed, image_size, workers, progress,
                      restart=restart, log=log)
 
 
@@ -364,7 +367,7 @@ def write_preview(path, protocol, pairs, seed=0, image_size=112, count=8, column
     """
     from PIL import Image, ImageDraw
 
-    pairs, seed, image_size, _ = _check_arguments(protocol, pairs, seed, image_size, None)
+    pairs, seed, image_size, _ = check_arguments(protocol, pairs, seed, image_size, None)
     path = check_output_path(path)
     indices = preview_indices(protocol, pairs, count)
     W = image_size
@@ -403,71 +406,7 @@ def write_preview(path, protocol, pairs, seed=0, image_size=112, count=8, column
 PROG = "python -m cpl_keras.data.generate"
 
 
-def _parser():
-    p = Parser(
-        prog=PROG,
-        description="Render a synthetic CVGL-style stereo dataset to one HDF5 file.",
-    )
-    p.add_argument("--protocol", default="cvgl", choices=PROTOCOLS,
-                   help="cvgl: the paper's 50 rigs; random: realistic rigs; cameras: random "
-                   "rigs with real cameras' aspect ratios squashed to the square input; "
-                   "wild: the cameras rigs under a sun, haze and white balance drawn per "
-                   "rig (default cvgl)")
-    p.add_argument("--pairs", type=int, required=True, help="number of stereo pairs")
-    p.add_argument("--out", help="output HDF5 file (may be left out with --preview)")
-    p.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
-    p.add_argument("--image-size", type=int, default=112, help="square image side (default 112)")
-    p.add_argument("--workers", type=cli.worker_count, default=None,
-                   help="worker processes (default and most: all cores)")
-    p.add_argument("--preview", help="also write a PNG contact sheet of a few pairs")
-    p.add_argument("--no-progress", action="store_true", help="no progress bar")
-    p.add_argument("--restart", action="store_true",
-                   help="discard the OUT.partial file of an interrupted run and start again "
-                   "(by default it is continued; one of other arguments is refused)")
-    return p
+if __name__ == "__main__":  # the command line: cpl_keras/commands/generate.py
+    import runpy
 
-
-def main(argv=None):
-    parser = _parser()
-    args = parser.parse_args(argv)
-    if args.out is None and args.preview is None:
-        parser.error("give --out (the dataset) and/or --preview (a contact sheet)")
-
-    command_line = cli.command_line(PROG, argv)
-    try:
-        with cli.interruptible():
-            return _main(args, command_line)
-    except KeyboardInterrupt:  # cli.Interrupted, or a Ctrl-C outside the block
-        note = None
-        if args.out is not None and os.path.exists(args.out + ".partial"):
-            note = (f"{args.out}.partial keeps the blocks written in full; the same command "
-                    "continues it")
-        elif args.out is not None:
-            note = f"{args.out} was not written; the same command starts again from the first pair"
-        return cli.interrupted(PROG, note=note)
-
-
-def _main(args, command_line):
-    try:
-        _check_arguments(args.protocol, args.pairs, args.seed, args.image_size, args.workers)
-        if args.out is not None:
-            check_output_path(args.out)
-        if args.preview is not None:
-            check_output_path(args.preview)
-        if args.out is not None:
-            path = _generate(args.out, args.protocol, args.pairs, args.seed, args.image_size,
-                             args.workers, not args.no_progress, command_line,
-                             restart=args.restart,
-                             log=lambda line: print(line, file=sys.stderr, flush=True))
-            print(path)
-            sys.stderr.write(f"summary: {summary_text(path)}\n")
-        if args.preview is not None:
-            print(write_preview(args.preview, args.protocol, args.pairs, args.seed,
-                                args.image_size))
-    except (ValueError, OSError) as error:
-        return cli.fail(PROG, " ".join(str(error).split()))
-    return 0
-
-
-if __name__ == "__main__":
-    cli.run(main, PROG)
+    runpy.run_module("cpl_keras.commands.generate", run_name="__main__")
