@@ -7,10 +7,11 @@ is in place at once; the module's imports take a moment):
     cpl-train        train.py                          (cpl_keras.commands.train)
     cpl-evaluate     evaluate.py                       (cpl_keras.commands.evaluate)
     cpl-reproduce    python -m cpl_keras.reproduce
-    cpl-calibrate    python -m cpl_keras.calibrate
+    cpl-calibrate    python -m cpl_keras.calibrate         (cpl_keras.commands.calibrate)
     cpl-graph        python -m cpl_keras.graph             (cpl_keras.commands.graph)
     cpl-generate     python -m cpl_keras.data.generate     (cpl_keras.commands.generate)
     cpl-real-build   python -m cpl_keras.real.build        (cpl_keras.commands.real_build)
+    cpl-chessboard   python -m cpl_keras.real.chessboard   (cpl_keras.commands.chessboard)
     cpl-mix          python -m cpl_keras.data.mix          (cpl_keras.commands.mix)
     cpl-learning-curves  python -m cpl_keras.learning_curves  (cpl_keras.commands.learning_curves)
 
@@ -50,7 +51,7 @@ def reproduce():
 
 
 def calibrate():
-    cli.run(_main("cpl_keras.calibrate"), "python -m cpl_keras.calibrate")
+    cli.run(_main("cpl_keras.commands.calibrate"), "python -m cpl_keras.calibrate")
 
 
 def graph():
@@ -63,6 +64,10 @@ def generate():
 
 def real_build():
     cli.run(_main("cpl_keras.commands.real_build"), "python -m cpl_keras.real.build")
+
+
+def chessboard():
+    cli.run(_main("cpl_keras.commands.chessboard"), "python -m cpl_keras.real.chessboard")
 
 
 def mix():

@@ -12,8 +12,9 @@ import numpy as np
 import pytest
 
 from helpers import REPO
-from cpl_keras import calibrate, calibration, calibration_records, evaluation, exports
+from cpl_keras import calibration, calibration_records, evaluation, exports
 from cpl_keras.calibrate import Calibration, CalibrationError, Calibrator, RigCalibration
+from cpl_keras.commands import calibrate as calibrate_command
 from cpl_keras.camera import PARAMETERS, fov_from_focal
 from cpl_keras.image_pairs import find_pairs
 from cpl_keras.stereo_camera import Point, StereoCamera
@@ -44,7 +45,7 @@ def calibrator(setup):
 def test_calibrate_scales_back_to_input_pixels(setup, calibrator, tmp_path, capsys):
     root = setup["root"]
     out = tmp_path / "calib.json"
-    assert calibrate.main([str(root / "left.png"), str(root / "right.png"), "--run",
+    assert calibrate_command.main([str(root / "left.png"), str(root / "right.png"), "--run",
                            setup["run"], "--json-out", str(out)]) == 0
     text = capsys.readouterr().out
     printed = json.loads(text)
@@ -83,7 +84,7 @@ def test_calibrate_scales_back_to_input_pixels(setup, calibrator, tmp_path, caps
     assert printed["fov_vertical_deg"] == pytest.approx(
         np.degrees(fov_from_focal(p["fy"], 40)), rel=1e-6)
     # the network's fy with --aspect model
-    assert calibrate.main([str(root / "left.png"), str(root / "right.png"), "--run",
+    assert calibrate_command.main([str(root / "left.png"), str(root / "right.png"), "--run",
                            setup["run"], "--aspect", "model"]) == 0
     model_fy = json.loads(capsys.readouterr().out)
     assert model_fy["aspect"] == "model"
@@ -123,7 +124,7 @@ def test_the_record_holds_a_camera_and_writes_the_constant_prose_once(setup, cal
 
 
 def _fails(args, capsys, match, out=None):
-    assert calibrate.main(args) == 2
+    assert calibrate_command.main(args) == 2
     err = capsys.readouterr().err.strip()
     assert err.startswith("python -m cpl_keras.calibrate: error:") and "\n" not in err and match in err, err
     if out is not None:
@@ -168,7 +169,7 @@ def test_refuses_images_smaller_than_the_model_input(setup, tmp_path, capsys):
     small = cv2.imread(str(setup["root"] / "small.png"))
     cv2.imwrite(str(tmp_path / "r.png"), np.roll(small, -2, axis=1))
     out = tmp_path / "c.json"
-    status = calibrate.main([str(setup["root"] / "small.png"), str(tmp_path / "r.png"),
+    status = calibrate_command.main([str(setup["root"] / "small.png"), str(tmp_path / "r.png"),
                              "--run", setup["run"], "--json-out", str(out)])
     _one_line_2(capsys, status, "smaller than the model's input 32x32")
     assert not out.exists()
@@ -176,14 +177,14 @@ def test_refuses_images_smaller_than_the_model_input(setup, tmp_path, capsys):
 
 def test_refuses_identical_left_and_right(setup, capsys):
     left = str(setup["root"] / "left.png")
-    _one_line_2(capsys, calibrate.main([left, left, "--run", setup["run"]]), "identical")
+    _one_line_2(capsys, calibrate_command.main([left, left, "--run", setup["run"]]), "identical")
 
 
 def test_warns_about_grey_images_and_says_what_the_run_was_trained_on(setup, tmp_path, capsys):
     grey = cv2.cvtColor(cv2.imread(str(setup["root"] / "left.png")), cv2.COLOR_BGR2GRAY)
     cv2.imwrite(str(tmp_path / "l.png"), grey)
     cv2.imwrite(str(tmp_path / "r.png"), np.roll(grey, -3, axis=1))
-    assert calibrate.main([str(tmp_path / "l.png"), str(tmp_path / "r.png"),
+    assert calibrate_command.main([str(tmp_path / "l.png"), str(tmp_path / "r.png"),
                            "--run", setup["run"]]) == 0
     captured = capsys.readouterr()
     grey_lines = [line for line in captured.err.splitlines() if "is grey" in line]
@@ -204,7 +205,7 @@ def test_warns_about_predictions_outside_the_training_labels(setup, tmp_path, ca
     with open(run / "train_stats.json", "w") as f:
         json.dump(stats, f)
     root = setup["root"]
-    assert calibrate.main([str(root / "left.png"), str(root / "right.png"),
+    assert calibrate_command.main([str(root / "left.png"), str(root / "right.png"),
                            "--run", str(run)]) == 0
     lines = [line for line in capsys.readouterr().err.splitlines() if "outside" in line]
     assert len(lines) == 1 and "fx" in lines[0] and "1e+06" in lines[0], lines
@@ -233,7 +234,7 @@ def test_exports_opencv_and_ros_yaml_that_opencv_reads_back(setup, calibrator, t
     translation, and the ROS right projection matrix is K [R | T]."""
     root = setup["root"]
     opencv, ros = tmp_path / "stereo.yml", tmp_path / "ros"
-    assert calibrate.main([str(root / "left.png"), str(root / "right.png"), "--run",
+    assert calibrate_command.main([str(root / "left.png"), str(root / "right.png"), "--run",
                            setup["run"], "--opencv-yaml", str(opencv), "--ros-yaml",
                            str(ros)]) == 0
     p = json.loads(capsys.readouterr().out)["parameters"]
@@ -298,7 +299,7 @@ def test_spread_scale_priors_fields_and_the_demonstration_notice(setup, tmp_path
     field; a demonstration run is announced as such on stderr."""
     root = setup["root"]
     args = [str(root / "left.png"), str(root / "right.png"), "--run"]
-    assert calibrate.main(args + [setup["run"]]) == 0
+    assert calibrate_command.main(args + [setup["run"]]) == 0
     captured = capsys.readouterr()
     result = json.loads(captured.out)
     assert set(result["spread"]) == set(PARAMETERS) | {"X", "Y", "Z"}
@@ -319,7 +320,7 @@ def test_spread_scale_priors_fields_and_the_demonstration_notice(setup, tmp_path
     config = json.loads((demo / "config.json").read_text())
     config["data"] = "/cache/demo-cvgl-800-112px-s0-v3.0.h5"
     (demo / "config.json").write_text(json.dumps(config))
-    assert calibrate.main(args + [str(demo)]) == 0
+    assert calibrate_command.main(args + [str(demo)]) == 0
     captured = capsys.readouterr()
     assert json.loads(captured.out)["demonstration_model"] is True
     assert "demonstration model" in captured.err
@@ -359,7 +360,7 @@ def test_a_folder_of_pairs_is_one_rig_of_medians_with_their_spread(setup, calibr
         cv2.imwrite(str(folder / f"{k}_left.png"), left)
         cv2.imwrite(str(folder / f"{k}_right.png"), np.roll(left, -2 - k, axis=1))
     opencv = tmp_path / "rig.yml"
-    assert calibrate.main(["--folder", str(folder), "--run", setup["run"],
+    assert calibrate_command.main(["--folder", str(folder), "--run", setup["run"],
                            "--opencv-yaml", str(opencv)]) == 0
     captured = capsys.readouterr()
     printed = json.loads(captured.out)
@@ -399,12 +400,12 @@ def test_folder_and_pair_arguments_are_one_or_the_other(setup, tmp_path, capsys)
     for argv in (["--folder", str(root), str(root / "left.png"), str(root / "right.png")],
                  [str(root / "left.png")], []):
         with pytest.raises(SystemExit) as exit_:
-            calibrate.main(argv + ["--run", setup["run"]])
+            calibrate_command.main(argv + ["--run", setup["run"]])
         assert exit_.value.code == 2
         err = capsys.readouterr().err.strip().splitlines()
-        assert len(err) == 1 or err[-1].startswith(calibrate.PROG)
+        assert len(err) == 1 or err[-1].startswith(calibrate_command.PROG)
     out = tmp_path / "never.json"
-    assert calibrate.main(["--folder", str(tmp_path), "--run", setup["run"],
+    assert calibrate_command.main(["--folder", str(tmp_path), "--run", setup["run"],
                            "--json-out", str(out)]) == 2
     assert "no stereo pairs" in capsys.readouterr().err and not out.exists()
 
@@ -419,12 +420,12 @@ def test_a_known_focal_length_must_be_finite_and_plausible(tmp_path, capsys, foc
     from cpl_keras import priors as known
 
     with pytest.raises(SystemExit) as exit_:
-        calibrate.main(["a.png", "b.png", "--run", str(tmp_path), "--focal", focal])
+        calibrate_command.main(["a.png", "b.png", "--run", str(tmp_path), "--focal", focal])
     assert exit_.value.code == 2
     err = capsys.readouterr().err.strip().splitlines()
-    assert err[-1].startswith(f"{calibrate.PROG}: error: argument --focal: ") and \
+    assert err[-1].startswith(f"{calibrate_command.PROG}: error: argument --focal: ") and \
         message in err[-1], err
-    assert calibrate.focal_argument("1e6") == (1e6, "--focal")
+    assert calibrate_command.focal_argument("1e6") == (1e6, "--focal")
     with pytest.raises(known.PriorError, match="at most 1,000,000 px"):
         known.Priors(focal_px=2e6)
 
@@ -442,7 +443,7 @@ def test_a_shipped_real_pair_calibrates_with_spreads_warnings_and_both_exports(
     left, right = next((l, r) for l, r in find_pairs(folder)
                        if pair in os.path.basename(l))
     opencv, ros = tmp_path / "stereo.yml", tmp_path / "ros"
-    assert calibrate.main([left, right, "--run", setup["run"], "--opencv-yaml", str(opencv),
+    assert calibrate_command.main([left, right, "--run", setup["run"], "--opencv-yaml", str(opencv),
                            "--ros-yaml", str(ros)]) == 0
     captured = capsys.readouterr()
     result = json.loads(captured.out)
@@ -478,13 +479,13 @@ def test_the_real_camera_record_is_said_in_one_line_and_in_the_json(setup, tmp_p
     from cpl_keras import real_record
     from cpl_keras.evaluation import Table2
 
-    assert calibrate.main(_pair_args(setup)) == 0
+    assert calibrate_command.main(_pair_args(setup)) == 0
     captured = capsys.readouterr()
     record = json.loads(captured.out)["real_camera_record"]
     assert record["validated"] is False and record["rigs"] == {}
     lines = [line for line in captured.err.splitlines() if "real-camera record" in line]
     assert len(lines) == 1 and "never validated on a real camera" in lines[0]
-    assert lines[0].startswith(f"{calibrate.PROG}: warning: ")
+    assert lines[0].startswith(f"{calibrate_command.PROG}: warning: ")
 
     run = tmp_path / "run"
     shutil.copytree(setup["run"], run)
@@ -502,7 +503,7 @@ def test_the_real_camera_record_is_said_in_one_line_and_in_the_json(setup, tmp_p
     real_record.write_record(str(run), table, command="test")
     args = _pair_args(setup)
     args[args.index("--run") + 1] = str(run)
-    assert calibrate.main(args) == 0
+    assert calibrate_command.main(args) == 0
     captured = capsys.readouterr()
     record = json.loads(captured.out)["real_camera_record"]
     assert record["validated"] is True
@@ -515,9 +516,9 @@ def test_the_real_camera_record_is_said_in_one_line_and_in_the_json(setup, tmp_p
 
 
 def test_a_known_baseline_scales_the_metric_values_and_says_so(setup, capsys):
-    assert calibrate.main(_pair_args(setup)) == 0
+    assert calibrate_command.main(_pair_args(setup)) == 0
     plain = json.loads(capsys.readouterr().out)
-    assert calibrate.main(_pair_args(setup) + ["--baseline", "0.12"]) == 0
+    assert calibrate_command.main(_pair_args(setup) + ["--baseline", "0.12"]) == 0
     known = json.loads(capsys.readouterr().out)
     factor = 0.12 / plain["parameters"]["baseline"]
     assert known["parameters"]["baseline"] == pytest.approx(0.12, rel=1e-9)
@@ -541,9 +542,9 @@ def test_a_known_focal_sets_fx_fy_and_moves_the_depth_by_eq_4a(setup, capsys):
     stay as the network gave them."""
     from cpl_keras import camera
 
-    assert calibrate.main(_pair_args(setup)) == 0
+    assert calibrate_command.main(_pair_args(setup)) == 0
     plain = json.loads(capsys.readouterr().out)
-    assert calibrate.main(_pair_args(setup) + ["--focal", "50"]) == 0
+    assert calibrate_command.main(_pair_args(setup) + ["--focal", "50"]) == 0
     known = json.loads(capsys.readouterr().out)
     p, q = plain["parameters"], known["parameters"]
     assert (q["fx"], q["fy"]) == (50.0, 50.0)
@@ -581,13 +582,13 @@ def test_focal_from_a_jpegs_exif_35mm_equivalent(setup, tmp_path, capsys):
     Image.fromarray(rgb).save(root / "left.jpg", exif=exif, quality=95)
     Image.fromarray(rgb_right).save(root / "right.jpg", quality=95)
     args = [str(root / "left.jpg"), str(root / "right.jpg"), "--run", setup["run"]]
-    assert calibrate.main(args + ["--focal", "exif"]) == 0
+    assert calibrate_command.main(args + ["--focal", "exif"]) == 0
     known = json.loads(capsys.readouterr().out)
     expected = 28 * np.hypot(64, 40) / np.hypot(36, 24)
     assert known["parameters"]["fx"] == pytest.approx(expected, rel=1e-9)
     assert "EXIF FocalLengthIn35mmFilm 28 mm" in known["priors"]["focal_px"]["source"]
     # a JPEG without the tag: one line, exit 2, nothing printed on stdout
-    status = calibrate.main([str(root / "right.jpg"), str(root / "left.jpg"), "--run",
+    status = calibrate_command.main([str(root / "right.jpg"), str(root / "left.jpg"), "--run",
                              setup["run"], "--focal", "exif"])
     captured = capsys.readouterr()
     assert status == 2 and captured.out == ""
@@ -597,7 +598,7 @@ def test_focal_from_a_jpegs_exif_35mm_equivalent(setup, tmp_path, capsys):
 
 def test_colmap_cameras_txt_reads_back(setup, calibrator, tmp_path, capsys):
     out = tmp_path / "colmap"
-    assert calibrate.main(_pair_args(setup) + ["--colmap", str(out)]) == 0
+    assert calibrate_command.main(_pair_args(setup) + ["--colmap", str(out)]) == 0
     result = json.loads(capsys.readouterr().out)
     record = calibrator.calibrate(*_pair_args(setup)[:2])
     assert exports.colmap_cameras(record) == (out / "cameras.txt").read_text()
@@ -612,7 +613,7 @@ def test_colmap_cameras_txt_reads_back(setup, calibrator, tmp_path, capsys):
     # a file where the folder should be: one line, exit 2
     blocker = tmp_path / "file"
     blocker.write_text("x")
-    assert calibrate.main(_pair_args(setup) + ["--colmap", str(blocker)]) == 2
+    assert calibrate_command.main(_pair_args(setup) + ["--colmap", str(blocker)]) == 2
     assert "--colmap is a file, not a directory" in capsys.readouterr().err
 
 
@@ -653,13 +654,13 @@ def test_exports_are_all_or_nothing(setup, tmp_path, capsys):
     outputs = ["--json-out", str(tmp_path / "out" / "calib.json"),
                "--opencv-yaml", str(tmp_path / "out" / "stereo.yml"),
                "--ros-yaml", str(tmp_path / "ros")]
-    assert calibrate.main(_pair_args(setup) + outputs
+    assert calibrate_command.main(_pair_args(setup) + outputs
                           + ["--colmap", str(blocker / "colmap")]) == 2
     err = [line for line in capsys.readouterr().err.splitlines() if ": error: " in line]
     assert err == [f"python -m cpl_keras.calibrate: error: cannot create the output directory "
                    f"{blocker / 'colmap'}: {blocker} is a file"]
     assert sorted(os.listdir(tmp_path)) == ["a-file", "out"] and not os.listdir(tmp_path / "out")
-    assert calibrate.main(_pair_args(setup) + outputs
+    assert calibrate_command.main(_pair_args(setup) + outputs
                           + ["--colmap", str(tmp_path / "colmap")]) == 0
     capsys.readouterr()
     assert sorted(os.listdir(tmp_path / "out")) == ["calib.json", "stereo.yml"]
@@ -674,7 +675,7 @@ def test_a_truncated_image_is_refused_in_one_line(setup, tmp_path, capsys):
     cut = tmp_path / "cut.png"
     cut.write_bytes(data[:len(data) // 2])
     out = tmp_path / "calib.json"
-    assert calibrate.main([str(cut), str(setup["root"] / "right.png"), "--run", setup["run"],
+    assert calibrate_command.main([str(cut), str(setup["root"] / "right.png"), "--run", setup["run"],
                            "--json-out", str(out)]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and f"{cut} is truncated or corrupt" in err[0], err

@@ -66,6 +66,7 @@ print("exit", code, "heavy", ",".join(heavy) or "none")
     ("graph", "python -m cpl_keras.graph"), ("generate", "python -m cpl_keras.data.generate"),
     ("real_build", "python -m cpl_keras.real.build"), ("mix", "python -m cpl_keras.data.mix"),
     ("learning_curves", "python -m cpl_keras.learning_curves"),
+    ("chessboard", "python -m cpl_keras.real.chessboard"),
 ])
 def test_installed_commands_refuse_a_bad_argument_in_one_line(name, prog):
     """The cpl-* commands (pyproject.toml's [project.scripts]) run their

@@ -11,6 +11,7 @@ import pytest
 from cpl_keras.camera import image_to_world, rotation_matrix
 from cpl_keras.data.storage import StereoFile
 from cpl_keras.camera import CV_TO_PROJECT, opencv_pose_to_rig
+from cpl_keras.commands import chessboard as chessboard_command
 from cpl_keras.commands import real_build
 from cpl_keras.real import chessboard
 
@@ -202,5 +203,5 @@ def test_bad_chessboard_inputs(tmp_path, capsys):
     err = capsys.readouterr().err.strip()
     assert "missing right image" in err and "right02.jpg" in err and "\n" not in err
     assert not out.exists() and not os.path.exists(str(out) + ".partial")
-    assert chessboard.main(["--root", str(tmp_path / "none")]) == 2
+    assert chessboard_command.main(["--root", str(tmp_path / "none")]) == 2
     assert "not found" in capsys.readouterr().err

@@ -52,13 +52,11 @@ derived calibration, full resolution, in the keys and units of
 from __future__ import annotations
 
 import glob
-import json
 import math
 import os
 
 import numpy as np
 
-from cpl_keras import cli
 from cpl_keras.camera import (
     CV_TO_PROJECT, PARAMETERS, UNITS, crop_resize_coordinate, disparity_from_depth,
     opencv_pose_to_rig,
@@ -381,19 +379,7 @@ def calibration_report(cal, pair=None):
     return out
 
 
-def main(argv=None):
-    prog = "python -m cpl_keras.real.chessboard"
-    parser = cli.Parser(prog=prog, description="print a chessboard rig's calibration")
-    parser.add_argument("--root", default=DATA_DIR, help="folder of left*/right* pairs")
-    parser.add_argument("--pair", help="also the point and disparity of this pair (e.g. 01)")
-    args = parser.parse_args(argv)
-    try:
-        cal = calibrate(args.root)
-        print(json.dumps(calibration_report(cal, args.pair), indent=2))
-    except (RealDataError, OSError) as error:
-        return cli.fail(prog, error)
-    return 0
+if __name__ == "__main__":  # the command line: cpl_keras/commands/chessboard.py
+    import runpy
 
-
-if __name__ == "__main__":
-    cli.run(main, 'python -m cpl_keras.real.chessboard')
+    runpy.run_module("cpl_keras.commands.chessboard", run_name="__main__")
