@@ -6,7 +6,7 @@ is in place at once; the module's imports take a moment):
 
     cpl-train        train.py                          (cpl_keras.commands.train)
     cpl-evaluate     evaluate.py                       (cpl_keras.commands.evaluate)
-    cpl-reproduce    python -m cpl_keras.reproduce
+    cpl-reproduce    python -m cpl_keras.reproduce         (cpl_keras.commands.reproduce)
     cpl-calibrate    python -m cpl_keras.calibrate         (cpl_keras.commands.calibrate)
     cpl-graph        python -m cpl_keras.graph             (cpl_keras.commands.graph)
     cpl-generate     python -m cpl_keras.data.generate     (cpl_keras.commands.generate)
@@ -47,7 +47,7 @@ def evaluate():
 
 
 def reproduce():
-    cli.run(_main("cpl_keras.reproduce.cli"), "python -m cpl_keras.reproduce")
+    cli.run(_main("cpl_keras.commands.reproduce"), "python -m cpl_keras.reproduce")
 
 
 def calibrate():

@@ -103,8 +103,9 @@ def main_functions():
     repository's train.py and evaluate.py."""
     import importlib.util
 
-    from cpl_keras import reproduce
-    from cpl_keras.commands import calibrate, generate, graph, learning_curves, mix, real_build
+    from cpl_keras.commands import (
+        calibrate, generate, graph, learning_curves, mix, real_build, reproduce,
+    )
 
     mains = {"reproduce": reproduce.main, "data.generate": generate.main, "data.mix": mix.main,
              "calibrate": calibrate.main, "graph": graph.main, "real.build": real_build.main,

@@ -15,6 +15,7 @@ import pytest
 
 import evaluate
 from cpl_keras import reproduce
+from cpl_keras.commands import reproduce as reproduce_command
 from cpl_keras.camera import TARGETS
 # (REPO: the repository root; no result may name it)
 from helpers import REPO, quick_reproduction_args
@@ -357,7 +358,7 @@ def test_reproduce_numbers_checked_when_parsed(tmp_path, capsys):
 
 
 def _parsed(*argv):
-    return reproduce.resolve_args(*_parser_and_args(argv))
+    return reproduce_command.resolve_args(*_parser_and_args(argv))
 
 
 def _parser_and_args(argv):
@@ -366,7 +367,7 @@ def _parser_and_args(argv):
     parser = cli.Parser(prog=reproduce.PROG)
     parser.add_argument("--out")
     parser.add_argument("--geometric-max", type=cli.positive_int)
-    reproduce.add_arguments(parser)
+    reproduce_command.add_arguments(parser)
     return parser, parser.parse_args(list(argv))
 
 

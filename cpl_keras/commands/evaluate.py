@@ -14,7 +14,8 @@ from __future__ import annotations
 import os
 import sys
 
-from cpl_keras import cli, evaluation, report, reproduce
+from cpl_keras import cli, evaluation, report
+from cpl_keras.commands import reproduce
 from cpl_keras.cache import enable_compile_cache
 from cpl_keras.errors import Error
 

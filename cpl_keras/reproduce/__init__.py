@@ -43,12 +43,11 @@ from their last epoch):
 The package: ``presets`` (the settings and the runs they make), ``jobs``
 (training each run and publishing it; with ``--jobs`` in processes of their
 own, ``cpl_keras.training.parallel``), ``pipeline`` (the
-stages and the rebuild), ``page`` (REPORT.md), ``cli`` (the command line).
+stages and the rebuild), ``page`` (REPORT.md); its command line is ``cpl_keras.commands.reproduce``.
 """
 
 from __future__ import annotations
 
-from cpl_keras.reproduce.cli import add_arguments, main, resolve_args, run
 from cpl_keras.models.variants import SLOW_VARIANTS
 from cpl_keras.reproduce.jobs import publish_run, published_record, train_all
 from cpl_keras.reproduce.page import scale_text, write_report
@@ -65,8 +64,8 @@ __all__ = [
     "DEFAULT_TABLES", "GPU_SIZED_PAIRS", "MTL_VARIANTS", "PAPER_SCALE", "PRESETS", "PROG",
     "Job", "Preset", "QUICK", "REAL_ROOTS", "REAL_SETS", "RELEASED_RUN", "SLOW_VARIANTS", "SUMMARY",
     "Settings", "TABLE1",
-    "add_arguments", "cpu_cost", "default_folders", "gpu_sized", "has_accelerator", "main",
+    "cpu_cost", "default_folders", "gpu_sized", "has_accelerator",
     "make_datasets", "publish_run", "published_record", "read_summary", "rebuild",
-    "rebuild_command", "reproduce", "resolve_args", "run", "run_jobs", "run_stems",
+    "rebuild_command", "reproduce", "run_jobs", "run_stems",
     "scale_text", "settings", "train_all", "write_report",
 ]

@@ -1,8 +1,6 @@
 """``python -m cpl_keras.reproduce``: the reproduction's command line."""
 
-from cpl_keras.reproduce.cli import PROG, main
+if __name__ == "__main__":  # the command line: cpl_keras/commands/reproduce.py
+    import runpy
 
-if __name__ == "__main__":
-    from cpl_keras import cli
-
-    cli.run(main, PROG)
+    runpy.run_module("cpl_keras.commands.reproduce", run_name="__main__")
