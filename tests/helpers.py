@@ -104,12 +104,12 @@ def main_functions():
     import importlib.util
 
     from cpl_keras.commands import (
-        calibrate, generate, graph, learning_curves, mix, real_build, reproduce,
+        calibrate, chessboard, generate, graph, learning_curves, mix, real_build, reproduce,
     )
 
     mains = {"reproduce": reproduce.main, "data.generate": generate.main, "data.mix": mix.main,
              "calibrate": calibrate.main, "graph": graph.main, "real.build": real_build.main,
-             "learning_curves": learning_curves.main}
+             "learning_curves": learning_curves.main, "real.chessboard": chessboard.main}
     for script in ("train.py", "evaluate.py"):
         spec = importlib.util.spec_from_file_location(script[:-3] + "_cli",
                                                       os.path.join(REPO, script))

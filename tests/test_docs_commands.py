@@ -30,7 +30,7 @@ ENTRY = {"train.py": "train.py", "evaluate.py": "evaluate.py",
          "cpl_keras.reproduce": "reproduce", "cpl_keras.data.generate": "data.generate",
          "cpl_keras.data.mix": "data.mix",
          "cpl_keras.calibrate": "calibrate", "cpl_keras.graph": "graph",
-         "cpl_keras.real.build": "real.build",
+         "cpl_keras.real.build": "real.build", "cpl_keras.real.chessboard": "real.chessboard",
          "cpl_keras.learning_curves": "learning_curves"}
 
 
