@@ -269,27 +269,19 @@ def plan_run(data, *, variant, run_dir, epochs=200, batch_size=16, learning_rate
     dataset = _read_dataset(data, image_size=image_size, split=split, seed=seed,
                             test_fraction=test_fraction, val_fraction=val_fraction,
                             as_released=as_released, batch_size=batch_size)
-    data, height, width = dataset["data"], dataset["height"], dataset["width"]
-    num_pairs, protocol = dataset["num_pairs"], dataset["protocol"]
     targets, indices = dataset["targets"], dataset["indices"]
-
-    devices = _device_count() if data_parallel else 1
-    run_batch = -(-batch_size // devices) * devices
-    group = distributed.current()  # (a process group: joined by training.train)
-    processes = 1 if group is None else group.num_processes
-    if devices % processes:
-        raise TrainingError(f"{devices} devices do not split evenly over {processes} "
-                            f"processes; give every process as many devices")
-
+    devices, processes = _devices_and_processes(data_parallel)
     build = _build_arguments(
-        spec, backbone=backbone, image_size=[height, width], as_released=as_released,
-        bounded_pitch_head=bounded_pitch_head, positive_focal_head=positive_focal_head,
-        disentangle=disentangle, seed=seed, alpha_rate=alpha_rate,
+        spec, backbone=backbone, image_size=[dataset["height"], dataset["width"]],
+        as_released=as_released, bounded_pitch_head=bounded_pitch_head,
+        positive_focal_head=positive_focal_head, disentangle=disentangle, seed=seed,
+        alpha_rate=alpha_rate,
         disparity_ceiling=_disparity_ceiling(disparity_ceiling, spec, as_released,
                                              targets["disparity"][indices["train"]]))
     config = runs.RunConfig(
-        variant=variant, build=build, data=data, num_pairs=num_pairs, protocol=protocol,
-        training_rigs=dataset["rigs"], split=split, test_fraction=test_fraction,
+        variant=variant, build=build, data=dataset["data"], num_pairs=dataset["num_pairs"],
+        protocol=dataset["protocol"], training_rigs=dataset["rigs"], split=split,
+        test_fraction=test_fraction,
         val_fraction=val_fraction, num_train=len(indices["train"]),
         num_val=len(indices["val"]), num_test=len(indices["test"]), seed=int(seed),
         batch_size=int(batch_size),
@@ -299,10 +291,24 @@ def plan_run(data, *, variant, run_dir, epochs=200, batch_size=16, learning_rate
         monitor=monitor, weight_ema=float(weight_ema), target_scaling=target_scaling,
         time_budget_s=None if time_budget_s is None else float(time_budget_s),
         augment=augment, data_parallel=bool(data_parallel), num_devices=devices,
-        num_processes=processes, device_batch_size=run_batch, command=command,
+        num_processes=processes, device_batch_size=-(-batch_size // devices) * devices,
+        command=command,
         run_dir=os.path.abspath(os.fspath(run_dir)), keras_backend=keras_backend())
     config = _check_run_dir(config, keep_ceiling=disparity_ceiling == "auto", keep=defaulted)
     return RunPlan(config=config, targets=targets, split=indices, workers=int(workers))
+
+
+def _devices_and_processes(data_parallel):
+    """``(devices, processes)`` a run trains on: every device Keras sees with
+    ``data_parallel`` (else 1), over the processes of the group joined by
+    ``training.train`` (else 1); each process must hold as many devices."""
+    devices = _device_count() if data_parallel else 1
+    group = distributed.current()
+    processes = 1 if group is None else group.num_processes
+    if devices % processes:
+        raise TrainingError(f"{devices} devices do not split evenly over {processes} "
+                            f"processes; give every process as many devices")
+    return devices, processes
 
 
 def _build_arguments(spec, *, backbone, image_size, as_released, bounded_pitch_head,
