@@ -28,19 +28,17 @@ REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 
 
 def parse_args(argv=None):
+    from cpl_keras.cli import named_path
+
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--data", required=True, help="the runs' dataset file")
     parser.add_argument("--run", action="append", required=True, metavar="NAME=RUN_DIR",
+                        type=named_path,
                         help="a run and its name (repeatable; the first two are the references)")
     parser.add_argument("--out", required=True, help="the Markdown page to write (.md)")
     parser.add_argument("--resamples", type=int, default=2000)
     args = parser.parse_args(argv)
-    args.runs = []
-    for spec in args.run:
-        name, sep, path = spec.partition("=")
-        if not sep or not name or not path:
-            parser.error(f"--run takes NAME=RUN_DIR, got {spec!r}")
-        args.runs.append((name, path))
+    args.runs = args.run
     if len(args.runs) < 3:
         parser.error("give two references and at least one more run")
     if not args.out.endswith(".md"):

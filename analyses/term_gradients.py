@@ -32,17 +32,14 @@ TARGETS = ("fx", "fy", "u0", "v0", "baseline", "disparity", "tx", "ty", "tz", "p
 
 
 def parse_args(argv=None):
+    from cpl_keras.cli import named_path
+
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--run", action="append", required=True, metavar="NAME=RUN",
-                        help="a run and its name (repeatable)")
+                        type=named_path, help="a run and its name (repeatable)")
     parser.add_argument("--out", required=True, help="the Markdown page to write (.md)")
     args = parser.parse_args(argv)
-    args.runs = []
-    for spec in args.run:
-        name, sep, path = spec.partition("=")
-        if not sep or not name or not path:
-            parser.error(f"--run takes NAME=RUN, got {spec!r}")
-        args.runs.append((name, path))
+    args.runs = args.run
     if not args.out.endswith(".md"):
         parser.error(f"--out must end in .md, got {args.out}")
     return args

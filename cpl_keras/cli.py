@@ -87,6 +87,15 @@ def non_negative_int(text):
     return _integer(text, 0, "a non-negative integer")
 
 
+def named_path(text):
+    """``NAME=PATH`` as ``(name, path)``, both non-empty (the analyses'
+    ``--run NAME=RUN_DIR``)."""
+    name, sep, path = str(text).partition("=")
+    if not sep or not name or not path:
+        raise argparse.ArgumentTypeError(f"must be NAME=PATH, got {text!r}")
+    return name, path
+
+
 def positive_float(text):
     """argparse type: a finite number > 0."""
     try:
