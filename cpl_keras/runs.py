@@ -316,10 +316,10 @@ def publish_run_dir(run_dir, target):
 def is_published(folder):
     """True when ``folder`` holds a published run (``publish_run_dir``)."""
     try:
-        config = read_config(folder) if os.path.isdir(folder) else None
+        config = read_run_config(folder) if os.path.isdir(folder) else None
     except RunError:
         return False
-    return bool(config) and config.get("status") == "finished" and bool(stored_predictions(folder))
+    return config is not None and config.status == "finished" and bool(stored_predictions(folder))
 
 
 def restore_run_dir(folder, run_dir, data_path):

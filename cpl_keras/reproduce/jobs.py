@@ -44,7 +44,7 @@ def train_all(config, paths, runs_dir, seed, jobs=1, out_dir=None, train=True):
         run_dir = os.path.join(runs_dir, key, name)
         plan = training_arguments(config, run_dir, job)
         record = published_record(out_dir, key, name) if out_dir else None
-        finished = (runs.read_config(run_dir) or {}).get("status") == "finished"
+        finished = getattr(runs.read_run_config(run_dir), "status", None) == "finished"
         if not finished and record and runs.is_published(record) and \
                 not (os.path.isdir(run_dir) and os.listdir(run_dir)):
             runs.restore_run_dir(record, run_dir, paths[protocol])

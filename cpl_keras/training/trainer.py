@@ -283,13 +283,13 @@ def _write_run_files(plan, config, run_dir):
         old = load_split(split_path)
         if any(not np.array_equal(old[k], plan.split[k]) for k in old):
             raise TrainingError(f"{split_path} differs from this run's split; use another --run-dir")
-    previous = runs.read_config(run_dir, {})
-    machines = list(previous.get("machines") or [])
+    previous = runs.read_run_config(run_dir)  # (a run to resume: checked by plan_run)
+    machines = list(getattr(previous, "machines", None) or [])
     if not machines or machines[-1] != backend.machine():
         machines.append(backend.machine())
     config = dataclasses.replace(config, status="running", machines=machines, **{
-        key: previous.get(key) for key in ("epochs_run", "best_epoch", "best_val_loss",
-                                           "wall_time_s", "stopped")})
+        key: getattr(previous, key, None) for key in ("epochs_run", "best_epoch",
+                                                      "best_val_loss", "wall_time_s", "stopped")})
     runs.write_config(run_dir, config)
     if not os.path.exists(split_path):
         with files.atomic_path(split_path) as tmp:
