@@ -45,6 +45,10 @@ from cpl_keras.stereo_camera import Point, StereoCamera
 
 #: A spread of fx or fy above this share of the value is warned about.
 SPREAD_WARNING = 0.2
+#: The widest baseline of a handheld or vehicle stereo rig taken as possible
+#: (m): the widest vehicle rigs of the public datasets are under 1 m (KITTI
+#: 0.54 m); a calibrated pair's baseline beyond this is named as impossible.
+MAX_RIG_BASELINE_M = 5.0
 #: How fy is reported: "square" pixels (fy = fx), or the "model"'s fy head.
 ASPECTS = ("square", "model")
 
@@ -136,18 +140,27 @@ def _check_ranges(raw, ranges, warn):
 
 
 def impossible_geometry(camera, disparity):
-    """What no pair of images can show, whatever a model was trained on: a
-    disparity at or beyond the image width (a point seen in both images
-    lies less than a width apart in them) and a focal length with no field
-    of view between 0 and 180 degrees. One line each (empty: none)."""
+    """What no pair of a handheld or vehicle rig can show, whatever a model
+    was trained on: a disparity at or beyond the image width (a point seen
+    in both images lies less than a width apart in them); a focal length
+    with no field of view between 0 and 180 degrees; the projection pixel's
+    depth fx b / d (Eq. 4a) nearer than the baseline (a disparity above
+    fx); a baseline over ``MAX_RIG_BASELINE_M``. One line each (empty: none)."""
     lines = []
-    d, fx, width = disparity, camera.fx, camera.width
+    d, fx, width, b = disparity, camera.fx, camera.width, camera.baseline
     if d >= width:
         lines.append(f"a disparity of {d:.4g} px is at or beyond the image width ({width} px): "
                      "no point seen in both images can have it")
     if not fx > 0:
         lines.append(f"a focal length of {fx:.4g} px gives no field of view between 0 and "
                      "180 degrees")
+    elif d > fx and b > 0:
+        lines.append(f"the projection pixel's depth fx b / d = {fx * b / d:.3g} m is nearer "
+                     f"than the baseline ({b:.4g} m): a disparity of {d:.4g} px is over fx "
+                     f"({fx:.4g} px)")
+    if b > MAX_RIG_BASELINE_M:
+        lines.append(f"a baseline of {b:.4g} m is wider than any handheld or vehicle stereo "
+                     f"rig (over {MAX_RIG_BASELINE_M:g} m)")
     return lines
 
 

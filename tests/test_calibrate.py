@@ -684,18 +684,28 @@ def test_a_truncated_image_is_refused_in_one_line(setup, tmp_path, capsys):
 
 def test_impossible_geometry_is_named_whatever_the_training():
     """A disparity at or beyond the image width (the demonstration model's
-    9,748 px on OpenCV's 640 px chessboard pair) and a focal length with no
-    field of view are impossible for any pair; a disparity inside the image
-    is not."""
+    9,748 px on OpenCV's 640 px chessboard pair), a focal length with no
+    field of view, a depth nearer than the baseline and a baseline wider
+    than any rig (its 117.5 m) are impossible for any pair; a disparity
+    inside the image and under fx is not."""
     from cpl_keras.calibration import impossible_geometry
     from cpl_keras.stereo_camera import StereoCamera
 
     board = StereoCamera(fx=530.0, fy=530.0, u0=319.5, v0=239.5, width=640, height=480,
                          baseline=0.08, pitch=0.0, tx=0.0, ty=-0.08, tz=0.0)
     assert impossible_geometry(board, 120.0) == []
-    [line] = impossible_geometry(board, 9748.0)
-    assert "9748 px is at or beyond the image width (640 px)" in line
+    wide, near = impossible_geometry(board, 9748.0)
+    assert "9748 px is at or beyond the image width (640 px)" in wide
+    assert "depth fx b / d = 0.00435 m is nearer than the baseline (0.08 m)" in near
+    assert impossible_geometry(board, 600.0) == [    # inside the image, but over fx
+        "the projection pixel's depth fx b / d = 0.0707 m is nearer than the baseline "
+        "(0.08 m): a disparity of 600 px is over fx (530 px)"]
     assert len(impossible_geometry(dataclasses.replace(board, fx=0.0), 640.0)) == 2
+    # the demonstration model's answer on that pair: 117.5 m of baseline as well
+    demo = dataclasses.replace(board, baseline=117.5)
+    lines = impossible_geometry(demo, 9748.0)
+    assert len(lines) == 3 and lines[-1] == ("a baseline of 117.5 m is wider than any "
+                                             "handheld or vehicle stereo rig (over 5 m)")
 
 
 def test_the_documented_python_snippet_runs_as_printed_and_catches_a_missing_run(tmp_path):
