@@ -68,6 +68,9 @@ CONNECT_S = 300
 #: Seconds a barrier or an agreement waits (a partner that died is caught
 #: sooner, by the heartbeats).
 WAIT_S = 3600
+#: Seconds process 0 waits, once its partners have said that they are
+#: leaving, before it ends (``_leave``).
+LEAVE_MARGIN_S = 0.5
 #: Exit status of a process whose partner failed (not interrupted).
 PARTNER_FAILED = 1
 
@@ -133,7 +136,7 @@ def set_environment(coordinator, num_processes, process_id, environ=None):
 # ---------------------------------------------------------------------------
 # Joining a group
 # ---------------------------------------------------------------------------
-_state = {"group": None, "client": None, "calls": 0}
+_state = {"group": None, "client": None, "calls": 0, "stopping": False}
 #: Set at exit: the heartbeat thread ends (``_stop_watching``).
 _stopping = threading.Event()
 
@@ -191,6 +194,7 @@ def join(group, prog="train.py"):
     if threading.current_thread() is threading.main_thread():
         signal.signal(signal.SIGTERM, cli.terminate)
         cli.on_interrupt(_announce_stop)
+    cli.before_exit(_leave)
     watcher = threading.Thread(target=_watch, args=(group, prog), daemon=True,
                                name="cpl_keras-partners")
     watcher.start()
@@ -217,15 +221,44 @@ def peer_timeout_s():
 
 
 def _announce_stop(reason="interrupted"):
-    """Tell the partners that this process is stopping (they stop too)."""
+    """Tell the partners that this process is stopping (they stop too),
+    unless one has already said so (its message stays)."""
     client, group = _state["client"], current()
+    _state["stopping"] = True
     if client is None or group is None:
         return
     try:
         client.key_value_set("cpl_keras/stop", f"process {group.process_id} {reason}",
-                             allow_overwrite=True)
-    except Exception:  # (the coordinator may be gone already)
+                             allow_overwrite=False)
+    except Exception:  # (a partner's message is there, or the coordinator is gone)
         pass
+
+
+def _leave():
+    """Just before this process ends at once (``cli.exit_now``): a partner
+    says that it is leaving; process 0, once the group is stopping, waits
+    until every partner has said so (or, one killed without a word, for
+    ``peer_timeout_s()``). Process 0 hosts the coordination service, and a
+    partner whose service vanishes while it still runs is aborted by JAX (a
+    stack trace, exit -6) before it can print its line: so process 0 leaves
+    last."""
+    client, group = _state["client"], current()
+    if client is None or group is None:
+        return
+    if not group.chief:
+        with contextlib.suppress(Exception):  # (process 0 may be gone already)
+            client.key_value_set(f"cpl_keras/left/{group.process_id}", "1",
+                                 allow_overwrite=True)
+        return
+    if not _state["stopping"]:
+        return
+    _stopping.set()  # (the heartbeat thread no longer takes a partner's end for a failure)
+    waiting = set(range(1, group.num_processes))
+    deadline = time.monotonic() + peer_timeout_s()
+    while waiting and time.monotonic() < deadline:
+        waiting = {p for p in waiting if _try_get(client, f"cpl_keras/left/{p}") is None}
+        time.sleep(BEAT_S / 20)
+    time.sleep(LEAVE_MARGIN_S)  # (from a partner's word to its end: microseconds)
 
 
 def _watch(group, prog):
@@ -245,6 +278,7 @@ def _watch(group, prog):
                                  allow_overwrite=True)
             stop = _try_get(client, "cpl_keras/stop")
             if stop and not stop.startswith(f"process {group.process_id} "):
+                _state["stopping"] = True
                 _end(prog, f"interrupted: {stop}; to resume, run the same command on every "
                            f"process", 130)
             now = time.monotonic()
@@ -252,7 +286,7 @@ def _watch(group, prog):
                 value = _try_get(client, f"cpl_keras/alive/{peer}")
                 if value != last:
                     seen[peer] = (value, now)
-                elif now - since > timeout:
+                elif now - since > timeout and not _state["stopping"]:
                     _end(prog, f"error: process {peer} of {group.num_processes} gave no sign of "
                                f"life for {timeout:g} s; ending this one too (run the same "
                                f"command on every process to resume)", PARTNER_FAILED)
@@ -284,8 +318,7 @@ def _end(prog, message, status):
         cli.interrupted(prog, note=message.removeprefix("interrupted: "))
     else:
         print(f"{prog}: {message}", file=sys.stderr, flush=True)
-    sys.stdout.flush()
-    os._exit(status)
+    cli.exit_now(status)
 
 
 def group_failure(error):

@@ -193,16 +193,35 @@ def guard_module_start():
 
 def _exit_interrupted():
     """End the process now with status 130, stdout and stderr flushed."""
-    _exit_now(INTERRUPTED)
+    exit_now(INTERRUPTED)
 
 
-def _exit_now(status):
-    """End the process now with ``status``, stdout and stderr flushed, and
-    without the interpreter's teardown."""
+#: Called (with no argument) just before this process ends at once
+#: (``exit_now``): ``before_exit``.
+_exit_hooks = []
+
+
+def before_exit(callback):
+    """Call ``callback()`` just before this process ends at once
+    (``exit_now``), after its output is flushed: a process of a group tells
+    its partners that it is leaving, and process 0 waits for them there
+    (``cpl_keras.distributed``)."""
+    _exit_hooks.append(callback)
+
+
+def exit_now(status):
+    """End the process now with ``status``, stdout and stderr flushed, the
+    ``before_exit`` callbacks called, and without the interpreter's
+    teardown: every way a command of the package ends at once goes here."""
     for stream in (sys.stdout, sys.stderr):
         try:
             stream.flush()
         except (OSError, ValueError):
+            pass
+    for callback in _exit_hooks:
+        try:
+            callback()
+        except Exception:  # (the process ends all the same)
             pass
     os._exit(status)
 
@@ -247,7 +266,7 @@ def run(main, prog, note=None):
         _exit_interrupted()
     if files.teardown_unsafe():  # (a file library left in a failed state)
         gc.collect()  # (what else the command let go of is released first)
-        _exit_now(status)
+        exit_now(status)
     sys.exit(status)
 
 

@@ -1,7 +1,7 @@
 """Training over several processes (``cpl_keras.distributed``): the slices
 each process reads, the group's checks, and two local processes of
 ``train.py --data-parallel`` against one process on one and on two devices,
-a partner killed with -9, the group resumed, then a partner stopped by SIGTERM."""
+a partner killed with -9, the group resumed, then each process stopped by SIGTERM."""
 
 import csv
 import json
@@ -349,20 +349,26 @@ def test_a_killed_or_stopped_partner_ends_the_group_and_the_same_command_resumes
     killed_at = len(_log(run_dir))
 
     # the same command resumes the group after the last epoch; SIGTERM to
-    # process 1 then ends both within seconds, each with one line
-    group = _start_group(str(tmp_path), cache, [fixture52] * 2, run_dir, epochs, slow)
-    _when_logged(run_dir, killed_at + 1, group)
-    group[1].send_signal(signal.SIGTERM)
-    start = time.monotonic()
-    (status0, text0), (status1, text1) = _wait(group[0], 60), _wait(group[1], 60)
-    assert time.monotonic() - start < 30  # (seconds, not the heartbeats' timeout)
-    assert (status0, status1) == (130, 130), (text0, text1)
-    assert "interrupted" in _lines(text1)[-1]
-    assert "process 1 interrupted" in _lines(text0)[-1], text0
-    assert f"Resuming {run_dir} after epoch {killed_at}" in text0
-    rows = _log(run_dir)
-    assert len(rows) > killed_at
-    assert [int(r["epoch"]) for r in rows] == list(range(1, len(rows) + 1))
+    # process 1, then (resumed again) to process 0, ends both within seconds,
+    # each with one line and 130 (process 0, whose coordination service the
+    # other needs, leaves last: a partner left without it was aborted, -6)
+    for stopped in (1, 0):
+        group = _start_group(str(tmp_path), cache, [fixture52] * 2, run_dir, epochs, slow)
+        _when_logged(run_dir, killed_at + 1, group)
+        group[stopped].send_signal(signal.SIGTERM)
+        start = time.monotonic()
+        (status0, text0), (status1, text1) = _wait(group[0], 60), _wait(group[1], 60)
+        assert time.monotonic() - start < 30  # (seconds, not the heartbeats' timeout)
+        assert (status0, status1) == (130, 130), (text0, text1)
+        texts = {0: text0, 1: text1}
+        assert "interrupted; to resume, run the same command again" in \
+            _lines(texts[stopped])[-1], texts[stopped]
+        assert f"process {stopped} interrupted" in _lines(texts[1 - stopped])[-1], texts
+        assert f"Resuming {run_dir} after epoch {killed_at}" in text0
+        rows = _log(run_dir)
+        assert len(rows) > killed_at
+        assert [int(r["epoch"]) for r in rows] == list(range(1, len(rows) + 1))
+        killed_at = len(rows)
 
 
 def test_prediction_refuses_to_run_inside_a_group_of_several_processes(monkeypatch):
