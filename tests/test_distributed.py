@@ -16,7 +16,7 @@ import h5py
 import numpy as np
 import pytest
 
-from cpl_keras import distributed
+from cpl_keras import distributed, heartbeats
 from cpl_keras.training.sequence import StereoSequence
 from helpers import REPO, train_py
 
@@ -190,7 +190,7 @@ def test_a_group_writes_on_process_0_and_every_process_waits(monkeypatch):
 
     # a collective that fails becomes one line; the package's errors pass as they are
     monkeypatch.setenv("CPL_KERAS_PEER_TIMEOUT_S", "0")
-    monkeypatch.setattr(distributed, "BEAT_S", 0.01)
+    monkeypatch.setattr(heartbeats, "BEAT_S", 0.01)
     with pytest.raises(distributed.DistributedError, match="^the process group failed: reset$"):
         with other.failures():
             raise RuntimeError("reset\nstack")
@@ -214,14 +214,14 @@ GROUP_OF_ONE = """
 import json, sys
 import keras
 from keras.src.utils import rng_utils
-from cpl_keras import distributed
+from cpl_keras import distributed, heartbeats
 from cpl_keras.training.processes import join_processes
 processes = join_processes(data_parallel=True)
 out = dict(writes=processes.writes, part=processes.part,
            written=processes.write("w", lambda a: a + 1, 1),
            decided=processes.decide("stop", "early stopping"),
            gathered=distributed.gather("g", {"a": 1}),
-           missing=distributed._try_get(distributed._state["client"], "cpl_keras/none"),
+           missing=heartbeats._try_get(distributed._state["client"], "cpl_keras/none"),
            seed=rng_utils.get_random_seed() is not None)
 processes.agree("the run", dict, {"a": 1})
 keras.distribution.set_distribution(keras.distribution.DataParallel())
@@ -344,7 +344,7 @@ def test_a_killed_or_stopped_partner_ends_the_group_and_the_same_command_resumes
     _when_logged(run_dir, 1, group)
     group[1].kill()
     status0, text0 = _wait(group[0], 120)
-    assert status0 == distributed.PARTNER_FAILED, text0
+    assert status0 == heartbeats.PARTNER_FAILED, text0
     assert "process 1 of 2 gave no sign of life" in _lines(text0)[-1]
     killed_at = len(_log(run_dir))
 
