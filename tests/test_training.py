@@ -688,6 +688,7 @@ def test_truncated_files_are_called_truncated(dataset, tmp_path, tiny_run):
 def test_epoch_lines_are_short_and_log_csv_keeps_every_metric(dataset, tmp_path, capsys):
     from cpl_keras import runs
     from cpl_keras.training import checkpointing, progress
+    from cpl_keras.training.state import read_state
     from cpl_keras.camera import PARAMETERS, TARGETS
 
     run_dir = str(tmp_path / "run")
@@ -716,13 +717,13 @@ def test_epoch_lines_are_short_and_log_csv_keeps_every_metric(dataset, tmp_path,
         float(lines[1].split("val_nmae ")[1].split()[0]), rel=1e-3)
     # curves.png names the run and how far it got
     config = runs.read_config(run_dir)
-    with open(os.path.join(run_dir, runs.STATE)) as f:
-        state = json.load(f)
+    state = read_state(run_dir)
     title = checkpointing.curves_title(config, state)
     assert title == "cpl-a, small, tiny.h5, split paper\n2 of 2 epochs, finished"
-    assert checkpointing.curves_title(config, dict(state, rows=state["rows"][:1])).endswith(
-        "\n1 of at most 2 epochs so far")
-    stopped = dict(state, stopped="early stopping: no improvement of val_loss for 5 epochs")
+    first = dataclasses.replace(state, rows=state.rows[:1])
+    assert checkpointing.curves_title(config, first).endswith("\n1 of at most 2 epochs so far")
+    stopped = dataclasses.replace(
+        state, stopped="early stopping: no improvement of val_loss for 5 epochs")
     assert checkpointing.curves_title(config, stopped).endswith(
         "\n2 epochs, finished: early stopping: no improvement of val_loss for 5 epochs")
     assert PARAMETERS[0] == "fx"

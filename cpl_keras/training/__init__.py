@@ -4,8 +4,9 @@ prints, the batches and their augmentation, several runs at once.
 ``planning`` checks every argument before anything is written
 (``plan_run``); ``trainer`` runs a plan (``train``: the run directory's
 lifecycle, resume, the lock, data parallel); ``checkpointing`` is its
-callback (checkpoints, early stopping, the NaN guard); ``progress`` what it
-prints; ``sequence`` the batches (``StereoSequence``, Keras); ``augment``
+callback (checkpoints, early stopping, the NaN guard); ``state`` the
+run's resume state (``backup/state.json``, ``TrainingState``); ``progress``
+what it prints; ``sequence`` the batches (``StereoSequence``, Keras); ``augment``
 the photometric augmentation; ``parallel`` several runs at once, each in a
 process of its own.
 

@@ -23,19 +23,20 @@ from cpl_keras.models.batchnorm import recompute_batchnorm_statistics
 from cpl_keras.report.curves import plot_curves
 from cpl_keras.training.planning import TrainingError
 from cpl_keras.training.processes import SingleProcess
+from cpl_keras.training.state import read_state, write_state
 
 
 class RunState(keras.callbacks.Callback):
     """Checkpoints every epoch and does early stopping, crash-safely.
 
-    State (``backup/state.json``): completed epochs, the early-stopping
-    counters, the per-epoch logs and the names of the checkpoint files.
-    Checkpoint files are written under fresh names and only then named
-    by a new ``state.json`` (``os.replace``), so a kill at any moment
-    leaves the previous epoch's state intact. Inside the state, epochs are
-    Keras's indices (0 = the first; ``best_epoch`` and each row's
-    ``epoch`` too); log.csv, curves.png, config.json and the console
-    number them from 1.
+    State (``backup/state.json``, ``self.state``: a ``TrainingState``,
+    ``training.state``): completed epochs, the early-stopping counters, the
+    per-epoch logs and the names of the checkpoint files. Checkpoint files
+    are written under fresh names and only then named by a new
+    ``state.json`` (``os.replace``), so a kill at any moment leaves the
+    previous epoch's state intact. Inside the state, epochs are Keras's
+    indices (0 = the first); log.csv, curves.png, config.json and the
+    console number them from 1.
     """
 
     def __init__(self, run_dir, patience, sequence, bn_recompute_batches=0,
@@ -72,20 +73,16 @@ class RunState(keras.callbacks.Callback):
         self.weight_ema = weight_ema
         self._averaged_in = False
         self.backup = os.path.join(run_dir, runs.BACKUP)
-        self.state_path = os.path.join(run_dir, runs.STATE)
         self.patience = patience
         self.sequence = sequence
-        self.state = files.read_json(self.state_path) or {
-            "epoch": 0, "best": None, "best_epoch": None, "wait": 0, "stopped": None,
-            "rows": [], "checkpoint": None, "best_weights": None, "wall_time_s": 0.0,
-        }
+        self.state = read_state(run_dir)
         self.nan = None
         self._epoch_start = None
 
     # -- resume -------------------------------------------------------
     def restore(self, model):
         """Load the last checkpoint into ``model`` (weights + optimizer)."""
-        ckpt = self.state.get("checkpoint")
+        ckpt = self.state.checkpoint
         if ckpt is None:
             return 0
         # The weights file holds the optimizer's variables too; build the
@@ -96,12 +93,12 @@ class RunState(keras.callbacks.Callback):
         # log.csv again from the state (atomically): a run begun by older code
         # has a 0-based log, renumbered from 1 here, before training goes on
         if self.processes.writes:
-            write_log(os.path.join(self.run_dir, runs.LOG), self.state.get("rows", []))
-        return int(self.state["epoch"])
+            write_log(os.path.join(self.run_dir, runs.LOG), self.state.rows)
+        return int(self.state.epoch)
 
     # -- keras hooks ---------------------------------------------------
     def on_train_begin(self, logs=None):
-        if self.state["epoch"] == 0 and self.state["checkpoint"] is None:
+        if self.state.epoch == 0 and self.state.checkpoint is None:
             # Eq. 9's weights start balanced on the first training batch
             # (a resumed run has them in its checkpoint).
             # (the whole first batch: in a process group each process holds a part)
@@ -140,7 +137,7 @@ class RunState(keras.callbacks.Callback):
         cli.check_interrupt()  # Ctrl-C: stop now, with the last epoch's checkpoint
         loss = (logs or {}).get("loss")
         if loss is not None and not math.isfinite(float(np.asarray(loss))):
-            self.nan = {"epoch": self.state["epoch"], "batch": int(batch)}
+            self.nan = {"epoch": self.state.epoch, "batch": int(batch)}
             self.model.stop_training = True
 
     def _swap_averaged_weights(self):
@@ -164,7 +161,7 @@ class RunState(keras.callbacks.Callback):
         keras_logs = logs
         if self.nan is not None:
             self._weights_as_trained()
-            self.state["stopped"] = (
+            self.state.stopped = (
                 f"non-finite training loss at epoch {self.nan['epoch'] + 1}, "
                 f"batch {self.nan['batch'] + 1}"
             )
@@ -175,11 +172,11 @@ class RunState(keras.callbacks.Callback):
         state = self.state
         val = self._monitored(logs, keras_logs)
         improved = val is not None and math.isfinite(val) and (
-            state["best"] is None or val < state["best"]
+            state.best is None or val < state.best
         )
         best_name = None
         if improved:
-            state["best"], state["best_epoch"], state["wait"] = val, epoch, 0
+            state.best, state.best_epoch, state.wait = val, epoch, 0
             best_name = f"best-{epoch:04d}"
             if self.processes.writes:
                 with self.processes.alone():
@@ -188,34 +185,34 @@ class RunState(keras.callbacks.Callback):
         if self.probe is not None:
             logs.update(self.probe())
         if not improved:
-            state["wait"] += 1
-            if state["wait"] >= self.patience and epoch > 0:
+            state.wait += 1
+            if state.wait >= self.patience and epoch > 0:
                 monitored = "val_nmae" if self.nmae_scale is not None else "val_loss"
-                state["stopped"] = (
+                state.stopped = (
                     f"early stopping: no improvement of {monitored} for {self.patience} epochs"
                 )
         alphas = self.model.adaptive_weights() or {}
         logs.update({f"alpha_{name}": value for name, value in alphas.items()})
         took = time.perf_counter() - (self._epoch_start or time.perf_counter())
-        state["wall_time_s"] += took
-        if (state["stopped"] is None and self.time_budget_s is not None
-                and state["wall_time_s"] + took > self.time_budget_s):
+        state.wall_time_s += took
+        if (state.stopped is None and self.time_budget_s is not None
+                and state.wall_time_s + took > self.time_budget_s):
             # another epoch as long as this one would overrun the budget
-            state["stopped"] = (f"time budget: another epoch would end after "
-                                f"{self.time_budget_s:g} s of training")
+            state.stopped = (f"time budget: another epoch would end after "
+                             f"{self.time_budget_s:g} s of training")
         # (in a group, process 0's clock decides the time budget for all)
-        state["stopped"] = self.processes.decide("stop", state["stopped"])
-        self.model.stop_training = state["stopped"] is not None
+        state.stopped = self.processes.decide("stop", state.stopped)
+        self.model.stop_training = state.stopped is not None
         # the run's training time so far and the machine's load, per epoch
-        logs.update(wall_time_s=round(state["wall_time_s"], 3),
+        logs.update(wall_time_s=round(state.wall_time_s, 3),
                     load_average=round(os.getloadavg()[0], 2))
-        state["rows"].append({"epoch": epoch, **logs})
-        state["epoch"] = epoch + 1
+        state.rows.append({"epoch": epoch, **logs})
+        state.epoch = epoch + 1
         if self.processes.writes:
             self._commit(checkpoint=True, best_name=best_name)
         else:
-            self.state["checkpoint"] = f"epoch-{self.state['epoch']:04d}"
-            self.state["best_weights"] = best_name or self.state["best_weights"]
+            state.checkpoint = f"epoch-{state.epoch:04d}"
+            state.best_weights = best_name or state.best_weights
 
     # -- helpers -------------------------------------------------------
     def _monitored(self, logs, keras_logs):
@@ -232,23 +229,23 @@ class RunState(keras.callbacks.Callback):
 
     def _commit(self, checkpoint, best_name=None):
         os.makedirs(self.backup, exist_ok=True)
-        old = (self.state.get("checkpoint"), self.state.get("best_weights"))
+        state = self.state
+        old = (state.checkpoint, state.best_weights)
         if checkpoint:
-            name = f"epoch-{self.state['epoch']:04d}"
+            name = f"epoch-{state.epoch:04d}"
             # Model and optimizer variables (Keras saves both).
             with self.processes.alone():
                 save_weights(self.model, os.path.join(self.backup, name + ".weights.h5"))
-            self.state["checkpoint"] = name
+            state.checkpoint = name
         if best_name is not None:
-            self.state["best_weights"] = best_name
-        files.write_json(self.state_path, self.state)
+            state.best_weights = best_name
+        write_state(self.run_dir, state)
         for stale in old:
-            if stale is not None and stale not in (self.state["checkpoint"],
-                                                   self.state["best_weights"]):
+            if stale is not None and stale not in (state.checkpoint, state.best_weights):
                 path = os.path.join(self.backup, stale + ".weights.h5")
                 if os.path.exists(path):
                     os.remove(path)
-        publish_run_files(self.run_dir, self.state)
+        publish_run_files(self.run_dir, state)
 
 
 def save_weights(model, path):
@@ -282,16 +279,17 @@ def nmae_scores(logs, scale):
 
 
 def publish_run_files(run_dir, state):
-    """Bring best.weights.h5, log.csv and curves.png in line with ``state``."""
-    source = os.path.join(run_dir, runs.BACKUP, f"{state.get('best_weights')}.weights.h5")
-    if state.get("best_weights") and os.path.exists(source):
+    """Bring best.weights.h5, log.csv and curves.png in line with ``state``
+    (a ``TrainingState``)."""
+    source = os.path.join(run_dir, runs.BACKUP, f"{state.best_weights}.weights.h5")
+    if state.best_weights and os.path.exists(source):
         # (After a finished run the backup copy is gone; best.weights.h5 stays.)
         with files.atomic_path(os.path.join(run_dir, runs.BEST_WEIGHTS)) as tmp:
             shutil.copyfile(source, tmp)
-    write_log(os.path.join(run_dir, runs.LOG), state.get("rows", []))
-    if state.get("rows"):
+    write_log(os.path.join(run_dir, runs.LOG), state.rows)
+    if state.rows:
         config = runs.read_config(run_dir, {})
-        plot_curves(os.path.join(run_dir, runs.CURVES), state["rows"], state.get("best_epoch"),
+        plot_curves(os.path.join(run_dir, runs.CURVES), state.rows, state.best_epoch,
                     title=curves_title(config, state) if config else None)
 
 
@@ -309,9 +307,9 @@ def write_log(path, rows):
 
 def curves_title(config, state):
     """curves.png's title: the run (variant, backbone, dataset file, split),
-    then its epochs so far, or how it ended."""
-    done = len(state.get("rows", []))
-    stopped, cap = state.get("stopped"), config.get("epochs")
+    then its epochs so far, or how it ended (``state``: a ``TrainingState``)."""
+    done = len(state.rows)
+    stopped, cap = state.stopped, config.get("epochs")
     if stopped:
         how = f"{'failed' if stopped.startswith('non-finite') else 'finished'}: {stopped}"
         status = f"{done} epoch{'s' * (done != 1)}, {how}"

@@ -128,8 +128,8 @@ class EpochLines(keras.callbacks.Callback):
             self._write(f"epoch {self._epoch + 1}/{self.epochs} validating")
 
     def on_epoch_end(self, epoch, logs=None):
-        state = getattr(self.run_state, "state", None) or {}
-        best = state.get("best_epoch") == epoch
+        state = getattr(self.run_state, "state", None)
+        best = state is not None and state.best_epoch == epoch
         logs = {k: float(np.asarray(v)) for k, v in (logs or {}).items()}
         self._write(epoch_line(epoch + 1, self.epochs, logs,
                                time.perf_counter() - self._start, best=best), end="\n")

@@ -42,6 +42,7 @@ from cpl_keras.datasets import load_split, save_split, targets_from_labels
 from cpl_keras.training.gradients import TermGradients
 from cpl_keras.training.planning import RESUME_KEYS, TrainingError, plan_run
 from cpl_keras.training.processes import join_processes
+from cpl_keras.training.state import read_state
 
 # ---------------------------------------------------------------------------
 # Training
@@ -112,7 +113,7 @@ def group_fingerprint(plan, finished):
         digest.update(np.asarray(plan.targets[name], np.float32).tobytes())
     for part in ("train", "val", "test"):
         digest.update(np.asarray(plan.split[part], np.int64).tobytes())
-    state = files.read_json(os.path.join(config.run_dir, runs.STATE)) or {}
+    state = read_state(config.run_dir)
     return {
         "training steps per epoch": -(-config.num_train // batch),
         "validation steps": -(-config.num_val // batch),
@@ -122,7 +123,7 @@ def group_fingerprint(plan, finished):
         "labels and split (sha256)": digest.hexdigest()[:16],
         "run status": "finished" if finished is not None else getattr(
             runs.read_run_config(config.run_dir), "status", None) or "new",
-        "epochs completed": int(state.get("epoch", 0)),
+        "epochs completed": int(state.epoch),
     }
 
 
@@ -225,7 +226,7 @@ def _run_locked(plan, model, config, processes, verbose, term_gradients=False):
                              **dict(common, workers=1, multiple_of=1)))
                          if term_gradients and not config.data_parallel else None)
     state = run_state.state
-    done = state.get("stopped") is not None or state["epoch"] >= config.epochs
+    done = state.stopped is not None or state.epoch >= config.epochs
     try:
         if not done:
             initial_epoch = run_state.restore(model)
@@ -372,7 +373,7 @@ def _finish(model, config, state, processes):
 
     run_dir = config.run_dir
     processes.write("best weights written", publish_run_files, run_dir, state)
-    best = state.get("best_weights")
+    best = state.best_weights
     if best:
         # The file holds the optimizer's variables too: a run resumed after a
         # kill during this save has a fresh model whose optimizer must be
@@ -381,15 +382,14 @@ def _finish(model, config, state, processes):
         if not model.optimizer.built:
             model.optimizer.build(model.trainable_variables)
         model.load_weights(os.path.join(run_dir, runs.BEST_WEIGHTS))
-    nan = state.get("stopped") or ""
-    failed = nan.startswith("non-finite")
+    failed = (state.stopped or "").startswith("non-finite")
     config = dataclasses.replace(
-        config, epochs_run=int(state["epoch"]),
-        best_epoch=None if state.get("best_epoch") is None else int(state["best_epoch"]) + 1,
-        best_val_loss=_best_row(state).get("val_loss", state.get("best")),
-        best_score=state.get("best"),
-        wall_time_s=round(float(state.get("wall_time_s", 0.0)), 3),
-        stopped=state.get("stopped"),
+        config, epochs_run=int(state.epoch),
+        best_epoch=None if state.best_epoch is None else int(state.best_epoch) + 1,
+        best_val_loss=_best_row(state).get("val_loss", state.best),
+        best_score=state.best,
+        wall_time_s=round(float(state.wall_time_s), 3),
+        stopped=state.stopped,
         status="failed" if failed else "finished",
         adaptive_weights=model.adaptive_weights(),
     )
@@ -414,8 +414,7 @@ def _write_final_files(model, config, processes):
 
 def _best_row(state):
     """The log row of the kept epoch (empty when none)."""
-    best = state.get("best_epoch")
-    return next((row for row in state.get("rows", []) if row["epoch"] == best), {})
+    return next((row for row in state.rows if row["epoch"] == state.best_epoch), {})
 
 
 def summary_line(result):
