@@ -31,6 +31,7 @@ judged on the latter, what calibrate prints.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import glob
 import os
 import sys
@@ -85,9 +86,9 @@ def publish(run_dir, target, name):
     from cpl_keras.files import write_json
 
     runs.publish_files(run_dir, target, name)
-    config = runs.read_config(run_dir)
-    write_json(os.path.join(target, f"{name}_config.json"),
-               dict(config, data=os.path.basename(config["data"]), run_dir=name))
+    config = runs.read_run_config(run_dir)
+    portable = dataclasses.replace(config, data=os.path.basename(config.data), run_dir=name)
+    write_json(os.path.join(target, f"{name}_config.json"), portable.to_dict())
 
 
 def square_pixel_fy_error(run_dir, path):

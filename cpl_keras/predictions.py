@@ -63,7 +63,7 @@ def _arrays(row, raw, *, name, out_dir, run_configs, reference, data_path, subse
     n = len(raw["indices"])
     defined = raw.get("defined") or {k: np.ones(n, bool) for k in TARGETS}
     config = run_configs.get(os.path.abspath(raw["source"])) if row not in BASELINES else None
-    identity = config or run_configs[os.path.abspath(reference)]
+    identity = config or run_configs[os.path.abspath(reference)]  # (split and seed)
     dataset, version = _dataset_facts(data_path)
     arrays = {
         "format": np.array(FORMAT), "format_version": np.array(FORMAT_VERSION, np.int64),
@@ -76,13 +76,13 @@ def _arrays(row, raw, *, name, out_dir, run_configs, reference, data_path, subse
         .reshape(n, len(TARGETS)),
         "indices": np.asarray(raw["indices"], np.int64),
         "name": np.array(name), "row": np.array(row),
-        "variant": np.array(BASELINES.get(row) or config["variant"]),
+        "variant": np.array(BASELINES.get(row) or config.variant),
         "source": np.array(report.portable_paths({"source": raw["source"]}, out_dir)["source"]),
         "as_released": np.array(bool(raw["as_released"])),
         "dataset": np.array(dataset), "generator_version": np.array(version),
         "dataset_path": np.array(runs.relative(data_path, out_dir)),
-        "split": np.array(str(identity.get("split", ""))), "subset": np.array(subset),
-        "seed": np.array(int(identity.get("seed", 0)), np.int64),
+        "split": np.array("" if identity.split is None else str(identity.split)),
+        "subset": np.array(subset), "seed": np.array(int(identity.seed or 0), np.int64),
         "table": np.array(table), "table_number": np.array(int(table_number), np.int64),
         "rig": np.array(rig), "rig_index": np.array(int(rig_index), np.int64),
         "context": np.array(json.dumps(report.portable_paths(context, out_dir), sort_keys=True)),
@@ -99,7 +99,8 @@ def _arrays(row, raw, *, name, out_dir, run_configs, reference, data_path, subse
 
 
 def _run_configs(run_dirs):
-    return {os.path.abspath(r): runs.read_config(r, {}) for r in run_dirs}
+    """``{run directory: its RunConfig}`` (the evaluated runs: each has one)."""
+    return {os.path.abspath(r): runs.read_run_config(r) for r in run_dirs}
 
 
 def table1_files(context, rows, *, out_dir, prefix, stem, key, suffix=""):

@@ -18,10 +18,12 @@ A *published* run directory is the same less the weights (model.keras,
 best.weights.h5, backup/): what the reproduction commits and restores on
 another machine. It evaluates from ``predictions/`` alone.
 
-Training writes it through this module; evaluation, calibration, the
-reproduction and the learning curves read it only through ``load_run`` (a
-typed ``Run`` whose ``config`` is a typed ``RunConfig``), ``read_run_config``
-and ``load_model``; every problem is a one-line ``RunError``. Its files are written atomically
+Training writes it through this module; every reader of config.json
+(training's resume and curves, evaluation, calibration, the predictions
+files, the reproduction, the learning curves) takes it through ``load_run``
+(a typed ``Run`` whose ``config`` is a typed ``RunConfig``) or
+``read_run_config``, the model through ``load_model``; every problem is a
+one-line ``RunError``. Its files are written atomically
 (``cpl_keras.files``).
 
 config.json holds each fact once: ``as_released`` lives in ``build`` (the
@@ -101,17 +103,6 @@ def normalise_config(config):
     # (runs from before the weights' moving average: the weights as trained)
     config.setdefault("weight_ema", 0.0)
     return config
-
-
-def read_config(run_dir, default=None):
-    """The run's config.json (normalised), or ``default`` when it has none.
-    RunError when it is unreadable."""
-    path = os.path.join(run_dir, CONFIG)
-    try:
-        config = files.read_json(path)
-    except (OSError, ValueError) as error:  # JSONDecodeError is a ValueError
-        raise RunError(f"cannot read {path}: {error}") from None
-    return default if config is None else normalise_config(config)
 
 
 def write_config(run_dir, config):
@@ -241,10 +232,18 @@ class RunConfig:
 
 
 def read_run_config(run_dir):
-    """The run's config.json as a ``RunConfig``, or None when it has none."""
-    config = read_config(run_dir)
-    return None if config is None else RunConfig.from_dict(
-        config, os.path.join(run_dir, CONFIG))
+    """The run's config.json as a ``RunConfig``, or None when it has none.
+    RunError when it is unreadable or holds no run (``RunConfig.from_dict``)."""
+    path = os.path.join(run_dir, CONFIG)
+    try:
+        config = files.read_json(path)
+    except (OSError, ValueError) as error:  # JSONDecodeError is a ValueError
+        raise RunError(f"cannot read {path}: {error}") from None
+    if config is None:
+        return None
+    if not isinstance(config, dict):
+        raise RunError(f"{path} holds no run (not a JSON object)")
+    return RunConfig.from_dict(config, path)
 
 
 @dataclasses.dataclass(eq=False)
@@ -288,8 +287,8 @@ def publish_run_dir(run_dir, target):
     config.json names the dataset file and the run directory without a
     machine's paths. File times are kept (a table made from the stored
     predictions is newer than them). Returns ``target``."""
-    config = read_config(run_dir)
-    if config is None or config.get("status") != "finished":
+    config = read_run_config(run_dir)
+    if config is None or config.status != "finished":
         raise RunError(f"{run_dir} holds no finished run to publish")
     if not stored_predictions(run_dir):
         raise RunError(f"{run_dir} has no stored predictions to publish")
@@ -302,9 +301,9 @@ def publish_run_dir(run_dir, target):
             shutil.copytree(source, os.path.join(staging, name), copy_function=shutil.copy2)
         elif os.path.isfile(source) and name != CONFIG:
             shutil.copy2(source, os.path.join(staging, name))
-    portable = dict(config, data=os.path.basename(config["data"]),
-                    run_dir=os.path.basename(os.path.normpath(run_dir)))
-    write_config(staging, portable)
+    write_config(staging, dataclasses.replace(
+        config, data=os.path.basename(config.data),
+        run_dir=os.path.basename(os.path.normpath(run_dir))))
     shutil.copystat(os.path.join(run_dir, CONFIG), os.path.join(staging, CONFIG))
     if os.path.isdir(target):
         shutil.rmtree(target)
@@ -328,17 +327,20 @@ def restore_run_dir(folder, run_dir, data_path):
     ``data_path`` (the same dataset file name, RunError otherwise) and at
     ``run_dir``. It evaluates from its stored predictions; it cannot resume
     (no weights, and it is finished)."""
-    config = read_config(folder)
-    if os.path.basename(os.fspath(data_path)) != config.get("data"):
-        raise RunError(f"{folder} was trained on {config.get('data')}, not on "
+    config = read_run_config(folder)
+    if config is None:
+        raise RunError(f"{folder} holds no published run (no {CONFIG})")
+    if os.path.basename(os.fspath(data_path)) != config.data:
+        raise RunError(f"{folder} was trained on {config.data}, not on "
                        f"{os.path.basename(os.fspath(data_path))}")
     if os.path.exists(run_dir) and os.listdir(run_dir):
         raise RunError(f"cannot restore into {run_dir}: it is not empty")
     staging = run_dir.rstrip(os.sep) + ".partial"
     shutil.rmtree(staging, ignore_errors=True)
     shutil.copytree(folder, staging, copy_function=shutil.copy2)
-    write_config(staging, dict(config, data=os.path.abspath(os.fspath(data_path)),
-                               run_dir=os.path.abspath(run_dir), restored_from=folder))
+    write_config(staging, dataclasses.replace(
+        config, data=os.path.abspath(os.fspath(data_path)), run_dir=os.path.abspath(run_dir),
+        other=dict(config.other, restored_from=folder)))
     shutil.copystat(os.path.join(folder, CONFIG), os.path.join(staging, CONFIG))
     if os.path.isdir(run_dir):
         os.rmdir(run_dir)
@@ -349,11 +351,9 @@ def restore_run_dir(folder, run_dir, data_path):
 
 
 def run_label(config):
-    """The run in words (``config``: a ``RunConfig`` or config.json's dict):
-    variant, backbone, dataset file, split, and the training options that
-    differ from the defaults (learning rate, target scaling, alpha rate)."""
-    if not isinstance(config, RunConfig):
-        config = RunConfig.from_dict(config)
+    """The run in words (``config``: a ``RunConfig``): variant, backbone,
+    dataset file, split, and the training options that differ from the
+    defaults (learning rate, target scaling, alpha rate)."""
     released = RELEASED if config.as_released else ""
     options = ""
     if config.learning_rate is not None:

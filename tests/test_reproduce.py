@@ -572,7 +572,7 @@ def test_parallel_training_makes_the_same_runs(tiny_run, tmp_path):
     parallel.train_parallel(pending, 2, on_finished=lambda label, _: finished.append(label))
     assert sorted(finished) == ["cvgl/a", "cvgl/b"]
     for name in ("a", "b"):
-        assert runs.read_config(str(tmp_path / name))["status"] == "finished"
+        assert runs.read_run_config(str(tmp_path / name)).status == "finished"
 
     def val_loss(run_dir):
         return [row["val_loss"] for row in runs.read_log(str(run_dir))]

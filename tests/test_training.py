@@ -490,6 +490,14 @@ def test_bad_input_is_one_line_exit_2_and_writes_nothing(tmp_path, capsys):
                            "--run-dir", str(occupied)])
     assert code == 2 and "holds a different run" in capsys.readouterr().err
     assert os.listdir(occupied) == ["config.json"]
+    # and so is one whose config.json is damaged or no JSON object, naming why
+    for text, why in (('{"variant": "base', "cannot read"), ("[1, 2]", "not a JSON object")):
+        (occupied / "config.json").write_text(text)
+        code = train_cli.main(["--variant", "cpl-a", "--backbone", "small", "--data", good,
+                               "--run-dir", str(occupied)])
+        err = capsys.readouterr().err.strip()
+        assert code == 2 and "\n" not in err and "an unreadable one" in err and why in err, err
+        assert (occupied / "config.json").read_text() == text
 
 
 def test_bad_arguments_from_the_shell(tmp_path, xla_cache):
@@ -716,7 +724,7 @@ def test_epoch_lines_are_short_and_log_csv_keeps_every_metric(dataset, tmp_path,
     assert float(rows[1]["val_nmae"]) == pytest.approx(
         float(lines[1].split("val_nmae ")[1].split()[0]), rel=1e-3)
     # curves.png names the run and how far it got
-    config = runs.read_config(run_dir)
+    config = runs.read_run_config(run_dir)
     state = read_state(run_dir)
     title = checkpointing.curves_title(config, state)
     assert title == "cpl-a, small, tiny.h5, split paper\n2 of 2 epochs, finished"

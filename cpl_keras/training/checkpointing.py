@@ -288,7 +288,7 @@ def publish_run_files(run_dir, state):
             shutil.copyfile(source, tmp)
     write_log(os.path.join(run_dir, runs.LOG), state.rows)
     if state.rows:
-        config = runs.read_config(run_dir, {})
+        config = runs.read_run_config(run_dir)
         plot_curves(os.path.join(run_dir, runs.CURVES), state.rows, state.best_epoch,
                     title=curves_title(config, state) if config else None)
 
@@ -306,10 +306,11 @@ def write_log(path, rows):
 
 
 def curves_title(config, state):
-    """curves.png's title: the run (variant, backbone, dataset file, split),
-    then its epochs so far, or how it ended (``state``: a ``TrainingState``)."""
+    """curves.png's title: the run (``config``, a ``RunConfig``: variant,
+    backbone, dataset file, split), then its epochs so far, or how it ended
+    (``state``: a ``TrainingState``)."""
     done = len(state.rows)
-    stopped, cap = state.stopped, config.get("epochs")
+    stopped, cap = state.stopped, config.epochs
     if stopped:
         how = f"{'failed' if stopped.startswith('non-finite') else 'finished'}: {stopped}"
         status = f"{done} epoch{'s' * (done != 1)}, {how}"

@@ -361,11 +361,11 @@ def _check_run_dir(config, keep_ceiling=False, keep=()):
         return config
     if not os.path.isdir(run_dir):
         raise TrainingError(f"run directory is not a directory: {run_dir}")
-    path = os.path.join(run_dir, runs.CONFIG)
     try:
-        old = runs.read_config(run_dir)
-    except runs.RunError:
-        raise TrainingError(f"{path} is unreadable; use another --run-dir") from None
+        old = runs.read_run_config(run_dir)
+    except runs.RunError as error:  # (unreadable, or not a run of this package)
+        raise TrainingError(f"run directory {run_dir} holds a different run or an unreadable "
+                            f"one ({error}); use another --run-dir") from None
     if old is None:
         backup = os.path.join(run_dir, runs.BACKUP)
         # (a process killed between creating the directory and its config.json
@@ -374,11 +374,6 @@ def _check_run_dir(config, keep_ceiling=False, keep=()):
         if os.listdir(run_dir) and not started:
             raise TrainingError(f"run directory {run_dir} is not empty and holds no run")
         return config
-    try:
-        old = runs.RunConfig.from_dict(old, path)
-    except runs.RunError as error:  # (no variant, build or data: not a run of this package)
-        raise TrainingError(f"run directory {run_dir} holds a different run ({error}); use "
-                            f"another --run-dir") from None
     if old.status == "failed":
         return config  # (replaced by the next run: ``_replace_failed_run``)
     if keep_ceiling:
