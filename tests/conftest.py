@@ -206,7 +206,7 @@ def _data_parallel(root, data):
 
 
 def _quick(root, data):
-    return [sys.executable, "evaluate.py", *quick_reproduction_args(root)], \
+    return [sys.executable, "-m", "cpl_keras.reproduce", *quick_reproduction_args(root)], \
         dict(os.environ, KERAS_BACKEND="jax")
 
 

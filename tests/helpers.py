@@ -165,11 +165,11 @@ def kitti_stereo_root(root, calib="cam_to_cam", disparity=12.5):
 # Whole commands (conftest.py's EARLY commands and the tests that rerun them)
 # ---------------------------------------------------------------------------
 def quick_reproduction_args(root):
-    """``evaluate.py``'s arguments for the quick reproduction into ``root``:
+    """``python -m cpl_keras.reproduce``'s arguments for the quick reproduction into ``root``:
     one run at a time, its default (at this scale faster than two at a time,
     and with less work: paper_results/notes/pipeline-and-suite.md; ``--jobs``
     has tests of its own)."""
-    return ["--reproduce", "--quick", "--out", os.path.join(root, "out"),
+    return ["--quick", "--out", os.path.join(root, "out"),
             "--data-dir", os.path.join(root, "data"), "--runs-dir", os.path.join(root, "runs")]
 
 

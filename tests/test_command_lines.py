@@ -34,6 +34,7 @@ print("exit", code, "heavy", ",".join(heavy) or "none")
     ("evaluate.py", ["--bogus"]),
     ("evaluate.py", ["--reproduce", "--pairs", "0"]),
     ("cpl_keras.reproduce", ["--preset", "nope"]),
+    ("cpl_keras.reproduce", ["--pairs", "0"]),
     ("cpl_keras.calibrate", ["--bogus"]),
     ("cpl_keras.data.generate", ["--pairs", "0"]),
 ])

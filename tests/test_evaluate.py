@@ -168,6 +168,25 @@ def test_bad_inputs(tiny, tmp_path, capsys):
     assert os.listdir(out) == []                 # nothing partial was left behind
 
 
+def test_the_reproduction_is_its_own_command(tmp_path, capsys):
+    """--reproduce (and the reproduction's options) are not evaluate.py's: one
+    line naming ``cpl-reproduce`` with the same arguments (or the option),
+    exit 2, nothing made. evaluate.py's own --batch-size is checked when parsed."""
+    out = tmp_path / "out"
+    for argv, line in (
+            (["--reproduce", "--preset", "cpu", "--out", str(out)],
+             f"evaluate.py: error: --reproduce moved: run cpl-reproduce --preset cpu --out {out} "
+             f"(or python -m cpl_keras.reproduce --preset cpu --out {out})"),
+            (["--quick", "--out", str(out)], "evaluate.py: error: unrecognized arguments: --quick"),
+            (["--table", "1", "--runs", "x", "--batch-size", "0", "--out", str(out)],
+             "evaluate.py: error: argument --batch-size: must be a positive integer, got 0")):
+        with pytest.raises(SystemExit) as exit_info:
+            evaluate.main(argv)
+        assert exit_info.value.code == 2
+        assert capsys.readouterr().err == line + "\n"
+    assert os.listdir(tmp_path) == []
+
+
 def test_best_marks_smallest_magnitude_and_ties():
     def row(value):
         return {"targets": {p: {"nmae_signed": value} for p in PARAMETERS}}

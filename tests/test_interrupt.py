@@ -214,14 +214,14 @@ def test_a_ctrl_c_swallowed_during_generation_stops_it_before_the_file_is_writte
 
 def test_ctrl_c_stops_the_reproduction_resumably(tmp_path):
     data_dir, runs_dir = tmp_path / "data", tmp_path / "runs"
-    command = ["evaluate.py", "--reproduce", "--quick", "--out", str(tmp_path / "out"),
+    command = ["-m", "cpl_keras.reproduce", "--quick", "--out", str(tmp_path / "out"),
                "--data-dir", str(data_dir), "--runs-dir", str(runs_dir)]
     process = _start(command)
     assert _wait_for(lambda: os.listdir(data_dir))  # generating its first dataset
     time.sleep(0.3)
     _ctrl_c(process)
-    line = _one_line_130(process, "evaluate.py")
-    assert "run the same command again: python evaluate.py --reproduce --quick" in line
+    line = _one_line_130(process, "python -m cpl_keras.reproduce")
+    assert "run the same command again: python -m cpl_keras.reproduce --quick" in line
     for name in os.listdir(data_dir):  # (a .partial file is continued by the same command)
         if not name.endswith((".partial", ".lock")):  # (the cache's lock: no data)
             StereoFile(data_dir / name).close()  # whole, or it would not be there

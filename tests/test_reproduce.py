@@ -13,7 +13,6 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-import evaluate
 from cpl_keras import reproduce
 from cpl_keras.commands import reproduce as reproduce_command
 from cpl_keras.camera import TARGETS
@@ -22,8 +21,8 @@ from helpers import REPO, quick_reproduction_args
 
 
 def run(*args, cwd=None):
-    return subprocess.run([sys.executable, "evaluate.py", *args], capture_output=True, text=True,
-                          cwd=cwd, timeout=600)
+    return subprocess.run([sys.executable, "-m", "cpl_keras.reproduce", *args],
+                          capture_output=True, text=True, cwd=cwd, timeout=600)
 
 
 def rebuild(directory):
@@ -126,7 +125,7 @@ def test_published_runs_are_restored_not_trained_again(quick, tmp_path):
     # the cvgl runs also stored their outputs on every real set (Table 2):
     # its test split and the three real rigs
     assert len(list((out / "runs" / "cvgl_cpl-a" / "predictions").glob("*.npz"))) == 1 + 3
-    args = ["--reproduce", "--quick", "--out", str(out), "--data-dir", str(quick["data"]),
+    args = ["--quick", "--out", str(out), "--data-dir", str(quick["data"]),
             "--runs-dir", str(tmp_path / "runs")]
     result = run(*args)
     assert result.returncode == 0, result.stderr[-3000:]
@@ -153,7 +152,7 @@ def test_partial_tables_of_the_seeds_whose_runs_have_all_finished(quick, tmp_pat
     out = tmp_path / "out"
     shutil.copytree(quick["out"], out)
     shutil.rmtree(out / "runs" / "cvgl_cpl-u")
-    args = ["--reproduce", "--quick", "--partial", "--out", str(out), "--data-dir",
+    args = ["--quick", "--partial", "--out", str(out), "--data-dir",
             str(quick["data"]), "--runs-dir", str(tmp_path / "runs")]
     result = run(*args)
     assert result.returncode == 0, result.stderr[-3000:]
@@ -189,8 +188,6 @@ def test_partial_goes_with_a_reproduction_that_trains():
     with pytest.raises(SystemExit):
         _parsed("--from-predictions", "x", "--partial")
     assert _parsed("--preset", "compact-2000-ema", "--partial").partial is True
-    with pytest.raises(SystemExit):
-        evaluate.parse_args(["--table", "1", "--runs", "x", "--partial"])
 
 
 @pytest.mark.slow
@@ -278,22 +275,29 @@ def test_rebuild_refuses_bad_predictions(quick, tmp_path):
 
 
 def test_reproduce_bad_arguments_exit_2(tmp_path):
-    for args in (["--reproduce", "--pairs", "0"], ["--reproduce", "--table", "1"], ["--quick"],
-                 ["--reproduce", "--quick", "--preset", "cpu"],
-                 ["--reproduce", "--from-predictions", str(tmp_path), "--epochs", "3"]):
+    for args in (["--pairs", "0"], ["--table", "1"], ["--quick", "--preset", "cpu"],
+                 ["--from-predictions", str(tmp_path), "--epochs", "3"]):
         result = run(*args, "--out", str(tmp_path / "out"), "--data-dir", str(tmp_path / "d"))
         assert result.returncode == 2, args
-        assert result.stderr.startswith("evaluate.py: error: ") and "Traceback" not in result.stderr
-    # the reproduction's own entry point, same error format under its own name
-    result = subprocess.run([sys.executable, "-m", "cpl_keras.reproduce", "--pairs", "0",
-                             "--out", str(tmp_path / "out")], capture_output=True, text=True, timeout=600)
+        assert result.stderr.startswith("python -m cpl_keras.reproduce: error: ") and \
+            result.stderr.count("\n") == 1, result.stderr
+    result = run("--pairs", "0", "--out", str(tmp_path / "out"))
     assert result.returncode == 2
     assert result.stderr == ("python -m cpl_keras.reproduce: error: argument --pairs: must be "
                              "a positive integer, got 0\n")
-    assert not (tmp_path / "out").exists()
+    # evaluate.py --reproduce is no second way in: one line naming the command
+    # with the same arguments, exit 2, nothing made
+    out = tmp_path / "out"
+    result = subprocess.run([sys.executable, "evaluate.py", "--reproduce", "--quick", "--out",
+                             str(out)], capture_output=True, text=True, cwd=REPO, timeout=600)
+    assert result.returncode == 2 and result.stdout == ""
+    assert result.stderr == (f"evaluate.py: error: --reproduce moved: run cpl-reproduce --quick "
+                             f"--out {out} (or python -m cpl_keras.reproduce --quick --out {out})"
+                             f"\n")
+    assert not out.exists()
 
 
-#: Numeric flags of evaluate.py --reproduce, a bad value and what the line says.
+#: Numeric flags of the reproduction, a bad value and what the line says.
 BAD_NUMBERS = [
     ("--pairs", "0", "argument --pairs: must be a positive integer, got 0"),
     ("--random-pairs", "-5", "argument --random-pairs: must be a positive integer, got -5"),
@@ -308,7 +312,6 @@ BAD_NUMBERS = [
     ("--workers", "0", "argument --workers: must be a positive integer, got 0"),
     ("--seed", "-1", "argument --seed: must be a non-negative integer, got -1"),
     ("--geometric-max", "0", "argument --geometric-max: must be a positive integer, got 0"),
-    ("--batch-size", "0", "argument --batch-size: must be a positive integer, got 0"),
     ("--run-budget", "inf", "argument --run-budget: must be a positive number, got inf"),
 ]
 
@@ -324,7 +327,7 @@ def test_gpu_sized_settings_refused_on_a_cpu(tmp_path, capsys):
     for argv in ([], ["--preset", "paper-gpu"], ["--preset", "cpu", "--backbone", "inception_v3",
                                                   "--pairs", "10000"]):
         with pytest.raises(SystemExit) as exit_info:
-            evaluate.parse_args(["--reproduce"] + argv + folders)
+            _parsed(*argv, *folders)
         assert exit_info.value.code == 2, argv
         err = capsys.readouterr().err
         assert err.count("\n") == 1 and "sized for a GPU" in err and "--allow-cpu" in err, err
@@ -332,43 +335,33 @@ def test_gpu_sized_settings_refused_on_a_cpu(tmp_path, capsys):
     assert "2 runs" in reproduce.cpu_cost(reproduce.settings(preset="paper-gpu"))
     for argv in (["--preset", "paper-gpu", "--allow-cpu"], ["--preset", "paper-gpu",
                                                            "--pairs", "9999"]):
-        assert evaluate.parse_args(["--reproduce"] + argv + folders).config.pairs
+        assert _parsed(*argv, *folders).config.pairs
     assert os.listdir(tmp_path) == []
 
 
 def test_reproduce_numbers_checked_when_parsed(tmp_path, capsys):
-    """Every numeric flag of evaluate.py --reproduce is checked by the parser:
+    """Every numeric flag of the reproduction is checked by the parser:
     one line naming it, exit 2, before any folder is made."""
     folders = ["--out", str(tmp_path / "out"), "--data-dir", str(tmp_path / "data"),
                "--runs-dir", str(tmp_path / "runs")]
     for flag, value, message in BAD_NUMBERS:
         with pytest.raises(SystemExit) as exit_info:
-            evaluate.parse_args(["--reproduce", flag, value] + folders)
+            _parsed(flag, value, *folders)
         assert exit_info.value.code == 2, flag
         err = capsys.readouterr().err
-        assert err.startswith("evaluate.py: error: ") and err.count("\n") == 1, err
+        assert err.startswith(f"{reproduce.PROG}: error: ") and err.count("\n") == 1, err
         assert message in err, (flag, err)
     # the same through the command line, in a fresh process
     for flag, value, message in (BAD_NUMBERS[2], BAD_NUMBERS[5], BAD_NUMBERS[10]):
-        result = run("--reproduce", flag, value, *folders)
+        result = run(flag, value, *folders)
         assert result.returncode == 2 and result.stdout == ""
-        assert result.stderr.startswith("evaluate.py: error: ") and message in result.stderr
+        assert result.stderr.startswith(f"{reproduce.PROG}: error: ") and message in result.stderr
         assert result.stderr.count("\n") == 1, result.stderr
     assert os.listdir(tmp_path) == []
 
 
 def _parsed(*argv):
-    return reproduce_command.resolve_args(*_parser_and_args(argv))
-
-
-def _parser_and_args(argv):
-    from cpl_keras import cli
-
-    parser = cli.Parser(prog=reproduce.PROG)
-    parser.add_argument("--out")
-    parser.add_argument("--geometric-max", type=cli.positive_int)
-    reproduce_command.add_arguments(parser)
-    return parser, parser.parse_args(list(argv))
+    return reproduce_command.parse_args(list(argv))
 
 
 def test_a_preset_is_a_frozen_checked_record():

@@ -3,8 +3,9 @@
 ``evaluate.py`` and ``cpl-evaluate``. Writes Markdown, CSV and JSON tables
 and a FOV-threshold plot, atomically: ``--table`` to runs/tables/
 (git-ignored; or --out DIR, created if missing), ``--run R`` next to the run
-(``eval_<run>.*`` in R's parent directory) unless --out is given;
-``--reproduce`` regenerates paper_results/ (cpl_keras/reproduce/).
+(``eval_<run>.*`` in R's parent directory) unless --out is given. The
+reproduction of paper_results/ is its own command, ``cpl-reproduce``
+(``python -m cpl_keras.reproduce``): ``--reproduce`` says so and stops.
 ``main(argv, prog)``: ``prog`` is the name in the command's lines and in
 the command it records. See docs/evaluation.md.
 """
@@ -15,7 +16,6 @@ import os
 import sys
 
 from cpl_keras import cli, evaluation, report
-from cpl_keras.commands import reproduce
 from cpl_keras.cache import enable_compile_cache
 from cpl_keras.errors import Error
 
@@ -23,10 +23,14 @@ from cpl_keras.errors import Error
 TABLES_DIR = os.path.join("runs", "tables")
 #: The name the command goes by (``evaluate.py`` passes its own).
 PROG = "cpl-evaluate"
+#: The reproduction's command, installed and not (``evaluate.py --reproduce`` names them).
+REPRODUCE = ("cpl-reproduce", "python -m cpl_keras.reproduce")
 
 
 def parse_args(argv=None, prog=PROG):
-    parser = cli.Parser(prog=prog, description=__doc__.split("\n")[0])
+    parser = cli.Parser(prog=prog, description=__doc__.split("\n")[0],
+                        epilog=f"The reproduction of paper_results/ is its own command: "
+                        f"{REPRODUCE[0]} ({REPRODUCE[1]}).")
     parser.add_argument("--run", help="evaluate one run directory (with --data)")
     parser.add_argument("--table", type=int, choices=(1, 2), help="make the paper's Table 1 or 2")
     parser.add_argument("--runs", nargs="+", help="run directories for --table")
@@ -35,24 +39,18 @@ def parse_args(argv=None, prog=PROG):
                         "rig and pooled")
     parser.add_argument("--out", help="output directory, created if missing (default: "
                         f"{TABLES_DIR}/ for --table, so the committed paper_results/ is never "
-                        "overwritten; with --run: the run's parent directory; with "
-                        "--reproduce: see --preset)")
+                        "overwritten; with --run: the run's parent directory)")
     parser.add_argument("--batch-size", type=cli.positive_int, default=32,
                         help="pairs per forward pass (default 32; the results do not depend on it)")
     parser.add_argument("--no-geometric", action="store_true", help="leave out the Geometric row")
     parser.add_argument("--geometric-max", type=cli.positive_int,
                         help="run the Geometric baseline on the first N evaluation pairs only")
-    group = reproduce.add_arguments(parser)
-    group.add_argument("--reproduce", action="store_true",
-                       help="regenerate every dataset, run, table and REPORT.md")
+    given = list(sys.argv[1:] if argv is None else argv)
+    if "--reproduce" in given:  # (the reproduction is its own command)
+        rest = [a for a in given if a != "--reproduce"]
+        installed, module = (cli.command_line(name, rest) for name in REPRODUCE)
+        parser.error(f"--reproduce moved: run {installed} (or {module})")
     args = parser.parse_args(argv)
-    if args.reproduce:
-        if args.run is not None or args.table is not None:
-            parser.error("--reproduce makes every table itself; drop --run/--table")
-        return reproduce.resolve_args(parser, args)
-    for flag in ("quick", "preset", "from_predictions", "partial"):
-        if getattr(args, flag) not in (None, False):
-            parser.error(f"--{flag.replace('_', '-')} goes with --reproduce")
     if (args.run is None) == (args.table is None):
         parser.error("give either --run RUN_DIR --data DATA.h5 or --table {1,2} --runs ...")
     if args.run is not None and args.data is None:
@@ -81,8 +79,6 @@ def main(argv=None, prog=PROG):
 def _main(argv, prog):
     args = parse_args(argv, prog)
     command = cli.command_line(prog, argv)
-    if args.reproduce:
-        return reproduce.run(args, command, prog)
 
     def progress(message):
         cli.check_interrupt()  # (a Ctrl-C swallowed by a callback stops here)

@@ -1,5 +1,5 @@
-"""The reproduction's command line (``python -m cpl_keras.reproduce``, also
-``evaluate.py --reproduce``): its options, their checks, and the run."""
+"""The reproduction's command line (``python -m cpl_keras.reproduce``,
+installed: ``cpl-reproduce``): its options, their checks, and the run."""
 
 from __future__ import annotations
 
@@ -15,7 +15,7 @@ from cpl_keras.reproduce.presets import (
 )
 
 # ---------------------------------------------------------------------------
-# Command line (also evaluate.py --reproduce)
+# Command line
 # ---------------------------------------------------------------------------
 #: Options that set the scale (not allowed with --from-predictions).
 SCALE_OPTIONS = ("quick", "preset", "pairs", "random_pairs", "epochs", "patience", "backbone",
@@ -149,7 +149,9 @@ def run(args, command, prog=PROG):
     return 0
 
 
-def main(argv=None):
+def parse_args(argv=None):
+    """The command line, checked and resolved (``resolve_args``); a bad one
+    ends the process with one line and exit status 2."""
     parser = cli.Parser(prog=PROG, description=__doc__.split("\n")[0])
     parser.add_argument("--out", help="output directory (default: paper_results/; with "
                         "--quick: runs/quick/paper_results; with --preset P: "
@@ -157,8 +159,11 @@ def main(argv=None):
     parser.add_argument("--geometric-max", type=cli.positive_int,
                         help="run the Geometric baseline on the first N evaluation pairs only")
     add_arguments(parser)
-    args = resolve_args(parser, parser.parse_args(argv))
-    return run(args, cli.command_line(PROG, argv), PROG)
+    return resolve_args(parser, parser.parse_args(argv))
+
+
+def main(argv=None):
+    return run(parse_args(argv), cli.command_line(PROG, argv), PROG)
 
 
 if __name__ == "__main__":

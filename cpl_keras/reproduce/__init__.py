@@ -8,7 +8,7 @@
     python -m cpl_keras.reproduce --pairs 2000 --epochs 4   # a chosen scale
     python -m cpl_keras.reproduce --from-predictions DIR    # tables again, from DIR alone
 
-(``python evaluate.py --reproduce ...`` is the same command.)
+(``cpl-reproduce ...`` is the same command, installed.)
 
 The pipeline, every stage resumable (datasets, finished runs and published
 predictions newer than their runs are reused; killed training runs resume

@@ -287,7 +287,7 @@ def _stored_summary(out_dir):
 
 def rebuild_command(out_dir):
     """The command REPORT.md names as its rebuild: the same whichever way it
-    was spelt (``evaluate.py --reproduce``, with ``--discussion``: that text
+    was spelt (``cpl-reproduce``, with ``--discussion``: that text
     is then in ``reproduce.json``), so that rebuilding a committed folder in
     place changes no byte of it."""
     path = os.path.relpath(out_dir)
