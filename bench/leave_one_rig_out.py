@@ -82,10 +82,10 @@ def plan(args, rigs):
 def publish(run_dir, target, name):
     """The run's log, curves and config (no weights; the dataset and run
     directory without this machine's paths) as ``target/<name>_*``."""
-    from cpl_keras import runs
+    from cpl_keras import published, runs
     from cpl_keras.files import write_json
 
-    runs.publish_files(run_dir, target, name)
+    published.publish_files(run_dir, target, name)
     config = runs.read_run_config(run_dir)
     portable = dataclasses.replace(config, data=os.path.basename(config.data), run_dir=name)
     write_json(os.path.join(target, f"{name}_config.json"), portable.to_dict())

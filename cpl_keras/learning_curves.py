@@ -27,7 +27,7 @@ import time
 
 import numpy as np
 
-from cpl_keras import files, runs
+from cpl_keras import files, published, runs
 from cpl_keras.baselines.average import load_statistics
 from cpl_keras.camera import PARAMETERS
 from cpl_keras.data.generate import cached_dataset
@@ -224,7 +224,7 @@ def write_outputs(run_dirs, out_dir, loads=None, keep_earlier=False, at_epoch=No
         curve = curves(run_dir)
         name = os.path.basename(os.path.abspath(run_dir))
         plot_nmae_curves(curve, os.path.join(out_dir, f"{name}.png"), plot_title(curve))
-        runs.publish_files(run_dir, os.path.join(out_dir, "runs"), name)
+        published.publish_files(run_dir, os.path.join(out_dir, "runs"), name)
         row = summary_rows(curve, (loads or {}).get(name))
         rows.append(row)
         payload.append(dict(row, samples_seen=curve["samples_seen"], nmae=curve["nmae"],

@@ -113,12 +113,12 @@ def test_a_published_record_scores_its_test_split_as_its_run_did(tiny, tmp_path)
     """A published record (no weights; its config names the dataset file
     without a folder) scores the run's test split from its stored
     predictions, as the run directory does with its weights."""
-    from cpl_keras import runs
+    from cpl_keras import published
 
     run = tmp_path / "run"
     shutil.copytree(tiny["run"], run)
     evaluation.store_predictions(str(run), [])
-    runs.publish_run_dir(str(run), str(tmp_path / "record"))
+    published.publish_run_dir(str(run), str(tmp_path / "record"))
     for source in ("run", "record"):
         assert evaluate.main(["--run", str(tmp_path / source), "--data", tiny["data"],
                               "--no-geometric", "--out", str(tmp_path / "out")]) == 0

@@ -174,33 +174,33 @@ def test_the_machine_path_scan_catches_one():
         assert not MACHINE_PATH.search(text), text
 
 
-#: Every published run directory (``runs.publish_run_dir``) under paper_results/.
+#: Every published run directory (``published.publish_run_dir``) under paper_results/.
 PUBLISHED_RUNS = sorted(p.parent for p in RESULTS.glob("**/runs/*/config.json"))
 
 
 def test_every_published_run_restores_and_publishes_again(tmp_path):
     """Each committed run record, of whichever config.json layout, reads as a
-    ``RunConfig``, restores (``runs.restore_run_dir``: its config pointing at
+    ``RunConfig``, restores (``published.restore_run_dir``: its config pointing at
     the dataset and the run directory given) and loads as a run; published
     again from there, its config is the record's but for the run directory's
     name and the note of where it was restored from."""
     import dataclasses
 
-    from cpl_keras import runs
+    from cpl_keras import published, runs
 
     assert len(PUBLISHED_RUNS) >= 50
     for number, record in enumerate(PUBLISHED_RUNS):
         config = runs.read_run_config(record)
-        assert runs.is_published(record) and config.status == "finished", record
+        assert published.is_published(record) and config.status == "finished", record
         data = tmp_path / "data" / config.data
         run_dir = tmp_path / "runs" / str(number)
-        runs.restore_run_dir(str(record), str(run_dir), str(data))
+        published.restore_run_dir(str(record), str(run_dir), str(data))
         run = runs.load_run(run_dir)
         assert run.config == dataclasses.replace(
             config, data=str(data), run_dir=str(run_dir),
             other=dict(config.other, restored_from=str(record))), record
         again = tmp_path / "records" / str(number)
-        runs.publish_run_dir(str(run_dir), str(again))
+        published.publish_run_dir(str(run_dir), str(again))
         assert runs.read_run_config(again) == dataclasses.replace(
             run.config, data=config.data, run_dir=str(number)), record
         assert (again / "log.csv").read_bytes() == (record / "log.csv").read_bytes()

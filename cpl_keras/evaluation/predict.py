@@ -145,7 +145,7 @@ def open_dataset(path):
 def evaluation_indices(run, data_path, num_pairs):
     """``(indices, description)``: the run's test split when ``data_path`` is
     the run's own dataset, else every pair of the file. A published record
-    (``runs.publish_run_dir``) names its dataset without a folder: a file of
+    (``published.publish_run_dir``) names its dataset without a folder: a file of
     that name and the run's number of pairs is its own."""
     own = run.config.data
     if _same_file(data_path, own) or (

@@ -6,7 +6,7 @@ from __future__ import annotations
 
 import os
 
-from cpl_keras import evaluation, runs, training
+from cpl_keras import evaluation, published, runs, training
 from cpl_keras.reproduce.presets import PROG, log, run_jobs
 from cpl_keras.training import parallel, planning
 
@@ -45,9 +45,9 @@ def train_all(config, paths, runs_dir, seed, jobs=1, out_dir=None, train=True):
         plan = training_arguments(config, run_dir, job)
         record = published_record(out_dir, key, name) if out_dir else None
         finished = getattr(runs.read_run_config(run_dir), "status", None) == "finished"
-        if not finished and record and runs.is_published(record) and \
+        if not finished and record and published.is_published(record) and \
                 not (os.path.isdir(run_dir) and os.listdir(run_dir)):
-            runs.restore_run_dir(record, run_dir, paths[protocol])
+            published.restore_run_dir(record, run_dir, paths[protocol])
             log(f"{key}/{name}: restored from its published record {record} (no weights)")
             finished = True
         # Refuses (TrainingError) a run directory that holds a run of other
@@ -58,7 +58,7 @@ def train_all(config, paths, runs_dir, seed, jobs=1, out_dir=None, train=True):
         trained.setdefault(key, {}).setdefault(job.seed, []).append(run_dir)
         if finished:
             log(f"{key}/{name}: finished run found, reused")
-            if record and not runs.is_published(record):
+            if record and not published.is_published(record):
                 publish_run(run_dir, record, _real_paths(key, paths))
             continue
         pending.append((f"{key}/{name}", paths[protocol], plan,
@@ -98,9 +98,9 @@ def _real_paths(key, paths):
 def publish_run(run_dir, record, real_paths):
     """Publish a finished run at once: its outputs on its test split and on
     ``real_paths`` stored in the run directory (``evaluation.store_predictions``),
-    then its published part copied to ``record`` (``runs.publish_run_dir``)
-    and its log and curves beside it (``runs.publish_files``)."""
+    then its published part copied to ``record`` (``published.publish_run_dir``)
+    and its log and curves beside it (``published.publish_files``)."""
     evaluation.store_predictions(run_dir, real_paths)
-    runs.publish_run_dir(run_dir, record)
-    runs.publish_files(run_dir, os.path.dirname(record), os.path.basename(record))
+    published.publish_run_dir(run_dir, record)
+    published.publish_files(run_dir, os.path.dirname(record), os.path.basename(record))
     log(f"published {record}")

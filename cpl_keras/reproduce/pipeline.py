@@ -9,7 +9,7 @@ import os
 import platform
 import time
 
-from cpl_keras import cli, evaluation, prediction_files, predictions, report, runs
+from cpl_keras import cli, evaluation, prediction_files, predictions, published, report, runs
 from cpl_keras.cache import enable_compile_cache
 from cpl_keras.data.generate import cached_dataset
 from cpl_keras.data.storage import StereoFile
@@ -133,7 +133,7 @@ def collect_run_files(trained, out_dir):
         for run_dirs in by_seed.values():
             for run_dir in run_dirs:
                 name = f"{protocol}_{os.path.basename(run_dir)}"
-                runs.publish_files(run_dir, target, name)
+                published.publish_files(run_dir, target, name)
                 run_config = runs.read_run_config(run_dir)
                 summaries.append({"protocol": protocol, "name": name,
                                   "run_dir": runs.relative(run_dir, out_dir),
