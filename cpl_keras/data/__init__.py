@@ -2,7 +2,8 @@
 
 Modules (numpy only, no deep-learning backend is imported):
 
-* ``storage``   the HDF5 dataset schema (``StereoWriter``, ``StereoFile``)
+* ``storage``   the HDF5 dataset schema, its reader ``StereoFile``
+* ``writer``    ``StereoWriter``: a dataset file written atomically, resumably
 * ``textures``  photographic materials from scikit-image, with mip levels
 * ``scenes``    the procedural towns ``Town01`` and ``Town02``
 * ``render``    a vectorised numpy ray caster (depth = xCam, Eq. 4a)

@@ -8,7 +8,7 @@ Usage::
 Each pair is rendered and labelled by ``cpl_keras.data.pair`` (the paper's
 13 targets, and what the release's labels need beside them). Pairs are
 rendered in blocks by worker processes (``cpl_keras.data.blocks``) and
-written in order through ``storage.StereoWriter`` (atomic: a killed run
+written in order through ``writer.StereoWriter`` (atomic: a killed run
 leaves no file at the final path); pair i depends only on (seed, i), so the
 bytes do not depend on the number of workers. An interrupted or crashed run
 keeps ``<out>.partial`` with its complete blocks, and the same call
@@ -39,7 +39,8 @@ from cpl_keras.data.blocks import iter_blocks, render_block
 from cpl_keras.data.pair import (EXTRA_UNITS, FLOAT_LABELS, INT_LABELS, LABEL_DESCRIPTIONS,
                                  render_pair)
 from cpl_keras.data.storage import GENERATOR_VERSION  # noqa: F401  (the generator's own)
-from cpl_keras.data.storage import min_bytes_per_pair, StereoFile, StereoWriter
+from cpl_keras.data.storage import min_bytes_per_pair, StereoFile
+from cpl_keras.data.writer import StereoWriter
 from cpl_keras.files import atomic_path
 
 MIN_IMAGE_SIZE = 16
@@ -222,7 +223,7 @@ def generate_dataset(out, *, protocol="cvgl", pairs, seed=0, image_size=112, wor
     """Render ``pairs`` stereo pairs and write them to the HDF5 file ``out``.
 
     ``protocol`` is one of ``PROTOCOLS``; ``workers=None`` uses every core.
-    The file is written atomically (``storage.StereoWriter``); the same
+    The file is written atomically (``writer.StereoWriter``); the same
     ``seed`` gives the same images and labels whatever ``workers`` is.
     An interruption or a crash keeps ``<out>.partial`` with the blocks
     written in full, and the next call for ``out`` continues it (``log``
