@@ -13,6 +13,7 @@ Modules (numpy only, no deep-learning backend is imported):
 * ``pair``      one stereo pair: its two images and its labels
 * ``generate``  ``generate_dataset`` and the CLI
   (``python -m cpl_keras.data.generate --pairs N --out data/cvgl.h5``)
+* ``preview``   the generator's ``--preview``: a contact sheet of a few pairs
 
 See docs/data.md for the conventions and how the data differs from CVGL.
 """
