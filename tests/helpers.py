@@ -52,7 +52,7 @@ def fixture_labels(n, image_size, configs=4, seed=0):
 
 def write_stereo_fixture(path, n=40, image_size=32, configs=4, seed=0, labels=None, drop=()):
     """A small dataset file: random images, labels from ``fixture_labels``."""
-    from cpl_keras.data.storage import StereoWriter
+    from cpl_keras.data.writer import StereoWriter
 
     rng = np.random.default_rng(seed + 1)
     h, w = (image_size, image_size) if np.isscalar(image_size) else image_size

@@ -96,7 +96,7 @@ def test_the_committed_contact_sheets_are_the_current_generators(tmp_path, proto
     projection pixel: 1-2 % of the pixels differ)."""
     import numpy as np
 
-    from cpl_keras.data.generate import write_preview
+    from cpl_keras.data.preview import write_preview
 
     sheet = write_preview(tmp_path / "p.png", protocol, 10000, seed)
     with Image.open(sheet) as image, \

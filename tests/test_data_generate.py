@@ -371,7 +371,8 @@ def test_killed_write_leaves_no_file_at_final_path(tmp_path):
 
 def test_generator_imports_no_deep_learning_backend():
     code = ("import sys\n"
-            "from cpl_keras.data.generate import render_pair\n"
+            "import cpl_keras.data.generate, cpl_keras.data.preview\n"
+            "from cpl_keras.data.pair import render_pair\n"
             "render_pair('cvgl', 0, 4, 32, 0)\n"
             "print(sorted({m.split('.')[0] for m in sys.modules} & "
             "{'keras', 'jax', 'tensorflow', 'torch'}))\n")

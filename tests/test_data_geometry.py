@@ -7,7 +7,7 @@ import pytest
 
 from cpl_keras import camera
 from cpl_keras.data import protocols, render, scenes
-from cpl_keras.data.generate import render_pair
+from cpl_keras.data.pair import render_pair
 
 SIZE = 48
 

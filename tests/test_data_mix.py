@@ -12,7 +12,8 @@ import numpy as np
 import pytest
 
 from cpl_keras.data import mix
-from cpl_keras.data.storage import DatasetError, StereoFile, StereoWriter
+from cpl_keras.data.storage import DatasetError, StereoFile
+from cpl_keras.data.writer import StereoWriter
 
 from helpers import REPO, fixture_labels, write_stereo_fixture
 

@@ -10,7 +10,8 @@ import pytest
 import evaluate
 from cpl_keras import evaluation, metrics, report
 from cpl_keras.camera import PARAMETERS
-from cpl_keras.data.storage import StereoFile, StereoWriter
+from cpl_keras.data.storage import StereoFile
+from cpl_keras.data.writer import StereoWriter
 
 SIZE = 32
 

@@ -195,15 +195,15 @@ def test_a_ctrl_c_swallowed_during_generation_stops_it_before_the_file_is_writte
     generator at its next block: one line, exit 130, no file."""
     from cpl_keras import interrupts
     from cpl_keras.commands import generate
-    from cpl_keras.data import storage
+    from cpl_keras.data import writer
 
-    write = storage.StereoWriter.write
+    write = writer.StereoWriter.write
 
     def write_then_swallowed_ctrl_c(self, *args):
         write(self, *args)
         interrupts._pending.set()  # what the unraisable hook leaves behind
 
-    monkeypatch.setattr(storage.StereoWriter, "write", write_then_swallowed_ctrl_c)
+    monkeypatch.setattr(writer.StereoWriter, "write", write_then_swallowed_ctrl_c)
     out = tmp_path / "cvgl.h5"
     assert generate.main(["--pairs", "40", "--image-size", "32", "--workers", "1",
                           "--no-progress", "--out", str(out)]) == 130

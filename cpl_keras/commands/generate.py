@@ -9,8 +9,9 @@ import sys
 from cpl_keras import cli
 from cpl_keras.cli import Parser
 from cpl_keras.data.generate import (
-    PROG, check_arguments, check_output_path, generate_file, summary_text, write_preview,
+    PROG, check_arguments, check_output_path, generate_file, summary_text,
 )
+from cpl_keras.data.preview import write_preview
 from cpl_keras.data.protocols import PROTOCOLS
 
 

@@ -27,8 +27,17 @@ SCALE_OPTIONS = ("quick", "preset", "pairs", "random_pairs", "epochs", "patience
 def add_arguments(parser):
     """The reproduction's options, as an argument group of ``parser``; every
     number is checked when parsed (``cli.positive_int``)."""
-    positive, non_negative = cli.positive_int, cli.non_negative_int
     group = parser.add_argument_group("reproduce (cpl_keras/reproduce/)")
+    _add_scale_arguments(group)
+    _add_run_arguments(group)
+    _add_folder_arguments(group)
+    return group
+
+
+def _add_scale_arguments(group):
+    """The scale: a named one (--preset, --quick) and the values that override
+    it (pairs, epochs, patience, towers, image size, crops, seeds)."""
+    positive, non_negative = cli.positive_int, cli.non_negative_int
     group.add_argument("--preset", choices=tuple(PRESETS), help="a named scale: paper (the "
                        "paper's: 123,017 pairs, InceptionV3, every row; the default, into "
                        "paper_results/), paper-gpu (MTL-CPL-A and MTL-Baseline with InceptionV3 "
@@ -52,6 +61,11 @@ def add_arguments(parser):
     group.add_argument("--seeds", type=positive, help="cvgl runs per variant, seeds "
                        "SEED, SEED+1, ... (each its own split and initial weights)")
     group.add_argument("--random-seeds", type=positive, help="random-protocol runs per variant")
+
+
+def _add_run_arguments(group):
+    """How the runs are made: --workers, --run-budget, --allow-cpu, --jobs,
+    --partial, and the first --seed."""
     group.add_argument("--workers", type=cli.worker_count, help="data generation processes "
                        "(default and most: every core)")
     group.add_argument("--run-budget", type=cli.positive_float, metavar="SECONDS",
@@ -60,15 +74,22 @@ def add_arguments(parser):
     group.add_argument("--allow-cpu", action="store_true",
                        help="run settings sized for a GPU (InceptionV3 towers on "
                        f"{GPU_SIZED_PAIRS:,}+ pairs) on a machine without one")
-    group.add_argument("--jobs", type=positive, help="training runs at a time, each in its own "
-                       "process (default 1; 2 did about 1.4x the work per unit time on a "
-                       "2-core CPU); the runs and the tables are the same")
+    group.add_argument("--jobs", type=cli.positive_int,
+                       help="training runs at a time, each in its own process (default 1; 2 "
+                       "did about 1.4x the work per unit time on a 2-core CPU); the runs and "
+                       "the tables are the same")
     group.add_argument("--partial", action="store_true",
                        help="train nothing: write the tables and REPORT.md of the seeds whose "
                        "runs have all finished so far into OUT/partial/ (a reproduction still "
                        "under way)")
-    group.add_argument("--seed", type=non_negative, default=0,
+    group.add_argument("--seed", type=cli.non_negative_int, default=0,
                        help="seed of the datasets and the first run seed")
+
+
+def _add_folder_arguments(group):
+    """Where things are: the real sets' roots (Table 2), the datasets' and
+    runs' folders, the discussion, and a reproduction to rebuild
+    (--from-predictions)."""
     group.add_argument("--kitti", help="Table 2: KITTI stereo 2015 root")
     group.add_argument("--kitti-raw", help="Table 2: KITTI raw root")
     group.add_argument("--tsinghua", help="Table 2: Tsinghua-Daimler Cyclist root")
@@ -84,7 +105,6 @@ def add_arguments(parser):
     group.add_argument("--from-predictions", metavar="DIR",
                        help="rebuild every table and REPORT.md in DIR (a reproduction's output "
                        "folder) from its published predictions alone: no weights, no datasets")
-    return group
 
 
 def resolve_args(parser, args):

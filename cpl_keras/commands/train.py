@@ -46,10 +46,25 @@ def disparity_ceiling(text):
 
 
 def build_parser(prog=PROG):
+    """The command's parser; its options in the order ``--help`` lists them."""
     parser = cli.Parser(
         prog=prog,
         description="Train a camera calibration network (Butt & Taj) on a stereo dataset.",
     )
+    _add_run_arguments(parser)
+    _add_group_arguments(parser)
+    _add_loop_arguments(parser)
+    _add_head_arguments(parser)
+    _add_validation_arguments(parser)
+    _add_extra_arguments(parser)
+    _add_output_arguments(parser)
+    return parser
+
+
+def _add_run_arguments(parser):
+    """The run (--variant .. --data-parallel): the network and its towers, the
+    dataset and its split, the schedule, the run directory, the seed, data
+    parallelism."""
     parser.add_argument("--variant", required=True, choices=VARIANTS,
                         help="the network: baseline (MTL-Baseline, 13 heads, MAE), cpl-u "
                         "(camera projection loss, uniform), cpl-a (CPL with adaptive weights, "
@@ -76,13 +91,21 @@ def build_parser(prog=PROG):
     parser.add_argument("--data-parallel", action="store_true",
                         help="data parallelism over all local devices, or over every "
                         "process's devices in a process group (docs/training.md)")
-    _add_group_arguments(parser)
+
+
+def _add_loop_arguments(parser):
+    """The training loop: --patience, --workers, --steps-per-execution."""
     parser.add_argument("--patience", type=cli.non_negative_int, default=5, help="early stopping patience")
     parser.add_argument("--workers", type=cli.worker_count, default=1,
                         help="data reading threads (at most the CPUs)")
     parser.add_argument("--steps-per-execution", type=cli.positive_int, default=1,
                         help="training steps per compiled call (Keras's steps_per_execution; "
                         "default 1)")
+
+
+def _add_head_arguments(parser):
+    """The heads and what the camera projection loss trains: --disentangle,
+    --linear-pitch-head, --linear-focal-head, --alpha-rate, --disparity-ceiling."""
     parser.add_argument("--disentangle", choices=DISENTANGLE, default="exact",
                         help="CPL: the X, Y, Z terms of Eq. 7 train only the pixel heads "
                         "(exact, default) or every head the camera graph reads (partial)")
@@ -98,6 +121,11 @@ def build_parser(prog=PROG):
                         metavar="auto|none|PX",
                         help="CPL: the exp disparity head's largest output (auto, default: twice "
                         "the largest training label; none: 1e5 px, the bound before; or pixels)")
+
+
+def _add_validation_arguments(parser):
+    """Each epoch's validation and the weights it keeps: --bn-statistics,
+    --bn-recompute-batches, --monitor, --weight-ema."""
     parser.add_argument("--bn-statistics", choices=("fixed", "epoch"),
                         help="BatchNorm statistics before each validation: fixed (default), the "
                         "same training pairs every epoch, population variance; epoch, the first "
@@ -113,6 +141,11 @@ def build_parser(prog=PROG):
                         help="validate, keep and save a moving average of the weights, momentum "
                         "M (default 0.99, not the paper's; 0: the weights as trained, the "
                         "paper's; as released: 0)")
+
+
+def _add_extra_arguments(parser):
+    """Additions to the paper's training, off by default: --target-scaling,
+    --time-budget, --augment."""
     parser.add_argument("--target-scaling", choices=("none", "std"), default="none",
                         help="MTL-Baseline: divide each output's MAE by the target's training "
                         "standard deviation (std; not the paper's) or not (none, default)")
@@ -123,8 +156,6 @@ def build_parser(prog=PROG):
     parser.add_argument("--augment", choices=("none",) + AUGMENTATIONS, default="none",
                         help="photometric augmentation of the training batches (exposure, grey, "
                              "blur, noise, JPEG; labels unchanged; not the paper's, default none)")
-    _add_output_arguments(parser)
-    return parser
 
 
 def _add_output_arguments(parser):

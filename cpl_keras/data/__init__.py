@@ -2,7 +2,8 @@
 
 Modules (numpy only, no deep-learning backend is imported):
 
-* ``storage``   the HDF5 dataset schema (``StereoWriter``, ``StereoFile``)
+* ``storage``   the HDF5 dataset schema, its reader ``StereoFile``
+* ``writer``    ``StereoWriter``: a dataset file written atomically, resumably
 * ``textures``  photographic materials from scikit-image, with mip levels
 * ``scenes``    the procedural towns ``Town01`` and ``Town02``
 * ``render``    a vectorised numpy ray caster (depth = xCam, Eq. 4a)
@@ -12,6 +13,7 @@ Modules (numpy only, no deep-learning backend is imported):
 * ``pair``      one stereo pair: its two images and its labels
 * ``generate``  ``generate_dataset`` and the CLI
   (``python -m cpl_keras.data.generate --pairs N --out data/cvgl.h5``)
+* ``preview``   the generator's ``--preview``: a contact sheet of a few pairs
 
 See docs/data.md for the conventions and how the data differs from CVGL.
 """

@@ -8,7 +8,7 @@ Usage::
 Each pair is rendered and labelled by ``cpl_keras.data.pair`` (the paper's
 13 targets, and what the release's labels need beside them). Pairs are
 rendered in blocks by worker processes (``cpl_keras.data.blocks``) and
-written in order through ``storage.StereoWriter`` (atomic: a killed run
+written in order through ``writer.StereoWriter`` (atomic: a killed run
 leaves no file at the final path); pair i depends only on (seed, i), so the
 bytes do not depend on the number of workers. An interrupted or crashed run
 keeps ``<out>.partial`` with its complete blocks, and the same call
@@ -16,13 +16,12 @@ continues it from the first incomplete one (the same bytes as a run never
 interrupted). Before any work, the file's size and the tables held in
 memory are checked against what this machine has free (``check_room``).
 The CLI prints a one-line ``summary_text``; ``--preview`` draws a contact
-sheet of a few pairs.
+sheet of a few pairs (``cpl_keras.data.preview``).
 """
 
 from __future__ import annotations
 
 import contextlib
-import math
 import os
 import signal
 import sys
@@ -36,11 +35,10 @@ from cpl_keras import camera, cli
 from cpl_keras.cli import check_interrupt, check_output_file, make_parent
 from cpl_keras.data import protocols, scenes
 from cpl_keras.data.blocks import iter_blocks, render_block
-from cpl_keras.data.pair import (EXTRA_UNITS, FLOAT_LABELS, INT_LABELS, LABEL_DESCRIPTIONS,
-                                 render_pair)
+from cpl_keras.data.pair import EXTRA_UNITS, FLOAT_LABELS, INT_LABELS, LABEL_DESCRIPTIONS
 from cpl_keras.data.storage import GENERATOR_VERSION  # noqa: F401  (the generator's own)
-from cpl_keras.data.storage import min_bytes_per_pair, StereoFile, StereoWriter
-from cpl_keras.files import atomic_path
+from cpl_keras.data.storage import min_bytes_per_pair, StereoFile
+from cpl_keras.data.writer import StereoWriter
 
 MIN_IMAGE_SIZE = 16
 MAX_IMAGE_SIZE = 1024
@@ -222,7 +220,7 @@ def generate_dataset(out, *, protocol="cvgl", pairs, seed=0, image_size=112, wor
     """Render ``pairs`` stereo pairs and write them to the HDF5 file ``out``.
 
     ``protocol`` is one of ``PROTOCOLS``; ``workers=None`` uses every core.
-    The file is written atomically (``storage.StereoWriter``); the same
+    The file is written atomically (``writer.StereoWriter``); the same
     ``seed`` gives the same images and labels whatever ``workers`` is.
     An interruption or a crash keeps ``<out>.partial`` with the blocks
     written in full, and the next call for ``out`` continues it (``log``
@@ -348,56 +346,6 @@ def summary_text(path):
             f"{s['projection_fallback']} from the fallback (nearest pixel); the release's "
             f"pixel ({w / 2:g}, {h / 2:g}) sees the sky in {s['sky_at_release_pixel']} of {n} "
             f"pairs ({100.0 * s['sky_at_release_pixel'] / n:.1f} %)")
-
-
-# ---------------------------------------------------------------------------
-# Preview contact sheet
-# ---------------------------------------------------------------------------
-def preview_indices(protocol, pairs, count=8):
-    """``count`` pair indices spread over the dataset (and so over configurations)."""
-    count = min(count, pairs)
-    return sorted({int(round(i * (pairs - 1) / max(count - 1, 1))) for i in range(count)})
-
-
-def write_preview(path, protocol, pairs, seed=0, image_size=112, count=8, columns=2):
-    """A PNG contact sheet of ``count`` pairs (left | right) with their labels.
-
-    The projection pixel (u, v) is marked in the right image and the point
-    (u + d, v) in the left image (where it would be for a rectified rig).
-    """
-    from PIL import Image, ImageDraw
-
-    pairs, seed, image_size, _ = check_arguments(protocol, pairs, seed, image_size, None)
-    path = check_output_path(path)
-    indices = preview_indices(protocol, pairs, count)
-    W = image_size
-    text_h = 36
-    cell_w, cell_h = 2 * W + 6, W + text_h
-    rows = math.ceil(len(indices) / columns)
-    sheet = Image.new("RGB", (columns * cell_w + (columns - 1) * 8, rows * cell_h), (255, 255, 255))
-    draw = ImageDraw.Draw(sheet)
-    for n, i in enumerate(indices):
-        left, right, lab = render_pair(protocol, seed, pairs, image_size, i)
-        x0 = (n % columns) * (cell_w + 8)
-        y0 = (n // columns) * cell_h
-        sheet.paste(Image.fromarray(left), (x0, y0))
-        sheet.paste(Image.fromarray(right), (x0 + W + 6, y0))
-        u, v = lab["u"], lab["v"]
-        draw.rectangle([x0 + W + 6 + u - 2, y0 + v - 2, x0 + W + 6 + u + 2, y0 + v + 2],
-                       outline=(255, 0, 255))
-        fov = math.degrees(camera.fov_from_focal(lab["fx"], W))
-        lines = [
-            f"#{i} cfg {lab['config_id']} town {lab['town_id'] + 1} frame {lab['frame_index']}",
-            f"fov {fov:.0f} b {lab['baseline']:.2f} pitch {math.degrees(lab['pitch']):.1f}d",
-            f"d {lab['disparity']:.2f}px X {lab['X']:.1f} Y {lab['Y']:.1f} Z {lab['Z']:.1f}",
-        ]
-        for k, line in enumerate(lines):
-            draw.text((x0 + 1, y0 + W + 1 + 11 * k), line, fill=(0, 0, 0))
-
-    make_parent(path)
-    with atomic_path(path) as tmp:
-        sheet.save(tmp, optimize=True)
-    return path
 
 
 # ---------------------------------------------------------------------------

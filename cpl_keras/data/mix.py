@@ -33,7 +33,8 @@ import os
 import numpy as np
 
 from cpl_keras import cli
-from cpl_keras.data.storage import INDEX_LABELS, DatasetError, StereoFile, StereoWriter
+from cpl_keras.data.storage import INDEX_LABELS, DatasetError, StereoFile
+from cpl_keras.data.writer import StereoWriter
 
 PROG = "python -m cpl_keras.data.mix"
 #: Pairs copied at a time.

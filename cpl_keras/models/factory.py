@@ -102,10 +102,7 @@ def build_model(variant, *, backbone="inception_v3", image_size=112, as_released
         name: the model's name (default: the variant).
     """
     spec = variants.get(variant)
-    if backbone not in backbones.BACKBONES:
-        raise ValueError(
-            f"unknown backbone {backbone!r}; choose one of {', '.join(backbones.BACKBONES)}"
-        )
+    _check_choice("backbone", backbone, backbones.BACKBONES)
     floors = camera.check_floors(
         (camera.RELEASED_FLOORS if as_released else camera.FLOORS) if floors is None else floors
     )
@@ -113,15 +110,8 @@ def build_model(variant, *, backbone="inception_v3", image_size=112, as_released
         bounded_pitch_head = not as_released
     if positive_focal_head is None:
         positive_focal_head = not as_released
-    if alpha_rate is None:
-        alpha_rate = variants.ALPHA_RATE
-    if isinstance(alpha_rate, bool) or not (isinstance(alpha_rate, numbers.Real)
-                                            and math.isfinite(alpha_rate) and alpha_rate >= 0):
-        raise ValueError(f"alpha rate must be a number >= 0 (0: frozen), got {alpha_rate!r}")
-    if disentangle not in DISENTANGLE:
-        raise ValueError(
-            f"unknown disentangle {disentangle!r}; choose one of {', '.join(DISENTANGLE)}"
-        )
+    alpha_rate = _alpha_rate(alpha_rate)
+    _check_choice("disentangle", disentangle, DISENTANGLE)
     disparity = PositiveDisparity(ceiling=MAX_OUTPUT if disparity_ceiling is None
                                   else disparity_ceiling)
     minimum = spec.min_image_size or backbones.MIN_IMAGE_SIZE[backbone]
@@ -129,7 +119,7 @@ def build_model(variant, *, backbone="inception_v3", image_size=112, as_released
     with _seeded(seed):
         return _build(spec, backbone, height, width, bool(as_released), floors,
                       bool(bounded_pitch_head), bool(positive_focal_head), disentangle,
-                      float(alpha_rate), disparity, name)
+                      alpha_rate, disparity, name)
 
 
 @contextlib.contextmanager
@@ -304,6 +294,23 @@ def _scale_inputs(left, right, as_released):
         return left, right  # the release fed raw 0..255 pixels
     scale = keras.layers.Rescaling(1.0 / 127.5, offset=-1.0, name="input_scaling")
     return scale(left), scale(right)
+
+
+def _check_choice(what, value, choices):
+    """Raise ValueError (one line) unless ``value`` is one of ``choices``."""
+    if value not in choices:
+        raise ValueError(f"unknown {what} {value!r}; choose one of {', '.join(choices)}")
+
+
+def _alpha_rate(alpha_rate):
+    """MTL-CPL-A's adaptive weights' rate as a float (default
+    ``variants.ALPHA_RATE``); ValueError unless a finite number >= 0."""
+    if alpha_rate is None:
+        alpha_rate = variants.ALPHA_RATE
+    if isinstance(alpha_rate, bool) or not (isinstance(alpha_rate, numbers.Real)
+                                            and math.isfinite(alpha_rate) and alpha_rate >= 0):
+        raise ValueError(f"alpha rate must be a number >= 0 (0: frozen), got {alpha_rate!r}")
+    return float(alpha_rate)
 
 
 def _image_shape(image_size, minimum, backbone):

@@ -29,7 +29,8 @@ import numpy as np
 from cpl_keras import cli
 from cpl_keras.camera import crop_resize_coordinate
 from cpl_keras.data.pair import released_disparity  # noqa: F401  (the builders' label)
-from cpl_keras.data.storage import min_bytes_per_pair, StereoWriter
+from cpl_keras.data.storage import min_bytes_per_pair
+from cpl_keras.data.writer import StereoWriter
 from cpl_keras.errors import Error
 from cpl_keras.images import resize_image
 from cpl_keras.stereo_camera import StereoCamera

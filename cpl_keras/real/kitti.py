@@ -52,7 +52,7 @@ import re
 import numpy as np
 
 from cpl_keras.camera import CV_TO_PROJECT, crop_resize_coordinate
-from cpl_keras.data.storage import StereoWriter
+from cpl_keras.data.writer import StereoWriter
 from cpl_keras.images import read_rgb, resize_image
 from cpl_keras.real import RealDataError, released_disparity
 from cpl_keras.stereo_camera import StereoCamera

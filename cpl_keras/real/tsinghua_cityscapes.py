@@ -51,7 +51,7 @@ import os
 import numpy as np
 
 from cpl_keras.camera import crop_resize_coordinate
-from cpl_keras.data.storage import StereoWriter
+from cpl_keras.data.writer import StereoWriter
 from cpl_keras.images import read_rgb, resize_image
 from cpl_keras.real import (  # noqa: F401  (RealDataError is re-exported)
     LABEL_MODES, RealDataError, rectified_camera, released_disparity,
