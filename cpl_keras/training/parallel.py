@@ -30,6 +30,7 @@ from cpl_keras.cache import enable_compile_cache
 from cpl_keras.errors import Error
 from cpl_keras.models.variants import SLOW_VARIANTS
 from cpl_keras.training import trainer
+from cpl_keras.training.result import summary_line
 
 
 def _log(message):
@@ -62,7 +63,7 @@ def _train_job(data, options, parent, log, prog):
     except (Error, OSError) as error:
         print(f"{prog}: error: {options['run_dir']}: {error}", file=sys.stderr)
         sys.exit(2)
-    log(trainer.summary_line(summary))
+    log(summary_line(summary))
     sys.exit(0 if summary.config.best_epoch is not None else 1)
 
 

@@ -18,7 +18,9 @@ its last completed epoch; the epoch order of the data depends only on
 A second process training into the same run directory (say, the same
 command run again after a kill that missed) waits until the first one ends,
 then resumes from where it left off (or finds the run finished).
-The callback that checkpoints is ``cpl_keras.training.checkpointing.RunState``.
+The callback that checkpoints is ``cpl_keras.training.checkpointing.RunState``;
+the final model and config.json, and a finished run read back, are
+``cpl_keras.training.result``'s.
 A non-finite training loss stops the run and keeps the best weights so far.
 """
 
@@ -42,6 +44,7 @@ from cpl_keras.datasets import load_split, save_split, targets_from_labels
 from cpl_keras.training.gradients import TermGradients
 from cpl_keras.training.planning import RESUME_KEYS, TrainingError, plan_run
 from cpl_keras.training.processes import join_processes
+from cpl_keras.training.result import finish_run, finished_run
 from cpl_keras.training.state import read_state
 
 # ---------------------------------------------------------------------------
@@ -82,7 +85,7 @@ def train(data, *, steps_per_execution=1, verbose=1, return_model=True, term_gra
             f"steps per execution must be a positive integer, got {steps_per_execution!r}")
     processes = join_processes(options.get("data_parallel"))  # (before any device is counted)
     plan = plan_run(data, **options)
-    finished = _finished_run(plan.config.run_dir, return_model)
+    finished = finished_run(plan.config.run_dir, return_model)
     processes.agree("the run", group_fingerprint, plan, finished)
     if finished is not None:
         return finished
@@ -144,34 +147,6 @@ def _replace_failed_run(run_dir):
     shutil.rmtree(run_dir)
 
 
-@dataclasses.dataclass(frozen=True)
-class TrainResult:
-    """What ``train`` returns."""
-
-    # config.json as the run left it: status, stopped, epochs_run, best_epoch
-    # (1-based), best_val_loss, best_score, wall_time_s, ... (``runs.RunConfig``)
-    config: runs.RunConfig
-    # the trained model (best weights); None when not loaded (return_model=False)
-    model: object = None
-    # model.keras was written (an epoch completed)
-    has_model: bool = False
-    # the run had ended before this call: nothing was trained, no file changed
-    finished_before: bool = False
-
-
-def _finished_run(run_dir, load_model=True):
-    """The ``TrainResult`` of the run in ``run_dir`` if it has finished, read
-    without changing a file (``finished_before``; ``model`` is model.keras,
-    loaded, unless ``load_model`` is False); else None."""
-    config = runs.read_run_config(run_dir) if os.path.isdir(run_dir) else None
-    if config is None or config.status != "finished":
-        return None
-    path = os.path.join(run_dir, runs.MODEL)
-    model = runs.load_model_file(path) if load_model and os.path.isfile(path) else None
-    return TrainResult(config=dataclasses.replace(config, run_dir=run_dir), model=model,
-                       has_model=os.path.isfile(path), finished_before=True)
-
-
 def _run(plan, processes, steps_per_execution, verbose, term_gradients=False):
     import keras
 
@@ -200,7 +175,7 @@ def _run_locked(plan, model, config, processes, verbose, term_gradients=False):
 
     run_dir = config.run_dir
     written = processes.write("run directory ready", _open_run_dir, plan, config, run_dir)
-    finished = _finished_run(run_dir)  # (by the process this one waited for)
+    finished = finished_run(run_dir)  # (by the process this one waited for)
     if finished is not None:
         return finished
     config = written or config  # (the config.json written; the other processes keep theirs)
@@ -246,7 +221,7 @@ def _run_locked(plan, model, config, processes, verbose, term_gradients=False):
         for sequence in (train_seq, val_seq, bn_seq):
             if sequence is not None:
                 sequence.close()
-    return dataclasses.replace(_finish(model, config, run_state.state, processes), model=model)
+    return dataclasses.replace(finish_run(model, config, run_state.state, processes), model=model)
 
 
 #: Training pairs (the first of the split, the same every epoch) on which
@@ -270,7 +245,7 @@ def _open_run_dir(plan, config, run_dir):
     """(The process that writes) ``_write_run_files``, unless the run has
     finished meanwhile (by the process whose lock this one waited for:
     ``_lock_run_dir``); returns the config as written, or ``config``."""
-    if _finished_run(run_dir, load_model=False) is not None:
+    if finished_run(run_dir, load_model=False) is not None:
         return config
     return _write_run_files(plan, config, run_dir)
 
@@ -364,71 +339,3 @@ def _target_scale(plan):
         std = float(np.std(np.asarray(values, np.float64)[train]))
         scale[name] = std if std > 1e-6 else 1.0
     return scale
-
-
-def _finish(model, config, state, processes):
-    """Best weights -> model.keras; final config.json; remove the checkpoint
-    (in a group, process 0 writes; the others read best.weights.h5)."""
-    from cpl_keras.training.checkpointing import publish_run_files
-
-    run_dir = config.run_dir
-    processes.write("best weights written", publish_run_files, run_dir, state)
-    best = state.best_weights
-    if best:
-        # The file holds the optimizer's variables too: a run resumed after a
-        # kill during this save has a fresh model whose optimizer must be
-        # built first, or Keras skips them (with a warning) and model.keras
-        # would lose its optimizer state.
-        if not model.optimizer.built:
-            model.optimizer.build(model.trainable_variables)
-        model.load_weights(os.path.join(run_dir, runs.BEST_WEIGHTS))
-    failed = (state.stopped or "").startswith("non-finite")
-    config = dataclasses.replace(
-        config, epochs_run=int(state.epoch),
-        best_epoch=None if state.best_epoch is None else int(state.best_epoch) + 1,
-        best_val_loss=_best_row(state).get("val_loss", state.best),
-        best_score=state.best,
-        wall_time_s=round(float(state.wall_time_s), 3),
-        stopped=state.stopped,
-        status="failed" if failed else "finished",
-        adaptive_weights=model.adaptive_weights(),
-    )
-    processes.write("run finished", _write_final_files, model if best else None, config,
-                    processes)
-    return TrainResult(config=config, has_model=bool(best))
-
-
-def _write_final_files(model, config, processes):
-    """(The process that writes) model.keras of ``model`` (unless None), the
-    final config.json, and no epoch checkpoint left in backup/."""
-    run_dir = config.run_dir
-    if model is not None:
-        with files.atomic_path(os.path.join(run_dir, runs.MODEL)) as tmp, processes.alone():
-            model.save(tmp)
-    runs.write_config(run_dir, config)
-    backup = os.path.join(run_dir, runs.BACKUP)
-    for name in os.listdir(backup):
-        if name.endswith(".weights.h5"):
-            os.remove(os.path.join(backup, name))
-
-
-def _best_row(state):
-    """The log row of the kept epoch (empty when none)."""
-    return next((row for row in state.rows if row["epoch"] == state.best_epoch), {})
-
-
-def summary_line(result):
-    """The one-line end-of-run summary of a ``TrainResult``."""
-    config = result.config
-    if config.best_epoch is None:
-        return (f"no epoch completed ({config.stopped}); nothing saved as model.keras; "
-                f"run directory: {config.run_dir}")
-    score = ""
-    if config.monitor == "nmae" and config.best_score is not None:
-        score = f"val_nmae {config.best_score:.4g}, "
-    line = (f"best epoch {config.best_epoch} of {config.epochs_run}, "
-            f"best val_loss {config.best_val_loss:.6g}, {score}"
-            f"run directory: {config.run_dir}")
-    if config.status == "failed":
-        line = f"stopped: {config.stopped}; kept the best weights: " + line
-    return line

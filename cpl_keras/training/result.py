@@ -1,0 +1,111 @@
+"""How a training run ends: its final files, and what ``train`` returns.
+
+``finish_run`` writes what a run leaves behind once training stops (the
+best weights as model.keras, the final config.json, no epoch checkpoint
+left in backup/); ``finished_run`` reads a run that has already ended back
+without changing a file. Both give a ``TrainResult``; ``summary_line`` is
+its one-line summary. Importing this module imports no Keras.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import os
+
+from cpl_keras import files, runs
+
+
+@dataclasses.dataclass(frozen=True)
+class TrainResult:
+    """What ``train`` returns."""
+
+    # config.json as the run left it: status, stopped, epochs_run, best_epoch
+    # (1-based), best_val_loss, best_score, wall_time_s, ... (``runs.RunConfig``)
+    config: runs.RunConfig
+    # the trained model (best weights); None when not loaded (return_model=False)
+    model: object = None
+    # model.keras was written (an epoch completed)
+    has_model: bool = False
+    # the run had ended before this call: nothing was trained, no file changed
+    finished_before: bool = False
+
+
+def finished_run(run_dir, load_model=True):
+    """The ``TrainResult`` of the run in ``run_dir`` if it has finished, read
+    without changing a file (``finished_before``; ``model`` is model.keras,
+    loaded, unless ``load_model`` is False); else None."""
+    config = runs.read_run_config(run_dir) if os.path.isdir(run_dir) else None
+    if config is None or config.status != "finished":
+        return None
+    path = os.path.join(run_dir, runs.MODEL)
+    model = runs.load_model_file(path) if load_model and os.path.isfile(path) else None
+    return TrainResult(config=dataclasses.replace(config, run_dir=run_dir), model=model,
+                       has_model=os.path.isfile(path), finished_before=True)
+
+
+def finish_run(model, config, state, processes):
+    """Best weights -> model.keras; final config.json; remove the checkpoint
+    (in a group, process 0 writes; the others read best.weights.h5)."""
+    from cpl_keras.training.checkpointing import publish_run_files
+
+    run_dir = config.run_dir
+    processes.write("best weights written", publish_run_files, run_dir, state)
+    best = state.best_weights
+    if best:
+        # The file holds the optimizer's variables too: a run resumed after a
+        # kill during this save has a fresh model whose optimizer must be
+        # built first, or Keras skips them (with a warning) and model.keras
+        # would lose its optimizer state.
+        if not model.optimizer.built:
+            model.optimizer.build(model.trainable_variables)
+        model.load_weights(os.path.join(run_dir, runs.BEST_WEIGHTS))
+    failed = (state.stopped or "").startswith("non-finite")
+    config = dataclasses.replace(
+        config, epochs_run=int(state.epoch),
+        best_epoch=None if state.best_epoch is None else int(state.best_epoch) + 1,
+        best_val_loss=_best_row(state).get("val_loss", state.best),
+        best_score=state.best,
+        wall_time_s=round(float(state.wall_time_s), 3),
+        stopped=state.stopped,
+        status="failed" if failed else "finished",
+        adaptive_weights=model.adaptive_weights(),
+    )
+    processes.write("run finished", _write_final_files, model if best else None, config,
+                    processes)
+    return TrainResult(config=config, has_model=bool(best))
+
+
+def _write_final_files(model, config, processes):
+    """(The process that writes) model.keras of ``model`` (unless None), the
+    final config.json, and no epoch checkpoint left in backup/."""
+    run_dir = config.run_dir
+    if model is not None:
+        with files.atomic_path(os.path.join(run_dir, runs.MODEL)) as tmp, processes.alone():
+            model.save(tmp)
+    runs.write_config(run_dir, config)
+    backup = os.path.join(run_dir, runs.BACKUP)
+    for name in os.listdir(backup):
+        if name.endswith(".weights.h5"):
+            os.remove(os.path.join(backup, name))
+
+
+def _best_row(state):
+    """The log row of the kept epoch (empty when none)."""
+    return next((row for row in state.rows if row["epoch"] == state.best_epoch), {})
+
+
+def summary_line(result):
+    """The one-line end-of-run summary of a ``TrainResult``."""
+    config = result.config
+    if config.best_epoch is None:
+        return (f"no epoch completed ({config.stopped}); nothing saved as model.keras; "
+                f"run directory: {config.run_dir}")
+    score = ""
+    if config.monitor == "nmae" and config.best_score is not None:
+        score = f"val_nmae {config.best_score:.4g}, "
+    line = (f"best epoch {config.best_epoch} of {config.epochs_run}, "
+            f"best val_loss {config.best_val_loss:.6g}, {score}"
+            f"run directory: {config.run_dir}")
+    if config.status == "failed":
+        line = f"stopped: {config.stopped}; kept the best weights: " + line
+    return line
