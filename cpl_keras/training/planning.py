@@ -88,6 +88,12 @@ class RunPlan:
     workers: int
 
 
+def _check_choice(what, value, choices):
+    """``value`` must be one of ``choices`` (TrainingError, one line, naming ``what``)."""
+    if value not in choices:
+        raise TrainingError(f"unknown {what} {value!r}; choose one of {', '.join(choices)}")
+
+
 def _check_momentum(weight_ema):
     if isinstance(weight_ema, bool) or not (isinstance(weight_ema, (int, float, np.floating))
                                             and 0 <= weight_ema < 1):
@@ -98,19 +104,21 @@ def _check_momentum(weight_ema):
 def _validation_settings(as_released, bn_recompute_batches, bn_statistics, monitor,
                          weight_ema):
     """What validation runs and early stopping follows, checked (TrainingError,
-    one line), the defaults filled in (as released: the release's)."""
+    one line), the defaults filled in (as released: the release's). Returns
+    them as config.json's fields, and the names of those left at their
+    defaults (a run directory resumes with its own: ``_check_run_dir``)."""
+    given = dict(bn_statistics=bn_statistics, monitor=monitor, weight_ema=weight_ema,
+                 bn_recompute_batches=bn_recompute_batches)
+    defaulted = tuple(key for key, value in given.items() if value is None)
     if bn_statistics is None:
         bn_statistics = "epoch" if as_released else "fixed"
-    if bn_statistics not in BN_STATISTICS:
-        raise TrainingError(f"unknown BatchNorm statistics {bn_statistics!r}; choose one of "
-                            f"{', '.join(BN_STATISTICS)}")
+    _check_choice("BatchNorm statistics", bn_statistics, BN_STATISTICS)
     if weight_ema is None:
         weight_ema = 0.0 if as_released else WEIGHT_EMA
     _check_momentum(weight_ema)
     if monitor is None:
         monitor = "loss" if as_released else "nmae"
-    if monitor not in MONITORS:
-        raise TrainingError(f"unknown monitor {monitor!r}; choose one of {', '.join(MONITORS)}")
+    _check_choice("monitor", monitor, MONITORS)
     if bn_recompute_batches is None:
         bn_recompute_batches = 0 if as_released else BN_RECOMPUTE_BATCHES[bn_statistics]
     if isinstance(bn_recompute_batches, bool) or not (
@@ -119,46 +127,25 @@ def _validation_settings(as_released, bn_recompute_batches, bn_statistics, monit
         raise TrainingError(
             f"BatchNorm recompute batches must be a non-negative integer, got {bn_recompute_batches!r}"
         )
-    return bn_recompute_batches, bn_statistics, monitor, weight_ema
+    settings = dict(bn_recompute_batches=int(bn_recompute_batches), bn_statistics=bn_statistics,
+                    monitor=monitor, weight_ema=float(weight_ema))
+    return settings, defaulted
 
 
-def _check_arguments(*, variant, backbone, split, epochs, batch_size, workers, patience, seed,
-                     as_released, bn_recompute_batches, bn_statistics, monitor, disentangle,
-                     target_scaling, learning_rate, alpha_rate, time_budget_s,
-                     disparity_ceiling, augment, weight_ema):
-    """``plan_run``'s checks of its arguments (TrainingError, one line);
-    returns the variant's spec, the BatchNorm recompute batches, their
-    statistics mode, the monitored quantity and the weights' moving-average
-    momentum (defaults filled in)."""
-    try:
-        spec = variants.get(variant)
-    except ValueError as error:
-        raise TrainingError(str(error)) from None
-    if backbone not in BACKBONES:
-        raise TrainingError(f"unknown backbone {backbone!r}; choose one of {', '.join(BACKBONES)}")
-    if split not in SPLITS:
-        raise TrainingError(f"unknown split {split!r}; choose one of {', '.join(SPLITS)}")
-    for name, value in (("epochs", epochs), ("batch size", batch_size), ("workers", workers)):
-        if not (isinstance(value, (int, np.integer)) and value >= 1):
-            raise TrainingError(f"{name} must be a positive integer, got {value!r}")
-    for name, value in (("patience", patience), ("seed", seed)):
-        if isinstance(value, bool) or not (isinstance(value, (int, np.integer)) and value >= 0):
-            raise TrainingError(f"{name} must be a non-negative integer, got {value!r}")
-    bn_recompute_batches, bn_statistics, monitor, weight_ema = _validation_settings(
-        as_released, bn_recompute_batches, bn_statistics, monitor, weight_ema)
-    if disentangle not in DISENTANGLE:
-        raise TrainingError(
-            f"unknown disentangle {disentangle!r}; choose one of {', '.join(DISENTANGLE)}"
-        )
-    if target_scaling not in TARGET_SCALINGS:
-        raise TrainingError(
-            f"unknown target scaling {target_scaling!r}; choose one of {', '.join(TARGET_SCALINGS)}"
-        )
+def _check_target_scaling(target_scaling, spec, variant, as_released):
+    """``target_scaling`` must be known, and "none" unless the variant's
+    training loss is the per-output MAE (TrainingError, one line)."""
+    _check_choice("target scaling", target_scaling, TARGET_SCALINGS)
     if target_scaling != "none" and not spec.training_loss(as_released).per_output:
         raise TrainingError(
             "target scaling applies to the per-output MAE loss (MTL-Baseline, or CPL as "
             f"released), not to {variant}"
         )
+
+
+def _check_optional_numbers(learning_rate, alpha_rate, disparity_ceiling, time_budget_s):
+    """The settings that are a number or None (their defaults): each must be
+    a finite number in its range (TrainingError, one line)."""
     if learning_rate is not None and not (
         isinstance(learning_rate, (int, float)) and math.isfinite(learning_rate) and learning_rate > 0
     ):
@@ -174,23 +161,50 @@ def _check_arguments(*, variant, backbone, split, epochs, batch_size, workers, p
     ):
         raise TrainingError(f"disparity ceiling must be 'auto', None or a number of pixels "
                             f"above {FLOORS['disparity']:g}, got {disparity_ceiling!r}")
-
     if time_budget_s is not None and (isinstance(time_budget_s, bool) or not (
         isinstance(time_budget_s, (int, float)) and math.isfinite(time_budget_s)
         and time_budget_s > 0
     )):
         raise TrainingError(f"time budget must be a positive number of seconds, "
                             f"got {time_budget_s!r}")
-    if augment is not None and augment not in AUGMENTATIONS:
-        raise TrainingError(f"unknown augmentation {augment!r}; choose one of "
-                            f"{', '.join(AUGMENTATIONS)}")
-    return spec, bn_recompute_batches, bn_statistics, monitor, weight_ema
+
+
+def _check_arguments(*, variant, backbone, split, epochs, batch_size, workers, patience, seed,
+                     as_released, bn_recompute_batches, bn_statistics, monitor, disentangle,
+                     target_scaling, learning_rate, alpha_rate, time_budget_s,
+                     disparity_ceiling, augment, weight_ema):
+    """``plan_run``'s checks of its arguments, in this order (TrainingError,
+    one line); returns the variant's spec and ``_validation_settings``'s
+    (config.json's BatchNorm, monitor and moving-average fields, defaults
+    filled in; the names of those left at their defaults)."""
+    try:
+        spec = variants.get(variant)
+    except ValueError as error:
+        raise TrainingError(str(error)) from None
+    _check_choice("backbone", backbone, BACKBONES)
+    _check_choice("split", split, SPLITS)
+    for name, value in (("epochs", epochs), ("batch size", batch_size), ("workers", workers)):
+        if not (isinstance(value, (int, np.integer)) and value >= 1):
+            raise TrainingError(f"{name} must be a positive integer, got {value!r}")
+    for name, value in (("patience", patience), ("seed", seed)):
+        if isinstance(value, bool) or not (isinstance(value, (int, np.integer)) and value >= 0):
+            raise TrainingError(f"{name} must be a non-negative integer, got {value!r}")
+    validation, defaulted = _validation_settings(
+        as_released, bn_recompute_batches, bn_statistics, monitor, weight_ema)
+    _check_choice("disentangle", disentangle, DISENTANGLE)
+    _check_target_scaling(target_scaling, spec, variant, as_released)
+    _check_optional_numbers(learning_rate, alpha_rate, disparity_ceiling, time_budget_s)
+    if augment is not None:
+        _check_choice("augmentation", augment, AUGMENTATIONS)
+    return spec, validation, defaulted
 
 
 def _read_dataset(data, *, image_size, split, seed, test_fraction, val_fraction, as_released,
                   batch_size):
-    """``plan_run``'s dataset: its facts, targets and split, checked against
-    the arguments (DatasetError or TrainingError, one line)."""
+    """``plan_run``'s dataset: its facts (``fields``: config.json's data,
+    num_pairs, protocol, training_rigs and split sizes), ``image_size``,
+    ``targets`` and ``split``, checked against the arguments (DatasetError
+    or TrainingError, one line)."""
     data = os.path.abspath(os.fspath(data))
     with StereoFile(data) as f:
         labels = f.labels
@@ -223,8 +237,9 @@ def _read_dataset(data, *, image_size, split, seed, test_fraction, val_fraction,
             f"batch size {batch_size} is larger than the training split ({len(indices['train'])} "
             f"pairs of {data}); use --batch-size {len(indices['train'])} or less"
         )
-    return {"data": data, "height": height, "width": width, "num_pairs": num_pairs,
-            "protocol": protocol, "rigs": rigs, "targets": targets, "indices": indices}
+    fields = dict(data=data, num_pairs=num_pairs, protocol=protocol, training_rigs=rigs,
+                  **{f"num_{part}": len(indices[part]) for part in ("train", "val", "test")})
+    return {"fields": fields, "image_size": [height, width], "targets": targets, "split": indices}
 
 
 def plan_run(data, *, variant, run_dir, epochs=200, batch_size=16, learning_rate=None,
@@ -254,11 +269,7 @@ def plan_run(data, *, variant, run_dir, epochs=200, batch_size=16, learning_rate
     ``DatasetError`` or ``TrainingError`` with a one-line message. Writes
     nothing.
     """
-    # (settings left at their defaults: a run directory resumes with its own)
-    given = dict(bn_statistics=bn_statistics, monitor=monitor, weight_ema=weight_ema,
-                 bn_recompute_batches=bn_recompute_batches)
-    defaulted = tuple(key for key, value in given.items() if value is None)
-    spec, bn_recompute_batches, bn_statistics, monitor, weight_ema = _check_arguments(
+    spec, validation, defaulted = _check_arguments(
         variant=variant, backbone=backbone, split=split, epochs=epochs, batch_size=batch_size,
         workers=workers, patience=patience, seed=seed, as_released=as_released,
         bn_recompute_batches=bn_recompute_batches, bn_statistics=bn_statistics,
@@ -269,33 +280,26 @@ def plan_run(data, *, variant, run_dir, epochs=200, batch_size=16, learning_rate
     dataset = _read_dataset(data, image_size=image_size, split=split, seed=seed,
                             test_fraction=test_fraction, val_fraction=val_fraction,
                             as_released=as_released, batch_size=batch_size)
-    targets, indices = dataset["targets"], dataset["indices"]
     devices, processes = _devices_and_processes(data_parallel)
     build = _build_arguments(
-        spec, backbone=backbone, image_size=[dataset["height"], dataset["width"]],
-        as_released=as_released, bounded_pitch_head=bounded_pitch_head,
-        positive_focal_head=positive_focal_head, disentangle=disentangle, seed=seed,
-        alpha_rate=alpha_rate,
-        disparity_ceiling=_disparity_ceiling(disparity_ceiling, spec, as_released,
-                                             targets["disparity"][indices["train"]]))
+        spec, dataset, backbone=backbone, as_released=as_released,
+        bounded_pitch_head=bounded_pitch_head, positive_focal_head=positive_focal_head,
+        disentangle=disentangle, seed=seed, alpha_rate=alpha_rate,
+        disparity_ceiling=disparity_ceiling)
     config = runs.RunConfig(
-        variant=variant, build=build, data=dataset["data"], num_pairs=dataset["num_pairs"],
-        protocol=dataset["protocol"], training_rigs=dataset["rigs"], split=split,
-        test_fraction=test_fraction,
-        val_fraction=val_fraction, num_train=len(indices["train"]),
-        num_val=len(indices["val"]), num_test=len(indices["test"]), seed=int(seed),
+        variant=variant, build=build, **dataset["fields"], split=split,
+        test_fraction=test_fraction, val_fraction=val_fraction, seed=int(seed),
         batch_size=int(batch_size),
         learning_rate=None if learning_rate is None else float(learning_rate),
-        epochs=int(epochs), patience=int(patience),
-        bn_recompute_batches=int(bn_recompute_batches), bn_statistics=bn_statistics,
-        monitor=monitor, weight_ema=float(weight_ema), target_scaling=target_scaling,
+        epochs=int(epochs), patience=int(patience), **validation, target_scaling=target_scaling,
         time_budget_s=None if time_budget_s is None else float(time_budget_s),
         augment=augment, data_parallel=bool(data_parallel), num_devices=devices,
         num_processes=processes, device_batch_size=-(-batch_size // devices) * devices,
         command=command,
         run_dir=os.path.abspath(os.fspath(run_dir)), keras_backend=keras_backend())
     config = _check_run_dir(config, keep_ceiling=disparity_ceiling == "auto", keep=defaulted)
-    return RunPlan(config=config, targets=targets, split=indices, workers=int(workers))
+    return RunPlan(config=config, targets=dataset["targets"], split=dataset["split"],
+                   workers=int(workers))
 
 
 def _devices_and_processes(data_parallel):
@@ -311,34 +315,38 @@ def _devices_and_processes(data_parallel):
     return devices, processes
 
 
-def _build_arguments(spec, *, backbone, image_size, as_released, bounded_pitch_head,
+def _build_arguments(spec, dataset, *, backbone, as_released, bounded_pitch_head,
                      positive_focal_head, disentangle, seed, alpha_rate, disparity_ceiling):
     """config.json's ``build``: ``models.build_model``'s keyword arguments
-    (the heads as released when ``as_released``, unless set; the adaptive
+    for ``dataset``'s images (``_read_dataset``; the heads as released when
+    ``as_released``, unless set; the disparity head's ceiling; the adaptive
     weights' pace for MTL-CPL-A)."""
     build = {
-        "backbone": backbone, "image_size": image_size, "as_released": bool(as_released),
+        "backbone": backbone, "image_size": dataset["image_size"],
+        "as_released": bool(as_released),
         "floors": dict(RELEASED_FLOORS if as_released else FLOORS),
         "bounded_pitch_head": (not as_released) if bounded_pitch_head is None
         else bool(bounded_pitch_head),
         "positive_focal_head": (not as_released) if positive_focal_head is None
         else bool(positive_focal_head),
         "disentangle": disentangle, "seed": int(seed),
-        "disparity_ceiling": disparity_ceiling,
+        "disparity_ceiling": _disparity_ceiling(disparity_ceiling, spec, as_released, dataset),
     }
     if spec.training_loss(as_released).adaptive:
         build["alpha_rate"] = float(ALPHA_RATE if alpha_rate is None else alpha_rate)
     return build
 
 
-def _disparity_ceiling(setting, spec, as_released, train_disparities):
+def _disparity_ceiling(setting, spec, as_released, dataset):
     """The build's ``disparity_ceiling`` (px): None where the disparity head
     is not the positive one (the direct variants, or as released), and with
-    ``"auto"`` ``DISPARITY_CEILING_FACTOR`` times the largest training label."""
+    ``"auto"`` ``DISPARITY_CEILING_FACTOR`` times the largest training label
+    of ``dataset`` (``_read_dataset``'s)."""
     if as_released or not spec.training_loss(as_released).projection:
         return None
     if setting == "auto":
-        return round(DISPARITY_CEILING_FACTOR * float(np.max(train_disparities)), 3)
+        train_labels = dataset["targets"]["disparity"][dataset["split"]["train"]]
+        return round(DISPARITY_CEILING_FACTOR * float(np.max(train_labels)), 3)
     return None if setting is None else float(setting)
 
 
