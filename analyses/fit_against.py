@@ -113,6 +113,18 @@ def page(results, epochs, command):
     return "\n".join(lines)
 
 
+def command_line(args):
+    """The command that writes ``args.out`` again (at the top of the page)."""
+    words = ["python analyses/fit_against.py"]
+    words += [f'--pair "{name}={os.path.relpath(run, REPO)},{os.path.relpath(reference, REPO)}"'
+              for name, run, reference in args.pair]
+    if list(args.targets) != list(TARGETS):
+        words.append("--targets " + " ".join(args.targets))
+    if list(args.epochs) != list(EPOCHS):
+        words.append("--epochs " + " ".join(map(str, args.epochs)))
+    return " ".join(words + [f"--out {os.path.relpath(args.out, REPO)}"])
+
+
 def main(argv=None):
     args = parse_args(argv)
     try:
@@ -124,17 +136,10 @@ def main(argv=None):
     except (OSError, ValueError) as error:
         print(f"analyses/fit_against.py: error: {error}", file=sys.stderr)
         return 2
-    command = "python analyses/fit_against.py " + " ".join(
-        f'--pair "{name}={os.path.relpath(run, REPO)},{os.path.relpath(reference, REPO)}"'
-        for name, run, reference in args.pair) + \
-        (f" --targets {' '.join(args.targets)}" if list(args.targets) != list(TARGETS) else "") + \
-        (f" --epochs {' '.join(map(str, args.epochs))}" if list(args.epochs) != list(EPOCHS)
-         else "") + f" --out {os.path.relpath(args.out, REPO)}"
     from cpl_keras import files
 
-    files.write_text(args.out, page(results, args.epochs, command))
-    files.write_json(args.out[:-3] + ".json", results)
-    print(f"wrote {args.out} and {args.out[:-3]}.json")
+    text = page(results, args.epochs, command_line(args))
+    print(f"wrote {args.out} and {files.write_page(args.out, text, results)}")
     return 0
 
 

@@ -133,8 +133,7 @@ def main(argv=None):
         [f"--data {args.data}"] + [f"--run '{n}={p}'" for n, p in args.runs]
         + [f"--out {args.out}"])
     os.makedirs(os.path.dirname(os.path.abspath(args.out)), exist_ok=True)
-    files.write_text(args.out, markdown(result, command))
-    files.write_json(args.out[:-3] + ".json", result)
+    files.write_page(args.out, markdown(result, command), result)
     print(f"wrote {args.out}")
     return 0
 

@@ -115,9 +115,7 @@ def main(argv=None):
         f" --out {os.path.relpath(args.out, REPO)}"
     from cpl_keras import files
 
-    files.write_text(args.out, page(summaries, command))
-    files.write_json(args.out[:-3] + ".json", summaries)
-    print(f"wrote {args.out} and {args.out[:-3]}.json")
+    print(f"wrote {args.out} and {files.write_page(args.out, page(summaries, command), summaries)}")
     return 0
 
 

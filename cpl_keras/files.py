@@ -241,6 +241,15 @@ def write_json(path, payload, indent=2):
     write_text(path, json.dumps(payload, indent=indent) + "\n")
 
 
+def write_page(path, text, payload):
+    """A Markdown page ``path`` (``.md``) and its figures as JSON beside it
+    (the same name, ``.json``), each atomically; returns the JSON's path."""
+    json_path = os.path.splitext(path)[0] + ".json"
+    write_text(path, text)
+    write_json(json_path, payload)
+    return json_path
+
+
 def save_figure(fig, path, **savefig_args):
     """Save the matplotlib figure ``fig`` to ``path`` atomically, then close it."""
     import matplotlib.pyplot as plt
