@@ -46,33 +46,22 @@ def evaluate():
     cli.run(main, "cpl-evaluate", note="nothing was written")
 
 
-def reproduce():
-    cli.run(_main("cpl_keras.commands.reproduce"), "python -m cpl_keras.reproduce")
+def _command(name, prog):
+    """The console command that runs ``cpl_keras.commands.<name>``'s main
+    as ``prog`` (its ``python -m`` form)."""
+    def command():
+        cli.run(_main(f"cpl_keras.commands.{name}"), prog)
+
+    command.__name__ = command.__qualname__ = name
+    command.__doc__ = f"``{prog}``"
+    return command
 
 
-def calibrate():
-    cli.run(_main("cpl_keras.commands.calibrate"), "python -m cpl_keras.calibrate")
-
-
-def graph():
-    cli.run(_main("cpl_keras.commands.graph"), "python -m cpl_keras.graph")
-
-
-def generate():
-    cli.run(_main("cpl_keras.commands.generate"), "python -m cpl_keras.data.generate")
-
-
-def real_build():
-    cli.run(_main("cpl_keras.commands.real_build"), "python -m cpl_keras.real.build")
-
-
-def chessboard():
-    cli.run(_main("cpl_keras.commands.chessboard"), "python -m cpl_keras.real.chessboard")
-
-
-def mix():
-    cli.run(_main("cpl_keras.commands.mix"), "python -m cpl_keras.data.mix")
-
-
-def learning_curves():
-    cli.run(_main("cpl_keras.commands.learning_curves"), "python -m cpl_keras.learning_curves")
+reproduce = _command("reproduce", "python -m cpl_keras.reproduce")
+calibrate = _command("calibrate", "python -m cpl_keras.calibrate")
+graph = _command("graph", "python -m cpl_keras.graph")
+generate = _command("generate", "python -m cpl_keras.data.generate")
+real_build = _command("real_build", "python -m cpl_keras.real.build")
+chessboard = _command("chessboard", "python -m cpl_keras.real.chessboard")
+mix = _command("mix", "python -m cpl_keras.data.mix")
+learning_curves = _command("learning_curves", "python -m cpl_keras.learning_curves")
