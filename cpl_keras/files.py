@@ -63,6 +63,18 @@ def sync_folder(folder):
 _unfinished = set()
 
 
+def mark_unfinished(tmp):
+    """Count ``tmp`` among the temporary files of unfinished writes, which
+    ``remove_unfinished`` removes (a Ctrl-C's exit): for a writer that names
+    its own temporary file (``data.writer.StereoWriter``)."""
+    _unfinished.add(tmp)
+
+
+def unmark_unfinished(tmp):
+    """``tmp``'s write is over (committed or discarded): ``mark_unfinished`` undone."""
+    _unfinished.discard(tmp)
+
+
 def remove_unfinished():
     """Remove the temporary files of every atomic write still in progress (a
     process about to end at once, ``cli.run`` after a Ctrl-C)."""

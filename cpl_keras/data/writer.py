@@ -17,8 +17,8 @@ import os
 import numpy as np
 
 from cpl_keras.camera import UNITS
-from cpl_keras.data.storage import INDEX_LABELS, SCHEMA_VERSION, DatasetError, _h5py
-from cpl_keras.files import _unfinished, abandon, commit, write_failed
+from cpl_keras.data.storage import INDEX_LABELS, SCHEMA_VERSION, DatasetError
+from cpl_keras.files import abandon, commit, mark_unfinished, unmark_unfinished, write_failed
 
 #: The settings a resumed file must share with its writer's metadata, said
 #: by name when they differ (every other metadata key must match too, but
@@ -69,14 +69,15 @@ class StereoWriter:
         self._complete = 0  # (leading pairs written in full)
 
     def __enter__(self):
-        h5py = _h5py()
+        import h5py
+
         directory = os.path.dirname(os.path.abspath(self.path))
         if not os.path.isdir(directory):
             raise DatasetError(f"output directory does not exist: {directory}")
         if self.resumable and os.path.exists(self.tmp_path) and self._resume(h5py):
             return self
         if not self.resumable:
-            _unfinished.add(self.tmp_path)  # (removed by a Ctrl-C's exit too)
+            mark_unfinished(self.tmp_path)  # (removed by a Ctrl-C's exit too)
         try:
             self._file = h5py.File(self.tmp_path, "w")
         except OSError as error:
@@ -237,7 +238,7 @@ class StereoWriter:
             self._discard()
             raise DatasetError(write_failed(self.path, error)) from None
         finally:
-            _unfinished.discard(self.tmp_path)
+            unmark_unfinished(self.tmp_path)
         return False
 
     def _abandon(self):
@@ -252,6 +253,6 @@ class StereoWriter:
 
     def _discard(self):
         """Remove the temporary file (nothing appears under the final name)."""
-        _unfinished.discard(self.tmp_path)
+        unmark_unfinished(self.tmp_path)
         with contextlib.suppress(OSError):
             os.remove(self.tmp_path)
