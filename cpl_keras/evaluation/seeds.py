@@ -27,7 +27,7 @@ SPREAD = "sample standard deviation over the seeds (n - 1 in the denominator)"
 SPREAD_METRICS = ("mae", "nmae", "nmae_signed")
 
 
-def _mean_and_spread(values):
+def mean_and_spread(values):
     """Mean and sample standard deviation of ``values`` (None = undefined:
     an undefined value in any seed leaves both undefined)."""
     a = np.array([np.nan if v is None else v for v in values], np.float64)
@@ -92,15 +92,15 @@ def _aggregate_rows(tables, seeds):
                 if key == "num_defined":
                     targets[name][key] = int(sum(values))
                     continue
-                targets[name][key], spread = _mean_and_spread(values)
+                targets[name][key], spread = mean_and_spread(values)
                 if key in SPREAD_METRICS:
                     target_spread[name][key] = spread
         fov, fov_spread = {}, {}
         for k in first["fov_within_deg"]:
-            fov[k], fov_spread[k] = _mean_and_spread([p["fov_within_deg"][k] for p in parts])
+            fov[k], fov_spread[k] = mean_and_spread([p["fov_within_deg"][k] for p in parts])
         entry.update(targets=targets, fov_within_deg=fov)
         if all("field" in p for p in parts):  # (Table 2: the field's focal and FoV metrics)
-            entry["field"] = {key: _mean_and_spread([p["field"][key] for p in parts])[0]
+            entry["field"] = {key: mean_and_spread([p["field"][key] for p in parts])[0]
                               for key in first["field"]}
         if "degenerate" in first:
             entry["degenerate"] = first["degenerate"]

@@ -28,7 +28,7 @@ import numpy as np
 from cpl_keras import metrics
 from cpl_keras.camera import PARAMETERS
 from cpl_keras.evaluation.predict import EvaluationError
-from cpl_keras.evaluation.seeds import _mean_and_spread, beyond_spread
+from cpl_keras.evaluation.seeds import mean_and_spread, beyond_spread
 
 #: The paper table's columns, in its order, and the target each one is.
 COLUMNS = ("fx", "fy", "u0", "v0", "b", "d", "tx", "ty", "tz", "pitch")
@@ -209,8 +209,8 @@ def spread_rule(nmae_a, nmae_b):
     reports' ``differences_beyond_spread`` renders)."""
     if min(len(values) for values in list(nmae_a.values()) + list(nmae_b.values())) < 2:
         raise EvaluationError("the seed-spread rule needs 2 or more seeds")
-    return {name: _SPREAD_CELLS[beyond_spread(*_mean_and_spread(nmae_a[name]),
-                                              *_mean_and_spread(nmae_b[name]))]
+    return {name: _SPREAD_CELLS[beyond_spread(*mean_and_spread(nmae_a[name]),
+                                              *mean_and_spread(nmae_b[name]))]
             for name in PARAMETERS}
 
 
@@ -236,8 +236,8 @@ def compare(rows_a, rows_b, *, resamples=RESAMPLES, level=LEVEL,
                                bootstrap_seed=bootstrap_seed) for s in seeds}
     verdicts = []
     for column, name in COLUMN_PARAMETER.items():
-        mean_a, spread_a = _mean_and_spread(nmae_a[name])
-        mean_b, spread_b = _mean_and_spread(nmae_b[name])
+        mean_a, spread_a = mean_and_spread(nmae_a[name])
+        mean_b, spread_b = mean_and_spread(nmae_b[name])
         by_bootstrap = _all_seeds(i.answer for i in per_seed[name])
         verdicts.append(ColumnVerdict(
             column=column, parameter=name, mean_a=mean_a, spread_a=spread_a,

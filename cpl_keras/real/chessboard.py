@@ -65,7 +65,7 @@ from cpl_keras.images import read_gray, resize_image
 from cpl_keras.real import (
     RealDataError, check_crop_settings, check_sample_room, released_disparity, write_samples,
 )
-from cpl_keras.real.middlebury import _draw_window
+from cpl_keras.real.middlebury import draw_window
 from cpl_keras.stereo_camera import INTRINSICS, StereoCamera
 
 #: The project's copy of OpenCV's sample pairs.
@@ -273,7 +273,7 @@ def chessboard_samples(cal, crops=20, image_size=112, seed=0):
         while made < crops:
             attempts += 1
             full = made == 0 or attempts > 100 * crops    # whole image: every corner inside
-            window = (0, 0, width, height) if full else _draw_window(rng, width, height)
+            window = (0, 0, width, height) if full else draw_window(rng, width, height)
             k = _window_pixel(pair, window, width, height)
             if k is None:
                 continue

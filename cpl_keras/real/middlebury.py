@@ -65,7 +65,7 @@ def load_motorcycle():
     return left, right, disparity, dict(CALIBRATION)
 
 
-def _draw_window(rng, width, height):
+def draw_window(rng, width, height):
     if rng.random() < FULL_IMAGE_SHARE:
         return 0, 0, width, height
     crop_w = int(rng.uniform(MIN_CROP_FRACTION, 1.0) * width)
@@ -101,7 +101,7 @@ def middlebury_samples(crops, image_size=112, seed=0):
     rng = np.random.default_rng(seed)
     index = 0
     while index < crops:
-        window = _draw_window(rng, width, height)
+        window = draw_window(rng, width, height)
         pixel = _draw_pixel(rng, disparity, window)
         if pixel is None:
             continue

@@ -122,7 +122,7 @@ def measure_disparity(left, right, max_disparity=MAX_DISPARITY, min_disparity=MI
     return np.where(ok, d_left, np.nan)
 
 
-def _draw_window(rng, valid):
+def draw_window(rng, valid):
     x0, y0, x1, y1 = valid
     width, height = x1 - x0, y1 - y0
     if rng.random() < FULL_IMAGE_SHARE:
@@ -165,7 +165,7 @@ def oakd_samples(crops_per_pair=20, image_size=112, seed=0, root=DATA_DIR):
             if tries > 100 * crops_per_pair:
                 raise RealDataError(f"{scene}: no pixel with a measured disparity in "
                                     f"{tries} crops")
-            window = _draw_window(rng, cal["valid"])
+            window = draw_window(rng, cal["valid"])
             pixel = _draw_pixel(rng, disparity, window)
             if pixel is None:
                 continue
