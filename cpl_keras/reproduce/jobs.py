@@ -36,7 +36,7 @@ def train_all(config, paths, runs_dir, seed, jobs=1, out_dir=None, train=True):
     (``publish_run``: its stored predictions, log, curves, config and split
     in ``out_dir/runs/<key>_<name>/``, no weights), and a run whose
     published record is there but whose run directory is not (another
-    machine, a later session) is restored from it instead of trained again.
+    machine, a later rerun) is restored from it instead of trained again.
     """
     trained, pending = {}, []
     for job in run_jobs(config, seed):

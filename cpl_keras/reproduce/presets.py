@@ -230,7 +230,7 @@ PRESETS = {
     # monitor; weight_ema 0, which its published runs were trained with).
     # About 1-2 h a run on 2 cores (12 samples/s, 2-5 min an epoch): each
     # finished run is published at once and a rerun goes on from there,
-    # session after session.
+    # rerun after rerun.
     "inception-2000": Preset(pairs=2000, random_pairs=1000, epochs=200, image_size=112,
                              backbone="inception_v3", crops=500, chessboard_crops=20,
                              geometric_max=200, batch_size=16, patience=5, seeds=3,

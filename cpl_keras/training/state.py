@@ -45,7 +45,7 @@ class TrainingState:
     # last epoch's (model and optimizer) and the best epoch's, or None.
     checkpoint: str | None = None
     best_weights: str | None = None
-    # Seconds of training so far, over every session of the run.
+    # Seconds of training so far, over every start and resume of the run.
     wall_time_s: float = 0.0
     # Keys not named above, kept as read.
     other: dict = dataclasses.field(default_factory=dict)
