@@ -37,6 +37,8 @@ def parse_args(argv=None):
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--run", action="append", required=True, metavar="NAME=RUN",
                         type=named_path, help="a run and its name (repeatable)")
+    parser.add_argument("--until", type=int, metavar="EPOCH",
+                        help="only the epochs up to this one (1 = the first)")
     parser.add_argument("--out", required=True, help="the Markdown page to write (.md)")
     args = parser.parse_args(argv)
     args.runs = args.run
@@ -53,13 +55,15 @@ def log_path(run):
     raise ValueError(f"no log.csv for {run} (looked for RUN/log.csv and RUN_log.csv)")
 
 
-def summarise(path):
+def summarise(path, until=None):
     """``{"epochs": [...], "terms": {target: {...}}, "alphas": {...}}`` of one
-    log: the epochs with every ``grad_`` column filled, and per term its
-    median norm, median share and the epochs it was largest and smallest."""
+    log: the epochs with every ``grad_`` column filled (up to ``until``,
+    where given), and per term its median norm, median share and the
+    epochs it was largest and smallest."""
     with open(path, newline="") as f:
         rows = list(csv.DictReader(f))
-    logged = [r for r in rows if all(r.get(f"grad_{t}") not in (None, "") for t in TARGETS)]
+    logged = [r for r in rows if all(r.get(f"grad_{t}") not in (None, "") for t in TARGETS)
+              and (until is None or int(r["epoch"]) <= until)]
     if not logged:
         raise ValueError(f"{path} has no grad_<target> columns (train.py --term-gradients)")
     norms = np.array([[float(r[f"grad_{t}"]) for t in TARGETS] for r in logged])
@@ -106,12 +110,13 @@ def page(summaries, command):
 def main(argv=None):
     args = parse_args(argv)
     try:
-        summaries = {name: summarise(log_path(run)) for name, run in args.runs}
+        summaries = {name: summarise(log_path(run), args.until) for name, run in args.runs}
     except (OSError, ValueError) as error:
         print(f"analyses/term_gradients.py: error: {error}", file=sys.stderr)
         return 2
     command = "python analyses/term_gradients.py " + " ".join(
         f'--run "{name}={os.path.relpath(run, REPO)}"' for name, run in args.runs) + \
+        (f" --until {args.until}" if args.until else "") + \
         f" --out {os.path.relpath(args.out, REPO)}"
     from cpl_keras import files
 

@@ -110,6 +110,11 @@ def test_the_term_gradients_page_from_logs(tmp_path, capsys):
     assert v0["median_share"] == pytest.approx(10.0 / (10.0 + 11 * 1.0 + 0.5))  # epoch 1
     assert summary["alphas"]["fx"] == 2.0
     assert "| v0 | 10 | 0.465 | 2 | 0 | 2 |" in out.read_text()
+    # --until: the first epochs alone (v0 largest in both)
+    assert script.main(["--run", f"A={run}", "--until", "2", "--out", str(out)]) == 0
+    first = json.loads((tmp_path / "page.json").read_text())["A"]
+    assert first["epochs"] == [1, 2] and first["terms"]["v0"]["epochs_largest"] == 2
+    assert first["terms"]["disparity"]["epochs_largest"] == 0 and "--until 2" in out.read_text()
     bare = tmp_path / "bare"
     bare.mkdir()
     (bare / "log.csv").write_text("epoch,loss\n1,1.0\n")
