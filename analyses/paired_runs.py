@@ -46,32 +46,14 @@ def parse_args(argv=None):
     return args
 
 
-def raw_outputs(run_dir, data_path):
-    """``(raw, config)``: the run's test-split outputs on ``data_path`` as the
-    bootstrap reads them (``indices``, ``truth``, ``pred``), and its config."""
-    from cpl_keras.camera import PARAMETERS
-    from cpl_keras.datasets import targets_from_labels
-    from cpl_keras.evaluation.predict import (evaluation_indices, forget_model, open_dataset,
-                                              run_predictions)
-    from cpl_keras.runs import load_run
-
-    run = load_run(run_dir)
-    with open_dataset(data_path) as data:
-        indices, _ = evaluation_indices(run, data_path, data.num_pairs)
-        pred = run_predictions(run, data, indices)
-        targets = targets_from_labels(data.labels, as_released=run.as_released)
-    forget_model(run)
-    truth = {name: targets[name][indices] for name in PARAMETERS}
-    return {"indices": indices, "truth": truth, "pred": pred}, run.config
-
-
 def compare(runs, data_path, resamples):
     """The page's content: per run its NMAEs and epochs; per other run and
     reference, the bootstrap intervals by column."""
+    from cpl_keras.evaluation.predict import paired_outputs
     from cpl_keras.evaluation.verdicts import (A_LOWER, B_LOWER, COLUMN_PARAMETER, COLUMNS,
                                                seed_intervals)
 
-    loaded = {name: raw_outputs(path, data_path) for name, path in runs}
+    loaded = {name: paired_outputs(path, data_path) for name, path in runs}
     seeds = {config.seed for _, config in loaded.values()}
     if len(seeds) != 1:
         raise ValueError(f"the runs have different seeds: {sorted(seeds)}")

@@ -17,7 +17,7 @@ import os
 import numpy as np
 
 from cpl_keras import distributed, prediction_files, runs
-from cpl_keras.camera import TARGETS
+from cpl_keras.camera import PARAMETERS, TARGETS
 from cpl_keras.data.storage import DatasetError, StereoFile
 from cpl_keras.datasets import targets_from_labels
 from cpl_keras.runs import load_model, load_run
@@ -105,6 +105,24 @@ def run_predictions(run, stereo_file, indices, batch_size=32):
 def forget_model(run):
     """Drop the model ``run_predictions`` kept on ``run``."""
     run.model = None
+
+
+def paired_outputs(run_dir, data_path):
+    """``(raw, config)``: a run's outputs on ``data_path`` as the paired
+    bootstrap (``verdicts.seed_intervals``) reads them -- ``indices``,
+    ``truth`` (the ten parameters, as the file stores them) and ``pred`` --
+    on its test split when the file is its own dataset, else on every pair;
+    and the run's config."""
+    run = load_run(run_dir)
+    try:
+        with open_dataset(data_path) as data:
+            indices, _ = evaluation_indices(run, data_path, data.num_pairs)
+            pred = run_predictions(run, data, indices)
+            targets = targets_from_labels(data.labels, as_released=run.as_released)
+    finally:
+        forget_model(run)
+    truth = {name: targets[name][indices] for name in PARAMETERS}
+    return {"indices": indices, "truth": truth, "pred": pred}, run.config
 
 
 def store_predictions(run_dir, data_paths, batch_size=32):

@@ -1,0 +1,70 @@
+"""analyses/variant_gaps.py: two variants' test gap, setting by setting,
+with the paired bootstrap of each setting's test pairs."""
+
+import importlib.util
+import json
+import os
+
+import numpy as np
+import pytest
+
+from cpl_keras.camera import PARAMETERS
+from cpl_keras.evaluation import verdicts as v
+
+
+def _script():
+    path = os.path.join(os.path.dirname(os.path.dirname(__file__)), "analyses",
+                        "variant_gaps.py")
+    spec = importlib.util.spec_from_file_location("variant_gaps", path)
+    script = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(script)
+    return script
+
+
+def test_arguments():
+    script = _script()
+    for bad in (["--setting", "A=d.h5,a", "--out", "o.md"],
+                ["--setting", "d.h5,a,b", "--out", "o.md"],
+                ["--setting", "A=d.h5,a,b", "--out", "o"],
+                ["--setting", "A=d.h5,a,b", "--out", "o.md", "--resamples", "5"]):
+        with pytest.raises(SystemExit):
+            script.parse_args(bad)
+    args = script.parse_args(["--setting", "S, 2,000=d.h5,a,b", "--out", "o.md"])
+    assert args.setting == [("S, 2,000", "d.h5", "a", "b")]
+
+
+def test_gap_ratio_and_side_of_one_setting():
+    """A off by 1 and B off by 2 on every pair: A lower on every column, by
+    (1 - 2) / mean|truth|, at half B's NMAE; equal outputs decide nothing."""
+    rng = np.random.default_rng(0)
+    indices = np.arange(50)
+    truth = {name: rng.uniform(1.0, 3.0, 50) for name in PARAMETERS}
+    a = {"indices": indices, "truth": truth, "pred": {n: t + 1.0 for n, t in truth.items()}}
+    b = {"indices": indices, "truth": truth, "pred": {n: t - 2.0 for n, t in truth.items()}}
+    columns = _script().gap(a, b, seed=0, resamples=200)
+    for column, parameter in v.COLUMN_PARAMETER.items():
+        cell = columns[column]
+        scale = np.abs(truth[parameter]).mean()
+        assert cell["gap"] == pytest.approx(-1.0 / scale)
+        assert cell["ratio"] == pytest.approx(0.5)
+        assert cell["answer"] == "lower" and cell["low"] <= cell["gap"] <= cell["high"] < 0
+    same = _script().gap(a, a, seed=0, resamples=200)
+    assert {c["answer"] for c in same.values()} == {"="}
+    assert {c["ratio"] for c in same.values()} == {1.0}
+
+
+def test_a_run_against_itself_on_its_test_split(tiny_run, tmp_path):
+    """End to end on a trained run: the page and its JSON, the run's test
+    split, and no gap between a run and itself."""
+    script = _script()
+    out = tmp_path / "gaps.md"
+    run = tiny_run["run"]
+    assert script.main(["--setting", f"tiny={tiny_run['data']},{run},{run}",
+                        "--a", "left", "--b", "right", "--out", str(out)]) == 0
+    result = json.loads((tmp_path / "gaps.json").read_text())["tiny"]
+    split = np.load(os.path.join(run, "split.npz"), allow_pickle=False)
+    assert result["test_pairs"] == len(split["test"]) > 0
+    assert {c["gap"] for c in result["columns"].values()} == {0.0}
+    page = out.read_text()
+    assert "# left against right, setting by setting" in page
+    assert '--a "left" --b "right"' in page and "| tiny | 0, " in page and "| 0 / 0 |" in page
