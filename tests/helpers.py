@@ -98,11 +98,22 @@ def batch(n=4, seed=0):
 # ---------------------------------------------------------------------------
 # The commands' main functions
 # ---------------------------------------------------------------------------
+def load_script(relative_path, name=None):
+    """The repository's script ``relative_path`` (e.g. ``analyses/paired_runs.py``)
+    imported as a module, its ``__main__`` block not run."""
+    import importlib.util
+
+    name = name or os.path.splitext(os.path.basename(relative_path))[0]
+    spec = importlib.util.spec_from_file_location(name, os.path.join(REPO, relative_path))
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+# ---------------------------------------------------------------------------
 def main_functions():
     """``{command: its main function}`` for the package's commands and the
     repository's train.py and evaluate.py."""
-    import importlib.util
-
     from cpl_keras.commands import (
         calibrate, chessboard, generate, graph, learning_curves, mix, real_build, reproduce,
     )
@@ -111,11 +122,7 @@ def main_functions():
              "calibrate": calibrate.main, "graph": graph.main, "real.build": real_build.main,
              "learning_curves": learning_curves.main, "real.chessboard": chessboard.main}
     for script in ("train.py", "evaluate.py"):
-        spec = importlib.util.spec_from_file_location(script[:-3] + "_cli",
-                                                      os.path.join(REPO, script))
-        module = importlib.util.module_from_spec(spec)
-        spec.loader.exec_module(module)
-        mains[script] = module.main
+        mains[script] = load_script(script, script[:-3] + "_cli").main
     return mains
 
 

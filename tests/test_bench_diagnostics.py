@@ -5,7 +5,6 @@ statistics give the validation loss that training recorded, and the figures
 are finite. analyses/fy_from_aspect.py: its errors are the ones worked out here from
 the run's own predictions."""
 
-import importlib.util
 import json
 import math
 import os
@@ -13,17 +12,13 @@ import os
 import numpy as np
 import pytest
 
-from helpers import REPO
+from helpers import REPO, load_script
 
 BENCH = os.path.join(REPO, "bench")
-ANALYSES = os.path.join(REPO, "analyses")
 
 
 def _script(name):
-    spec = importlib.util.spec_from_file_location(name, os.path.join(ANALYSES, name + ".py"))
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+    return load_script(os.path.join("analyses", name + ".py"))
 
 
 diagnose = _script("diagnose_inference_mode")

@@ -2,20 +2,14 @@
 epoch by epoch, and its Eq. 9 weights, from two log.csv files."""
 
 import csv
-import importlib.util
 import json
-import os
 
 import pytest
+from helpers import load_script
 
 
 def _script():
-    path = os.path.join(os.path.dirname(os.path.dirname(__file__)), "analyses",
-                        "fit_against.py")
-    spec = importlib.util.spec_from_file_location("fit_against", path)
-    script = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(script)
-    return script
+    return load_script("analyses/fit_against.py")
 
 
 def _write_log(path, header, rows):

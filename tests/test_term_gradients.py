@@ -81,14 +81,11 @@ def test_the_term_gradients_page_from_logs(tmp_path, capsys):
     median share and the epochs a term was largest and smallest, from a
     log.csv (RUN/log.csv or a published RUN_log.csv); a log without the
     gradient columns is one line, exit 2, and nothing written."""
-    import importlib.util
     import json
 
-    path = os.path.join(os.path.dirname(os.path.dirname(__file__)), "analyses",
-                        "term_gradients.py")
-    spec = importlib.util.spec_from_file_location("term_gradients", path)
-    script = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(script)
+    from helpers import load_script
+
+    script = load_script("analyses/term_gradients.py")
     run = tmp_path / "runs" / "cvgl_cpl-a-s0"
     run.mkdir(parents=True)
     norms = [{t: 1.0 for t in TARGETS} for _ in range(3)]

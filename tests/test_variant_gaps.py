@@ -1,24 +1,19 @@
 """analyses/variant_gaps.py: two variants' test gap, setting by setting,
 with the paired bootstrap of each setting's test pairs."""
 
-import importlib.util
 import json
 import os
 
 import numpy as np
 import pytest
+from helpers import load_script
 
 from cpl_keras.camera import PARAMETERS
 from cpl_keras.evaluation import verdicts as v
 
 
 def _script():
-    path = os.path.join(os.path.dirname(os.path.dirname(__file__)), "analyses",
-                        "variant_gaps.py")
-    spec = importlib.util.spec_from_file_location("variant_gaps", path)
-    script = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(script)
-    return script
+    return load_script("analyses/variant_gaps.py")
 
 
 def test_arguments():

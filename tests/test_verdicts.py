@@ -195,13 +195,9 @@ def test_paired_runs_arguments_and_page():
     """analyses/paired_runs.py: two references and at least one more run,
     NAME=RUN_DIR each; the page lists each run's NMAEs and, per other run
     and reference, the interval and the side it decides."""
-    import importlib.util
-    import os
+    from helpers import load_script
 
-    path = os.path.join(os.path.dirname(os.path.dirname(__file__)), "analyses", "paired_runs.py")
-    spec = importlib.util.spec_from_file_location("paired_runs", path)
-    script = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(script)
+    script = load_script("analyses/paired_runs.py")
     for bad in (["--data", "d.h5", "--run", "A=a", "--run", "B=b", "--out", "o.md"],
                 ["--data", "d.h5", "--run", "A", "--run", "B=b", "--run", "C=c", "--out", "o.md"],
                 ["--data", "d.h5", "--run", "A=a", "--run", "B=b", "--run", "C=c", "--out", "o"]):
