@@ -49,14 +49,14 @@ def parse_args(argv=None):
 def compare(runs, data_path, resamples):
     """The page's content: per run its NMAEs and epochs; per other run and
     reference, the bootstrap intervals by column."""
-    from cpl_keras.evaluation.predict import paired_outputs
+    from cpl_keras.evaluation.predict import EvaluationError, paired_outputs
     from cpl_keras.evaluation.verdicts import (A_LOWER, B_LOWER, COLUMN_PARAMETER, COLUMNS,
                                                seed_intervals)
 
     loaded = {name: paired_outputs(path, data_path) for name, path in runs}
     seeds = {config.seed for _, config in loaded.values()}
     if len(seeds) != 1:
-        raise ValueError(f"the runs have different seeds: {sorted(seeds)}")
+        raise EvaluationError(f"the runs have different seeds: {sorted(seeds)}")
     seed = seeds.pop()
     references = [name for name, _ in runs[:2]]
     result = {"data": os.path.basename(data_path), "seed": seed, "references": references,
