@@ -111,7 +111,7 @@ def markdown(result, a, b, command):
     for name, s in result.items():
         cells = [s["columns"][c] for c in COLUMNS]
         answers = [cell["answer"] for cell in cells]
-        lines.append(f"| {name} | {s['seed']}, {s['test_pairs']} | " + " | ".join(
+        lines.append(f"| {name} | {s['seed']}, {s['test_pairs']:,} | " + " | ".join(
             f"{cell['gap']:+.3f} {cell['answer']} [{cell['low']:+.3f}, {cell['high']:+.3f}]"
             for cell in cells) + f" | {answers.count('lower')} / {answers.count('higher')} |")
     lines += ["", f"{a}'s NMAE over {b}'s (below 1: {a} lower):", "",
