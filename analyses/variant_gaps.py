@@ -71,6 +71,30 @@ def gap(raw_a, raw_b, seed, resamples):
     return out
 
 
+def by_depth(raw_a, raw_b, parts=3):
+    """A's MAE over B's per column in ``parts`` equal parts of the test pairs,
+    by the depth of the ground-truth point (xCam = fx b / d, Eq. 4a): the
+    camera projection terms weigh a parameter's error by the point it moves,
+    and that point moves more the farther it is."""
+    import numpy as np
+
+    from cpl_keras import camera
+    from cpl_keras.evaluation.verdicts import COLUMN_PARAMETER
+
+    truth = {k: np.asarray(v, np.float64) for k, v in raw_a["truth"].items()}
+    depth = camera.depth_from_disparity(truth["fx"], truth["baseline"], truth["disparity"])
+    order = np.argsort(depth, kind="stable")
+    groups = np.array_split(order, parts)
+    out = {"depth_m": [[float(depth[g].min()), float(depth[g].max())] for g in groups],
+           "pairs": [len(g) for g in groups], "ratio": {}}
+    for column, name in COLUMN_PARAMETER.items():
+        err_a = np.abs(np.asarray(raw_a["pred"][name], np.float64) - truth[name])
+        err_b = np.abs(np.asarray(raw_b["pred"][name], np.float64) - truth[name])
+        out["ratio"][column] = [float(err_a[g].mean() / err_b[g].mean())
+                                if err_b[g].mean() > 0 else None for g in groups]
+    return out
+
+
 def run_record(path, config):
     return {"run": os.path.relpath(os.path.abspath(path), REPO), "command": config.command,
             "epochs_run": config.epochs_run, "best_epoch": config.best_epoch,
@@ -88,7 +112,8 @@ def compare(settings, resamples):
         result[name] = {"data": os.path.basename(data), "seed": config_a.seed,
                         "test_pairs": len(raw_a["indices"]),
                         "a": run_record(run_a, config_a), "b": run_record(run_b, config_b),
-                        "columns": gap(raw_a, raw_b, config_a.seed, resamples)}
+                        "columns": gap(raw_a, raw_b, config_a.seed, resamples),
+                        "by_depth": by_depth(raw_a, raw_b)}
     return result
 
 
@@ -120,7 +145,23 @@ def markdown(result, a, b, command):
         lines.append(f"| {name} | " + " | ".join(
             "-" if s["columns"][c]["ratio"] is None else f"{s['columns'][c]['ratio']:.2f}"
             for c in COLUMNS) + " |")
-    return "\n".join(lines) + "\n"
+    return "\n".join(lines + depth_lines(result, a, b)) + "\n"
+
+
+def depth_lines(result, a, b):
+    from cpl_keras.evaluation.verdicts import COLUMNS
+
+    lines = ["", f"{a}'s MAE over {b}'s in thirds of each setting's test pairs by the depth "
+             "of the ground-truth point (xCam = fx b / d, Eq. 4a; near, middle, far):", "",
+             "| setting | depth (m), pairs | " + " | ".join(COLUMNS) + " |",
+             "|---|---" + "|---" * len(COLUMNS) + "|"]
+    for name, s in result.items():
+        d = s["by_depth"]
+        for i, ((low, high), pairs) in enumerate(zip(d["depth_m"], d["pairs"])):
+            lines.append(f"| {name} | {low:.1f}-{high:.1f}, {pairs} | " + " | ".join(
+                "-" if d["ratio"][c][i] is None else f"{d['ratio'][c][i]:.2f}"
+                for c in COLUMNS) + " |")
+    return lines
 
 
 def command_line(args):

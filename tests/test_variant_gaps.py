@@ -63,3 +63,25 @@ def test_a_run_against_itself_on_its_test_split(tiny_run, tmp_path):
     page = out.read_text()
     assert "# left against right, setting by setting" in page
     assert '--a "left" --b "right"' in page and "| tiny | 0, " in page and "| 0 / 0 |" in page
+
+
+def test_errors_by_the_depth_of_the_point():
+    """Thirds of the test pairs by xCam = fx b / d: A off by 1 on the near
+    third and by 3 on the far one, B off by 2 everywhere: ratios 0.5, 1, 1.5
+    in every column, the depth ranges in order and every pair counted."""
+    n = 30
+    truth = {name: np.full(n, 2.0) for name in PARAMETERS}
+    truth["disparity"] = np.linspace(60.0, 1.0, n)        # (far last)
+    depth = truth["fx"] * truth["baseline"] / truth["disparity"]
+    offset = np.repeat([1.0, 2.0, 3.0], n // 3)
+    a = {"indices": np.arange(n), "truth": truth,
+         "pred": {k: t + offset for k, t in truth.items()}}
+    b = {"indices": np.arange(n), "truth": truth,
+         "pred": {k: t + 2.0 for k, t in truth.items()}}
+    result = _script().by_depth(a, b)
+    assert result["pairs"] == [10, 10, 10]
+    assert result["depth_m"][0][0] == pytest.approx(depth.min())
+    assert result["depth_m"][2][1] == pytest.approx(depth.max())
+    assert result["depth_m"][0][1] < result["depth_m"][1][0]
+    for column in v.COLUMNS:
+        assert result["ratio"][column] == pytest.approx([0.5, 1.0, 1.5])
