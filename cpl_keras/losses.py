@@ -39,6 +39,17 @@ it) the graph sees the parameters through ``stop_gradient``, so those errors
 reach only the graph's own free parameters, the pixel heads u, v. With
 ``disentangle="partial"`` (the first version of this project) they reach
 every head the graph reads.
+
+Point errors in metres or relative to depth (not the paper's). Eq. 7 adds
+each pair's point error in metres, so a parameter's term weighs a pair by how
+far that parameter moves its point: the disparity moves the depth xCam =
+fx b / d (Eq. 4a) by fx b / d^2 per pixel and a pitch error moves a point by
+its distance times the error, so near pairs weigh least. With
+``point_errors="relative"`` each pair's point error (X, Y and Z together) is
+divided by its ground-truth depth xCam: the pitch's point error then weighs
+every pair alike, and the disparity's goes as 1 / d instead of 1 / d^2. An
+ablation that tests that reading of where MTL-CPL-A loses; ``"metres"`` is
+Eq. 7 and the default.
 """
 
 from __future__ import annotations
@@ -49,15 +60,20 @@ import numpy as np
 from keras import ops
 
 from cpl_keras import camera
+from cpl_keras.models.variants import POINT_ERRORS
 
 
-def projection_terms(y_true, y_pred, floors=None):
+def projection_terms(y_true, y_pred, floors=None, point_errors="metres"):
     """The 13 disentangled projection losses ``L_p`` of Eq. 7, in TARGETS order.
 
     ``y_true`` and ``y_pred`` map each name of ``camera.TARGETS`` to a
     (batch, 1) tensor; ``floors`` are the camera graph's divisor floors
-    (``camera.FLOORS``). Returns a list of 13 scalars (batch means).
+    (``camera.FLOORS``); ``point_errors``: one of ``POINT_ERRORS`` (the
+    module docstring). Returns a list of 13 scalars (batch means).
     """
+    if point_errors not in POINT_ERRORS:
+        raise ValueError(f"point_errors must be one of {', '.join(POINT_ERRORS)}, "
+                         f"got {point_errors!r}")
     tensor = camera.tensor_ops(floors=floors)
     gt = {name: ops.cast(y_true[name], "float32") for name in camera.TARGETS}
     params = {name: gt[name] for name in camera.PARAMETERS}
@@ -66,18 +82,27 @@ def projection_terms(y_true, y_pred, floors=None):
         gt["X"], gt["Y"], gt["Z"], gt["fx"], gt["fy"], gt["u0"], gt["v0"],
         gt["baseline"], gt["pitch"], gt["tx"], gt["ty"], gt["tz"], ops=tensor,
     )
+    # Each pair's point errors are in metres, or in units of its depth.
+    depth = None
+    if point_errors == "relative":
+        depth = camera.depth_from_disparity(gt["fx"], gt["baseline"], gt["disparity"], ops=tensor)
     n = float(len(camera.TARGETS))
     terms = []
     for name in camera.PARAMETERS:
         one_predicted = dict(params, **{name: y_pred[name]})
         X, Y, Z = camera.image_to_world(**one_predicted, u=u, v=v, ops=tensor)
-        error = (
-            ops.abs(y_pred[name] - gt[name])
-            + ops.abs(X - gt["X"]) + ops.abs(Y - gt["Y"]) + ops.abs(Z - gt["Z"])
-        )
+        if depth is None:  # (Eq. 7, summed in this order, as every published run was)
+            error = (
+                ops.abs(y_pred[name] - gt[name])
+                + ops.abs(X - gt["X"]) + ops.abs(Y - gt["Y"]) + ops.abs(Z - gt["Z"])
+            )
+        else:
+            point = ops.abs(X - gt["X"]) + ops.abs(Y - gt["Y"]) + ops.abs(Z - gt["Z"])
+            error = ops.abs(y_pred[name] - gt[name]) + point / depth
         terms.append(ops.mean(error) / n)
     for name in ("X", "Y", "Z"):
-        terms.append(ops.mean(ops.abs(y_pred[name] - gt[name])) / n)
+        error = ops.abs(y_pred[name] - gt[name])
+        terms.append(ops.mean(error if depth is None else error / depth) / n)
     return terms
 
 

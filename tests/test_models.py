@@ -106,6 +106,53 @@ def test_projection_terms_vanish_at_the_truth_and_isolate_each_parameter():
     assert max(t for i, t in enumerate(terms) if i != index) < 1e-4
 
 
+def test_relative_point_errors_are_the_metres_divided_by_the_true_depth():
+    _, y = batch(6)
+    yt = {k: ops.convert_to_tensor(v) for k, v in y.items()}
+    depth = camera.depth_from_disparity(y["fx"], y["baseline"], y["disparity"])
+    assert np.ptp(depth) > 1.0  # (pairs at different depths, so the division shows)
+    for name, error in (("pitch", 0.02), ("disparity", 0.5), ("tx", 0.65)):
+        wrong = dict(yt, **{name: yt[name] + error})
+        index = TARGETS.index(name)
+        per_pair = []
+        for mode in ("metres", "relative"):
+            # one pair at a time: 13 L_p minus the parameter's own error is its point error
+            per_pair.append(np.array([
+                13 * float(losses.projection_terms(
+                    {k: v[i:i + 1] for k, v in yt.items()},
+                    {k: v[i:i + 1] for k, v in wrong.items()}, point_errors=mode)[index]) - error
+                for i in range(6)]))
+        metres, relative = per_pair
+        assert metres.min() > 1e-3, name
+        np.testing.assert_allclose(relative, metres / depth[:, 0], rtol=2e-3, err_msg=name)
+    # the graph's own terms too: L_X = |X' - X| / (13 xCam)
+    wrong = dict(yt, X=yt["X"] + 2.0)
+    term = float(losses.projection_terms(yt, wrong, point_errors="relative")[TARGETS.index("X")])
+    assert term == pytest.approx(np.mean(2.0 / depth) / 13, rel=1e-4)
+    with pytest.raises(ValueError, match="point_errors must be one of metres, relative"):
+        losses.projection_terms(yt, yt, point_errors="depth")
+
+
+def test_a_model_built_with_relative_point_errors_trains_with_them():
+    x, y = batch(4)
+    yt = {k: ops.convert_to_tensor(v) for k, v in y.items()}
+    metres = build_model("cpl-a", backbone="small", image_size=SIZE, seed=0)
+    relative = build_model("cpl-a", backbone="small", image_size=SIZE, seed=0,
+                           point_errors="relative")
+    assert "point_errors" not in metres.build_settings  # (as every model built before it)
+    assert relative.build_settings["point_errors"] == "relative"
+    assert "point_errors" not in build_model("baseline", backbone="small", image_size=SIZE,
+                                             point_errors="relative").build_settings
+    wrong = dict(yt, pitch=yt["pitch"] + 0.02)
+    index = TARGETS.index("pitch")
+    assert float(relative.projection_terms(yt, wrong)[index]) == pytest.approx(float(
+        losses.projection_terms(yt, wrong, relative.floors, "relative")[index]))
+    assert float(relative.projection_terms(yt, wrong)[index]) != pytest.approx(
+        float(metres.projection_terms(yt, wrong)[index]))
+    with pytest.raises(ValueError, match="point_errors"):
+        build_model("cpl-a", backbone="small", image_size=SIZE, point_errors="depth")
+
+
 def test_uniform_adaptive_and_euclidean_losses_by_hand():
     terms = [ops.convert_to_tensor(float(t)) for t in range(1, 14)]
     assert float(losses.uniform_projection_loss(terms)) == pytest.approx(7.0)

@@ -817,8 +817,9 @@ FLAG_CASES = {
                     and not c["build"]["positive_focal_head"]
                     and not c["build"]["bounded_pitch_head"]),
     "cpl-u heads": (["--disentangle", "partial", "--linear-pitch-head",
-                     "--disparity-ceiling", "300"], "cpl-u",
+                     "--disparity-ceiling", "300", "--point-errors", "relative"], "cpl-u",
                     lambda c: c["build"]["disentangle"] == "partial"
+                    and c["build"]["point_errors"] == "relative"
                     and c["build"]["disparity_ceiling"] == 300.0
                     and c["build"]["bounded_pitch_head"] is False),
     "cpl-a heads": (["--linear-focal-head", "--alpha-rate", "3", "--weight-ema", "0.9"], "cpl-a",
@@ -872,6 +873,26 @@ def test_every_training_flag_reaches_the_run(case, tiny_run, tmp_path):
         assert ceiling == pytest.approx(2 * disparity[train_pairs].max(), abs=1e-3)
     if "alpha_rate" in config["build"]:
         assert model.alpha_rate == config["build"]["alpha_rate"]
+    # metres, the default, is recorded by its absence, as in every run before the choice
+    assert model.build_settings.get("point_errors") == config["build"].get("point_errors")
+    assert config["build"].get("point_errors") == ("relative" if case == "cpl-u heads" else None)
+
+
+def test_relative_point_errors_are_refused_without_the_projection_loss(tiny_run, tmp_path):
+    from cpl_keras.training import TrainingError, plan_run
+
+    for variant in ("baseline", "deep-homo"):
+        with pytest.raises(TrainingError, match="point errors 'relative' apply to the camera "
+                           f"projection loss, which {variant} does not train with"):
+            plan_run(tiny_run["data"], variant=variant, run_dir=str(tmp_path / variant),
+                     backbone="small", point_errors="relative")
+    with pytest.raises(TrainingError, match="point errors"):
+        plan_run(tiny_run["data"], variant="cpl-a", run_dir=str(tmp_path / "c"),
+                 backbone="small", point_errors="depth")
+    plan = plan_run(tiny_run["data"], variant="cpl-a", run_dir=str(tmp_path / "a"),
+                    backbone="small", point_errors="relative")
+    assert plan.config.build["point_errors"] == "relative"
+    assert not any(tmp_path.iterdir())
 
 
 def test_drive_split_flag_reaches_the_split(tiny_run, tmp_path, capsys):

@@ -114,8 +114,10 @@ class CalibrationModel(keras.Model):
         return {key: epsilon for key in camera.FLOORS}
 
     def projection_terms(self, y, y_pred):
-        """The 13 disentangled terms of Eq. 7 for targets ``y`` (dict)."""
-        return losses.projection_terms(y, self._as_dict(y_pred), self.floors)
+        """The 13 disentangled terms of Eq. 7 for targets ``y`` (dict), with
+        the point errors the model was built with (``losses.POINT_ERRORS``)."""
+        return losses.projection_terms(y, self._as_dict(y_pred), self.floors,
+                                       self.build_settings.get("point_errors", "metres"))
 
     def initialise_adaptive_weights(self, y):
         """Start Eq. 9's weights balanced at the Average baseline's level.

@@ -60,15 +60,15 @@ from cpl_keras.layers import (
 )
 from cpl_keras.models import backbones, deep_homo, variants
 from cpl_keras.models.calibration_model import CalibrationModel
-from cpl_keras.models.variants import DISENTANGLE, VARIANTS  # noqa: F401
+from cpl_keras.models.variants import DISENTANGLE, POINT_ERRORS, VARIANTS  # noqa: F401
 
 PIXEL_HEADS = ("u", "v")
 
 
 def build_model(variant, *, backbone="inception_v3", image_size=112, as_released=False,
                 floors=None, bounded_pitch_head=None, positive_focal_head=None,
-                disentangle="exact", alpha_rate=None, disparity_ceiling=None, seed=None,
-                name=None):
+                disentangle="exact", alpha_rate=None, disparity_ceiling=None,
+                point_errors="metres", seed=None, name=None):
     """Build one of the paper's networks.
 
     Args:
@@ -97,6 +97,9 @@ def build_model(variant, *, backbone="inception_v3", image_size=112, as_released
         disparity_ceiling: the largest disparity (px) the CPL variants' exp
             head can output (``layers.PositiveDisparity``; default
             ``layers.MAX_OUTPUT``). Training sets it from its labels.
+        point_errors: how the CPL losses measure Eq. 7's point errors:
+            ``"metres"`` (the paper's) or ``"relative"`` (divided by each
+            pair's ground-truth depth; an ablation, ``losses.POINT_ERRORS``).
         seed: seeds Keras's initialisers when given. Python's and NumPy's
             global random generators are left as they were.
         name: the model's name (default: the variant).
@@ -112,6 +115,7 @@ def build_model(variant, *, backbone="inception_v3", image_size=112, as_released
         positive_focal_head = not as_released
     alpha_rate = _alpha_rate(alpha_rate)
     _check_choice("disentangle", disentangle, DISENTANGLE)
+    _check_choice("point_errors", point_errors, POINT_ERRORS)
     disparity = PositiveDisparity(ceiling=MAX_OUTPUT if disparity_ceiling is None
                                   else disparity_ceiling)
     minimum = spec.min_image_size or backbones.MIN_IMAGE_SIZE[backbone]
@@ -119,7 +123,7 @@ def build_model(variant, *, backbone="inception_v3", image_size=112, as_released
     with _seeded(seed):
         return _build(spec, backbone, height, width, bool(as_released), floors,
                       bool(bounded_pitch_head), bool(positive_focal_head), disentangle,
-                      alpha_rate, disparity, name)
+                      alpha_rate, disparity, point_errors, name)
 
 
 @contextlib.contextmanager
@@ -139,7 +143,7 @@ def _seeded(seed):
 
 
 def _build(spec, backbone, height, width, as_released, floors, bounded_pitch_head,
-           positive_focal_head, disentangle, alpha_rate, disparity, name):
+           positive_focal_head, disentangle, alpha_rate, disparity, point_errors, name):
     left = keras.Input((height, width, 3), name="left_image")
     right = keras.Input((height, width, 3), name="right_image")
     scaled_left, scaled_right = _scale_inputs(left, right, as_released)
@@ -161,6 +165,8 @@ def _build(spec, backbone, height, width, as_released, floors, bounded_pitch_hea
     }
     if loss.adaptive:
         settings["alpha_rate"] = alpha_rate
+    if loss.projection and point_errors != "metres":  # (models built before it: metres)
+        settings["point_errors"] = point_errors
     return CalibrationModel(
         inputs={"left_image": left, "right_image": right}, outputs=outputs,
         name=name or spec.name.replace("-", "_"), build_settings=settings,

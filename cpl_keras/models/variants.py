@@ -72,6 +72,10 @@ MIN_IMAGE_SIZE = {"inception_v3": 75, "small": 16, "small_resnet": 16}
 #: How the X, Y, Z terms of the camera projection loss reach the heads
 #: (``factory.build_model``).
 DISENTANGLE = ("exact", "partial")
+#: How the camera projection loss measures Eq. 7's point errors: in metres
+#: (the paper's), or divided by each pair's ground-truth depth (an ablation;
+#: ``losses.projection_terms``).
+POINT_ERRORS = ("metres", "relative")
 #: How many times an ordinary weight's pace the adaptive weights' log alpha_i
 #: move (``CalibrationModel.alpha_rate``; here, beside the variants, so that
 #: planning and the run records read it without importing Keras). Adam moves every weight by about

@@ -25,7 +25,7 @@ from cpl_keras.data.storage import DatasetError, StereoFile
 from cpl_keras.datasets import SPLITS, make_split, targets_from_labels
 from cpl_keras.errors import Error
 from cpl_keras.models import BACKBONES, variants
-from cpl_keras.models.variants import ALPHA_RATE, DISENTANGLE
+from cpl_keras.models.variants import ALPHA_RATE, DISENTANGLE, POINT_ERRORS
 from cpl_keras.training.augment import AUGMENTATIONS
 
 #: config.json keys that must match for a run directory to be resumed.
@@ -171,7 +171,7 @@ def _check_optional_numbers(learning_rate, alpha_rate, disparity_ceiling, time_b
 
 def _check_arguments(*, variant, backbone, split, epochs, batch_size, workers, patience, seed,
                      as_released, bn_recompute_batches, bn_statistics, monitor, disentangle,
-                     target_scaling, learning_rate, alpha_rate, time_budget_s,
+                     point_errors, target_scaling, learning_rate, alpha_rate, time_budget_s,
                      disparity_ceiling, augment, weight_ema):
     """``plan_run``'s checks of its arguments, in this order (TrainingError,
     one line); returns the variant's spec and ``_validation_settings``'s
@@ -192,6 +192,10 @@ def _check_arguments(*, variant, backbone, split, epochs, batch_size, workers, p
     validation, defaulted = _validation_settings(
         as_released, bn_recompute_batches, bn_statistics, monitor, weight_ema)
     _check_choice("disentangle", disentangle, DISENTANGLE)
+    _check_choice("point errors", point_errors, POINT_ERRORS)
+    if point_errors != "metres" and not spec.training_loss(as_released).projection:
+        raise TrainingError(f"point errors {point_errors!r} apply to the camera projection "
+                            f"loss, which {variant} does not train with")
     _check_target_scaling(target_scaling, spec, variant, as_released)
     _check_optional_numbers(learning_rate, alpha_rate, disparity_ceiling, time_budget_s)
     if augment is not None:
@@ -245,7 +249,7 @@ def _read_dataset(data, *, image_size, split, seed, test_fraction, val_fraction,
 def plan_run(data, *, variant, run_dir, epochs=200, batch_size=16, learning_rate=None,
              image_size=None, backbone="inception_v3", split="paper", as_released=False,
              seed=0, data_parallel=False, patience=5, test_fraction=0.3, val_fraction=0.1,
-             workers=1, disentangle="exact", bounded_pitch_head=None,
+             workers=1, disentangle="exact", point_errors="metres", bounded_pitch_head=None,
              positive_focal_head=None, alpha_rate=None, disparity_ceiling="auto",
              bn_recompute_batches=None, bn_statistics=None, monitor=None,
              target_scaling="none", time_budget_s=None, augment=None, weight_ema=None, command=None):
@@ -260,6 +264,8 @@ def plan_run(data, *, variant, run_dir, epochs=200, batch_size=16, learning_rate
     ``disparity_ceiling``: the CPL disparity head's largest output in px
     (``"auto"``: ``DISPARITY_CEILING_FACTOR`` times the largest training
     label; None: ``layers.MAX_OUTPUT``, the bound of runs made before it).
+    ``point_errors``: the CPL variants' point errors of Eq. 7, ``"metres"``
+    (the paper's) or ``"relative"`` (``losses.POINT_ERRORS``; an ablation).
     ``augment``: None, or ``"photometric"`` (``training.augment``; not the paper's).
     ``bn_statistics`` (``BN_STATISTICS``), ``bn_recompute_batches`` and
     ``monitor`` (``MONITORS``): the BatchNorm statistics validation runs
@@ -273,7 +279,7 @@ def plan_run(data, *, variant, run_dir, epochs=200, batch_size=16, learning_rate
         variant=variant, backbone=backbone, split=split, epochs=epochs, batch_size=batch_size,
         workers=workers, patience=patience, seed=seed, as_released=as_released,
         bn_recompute_batches=bn_recompute_batches, bn_statistics=bn_statistics,
-        monitor=monitor, disentangle=disentangle,
+        monitor=monitor, disentangle=disentangle, point_errors=point_errors,
         target_scaling=target_scaling, learning_rate=learning_rate, alpha_rate=alpha_rate,
         time_budget_s=time_budget_s, disparity_ceiling=disparity_ceiling, augment=augment,
         weight_ema=weight_ema)
@@ -285,7 +291,7 @@ def plan_run(data, *, variant, run_dir, epochs=200, batch_size=16, learning_rate
         spec, dataset, backbone=backbone, as_released=as_released,
         bounded_pitch_head=bounded_pitch_head, positive_focal_head=positive_focal_head,
         disentangle=disentangle, seed=seed, alpha_rate=alpha_rate,
-        disparity_ceiling=disparity_ceiling)
+        disparity_ceiling=disparity_ceiling, point_errors=point_errors)
     config = runs.RunConfig(
         variant=variant, build=build, **dataset["fields"], split=split,
         test_fraction=test_fraction, val_fraction=val_fraction, seed=int(seed),
@@ -316,11 +322,13 @@ def _devices_and_processes(data_parallel):
 
 
 def _build_arguments(spec, dataset, *, backbone, as_released, bounded_pitch_head,
-                     positive_focal_head, disentangle, seed, alpha_rate, disparity_ceiling):
+                     positive_focal_head, disentangle, seed, alpha_rate, disparity_ceiling,
+                     point_errors="metres"):
     """config.json's ``build``: ``models.build_model``'s keyword arguments
     for ``dataset``'s images (``_read_dataset``; the heads as released when
     ``as_released``, unless set; the disparity head's ceiling; the adaptive
-    weights' pace for MTL-CPL-A)."""
+    weights' pace for MTL-CPL-A; the point errors where not in metres, so
+    that the runs made before the choice resume)."""
     build = {
         "backbone": backbone, "image_size": dataset["image_size"],
         "as_released": bool(as_released),
@@ -334,6 +342,8 @@ def _build_arguments(spec, dataset, *, backbone, as_released, bounded_pitch_head
     }
     if spec.training_loss(as_released).adaptive:
         build["alpha_rate"] = float(ALPHA_RATE if alpha_rate is None else alpha_rate)
+    if point_errors != "metres":
+        build["point_errors"] = point_errors
     return build
 
 
