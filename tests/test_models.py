@@ -153,6 +153,25 @@ def test_a_model_built_with_relative_point_errors_trains_with_them():
         build_model("cpl-a", backbone="small", image_size=SIZE, point_errors="depth")
 
 
+def test_baseline_with_the_exp_disparity_head_of_the_cpl_variants():
+    x, _ = batch(2)
+    model = build_model("baseline", backbone="small", image_size=SIZE, seed=0,
+                        exp_disparity_head=True, disparity_ceiling=50.0)
+    assert model.build_settings["exp_disparity_head"] is True
+    assert model.build_settings["disparity_ceiling"] == 50.0
+    assert "exp_disparity_head" not in build_model("baseline", backbone="small",
+                                                   image_size=SIZE).build_settings
+    head = model.get_layer("disparity")
+    head.kernel.assign(np.zeros(head.kernel.shape, "float32"))
+    index = TARGETS.index("disparity")
+    for bias, expected in ((-50.0, camera.FLOORS["disparity"]), (2.0, np.exp(2.0)), (9.0, 50.0)):
+        head.bias.assign(np.full(head.bias.shape, bias, "float32"))
+        np.testing.assert_allclose(model.predict(x, verbose=0)[index], expected, rtol=1e-5)
+    for variant in ("cpl-a", "deep-homo"):
+        with pytest.raises(ValueError, match="exp_disparity_head is MTL-Baseline's ablation"):
+            build_model(variant, backbone="small", image_size=SIZE, exp_disparity_head=True)
+
+
 def test_uniform_adaptive_and_euclidean_losses_by_hand():
     terms = [ops.convert_to_tensor(float(t)) for t in range(1, 14)]
     assert float(losses.uniform_projection_loss(terms)) == pytest.approx(7.0)

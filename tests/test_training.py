@@ -827,9 +827,10 @@ FLAG_CASES = {
                     and c["build"]["alpha_rate"] == 3.0 and c["weight_ema"] == 0.9),
     "baseline steps": (["--target-scaling", "std", "--steps-per-execution", "2",
                         "--bn-recompute-batches", "0", "--split", "held-out-config",
-                        "--augment", "photometric"], "baseline",
+                        "--augment", "photometric", "--exp-disparity-head"], "baseline",
                        lambda c: c["target_scaling"] == "std" and c["augment"] == "photometric"
-                       and c["build"]["disparity_ceiling"] is None
+                       and c["build"]["exp_disparity_head"] is True
+                       and c["build"]["disparity_ceiling"] > 0
                        and c["bn_recompute_batches"] == 0 and c["split"] == "held-out-config"),
 }
 
@@ -878,7 +879,7 @@ def test_every_training_flag_reaches_the_run(case, tiny_run, tmp_path):
     assert config["build"].get("point_errors") == ("relative" if case == "cpl-u heads" else None)
 
 
-def test_relative_point_errors_are_refused_without_the_projection_loss(tiny_run, tmp_path):
+def test_ablation_switches_are_refused_where_they_do_not_apply(tiny_run, tmp_path):
     from cpl_keras.training import TrainingError, plan_run
 
     for variant in ("baseline", "deep-homo"):
@@ -892,6 +893,15 @@ def test_relative_point_errors_are_refused_without_the_projection_loss(tiny_run,
     plan = plan_run(tiny_run["data"], variant="cpl-a", run_dir=str(tmp_path / "a"),
                     backbone="small", point_errors="relative")
     assert plan.config.build["point_errors"] == "relative"
+    for variant in ("cpl-a", "deep-homo"):
+        with pytest.raises(TrainingError, match="an exp disparity head is MTL-Baseline's "
+                           f"ablation; {variant} has its own disparity head"):
+            plan_run(tiny_run["data"], variant=variant, run_dir=str(tmp_path / variant),
+                     backbone="small", exp_disparity_head=True)
+    plain = plan_run(tiny_run["data"], variant="baseline", run_dir=str(tmp_path / "b"),
+                     backbone="small")
+    assert "exp_disparity_head" not in plain.config.build  # (as in every run before it)
+    assert plain.config.build["disparity_ceiling"] is None
     assert not any(tmp_path.iterdir())
 
 

@@ -105,13 +105,17 @@ def _add_loop_arguments(parser):
 
 def _add_head_arguments(parser):
     """The heads and what the camera projection loss trains: --disentangle,
-    --point-errors, --linear-pitch-head, --linear-focal-head, --alpha-rate, --disparity-ceiling."""
+    --point-errors, --exp-disparity-head, --linear-pitch-head, --linear-focal-head,
+    --alpha-rate, --disparity-ceiling."""
     parser.add_argument("--disentangle", choices=DISENTANGLE, default="exact",
                         help="CPL: the X, Y, Z terms of Eq. 7 train only the pixel heads "
                         "(exact, default) or every head the camera graph reads (partial)")
     parser.add_argument("--point-errors", choices=POINT_ERRORS, default="metres",
                         help="CPL: Eq. 7's point errors in metres (default, the paper's) or "
                         "divided by each pair's true depth (relative; an ablation)")
+    parser.add_argument("--exp-disparity-head", action="store_true",
+                        help="MTL-Baseline: the CPL variants' disparity head, d = exp(z) up to "
+                        "--disparity-ceiling, instead of a linear one (an ablation)")
     parser.add_argument("--linear-pitch-head", action="store_true",
                         help="an unbounded pitch head (the release's; default: clipped to +-pi/2)")
     parser.add_argument("--linear-focal-head", action="store_true",
@@ -290,7 +294,7 @@ def _train(args, demo, seed, epochs, backbone, run_dir, command, prog):
             backbone=backbone, split=args.split, as_released=args.as_released, seed=seed,
             data_parallel=args.data_parallel, patience=args.patience, workers=args.workers,
             steps_per_execution=args.steps_per_execution, disentangle=args.disentangle,
-            point_errors=args.point_errors,
+            point_errors=args.point_errors, exp_disparity_head=args.exp_disparity_head,
             bounded_pitch_head=False if args.linear_pitch_head else None,
             positive_focal_head=False if args.linear_focal_head else None,
             alpha_rate=args.alpha_rate, disparity_ceiling=args.disparity_ceiling,

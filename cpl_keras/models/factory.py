@@ -68,7 +68,7 @@ PIXEL_HEADS = ("u", "v")
 def build_model(variant, *, backbone="inception_v3", image_size=112, as_released=False,
                 floors=None, bounded_pitch_head=None, positive_focal_head=None,
                 disentangle="exact", alpha_rate=None, disparity_ceiling=None,
-                point_errors="metres", seed=None, name=None):
+                point_errors="metres", exp_disparity_head=False, seed=None, name=None):
     """Build one of the paper's networks.
 
     Args:
@@ -100,6 +100,10 @@ def build_model(variant, *, backbone="inception_v3", image_size=112, as_released
         point_errors: how the CPL losses measure Eq. 7's point errors:
             ``"metres"`` (the paper's) or ``"relative"`` (divided by each
             pair's ground-truth depth; an ablation, ``losses.POINT_ERRORS``).
+        exp_disparity_head: MTL-Baseline only: its disparity head is the CPL
+            variants' ``d = exp(z)`` with their floor and ``disparity_ceiling``
+            instead of linear (an ablation; the CPL variants have it as the
+            paper writes them).
         seed: seeds Keras's initialisers when given. Python's and NumPy's
             global random generators are left as they were.
         name: the model's name (default: the variant).
@@ -116,6 +120,9 @@ def build_model(variant, *, backbone="inception_v3", image_size=112, as_released
     alpha_rate = _alpha_rate(alpha_rate)
     _check_choice("disentangle", disentangle, DISENTANGLE)
     _check_choice("point_errors", point_errors, POINT_ERRORS)
+    if exp_disparity_head and spec.builder != "direct":
+        raise ValueError(f"exp_disparity_head is MTL-Baseline's ablation; {variant} has its "
+                         f"own disparity head")
     disparity = PositiveDisparity(ceiling=MAX_OUTPUT if disparity_ceiling is None
                                   else disparity_ceiling)
     minimum = spec.min_image_size or backbones.MIN_IMAGE_SIZE[backbone]
@@ -123,7 +130,7 @@ def build_model(variant, *, backbone="inception_v3", image_size=112, as_released
     with _seeded(seed):
         return _build(spec, backbone, height, width, bool(as_released), floors,
                       bool(bounded_pitch_head), bool(positive_focal_head), disentangle,
-                      alpha_rate, disparity, point_errors, name)
+                      alpha_rate, disparity, point_errors, bool(exp_disparity_head), name)
 
 
 @contextlib.contextmanager
@@ -143,7 +150,8 @@ def _seeded(seed):
 
 
 def _build(spec, backbone, height, width, as_released, floors, bounded_pitch_head,
-           positive_focal_head, disentangle, alpha_rate, disparity, point_errors, name):
+           positive_focal_head, disentangle, alpha_rate, disparity, point_errors,
+           exp_disparity_head, name):
     left = keras.Input((height, width, 3), name="left_image")
     right = keras.Input((height, width, 3), name="right_image")
     scaled_left, scaled_right = _scale_inputs(left, right, as_released)
@@ -153,13 +161,15 @@ def _build(spec, backbone, height, width, as_released, floors, bounded_pitch_hea
         floors=floors, pitch_activation=bounded_pitch if bounded_pitch_head else None,
         positive_focal_head=positive_focal_head, disparity_activation=disparity,
         detach=loss.projection and disentangle == "exact",
+        exp_disparity=disparity if exp_disparity_head else None,
     )
+    positive_disparity = loss.projection or exp_disparity_head
     settings = {
         "variant": spec.name, "backbone": backbone, "image_size": [height, width],
         "as_released": as_released, "floors": floors, "loss": loss.name,
         "bounded_pitch_head": bounded_pitch_head and spec.builder != "deep_homo",
-        "positive_disparity_head": loss.projection,
-        "disparity_ceiling": disparity.ceiling if loss.projection else None,
+        "positive_disparity_head": positive_disparity,
+        "disparity_ceiling": disparity.ceiling if positive_disparity else None,
         "positive_focal_head": positive_focal_head and loss.projection and spec.camera_graph,
         "disentangle": disentangle if loss.projection else None,
     }
@@ -167,6 +177,8 @@ def _build(spec, backbone, height, width, as_released, floors, bounded_pitch_hea
         settings["alpha_rate"] = alpha_rate
     if loss.projection and point_errors != "metres":  # (models built before it: metres)
         settings["point_errors"] = point_errors
+    if exp_disparity_head:
+        settings["exp_disparity_head"] = True
     return CalibrationModel(
         inputs={"left_image": left, "right_image": right}, outputs=outputs,
         name=name or spec.name.replace("-", "_"), build_settings=settings,
@@ -177,16 +189,19 @@ def _deep_homo_outputs(spec, left, right, *, as_released, **_):
     return deep_homo.deep_homo_outputs(left, right, as_released)
 
 
-def _direct_outputs(spec, left, right, *, backbone, pitch_activation, **_):
-    """Two towers and one regression head per target (X, Y, Z regressed too)."""
+def _direct_outputs(spec, left, right, *, backbone, pitch_activation, exp_disparity=None, **_):
+    """Two towers and one regression head per target (X, Y, Z regressed too);
+    the disparity's is linear, or ``exp_disparity`` (``build_model``'s
+    ``exp_disparity_head``)."""
     features = backbones.stereo_features(left, right, backbone)
-    return [regression_head(features, target,
-                            activation=pitch_activation if target == "pitch" else None)
+    activations = {"pitch": pitch_activation, "disparity": exp_disparity}
+    return [regression_head(features, target, activation=activations.get(target))
             for target in camera.TARGETS]
 
 
 def _camera_graph_outputs(spec, left, right, *, backbone, as_released, floors,
-                          pitch_activation, positive_focal_head, disparity_activation, detach):
+                          pitch_activation, positive_focal_head, disparity_activation, detach,
+                          **_):
     features = backbones.stereo_features(left, right, backbone)
     return camera_projection_outputs(features, spec.name, as_released, floors, pitch_activation,
                                      detach=detach, positive_focal_head=positive_focal_head,

@@ -171,7 +171,7 @@ def _check_optional_numbers(learning_rate, alpha_rate, disparity_ceiling, time_b
 
 def _check_arguments(*, variant, backbone, split, epochs, batch_size, workers, patience, seed,
                      as_released, bn_recompute_batches, bn_statistics, monitor, disentangle,
-                     point_errors, target_scaling, learning_rate, alpha_rate, time_budget_s,
+                     point_errors, exp_disparity_head, target_scaling, learning_rate, alpha_rate, time_budget_s,
                      disparity_ceiling, augment, weight_ema):
     """``plan_run``'s checks of its arguments, in this order (TrainingError,
     one line); returns the variant's spec and ``_validation_settings``'s
@@ -196,6 +196,9 @@ def _check_arguments(*, variant, backbone, split, epochs, batch_size, workers, p
     if point_errors != "metres" and not spec.training_loss(as_released).projection:
         raise TrainingError(f"point errors {point_errors!r} apply to the camera projection "
                             f"loss, which {variant} does not train with")
+    if exp_disparity_head and spec.builder != "direct":
+        raise TrainingError(f"an exp disparity head is MTL-Baseline's ablation; {variant} has "
+                            f"its own disparity head")
     _check_target_scaling(target_scaling, spec, variant, as_released)
     _check_optional_numbers(learning_rate, alpha_rate, disparity_ceiling, time_budget_s)
     if augment is not None:
@@ -249,7 +252,8 @@ def _read_dataset(data, *, image_size, split, seed, test_fraction, val_fraction,
 def plan_run(data, *, variant, run_dir, epochs=200, batch_size=16, learning_rate=None,
              image_size=None, backbone="inception_v3", split="paper", as_released=False,
              seed=0, data_parallel=False, patience=5, test_fraction=0.3, val_fraction=0.1,
-             workers=1, disentangle="exact", point_errors="metres", bounded_pitch_head=None,
+             workers=1, disentangle="exact", point_errors="metres", exp_disparity_head=False,
+             bounded_pitch_head=None,
              positive_focal_head=None, alpha_rate=None, disparity_ceiling="auto",
              bn_recompute_batches=None, bn_statistics=None, monitor=None,
              target_scaling="none", time_budget_s=None, augment=None, weight_ema=None, command=None):
@@ -266,6 +270,8 @@ def plan_run(data, *, variant, run_dir, epochs=200, batch_size=16, learning_rate
     label; None: ``layers.MAX_OUTPUT``, the bound of runs made before it).
     ``point_errors``: the CPL variants' point errors of Eq. 7, ``"metres"``
     (the paper's) or ``"relative"`` (``losses.POINT_ERRORS``; an ablation).
+    ``exp_disparity_head``: MTL-Baseline with the CPL variants' disparity
+    head, d = exp(z) up to its ceiling (an ablation).
     ``augment``: None, or ``"photometric"`` (``training.augment``; not the paper's).
     ``bn_statistics`` (``BN_STATISTICS``), ``bn_recompute_batches`` and
     ``monitor`` (``MONITORS``): the BatchNorm statistics validation runs
@@ -280,6 +286,7 @@ def plan_run(data, *, variant, run_dir, epochs=200, batch_size=16, learning_rate
         workers=workers, patience=patience, seed=seed, as_released=as_released,
         bn_recompute_batches=bn_recompute_batches, bn_statistics=bn_statistics,
         monitor=monitor, disentangle=disentangle, point_errors=point_errors,
+        exp_disparity_head=exp_disparity_head,
         target_scaling=target_scaling, learning_rate=learning_rate, alpha_rate=alpha_rate,
         time_budget_s=time_budget_s, disparity_ceiling=disparity_ceiling, augment=augment,
         weight_ema=weight_ema)
@@ -291,7 +298,8 @@ def plan_run(data, *, variant, run_dir, epochs=200, batch_size=16, learning_rate
         spec, dataset, backbone=backbone, as_released=as_released,
         bounded_pitch_head=bounded_pitch_head, positive_focal_head=positive_focal_head,
         disentangle=disentangle, seed=seed, alpha_rate=alpha_rate,
-        disparity_ceiling=disparity_ceiling, point_errors=point_errors)
+        disparity_ceiling=disparity_ceiling, point_errors=point_errors,
+        exp_disparity_head=bool(exp_disparity_head))
     config = runs.RunConfig(
         variant=variant, build=build, **dataset["fields"], split=split,
         test_fraction=test_fraction, val_fraction=val_fraction, seed=int(seed),
@@ -323,12 +331,13 @@ def _devices_and_processes(data_parallel):
 
 def _build_arguments(spec, dataset, *, backbone, as_released, bounded_pitch_head,
                      positive_focal_head, disentangle, seed, alpha_rate, disparity_ceiling,
-                     point_errors="metres"):
+                     point_errors="metres", exp_disparity_head=False):
     """config.json's ``build``: ``models.build_model``'s keyword arguments
     for ``dataset``'s images (``_read_dataset``; the heads as released when
     ``as_released``, unless set; the disparity head's ceiling; the adaptive
-    weights' pace for MTL-CPL-A; the point errors where not in metres, so
-    that the runs made before the choice resume)."""
+    weights' pace for MTL-CPL-A; the point errors where not in metres and
+    MTL-Baseline's exp disparity head where asked for, so that the runs made
+    before those choices resume)."""
     build = {
         "backbone": backbone, "image_size": dataset["image_size"],
         "as_released": bool(as_released),
@@ -338,21 +347,25 @@ def _build_arguments(spec, dataset, *, backbone, as_released, bounded_pitch_head
         "positive_focal_head": (not as_released) if positive_focal_head is None
         else bool(positive_focal_head),
         "disentangle": disentangle, "seed": int(seed),
-        "disparity_ceiling": _disparity_ceiling(disparity_ceiling, spec, as_released, dataset),
+        "disparity_ceiling": _disparity_ceiling(disparity_ceiling, spec, as_released, dataset,
+                                                exp_disparity_head),
     }
     if spec.training_loss(as_released).adaptive:
         build["alpha_rate"] = float(ALPHA_RATE if alpha_rate is None else alpha_rate)
     if point_errors != "metres":
         build["point_errors"] = point_errors
+    if exp_disparity_head:
+        build["exp_disparity_head"] = True
     return build
 
 
-def _disparity_ceiling(setting, spec, as_released, dataset):
+def _disparity_ceiling(setting, spec, as_released, dataset, exp_head=False):
     """The build's ``disparity_ceiling`` (px): None where the disparity head
-    is not the positive one (the direct variants, or as released), and with
+    is not the positive one (the direct variants unless ``exp_head``, or as
+    released), and with
     ``"auto"`` ``DISPARITY_CEILING_FACTOR`` times the largest training label
     of ``dataset`` (``_read_dataset``'s)."""
-    if as_released or not spec.training_loss(as_released).projection:
+    if as_released or not (spec.training_loss(as_released).projection or exp_head):
         return None
     if setting == "auto":
         train_labels = dataset["targets"]["disparity"][dataset["split"]["train"]]
