@@ -172,6 +172,36 @@ def test_baseline_with_the_exp_disparity_head_of_the_cpl_variants():
             build_model(variant, backbone="small", image_size=SIZE, exp_disparity_head=True)
 
 
+def test_leaky_relu_heads():
+    """--head-activation leaky_relu: every regression head's two hidden
+    layers (parameters, pixel heads, MTL-Baseline's X, Y, Z), recorded in
+    the build settings only when not ReLU; with a first layer below zero on
+    every input, ReLU's second layer is at zero, a leaky one's is not; not
+    Deep-Homo."""
+    x, _ = batch(2)
+    for variant, heads in (("cpl-a", list(camera.PARAMETERS) + ["u", "v"]), ("baseline", TARGETS)):
+        model = build_model(variant, backbone="small", image_size=SIZE, seed=0,
+                            head_activation="leaky_relu")
+        assert model.build_settings["head_activation"] == "leaky_relu"
+        for head in heads:
+            for units in (120, 84):
+                layer = model.get_layer(f"{head}_dense_{units}")
+                assert keras.activations.serialize(layer.activation) == "leaky_relu", head
+        assert "head_activation" not in build_model(variant, backbone="small",
+                                                    image_size=SIZE).build_settings
+    relu = build_model("baseline", backbone="small", image_size=SIZE, seed=0)
+    for built in (relu, model):
+        layer = built.get_layer("pitch_dense_120")
+        layer.kernel.assign(np.zeros(layer.kernel.shape, "float32"))
+        layer.bias.assign(np.full(layer.bias.shape, -1.0, "float32"))
+        probe = keras.Model(built.inputs, built.get_layer("pitch_dense_84").output)
+        hidden = np.asarray(probe.predict(x, verbose=0))
+        assert (hidden == 0).all() if built is relu else (hidden != 0).any()
+    for bad in (("deep-homo", "leaky_relu"), ("cpl-a", "tanh")):
+        with pytest.raises(ValueError, match="head_activation"):
+            build_model(bad[0], backbone="small", image_size=SIZE, head_activation=bad[1])
+
+
 def test_uniform_adaptive_and_euclidean_losses_by_hand():
     terms = [ops.convert_to_tensor(float(t)) for t in range(1, 14)]
     assert float(losses.uniform_projection_loss(terms)) == pytest.approx(7.0)

@@ -822,8 +822,10 @@ FLAG_CASES = {
                     and c["build"]["point_errors"] == "relative"
                     and c["build"]["disparity_ceiling"] == 300.0
                     and c["build"]["bounded_pitch_head"] is False),
-    "cpl-a heads": (["--linear-focal-head", "--alpha-rate", "3", "--weight-ema", "0.9"], "cpl-a",
+    "cpl-a heads": (["--linear-focal-head", "--alpha-rate", "3", "--weight-ema", "0.9",
+                     "--head-activation", "leaky_relu"], "cpl-a",
                     lambda c: c["build"]["positive_focal_head"] is False
+                    and c["build"]["head_activation"] == "leaky_relu"
                     and c["build"]["alpha_rate"] == 3.0 and c["weight_ema"] == 0.9),
     "baseline steps": (["--target-scaling", "std", "--steps-per-execution", "2",
                         "--bn-recompute-batches", "0", "--split", "held-out-config",
@@ -874,6 +876,10 @@ def test_every_training_flag_reaches_the_run(case, tiny_run, tmp_path):
         assert ceiling == pytest.approx(2 * disparity[train_pairs].max(), abs=1e-3)
     if "alpha_rate" in config["build"]:
         assert model.alpha_rate == config["build"]["alpha_rate"]
+    assert model.build_settings.get("head_activation") == config["build"].get("head_activation")
+    if case == "cpl-a heads":
+        assert keras.activations.serialize(
+            model.get_layer("pitch_dense_120").activation) == "leaky_relu"
     # metres, the default, is recorded by its absence, as in every run before the choice
     assert model.build_settings.get("point_errors") == config["build"].get("point_errors")
     assert config["build"].get("point_errors") == ("relative" if case == "cpl-u heads" else None)
@@ -901,6 +907,14 @@ def test_ablation_switches_are_refused_where_they_do_not_apply(tiny_run, tmp_pat
     plain = plan_run(tiny_run["data"], variant="baseline", run_dir=str(tmp_path / "b"),
                      backbone="small")
     assert "exp_disparity_head" not in plain.config.build  # (as in every run before it)
+    assert "head_activation" not in plain.config.build
+    with pytest.raises(TrainingError, match="head activation 'leaky_relu' applies to the "
+                       "regression heads; deep-homo has its own"):
+        plan_run(tiny_run["data"], variant="deep-homo", run_dir=str(tmp_path / "h"),
+                 head_activation="leaky_relu")
+    with pytest.raises(TrainingError, match="head activation"):
+        plan_run(tiny_run["data"], variant="cpl-a", run_dir=str(tmp_path / "h"),
+                 backbone="small", head_activation="gelu")
     assert plain.config.build["disparity_ceiling"] is None
     assert not any(tmp_path.iterdir())
 

@@ -21,7 +21,7 @@ from cpl_keras.data.storage import DatasetError
 from cpl_keras.datasets import SPLITS
 from cpl_keras.errors import Error
 from cpl_keras.models import BACKBONES, VARIANTS
-from cpl_keras.models.variants import DISENTANGLE, POINT_ERRORS
+from cpl_keras.models.variants import DISENTANGLE, HEAD_ACTIVATIONS, POINT_ERRORS
 from cpl_keras.training import summary_line, train
 
 #: The demonstration run (no --data): dataset and training settings chosen to
@@ -105,7 +105,8 @@ def _add_loop_arguments(parser):
 
 def _add_head_arguments(parser):
     """The heads and what the camera projection loss trains: --disentangle,
-    --point-errors, --exp-disparity-head, --linear-pitch-head, --linear-focal-head,
+    --point-errors, --exp-disparity-head, --head-activation, --linear-pitch-head,
+    --linear-focal-head,
     --alpha-rate, --disparity-ceiling."""
     parser.add_argument("--disentangle", choices=DISENTANGLE, default="exact",
                         help="CPL: the X, Y, Z terms of Eq. 7 train only the pixel heads "
@@ -116,6 +117,9 @@ def _add_head_arguments(parser):
     parser.add_argument("--exp-disparity-head", action="store_true",
                         help="MTL-Baseline: the CPL variants' disparity head, d = exp(z) up to "
                         "--disparity-ceiling, instead of a linear one (an ablation)")
+    parser.add_argument("--head-activation", choices=HEAD_ACTIVATIONS, default="relu",
+                        help="the regression heads' hidden activation: relu (default, the "
+                        "release's) or leaky_relu (an ablation)")
     parser.add_argument("--linear-pitch-head", action="store_true",
                         help="an unbounded pitch head (the release's; default: clipped to +-pi/2)")
     parser.add_argument("--linear-focal-head", action="store_true",
@@ -295,7 +299,7 @@ def _train(args, demo, seed, epochs, backbone, run_dir, command, prog):
             data_parallel=args.data_parallel, patience=args.patience, workers=args.workers,
             steps_per_execution=args.steps_per_execution, disentangle=args.disentangle,
             point_errors=args.point_errors, exp_disparity_head=args.exp_disparity_head,
-            bounded_pitch_head=False if args.linear_pitch_head else None,
+            head_activation=args.head_activation, bounded_pitch_head=False if args.linear_pitch_head else None,
             positive_focal_head=False if args.linear_focal_head else None,
             alpha_rate=args.alpha_rate, disparity_ceiling=args.disparity_ceiling,
             bn_recompute_batches=args.bn_recompute_batches, bn_statistics=args.bn_statistics,

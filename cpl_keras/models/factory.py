@@ -60,7 +60,9 @@ from cpl_keras.layers import (
 )
 from cpl_keras.models import backbones, deep_homo, variants
 from cpl_keras.models.calibration_model import CalibrationModel
-from cpl_keras.models.variants import DISENTANGLE, POINT_ERRORS, VARIANTS  # noqa: F401
+from cpl_keras.models.variants import (  # noqa: F401
+    DISENTANGLE, HEAD_ACTIVATIONS, POINT_ERRORS, VARIANTS,
+)
 
 PIXEL_HEADS = ("u", "v")
 
@@ -68,7 +70,8 @@ PIXEL_HEADS = ("u", "v")
 def build_model(variant, *, backbone="inception_v3", image_size=112, as_released=False,
                 floors=None, bounded_pitch_head=None, positive_focal_head=None,
                 disentangle="exact", alpha_rate=None, disparity_ceiling=None,
-                point_errors="metres", exp_disparity_head=False, seed=None, name=None):
+                point_errors="metres", exp_disparity_head=False, head_activation="relu",
+                seed=None, name=None):
     """Build one of the paper's networks.
 
     Args:
@@ -104,6 +107,9 @@ def build_model(variant, *, backbone="inception_v3", image_size=112, as_released
             variants' ``d = exp(z)`` with their floor and ``disparity_ceiling``
             instead of linear (an ablation; the CPL variants have it as the
             paper writes them).
+        head_activation: the regression heads' hidden activation,
+            ``"relu"`` (the release's) or ``"leaky_relu"`` (an ablation;
+            ``variants.HEAD_ACTIVATIONS``). Not Deep-Homo, whose head is its own.
         seed: seeds Keras's initialisers when given. Python's and NumPy's
             global random generators are left as they were.
         name: the model's name (default: the variant).
@@ -123,6 +129,10 @@ def build_model(variant, *, backbone="inception_v3", image_size=112, as_released
     if exp_disparity_head and spec.builder != "direct":
         raise ValueError(f"exp_disparity_head is MTL-Baseline's ablation; {variant} has its "
                          f"own disparity head")
+    _check_choice("head_activation", head_activation, HEAD_ACTIVATIONS)
+    if head_activation != "relu" and spec.builder == "deep_homo":
+        raise ValueError(f"head_activation applies to the regression heads; {variant} has "
+                         f"its own")
     disparity = PositiveDisparity(ceiling=MAX_OUTPUT if disparity_ceiling is None
                                   else disparity_ceiling)
     minimum = spec.min_image_size or backbones.MIN_IMAGE_SIZE[backbone]
@@ -130,7 +140,8 @@ def build_model(variant, *, backbone="inception_v3", image_size=112, as_released
     with _seeded(seed):
         return _build(spec, backbone, height, width, bool(as_released), floors,
                       bool(bounded_pitch_head), bool(positive_focal_head), disentangle,
-                      alpha_rate, disparity, point_errors, bool(exp_disparity_head), name)
+                      alpha_rate, disparity, point_errors, bool(exp_disparity_head),
+                      head_activation, name)
 
 
 @contextlib.contextmanager
@@ -151,7 +162,7 @@ def _seeded(seed):
 
 def _build(spec, backbone, height, width, as_released, floors, bounded_pitch_head,
            positive_focal_head, disentangle, alpha_rate, disparity, point_errors,
-           exp_disparity_head, name):
+           exp_disparity_head, head_activation, name):
     left = keras.Input((height, width, 3), name="left_image")
     right = keras.Input((height, width, 3), name="right_image")
     scaled_left, scaled_right = _scale_inputs(left, right, as_released)
@@ -161,7 +172,7 @@ def _build(spec, backbone, height, width, as_released, floors, bounded_pitch_hea
         floors=floors, pitch_activation=bounded_pitch if bounded_pitch_head else None,
         positive_focal_head=positive_focal_head, disparity_activation=disparity,
         detach=loss.projection and disentangle == "exact",
-        exp_disparity=disparity if exp_disparity_head else None,
+        exp_disparity=disparity if exp_disparity_head else None, hidden=head_activation,
     )
     positive_disparity = loss.projection or exp_disparity_head
     settings = {
@@ -179,6 +190,8 @@ def _build(spec, backbone, height, width, as_released, floors, bounded_pitch_hea
         settings["point_errors"] = point_errors
     if exp_disparity_head:
         settings["exp_disparity_head"] = True
+    if head_activation != "relu":  # (models built before it: relu)
+        settings["head_activation"] = head_activation
     return CalibrationModel(
         inputs={"left_image": left, "right_image": right}, outputs=outputs,
         name=name or spec.name.replace("-", "_"), build_settings=settings,
@@ -189,23 +202,24 @@ def _deep_homo_outputs(spec, left, right, *, as_released, **_):
     return deep_homo.deep_homo_outputs(left, right, as_released)
 
 
-def _direct_outputs(spec, left, right, *, backbone, pitch_activation, exp_disparity=None, **_):
+def _direct_outputs(spec, left, right, *, backbone, pitch_activation, exp_disparity=None,
+                    hidden="relu", **_):
     """Two towers and one regression head per target (X, Y, Z regressed too);
     the disparity's is linear, or ``exp_disparity`` (``build_model``'s
     ``exp_disparity_head``)."""
     features = backbones.stereo_features(left, right, backbone)
     activations = {"pitch": pitch_activation, "disparity": exp_disparity}
-    return [regression_head(features, target, activation=activations.get(target))
+    return [regression_head(features, target, activation=activations.get(target), hidden=hidden)
             for target in camera.TARGETS]
 
 
 def _camera_graph_outputs(spec, left, right, *, backbone, as_released, floors,
                           pitch_activation, positive_focal_head, disparity_activation, detach,
-                          **_):
+                          hidden="relu", **_):
     features = backbones.stereo_features(left, right, backbone)
     return camera_projection_outputs(features, spec.name, as_released, floors, pitch_activation,
                                      detach=detach, positive_focal_head=positive_focal_head,
-                                     disparity_activation=disparity_activation)
+                                     disparity_activation=disparity_activation, hidden=hidden)
 
 
 #: How each variant's outputs are made (``variants.Variant.builder``).
@@ -215,7 +229,7 @@ BUILDERS = {"deep_homo": _deep_homo_outputs, "direct": _direct_outputs,
 
 def camera_projection_outputs(features, variant, as_released, floors, pitch_activation=None,
                               detach=False, positive_focal_head=None,
-                              disparity_activation=None):
+                              disparity_activation=None, hidden="relu"):
     # (the disparity head is positive where the projection loss trains it:
     # as the paper writes it; see ``layers.PositiveDisparity``; likewise the
     # focal heads unless ``positive_focal_head`` is False, ``layers.positive_focal``)
@@ -236,9 +250,10 @@ def camera_projection_outputs(features, variant, as_released, floors, pitch_acti
                    "disparity": None if as_released
                    else disparity_activation or PositiveDisparity(),
                    "fx": focal, "fy": focal}
-    params = {name: regression_head(features, name, activation=activations.get(name))
+    params = {name: regression_head(features, name, activation=activations.get(name),
+                                    hidden=hidden)
               for name in camera.PARAMETERS}
-    pixel = {name: regression_head(features, name) for name in PIXEL_HEADS}
+    pixel = {name: regression_head(features, name, hidden=hidden) for name in PIXEL_HEADS}
     graph_params = params
     if detach:
         graph_params = {
@@ -251,7 +266,7 @@ def camera_projection_outputs(features, variant, as_released, floors, pitch_acti
     points = {"X": X, "Y": Y, "Z": Z}
     if gated:
         for q in ("X", "Y", "Z"):
-            gate = regression_head(features, f"{q}_gate", activation="sigmoid")
+            gate = regression_head(features, f"{q}_gate", activation="sigmoid", hidden=hidden)
             points[q] = keras.layers.Lambda(multiply, name=q)([points[q], gate])
     return [params[name] for name in camera.PARAMETERS] + [points[q] for q in ("X", "Y", "Z")]
 

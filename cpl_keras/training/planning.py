@@ -25,7 +25,7 @@ from cpl_keras.data.storage import DatasetError, StereoFile
 from cpl_keras.datasets import SPLITS, make_split, targets_from_labels
 from cpl_keras.errors import Error
 from cpl_keras.models import BACKBONES, variants
-from cpl_keras.models.variants import ALPHA_RATE, DISENTANGLE, POINT_ERRORS
+from cpl_keras.models.variants import ALPHA_RATE, DISENTANGLE, HEAD_ACTIVATIONS, POINT_ERRORS
 from cpl_keras.training.augment import AUGMENTATIONS
 
 #: config.json keys that must match for a run directory to be resumed.
@@ -171,8 +171,8 @@ def _check_optional_numbers(learning_rate, alpha_rate, disparity_ceiling, time_b
 
 def _check_arguments(*, variant, backbone, split, epochs, batch_size, workers, patience, seed,
                      as_released, bn_recompute_batches, bn_statistics, monitor, disentangle,
-                     point_errors, exp_disparity_head, target_scaling, learning_rate, alpha_rate, time_budget_s,
-                     disparity_ceiling, augment, weight_ema):
+                     point_errors, exp_disparity_head, target_scaling, learning_rate, alpha_rate,
+                     time_budget_s, disparity_ceiling, augment, weight_ema, head_activation="relu"):
     """``plan_run``'s checks of its arguments, in this order (TrainingError,
     one line); returns the variant's spec and ``_validation_settings``'s
     (config.json's BatchNorm, monitor and moving-average fields, defaults
@@ -199,6 +199,10 @@ def _check_arguments(*, variant, backbone, split, epochs, batch_size, workers, p
     if exp_disparity_head and spec.builder != "direct":
         raise TrainingError(f"an exp disparity head is MTL-Baseline's ablation; {variant} has "
                             f"its own disparity head")
+    _check_choice("head activation", head_activation, HEAD_ACTIVATIONS)
+    if head_activation != "relu" and spec.builder == "deep_homo":
+        raise TrainingError(f"head activation {head_activation!r} applies to the regression "
+                            f"heads; {variant} has its own")
     _check_target_scaling(target_scaling, spec, variant, as_released)
     _check_optional_numbers(learning_rate, alpha_rate, disparity_ceiling, time_budget_s)
     if augment is not None:
@@ -253,7 +257,7 @@ def plan_run(data, *, variant, run_dir, epochs=200, batch_size=16, learning_rate
              image_size=None, backbone="inception_v3", split="paper", as_released=False,
              seed=0, data_parallel=False, patience=5, test_fraction=0.3, val_fraction=0.1,
              workers=1, disentangle="exact", point_errors="metres", exp_disparity_head=False,
-             bounded_pitch_head=None,
+             head_activation="relu", bounded_pitch_head=None,
              positive_focal_head=None, alpha_rate=None, disparity_ceiling="auto",
              bn_recompute_batches=None, bn_statistics=None, monitor=None,
              target_scaling="none", time_budget_s=None, augment=None, weight_ema=None, command=None):
@@ -272,6 +276,8 @@ def plan_run(data, *, variant, run_dir, epochs=200, batch_size=16, learning_rate
     (the paper's) or ``"relative"`` (``losses.POINT_ERRORS``; an ablation).
     ``exp_disparity_head``: MTL-Baseline with the CPL variants' disparity
     head, d = exp(z) up to its ceiling (an ablation).
+    ``head_activation``: the regression heads' hidden activation, ``"relu"``
+    (the release's) or ``"leaky_relu"`` (``variants.HEAD_ACTIVATIONS``; an ablation).
     ``augment``: None, or ``"photometric"`` (``training.augment``; not the paper's).
     ``bn_statistics`` (``BN_STATISTICS``), ``bn_recompute_batches`` and
     ``monitor`` (``MONITORS``): the BatchNorm statistics validation runs
@@ -286,7 +292,7 @@ def plan_run(data, *, variant, run_dir, epochs=200, batch_size=16, learning_rate
         workers=workers, patience=patience, seed=seed, as_released=as_released,
         bn_recompute_batches=bn_recompute_batches, bn_statistics=bn_statistics,
         monitor=monitor, disentangle=disentangle, point_errors=point_errors,
-        exp_disparity_head=exp_disparity_head,
+        exp_disparity_head=exp_disparity_head, head_activation=head_activation,
         target_scaling=target_scaling, learning_rate=learning_rate, alpha_rate=alpha_rate,
         time_budget_s=time_budget_s, disparity_ceiling=disparity_ceiling, augment=augment,
         weight_ema=weight_ema)
@@ -299,7 +305,7 @@ def plan_run(data, *, variant, run_dir, epochs=200, batch_size=16, learning_rate
         bounded_pitch_head=bounded_pitch_head, positive_focal_head=positive_focal_head,
         disentangle=disentangle, seed=seed, alpha_rate=alpha_rate,
         disparity_ceiling=disparity_ceiling, point_errors=point_errors,
-        exp_disparity_head=bool(exp_disparity_head))
+        exp_disparity_head=bool(exp_disparity_head), head_activation=head_activation)
     config = runs.RunConfig(
         variant=variant, build=build, **dataset["fields"], split=split,
         test_fraction=test_fraction, val_fraction=val_fraction, seed=int(seed),
@@ -331,13 +337,13 @@ def _devices_and_processes(data_parallel):
 
 def _build_arguments(spec, dataset, *, backbone, as_released, bounded_pitch_head,
                      positive_focal_head, disentangle, seed, alpha_rate, disparity_ceiling,
-                     point_errors="metres", exp_disparity_head=False):
+                     point_errors="metres", exp_disparity_head=False, head_activation="relu"):
     """config.json's ``build``: ``models.build_model``'s keyword arguments
     for ``dataset``'s images (``_read_dataset``; the heads as released when
     ``as_released``, unless set; the disparity head's ceiling; the adaptive
     weights' pace for MTL-CPL-A; the point errors where not in metres and
-    MTL-Baseline's exp disparity head where asked for, so that the runs made
-    before those choices resume)."""
+    MTL-Baseline's exp disparity head and the heads' activation where not the
+    defaults, so that the runs made before those choices resume)."""
     build = {
         "backbone": backbone, "image_size": dataset["image_size"],
         "as_released": bool(as_released),
@@ -356,6 +362,8 @@ def _build_arguments(spec, dataset, *, backbone, as_released, bounded_pitch_head
         build["point_errors"] = point_errors
     if exp_disparity_head:
         build["exp_disparity_head"] = True
+    if head_activation != "relu":
+        build["head_activation"] = head_activation
     return build
 
 
