@@ -269,16 +269,28 @@ def is_camera_layer(layer):
     return isinstance(layer, keras.layers.Lambda) and layer.function in OP_NAMES
 
 
+@keras.saving.register_keras_serializable(package=PACKAGE)
+def slight_leaky_relu(x):
+    """A leaky ReLU of slope 0.01 below zero (``--head-activation leaky_relu_0.01``)."""
+    return keras.activations.leaky_relu(x, negative_slope=0.01)
+
+
+#: ``variants.HEAD_ACTIVATIONS`` -> the Dense layers' activation.
+HIDDEN_ACTIVATIONS = {"relu": "relu", "leaky_relu": "leaky_relu",
+                      "leaky_relu_0.01": slight_leaky_relu}
+
+
 def regression_head(features, name, activation=None, hidden="relu"):
     """The release's per-quantity head: Dense(120, relu) -> Dense(84, relu) -> Dense(1).
 
     ``hidden``: the two hidden layers' activation (``variants.HEAD_ACTIVATIONS``;
-    ``"leaky_relu"`` is an ablation). With ReLU, on a pair where every unit
+    the leaky ones are ablations). With ReLU, on a pair where every unit
     of the first layer is at zero the head puts out its biases' value, the
     same for every such pair, and no gradient passes it from that pair
     (measured on InceptionV3 MTL-CPL-A's pitch head:
     paper_results/inception-2000-ablations/collapsed-heads.md).
     """
+    hidden = HIDDEN_ACTIVATIONS[hidden]
     x = keras.layers.Dense(120, activation=hidden, name=f"{name}_dense_120")(features)
     x = keras.layers.Dense(84, activation=hidden, name=f"{name}_dense_84")(x)
     return keras.layers.Dense(1, activation=activation, name=name)(x)

@@ -197,6 +197,11 @@ def test_leaky_relu_heads():
         probe = keras.Model(built.inputs, built.get_layer("pitch_dense_84").output)
         hidden = np.asarray(probe.predict(x, verbose=0))
         assert (hidden == 0).all() if built is relu else (hidden != 0).any()
+    slight = build_model("cpl-a", backbone="small", image_size=SIZE, seed=0,
+                         head_activation="leaky_relu_0.01")
+    layer = slight.get_layer("pitch_dense_84")
+    values = np.asarray(layer.activation(np.array([-2.0, 3.0], "float32")))
+    np.testing.assert_allclose(values, [-0.02, 3.0], rtol=1e-6)
     for bad in (("deep-homo", "leaky_relu"), ("cpl-a", "tanh")):
         with pytest.raises(ValueError, match="head_activation"):
             build_model(bad[0], backbone="small", image_size=SIZE, head_activation=bad[1])

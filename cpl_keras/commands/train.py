@@ -119,7 +119,7 @@ def _add_head_arguments(parser):
                         "--disparity-ceiling, instead of a linear one (an ablation)")
     parser.add_argument("--head-activation", choices=HEAD_ACTIVATIONS, default="relu",
                         help="the regression heads' hidden activation: relu (default, the "
-                        "release's) or leaky_relu (an ablation)")
+                        "release's) or a leaky ReLU of slope 0.2 or 0.01 (ablations)")
     parser.add_argument("--linear-pitch-head", action="store_true",
                         help="an unbounded pitch head (the release's; default: clipped to +-pi/2)")
     parser.add_argument("--linear-focal-head", action="store_true",

@@ -108,7 +108,7 @@ def build_model(variant, *, backbone="inception_v3", image_size=112, as_released
             instead of linear (an ablation; the CPL variants have it as the
             paper writes them).
         head_activation: the regression heads' hidden activation,
-            ``"relu"`` (the release's) or ``"leaky_relu"`` (an ablation;
+            ``"relu"`` (the release's) or a leaky ReLU (ablations;
             ``variants.HEAD_ACTIVATIONS``). Not Deep-Homo, whose head is its own.
         seed: seeds Keras's initialisers when given. Python's and NumPy's
             global random generators are left as they were.

@@ -77,10 +77,11 @@ DISENTANGLE = ("exact", "partial")
 #: ``losses.projection_terms``).
 POINT_ERRORS = ("metres", "relative")
 #: The hidden layers' activation of every regression head: ReLU (the
-#: release's heads) or a leaky ReLU (slope 0.2 below zero; an ablation: a
-#: head whose first-layer units are all at zero on a pair puts out one value
-#: there and learns nothing more from it, ``layers.regression_head``).
-HEAD_ACTIVATIONS = ("relu", "leaky_relu")
+#: release's heads) or a leaky ReLU of slope 0.2 (Keras's) or 0.01 below zero
+#: (ablations: a head whose first-layer units are all at zero on a pair puts
+#: out one value there and learns nothing more from it,
+#: ``layers.regression_head``).
+HEAD_ACTIVATIONS = ("relu", "leaky_relu", "leaky_relu_0.01")
 #: How many times an ordinary weight's pace the adaptive weights' log alpha_i
 #: move (``CalibrationModel.alpha_rate``; here, beside the variants, so that
 #: planning and the run records read it without importing Keras). Adam moves every weight by about

@@ -277,7 +277,7 @@ def plan_run(data, *, variant, run_dir, epochs=200, batch_size=16, learning_rate
     ``exp_disparity_head``: MTL-Baseline with the CPL variants' disparity
     head, d = exp(z) up to its ceiling (an ablation).
     ``head_activation``: the regression heads' hidden activation, ``"relu"``
-    (the release's) or ``"leaky_relu"`` (``variants.HEAD_ACTIVATIONS``; an ablation).
+    (the release's) or a leaky ReLU (``variants.HEAD_ACTIVATIONS``; ablations).
     ``augment``: None, or ``"photometric"`` (``training.augment``; not the paper's).
     ``bn_statistics`` (``BN_STATISTICS``), ``bn_recompute_batches`` and
     ``monitor`` (``MONITORS``): the BatchNorm statistics validation runs
