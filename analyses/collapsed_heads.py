@@ -100,7 +100,11 @@ def collapse(raw, reference=None):
         error = np.abs(pred - truth)
         cell = {"share": float(on.mean()), "pairs": int(on.sum()), "value": value}
         if on.sum() > 1 and (~on).any():
-            cell.update(truth_min=float(truth[on].min()), truth_max=float(truth[on].max()),
+            low, high = float(truth[on].min()), float(truth[on].max())
+            others = truth[~on]
+            cell.update(truth_min=low, truth_max=high,
+                        others_min=float(others.min()), others_max=float(others.max()),
+                        others_inside=int(np.sum((others >= low) & (others <= high))),
                         error_share=float(error[on].sum() / error.sum()) if error.sum() else None,
                         mae_on=float(error[on].mean()), mae_off=float(error[~on].mean()))
             if reference is not None:
@@ -183,11 +187,14 @@ def markdown(result, args, command):
                          _number(r["columns"][c]["share"], 2) for c in COLUMNS) + " |")
     ref = args.reference_name
     lines += ["", f"Where the share is {args.min_share:g} or more: the value, the truth on "
-              "those pairs, the share of the column's absolute error on them, and the MAE "
-              f"on them and on the other pairs (the run's, then {ref}'s on the same pairs):",
-              "", "| run | column | pairs | value | truth on them | share of the error "
+              "those pairs and on the others (with how many of the others lie inside the "
+              "first range: few where the head is dead on one end of the column's range), "
+              "the share of the column's absolute error on them, and the MAE on them and on "
+              f"the other pairs (the run's, then {ref}'s on the same pairs):",
+              "", "| run | column | pairs | value | truth on them | truth on the others "
+              "(inside) | share of the error "
               f"| MAE on them / others | {ref}'s MAE on them / others |",
-              "|---|---|---|---|---|---|---|---|"]
+              "|---|---|---|---|---|---|---|---|---|"]
     for name, r in result.items():
         for column in COLUMNS:
             c = r["columns"][column]
@@ -197,6 +204,7 @@ def markdown(result, args, command):
                          if "reference_on" in c else "-")
             lines.append(f"| {name} | {column} | {c['pairs']} | {c['value']:.4f} | "
                          f"{c['truth_min']:.3f} to {c['truth_max']:.3f} | "
+                         f"{c['others_min']:.3f} to {c['others_max']:.3f} ({c['others_inside']}) | "
                          f"{_number(c['error_share'], 2)} | {c['mae_on']:.4f} / "
                          f"{c['mae_off']:.4f} | {reference} |")
     return "\n".join(lines + units_lines(result)) + "\n"

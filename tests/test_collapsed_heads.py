@@ -47,6 +47,9 @@ def test_one_value_on_part_of_the_pairs():
     assert pitch["value"] == pytest.approx(-0.2)
     assert pitch["truth_min"] == pytest.approx(truth["pitch"][60])
     assert pitch["truth_max"] == pytest.approx(0.2)
+    assert pitch["others_min"] == pytest.approx(-0.8)
+    assert pitch["others_max"] == pytest.approx(truth["pitch"][59])
+    assert pitch["others_inside"] == 0
     error = np.abs(pred["pitch"] - truth["pitch"])
     assert pitch["mae_on"] == pytest.approx(error[on].mean())
     assert pitch["mae_off"] == pytest.approx(0.01)
@@ -55,6 +58,10 @@ def test_one_value_on_part_of_the_pairs():
     for column, cell in cells.items():
         if column != "pitch":
             assert cell["share"] == 0.0 and cell["pairs"] == 0
+    # One value on every other pair instead: the others lie inside its range.
+    pred["pitch"] = np.where(np.arange(n) % 2 == 0, -0.2, truth["pitch"] + 0.01)
+    spread = _script().collapse({"truth": truth, "pred": pred})["pitch"]
+    assert spread["pairs"] == 50 and spread["others_inside"] == 49
 
 
 def test_a_head_switched_off_puts_out_one_value(tiny_run, tmp_path):
