@@ -87,6 +87,14 @@ def modal_value(values):
     return value, np.abs(values - value) <= SAME * max(abs(value), 1e-12)
 
 
+def _slope(truth, pred):
+    """Least-squares slope of ``pred`` on ``truth`` (1: follows the truth, 0:
+    flat); ``None`` where the truth does not vary."""
+    if np.ptp(truth) == 0:
+        return None
+    return float(np.polyfit(truth, pred, 1)[0])
+
+
 def collapse(raw, reference=None):
     """Per column: the share of pairs on the modal output and, for the
     pairs on it, what they cost (``None`` where no pair shares a value)."""
@@ -109,8 +117,10 @@ def collapse(raw, reference=None):
                         mae_on=float(error[on].mean()), mae_off=float(error[~on].mean()))
             if reference is not None:
                 ref = np.abs(np.asarray(reference["pred"][name], np.float64) - truth)
+                ref_pred = np.asarray(reference["pred"][name], np.float64)
                 cell.update(reference_on=float(ref[on].mean()),
-                            reference_off=float(ref[~on].mean()))
+                            reference_off=float(ref[~on].mean()),
+                            reference_slope_on=_slope(truth[on], ref_pred[on]))
         out[column] = cell if on.sum() > 1 else {"share": 0.0, "pairs": 0, "value": None}
     return out
 
@@ -190,7 +200,9 @@ def markdown(result, args, command):
               "those pairs and on the others (with how many of the others lie inside the "
               "first range: few where the head is dead on one end of the column's range), "
               "the share of the column's absolute error on them, and the MAE on them and on "
-              f"the other pairs (the run's, then {ref}'s on the same pairs):",
+              f"the other pairs (the run's, then {ref}'s on the same pairs, with the slope of "
+              f"{ref}'s output on the truth over the pairs on one value: 1 follows the truth, "
+              "0 is flat):",
               "", "| run | column | pairs | value | truth on them | truth on the others "
               "(inside) | share of the error "
               f"| MAE on them / others | {ref}'s MAE on them / others |",
@@ -200,7 +212,8 @@ def markdown(result, args, command):
             c = r["columns"][column]
             if c["share"] < args.min_share or "mae_on" not in c:
                 continue
-            reference = (f"{c['reference_on']:.4f} / {c['reference_off']:.4f}"
+            reference = (f"{c['reference_on']:.4f} / {c['reference_off']:.4f} "
+                         f"({_number(c['reference_slope_on'], 2)})"
                          if "reference_on" in c else "-")
             lines.append(f"| {name} | {column} | {c['pairs']} | {c['value']:.4f} | "
                          f"{c['truth_min']:.3f} to {c['truth_max']:.3f} | "
@@ -216,8 +229,9 @@ def units_lines(result):
         return []
     heads = list(next(iter(rows.values())))
     lines = ["", "In the heads (a forward pass of each run's model.keras over its test "
-             "pairs): the share of pairs with every unit of the head's first layer at zero, "
-             "and the units above zero for any test pair, of 120:", "",
+             "pairs): the share of pairs with every unit of the head's first layer at zero "
+             "(at or below zero for a leaky ReLU), and the units above zero for any test "
+             "pair, of 120:", "",
              "| run | " + " | ".join(heads) + " |", "|---" + "|---" * len(heads) + "|"]
     for name, units in rows.items():
         lines.append(f"| {name} | " + " | ".join(

@@ -55,6 +55,10 @@ def test_one_value_on_part_of_the_pairs():
     assert pitch["mae_off"] == pytest.approx(0.01)
     assert pitch["error_share"] == pytest.approx(error[on].sum() / error.sum())
     assert pitch["reference_on"] == pytest.approx(0.02)
+    assert pitch["reference_slope_on"] == pytest.approx(1.0)
+    flat = {"pred": dict(reference["pred"], pitch=np.full(n, -0.3))}
+    assert _script().collapse({"truth": truth, "pred": pred}, flat)["pitch"][
+        "reference_slope_on"] == pytest.approx(0.0, abs=1e-9)
     for column, cell in cells.items():
         if column != "pitch":
             assert cell["share"] == 0.0 and cell["pairs"] == 0
