@@ -1,5 +1,6 @@
 """Each loss term's gradient at the towers' shared features
-(cpl_keras.training.gradients, train.py --term-gradients)."""
+(cpl_keras.training.gradients, train.py --term-gradients) and each head's
+live units (cpl_keras.training.head_units, train.py --head-units)."""
 
 import csv
 import math
@@ -12,6 +13,7 @@ from helpers import SIZE, batch
 
 TARGETS = ("fx", "fy", "u0", "v0", "baseline", "disparity", "tx", "ty", "tz", "pitch",
            "X", "Y", "Z")
+HEADS = TARGETS[:10]
 
 
 def test_a_term_gradient_scales_with_its_eq9_weight_alone():
@@ -61,19 +63,58 @@ def test_a_term_gradient_scales_with_its_eq9_weight_alone():
 
 def test_training_logs_every_terms_gradient_each_epoch(stereo40, tmp_path):
     """``term_gradients=True``: log.csv has a finite ``grad_<target>`` for
-    every target and epoch (MTL-Baseline: each output's MAE); without it,
-    none."""
-    from cpl_keras.training import train
+    every target and epoch (MTL-Baseline: each output's MAE);
+    ``head_units=True``: each head's ``dead_<head>`` (a share) and
+    ``units_<head>`` (0-120) beside them. Deep-Homo has neither: refused
+    before anything is written."""
+    from cpl_keras.training import TrainingError, train
 
     run_dir = tmp_path / "run"
     train(stereo40, variant="baseline", run_dir=str(run_dir), backbone="small", epochs=2,
-          batch_size=5, verbose=0, term_gradients=True, return_model=False)
+          batch_size=5, verbose=0, term_gradients=True, head_units=True, return_model=False)
     with open(os.path.join(run_dir, "log.csv")) as f:
         rows = list(csv.DictReader(f))
     assert len(rows) == 2
     for row in rows:
         values = [float(row[f"grad_{name}"]) for name in TARGETS]
         assert all(math.isfinite(v) for v in values) and max(values) > 0, row
+        for head in HEADS:
+            assert 0.0 <= float(row[f"dead_{head}"]) <= 1.0, row
+            assert int(row[f"units_{head}"]) in range(121), row
+    for flags in ({"term_gradients": True}, {"head_units": True}):
+        with pytest.raises(TrainingError, match="deep-homo has neither"):
+            train(stereo40, variant="deep-homo", run_dir=str(tmp_path / "homo"), epochs=1,
+                  batch_size=5, verbose=0, return_model=False, **flags)
+        assert not (tmp_path / "homo").exists()
+
+
+def test_head_units_count_the_first_layers_live_units():
+    """HeadUnits: per head, the share of pairs with every first-layer unit at
+    or below zero and the units above zero for some pair, as a forward pass
+    of that layer gives them; a first layer pushed below zero on every pair
+    is dead on all of them with no unit alive."""
+    import keras
+
+    from cpl_keras.models.factory import build_model
+    from cpl_keras.training.head_units import HeadUnits, heads
+
+    x, _ = batch(6)
+    model = build_model("cpl-a", backbone="small", image_size=SIZE, seed=0)
+    assert heads(model) == list(HEADS)
+    counts = HeadUnits(model)(x)
+    assert set(counts) == {f"{k}_{h}" for h in HEADS for k in ("dead", "units")}
+    first = keras.Model(model.inputs, model.get_layer("fx_dense_120").output)
+    values = np.asarray(first.predict_on_batch(x))
+    assert counts["dead_fx"] == pytest.approx(np.mean(values.max(axis=1) <= 0))
+    assert counts["units_fx"] == int(np.sum(values.max(axis=0) > 0)) > 0
+    layer = model.get_layer("pitch_dense_120")
+    kernel, bias = layer.get_weights()
+    layer.set_weights([kernel, np.full_like(bias, -1e6)])
+    dead = HeadUnits(model)(x)
+    assert dead["dead_pitch"] == 1.0 and dead["units_pitch"] == 0
+    assert dead["units_fx"] == counts["units_fx"]
+    with pytest.raises(ValueError, match="no regression heads"):
+        HeadUnits(build_model("deep-homo", image_size=SIZE, seed=0))
 
 
 def test_the_term_gradients_page_from_logs(tmp_path, capsys):

@@ -823,7 +823,7 @@ FLAG_CASES = {
                     and c["build"]["disparity_ceiling"] == 300.0
                     and c["build"]["bounded_pitch_head"] is False),
     "cpl-a heads": (["--linear-focal-head", "--alpha-rate", "3", "--weight-ema", "0.9",
-                     "--head-activation", "leaky_relu_0.01"], "cpl-a",
+                     "--head-activation", "leaky_relu_0.01", "--head-units"], "cpl-a",
                     lambda c: c["build"]["positive_focal_head"] is False
                     and c["build"]["head_activation"] == "leaky_relu_0.01"
                     and c["build"]["alpha_rate"] == 3.0 and c["weight_ema"] == 0.9),
@@ -880,6 +880,8 @@ def test_every_training_flag_reaches_the_run(case, tiny_run, tmp_path):
     if case == "cpl-a heads":  # (a registered activation, loaded in safe mode)
         slope = model.get_layer("pitch_dense_120").activation(np.array([-1.0], "float32"))
         np.testing.assert_allclose(np.asarray(slope), [-0.01], rtol=1e-6)
+        log = (run_dir / "log.csv").read_text().splitlines()[0].split(",")  # --head-units
+        assert {"dead_pitch", "units_pitch", "dead_fx"} <= set(log) and "grad_fx" not in log
     # metres, the default, is recorded by its absence, as in every run before the choice
     assert model.build_settings.get("point_errors") == config["build"].get("point_errors")
     assert config["build"].get("point_errors") == ("relative" if case == "cpl-u heads" else None)

@@ -170,11 +170,17 @@ def _add_extra_arguments(parser):
 
 
 def _add_output_arguments(parser):
-    """What a run prints and logs beyond its results: --term-gradients, --quiet."""
+    """What a run prints and logs beyond its results: --term-gradients,
+    --head-units, --quiet."""
     parser.add_argument("--term-gradients", action="store_true",
                         help="log, every epoch, the gradient that each loss term sends into the "
                         "towers' shared features (grad_<target> in log.csv; a diagnostic, "
                         "training is unchanged; not with --data-parallel)")
+    parser.add_argument("--head-units", action="store_true",
+                        help="log, every epoch, each regression head's live first-layer units on "
+                        "the same 64 training pairs (dead_<head>: share of pairs with every unit "
+                        "at or below zero; units_<head>: units above zero for some pair; a "
+                        "diagnostic, training is unchanged; not with --data-parallel)")
     parser.add_argument("--quiet", action="store_true",
                         help="no per-epoch lines or progress bar (the summary line stays)")
 
@@ -308,6 +314,7 @@ def _train(args, demo, seed, epochs, backbone, run_dir, command, prog):
             verbose=0 if args.quiet else 1,
             augment=None if args.augment == "none" else args.augment,
             command=command, return_model=False, term_gradients=args.term_gradients,
+            head_units=args.head_units,
         )
     except (Error, OSError) as error:  # (DatasetError, TrainingError, RunError, ...)
         return cli.fail(prog, error)

@@ -42,6 +42,7 @@ from cpl_keras.camera import PARAMETERS
 from cpl_keras.data.storage import StereoFile
 from cpl_keras.datasets import load_split, save_split, targets_from_labels
 from cpl_keras.training.gradients import TermGradients
+from cpl_keras.training.head_units import HeadUnits
 from cpl_keras.training.planning import RESUME_KEYS, TrainingError, plan_run
 from cpl_keras.training.processes import join_processes
 from cpl_keras.training.result import finish_run, finished_run
@@ -51,7 +52,7 @@ from cpl_keras.training.state import read_state
 # Training
 # ---------------------------------------------------------------------------
 def train(data, *, steps_per_execution=1, verbose=1, return_model=True, term_gradients=False,
-          **options):
+          head_units=False, **options):
     """Train a variant on the dataset file ``data``; returns a ``TrainResult``.
 
     ``options`` are ``planning.plan_run``'s keyword arguments (``variant``
@@ -73,6 +74,9 @@ def train(data, *, steps_per_execution=1, verbose=1, return_model=True, term_gra
     sends into the towers' shared features (``grad_<target>`` columns of
     log.csv; ``training.gradients``; not with data parallelism). A
     diagnostic: it changes nothing of the training.
+    ``head_units``: log, every epoch, each regression head's live units on
+    the same probe pairs (``dead_<head>``, ``units_<head>``;
+    ``training.head_units``): when a head dies. A diagnostic too.
     ``verbose``: 0 prints nothing, 1 one short line per epoch (the loss, the
     validation loss and key validation MAEs; every metric is in log.csv)
     and a progress bar during the epoch when stdout is a terminal, 2 the
@@ -85,6 +89,7 @@ def train(data, *, steps_per_execution=1, verbose=1, return_model=True, term_gra
             f"steps per execution must be a positive integer, got {steps_per_execution!r}")
     processes = join_processes(options.get("data_parallel"))  # (before any device is counted)
     plan = plan_run(data, **options)
+    _check_probes(plan.config.variant, term_gradients, head_units)
     finished = finished_run(plan.config.run_dir, return_model)
     processes.agree("the run", group_fingerprint, plan, finished)
     if finished is not None:
@@ -101,7 +106,9 @@ def train(data, *, steps_per_execution=1, verbose=1, return_model=True, term_gra
         scope = keras.distribution.DataParallel(
             devices=devices, auto_shard_dataset=processes.part is None).scope()
     with scope, processes.failures():
-        return _run(plan, processes, steps_per_execution, verbose, term_gradients)
+        probes = tuple(name for name, on in (("term_gradients", term_gradients),
+                                             ("head_units", head_units)) if on)
+        return _run(plan, processes, steps_per_execution, verbose, probes)
 
 
 def group_fingerprint(plan, finished):
@@ -147,7 +154,7 @@ def _replace_failed_run(run_dir):
     shutil.rmtree(run_dir)
 
 
-def _run(plan, processes, steps_per_execution, verbose, term_gradients=False):
+def _run(plan, processes, steps_per_execution, verbose, probes=()):
     import keras
 
     config = plan.config
@@ -167,10 +174,10 @@ def _run(plan, processes, steps_per_execution, verbose, term_gradients=False):
     # (written by process 0 alone when several train together). The lock is
     # released however training ends (a Ctrl-C in a notebook, then train() again).
     with _lock_run_dir(config.run_dir) if processes.writes else contextlib.nullcontext():
-        return _run_locked(plan, model, config, processes, verbose, term_gradients)
+        return _run_locked(plan, model, config, processes, verbose, probes)
 
 
-def _run_locked(plan, model, config, processes, verbose, term_gradients=False):
+def _run_locked(plan, model, config, processes, verbose, probes=()):
     from cpl_keras.training.sequence import StereoSequence
 
     run_dir = config.run_dir
@@ -196,10 +203,10 @@ def _run_locked(plan, model, config, processes, verbose, term_gradients=False):
                          time_budget_s=config.time_budget_s, bn_sequence=bn_seq,
                          nmae_scale=nmae_scale(plan) if config.monitor == "nmae" else None,
                          weight_ema=config.weight_ema > 0, processes=processes,
-                         probe=_term_gradient_probe(model, StereoSequence(
+                         probe=_probe(model, probes, StereoSequence(
                              config.data, plan.split["train"][:PROBE_PAIRS], shuffle=False,
                              **dict(common, workers=1, multiple_of=1)))
-                         if term_gradients and not config.data_parallel else None)
+                         if probes and not config.data_parallel else None)
     state = run_state.state
     done = state.stopped is not None or state.epoch >= config.epochs
     try:
@@ -225,20 +232,40 @@ def _run_locked(plan, model, config, processes, verbose, term_gradients=False):
 
 
 #: Training pairs (the first of the split, the same every epoch) on which
-#: ``term_gradients`` measures each loss term's gradient.
+#: ``term_gradients`` measures each loss term's gradient and ``head_units``
+#: counts each head's live units.
 PROBE_PAIRS = 64
 
 
-def _term_gradient_probe(model, sequence):
-    """``probe()`` -> each loss term's gradient norm at the shared features
-    (``training.gradients``) on the pairs of ``sequence`` (read once, then
-    closed)."""
+def _check_probes(variant, term_gradients, head_units):
+    """Refuse, before anything is written, a diagnostic that ``variant``
+    has nothing to measure for (Deep-Homo: one loss term, no regression heads)."""
+    from cpl_keras.models import variants
+
+    if variants.get(variant).builder == "deep_homo":
+        for flag, on in (("term gradients", term_gradients), ("head units", head_units)):
+            if on:
+                raise TrainingError(f"{flag} measure the regression heads and loss terms; "
+                                    f"{variant} has neither")
+
+
+def _probe(model, probes, sequence):
+    """``probe()`` -> the epoch's diagnostics named in ``probes`` on the
+    pairs of ``sequence`` (read once, then closed): each loss term's gradient
+    norm at the shared features (``training.gradients``), each head's live
+    units (``training.head_units``)."""
     batches = [sequence[i] for i in range(len(sequence))]
     sequence.close()
     x = {name: np.concatenate([b[0][name] for b in batches]) for name in batches[0][0]}
     y = {name: np.concatenate([b[1][name] for b in batches]) for name in batches[0][1]}
-    gradients = TermGradients(model)
-    return lambda: gradients(x, y)
+    measures = []
+    if "term_gradients" in probes:
+        gradients = TermGradients(model)
+        measures.append(lambda: gradients(x, y))
+    if "head_units" in probes:
+        units = HeadUnits(model)
+        measures.append(lambda: units(x))
+    return lambda: {k: v for measure in measures for k, v in measure().items()}
 
 
 def _open_run_dir(plan, config, run_dir):
