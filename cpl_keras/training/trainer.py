@@ -40,6 +40,7 @@ from cpl_keras import backend, files, models, runs
 from cpl_keras.baselines.average import save_statistics, training_statistics
 from cpl_keras.camera import PARAMETERS
 from cpl_keras.data.storage import StereoFile
+from cpl_keras.models import variants
 from cpl_keras.datasets import load_split, save_split, targets_from_labels
 from cpl_keras.training.gradients import TermGradients
 from cpl_keras.training.head_units import HeadUnits
@@ -240,8 +241,6 @@ PROBE_PAIRS = 64
 def _check_probes(variant, term_gradients, head_units):
     """Refuse, before anything is written, a diagnostic that ``variant``
     has nothing to measure for (Deep-Homo: one loss term, no regression heads)."""
-    from cpl_keras.models import variants
-
     if variants.get(variant).builder == "deep_homo":
         for flag, on in (("term gradients", term_gradients), ("head units", head_units)):
             if on:
