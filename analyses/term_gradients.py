@@ -47,14 +47,6 @@ def parse_args(argv=None):
     return args
 
 
-def log_path(run):
-    """A run's log.csv: ``RUN/log.csv``, or ``RUN_log.csv`` of a published run."""
-    for path in (os.path.join(run, "log.csv"), run.rstrip("/") + "_log.csv"):
-        if os.path.isfile(path):
-            return path
-    raise ValueError(f"no log.csv for {run} (looked for RUN/log.csv and RUN_log.csv)")
-
-
 def summarise(path, until=None):
     """``{"epochs": [...], "terms": {target: {...}}, "alphas": {...}}`` of one
     log: the epochs with every ``grad_`` column filled (up to ``until``,
@@ -108,9 +100,11 @@ def page(summaries, command):
 
 
 def main(argv=None):
+    from cpl_keras.runs import log_file  # (its RunError is a ValueError)
+
     args = parse_args(argv)
     try:
-        summaries = {name: summarise(log_path(run), args.until) for name, run in args.runs}
+        summaries = {name: summarise(log_file(run), args.until) for name, run in args.runs}
     except (OSError, ValueError) as error:
         print(f"analyses/term_gradients.py: error: {error}", file=sys.stderr)
         return 2

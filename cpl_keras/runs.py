@@ -289,6 +289,15 @@ def run_label(config):
 # ---------------------------------------------------------------------------
 # log.csv
 # ---------------------------------------------------------------------------
+def log_file(run):
+    """A run's log.csv: ``RUN/log.csv``, or ``RUN_log.csv`` beside a published
+    run's folder (``published.publish_files``); RunError if neither exists."""
+    for path in (os.path.join(run, LOG), run.rstrip("/") + "_" + LOG):
+        if os.path.isfile(path):
+            return path
+    raise RunError(f"no log.csv for {run} (looked for RUN/log.csv and RUN_log.csv)")
+
+
 def read_log(path):
     """log.csv (the file, or a run directory holding it) as a list of dicts
     of floats, one per epoch, ``epoch`` 1-based (1 = the first epoch).
