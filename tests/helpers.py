@@ -209,3 +209,16 @@ def interrupt_after_epoch(monkeypatch, epoch):
             raise KeyboardInterrupt
 
     monkeypatch.setattr(checkpointing.RunState, "on_epoch_end", interrupted)
+
+
+def assert_refuses_a_bare_log(script, tmp_path, capsys, message):
+    """An analyses script given a run whose log.csv lacks its columns: one
+    line naming ``message`` on stderr, exit 2, and no page written."""
+    bare = tmp_path / "bare"
+    bare.mkdir()
+    (bare / "log.csv").write_text("epoch,loss\n1,1.0\n")
+    capsys.readouterr()
+    assert script.main(["--run", f"B={bare}", "--out", str(tmp_path / "bare.md")]) == 2
+    err = capsys.readouterr().err
+    assert message in err and err.count("\n") == 1
+    assert not (tmp_path / "bare.md").exists()

@@ -4,7 +4,7 @@ train.py --head-units."""
 import csv
 import json
 
-from helpers import load_script
+from helpers import assert_refuses_a_bare_log, load_script
 
 HEADS = ("fx", "fy", "u0", "v0", "baseline", "disparity", "tx", "ty", "tz", "pitch")
 
@@ -48,11 +48,4 @@ def test_the_epoch_a_head_dies_and_its_units(tmp_path, capsys):
     assert script.main(["--run", f"A={run}", "--dead-share", "1", "--out", str(out)]) == 0
     summary = json.loads((tmp_path / "units.json").read_text())["A"]
     assert summary["heads"]["pitch"]["first_dead_epoch"] == 4
-    bare = tmp_path / "bare"
-    bare.mkdir()
-    (bare / "log.csv").write_text("epoch,loss\n1,1.0\n")
-    capsys.readouterr()
-    assert script.main(["--run", f"B={bare}", "--out", str(tmp_path / "bare.md")]) == 2
-    err = capsys.readouterr().err
-    assert "no dead_<head>/units_<head> columns" in err and err.count("\n") == 1
-    assert not (tmp_path / "bare.md").exists()
+    assert_refuses_a_bare_log(script, tmp_path, capsys, "no dead_<head>/units_<head> columns")

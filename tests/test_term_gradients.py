@@ -124,7 +124,7 @@ def test_the_term_gradients_page_from_logs(tmp_path, capsys):
     gradient columns is one line, exit 2, and nothing written."""
     import json
 
-    from helpers import load_script
+    from helpers import assert_refuses_a_bare_log, load_script
 
     script = load_script("analyses/term_gradients.py")
     run = tmp_path / "runs" / "cvgl_cpl-a-s0"
@@ -153,11 +153,4 @@ def test_the_term_gradients_page_from_logs(tmp_path, capsys):
     first = json.loads((tmp_path / "page.json").read_text())["A"]
     assert first["epochs"] == [1, 2] and first["terms"]["v0"]["epochs_largest"] == 2
     assert first["terms"]["disparity"]["epochs_largest"] == 0 and "--until 2" in out.read_text()
-    bare = tmp_path / "bare"
-    bare.mkdir()
-    (bare / "log.csv").write_text("epoch,loss\n1,1.0\n")
-    capsys.readouterr()
-    assert script.main(["--run", f"B={bare}", "--out", str(tmp_path / "bare.md")]) == 2
-    err = capsys.readouterr().err
-    assert "no grad_<target> columns" in err and err.count("\n") == 1
-    assert not (tmp_path / "bare.md").exists()
+    assert_refuses_a_bare_log(script, tmp_path, capsys, "no grad_<target> columns")
