@@ -31,7 +31,8 @@ def gradient_parts(model, batch_targets, outputs, name):
     import jax
     import jax.numpy as jnp
 
-    from cpl_keras import camera, losses
+    from cpl_keras import camera
+    from cpl_keras.models import losses
 
     index = camera.TARGETS.index(name)
     y_true = {k: jnp.asarray(v, "float32").reshape(-1, 1) for k, v in batch_targets.items()}

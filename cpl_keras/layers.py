@@ -188,6 +188,50 @@ class PositiveDisparity:
 
 
 @keras.saving.register_keras_serializable(package=PACKAGE)
+class SoftplusDisparity:
+    """A disparity head that every MTL variant can share (``ModelOptions``'s
+    ``disparity_head="softplus"``; not the paper's): ``d = floor +
+    softplus(z)``, capped at ``ceiling`` straight-through.
+
+    Positive, as the camera graph needs (Eq. 4a divides by d), but linear in
+    z above its floor, so an MAE on d trains it as it trains MTL-Baseline's
+    linear head; the exp head (``PositiveDisparity``) moves d by a factor per
+    step instead, and with the compact towers MTL-Baseline given that head
+    lost as much on the disparity as the CPL variants
+    (paper_results/inception-2000-ablations/README.md). Its last bias starts
+    at ``bias_for(start)``, so the head first puts out ``start`` (the
+    training mean) instead of the floor.
+    """
+
+    def __init__(self, floor=camera.FLOORS["disparity"], ceiling=MAX_OUTPUT):
+        floor, ceiling = float(floor), float(ceiling)
+        if not (0 < floor < ceiling and math.isfinite(ceiling)):
+            raise ValueError(f"disparity ceiling must be a finite number above the floor "
+                             f"({floor:g}), got {ceiling!r}")
+        self.floor, self.ceiling = floor, ceiling
+
+    def __call__(self, x):
+        d = self.floor + ops.softplus(x)
+        return ops.stop_gradient(ops.minimum(d, self.ceiling)) + (d - ops.stop_gradient(d))
+
+    def bias_for(self, start):
+        """The z at which the head puts out ``start`` px (None: 0, the
+        floor plus log 2)."""
+        if start is None:
+            return None
+        excess = max(float(start) - self.floor, 1e-3)
+        # (the inverse of softplus, log(exp(x) - 1), without overflow)
+        return excess + math.log(-math.expm1(-excess))
+
+    def get_config(self):
+        return {"floor": self.floor, "ceiling": self.ceiling}
+
+    @classmethod
+    def from_config(cls, config):
+        return cls(**config)
+
+
+@keras.saving.register_keras_serializable(package=PACKAGE)
 def take(x, index=0):
     """Column ``index`` of a (batch, n) tensor, kept as (batch, 1)."""
     return x[:, index : index + 1]
@@ -280,7 +324,7 @@ HIDDEN_ACTIVATIONS = {"relu": "relu", "leaky_relu": "leaky_relu",
                       "leaky_relu_0.01": slight_leaky_relu}
 
 
-def regression_head(features, name, activation=None, hidden="relu"):
+def regression_head(features, name, activation=None, hidden="relu", bias=None):
     """The release's per-quantity head: Dense(120, relu) -> Dense(84, relu) -> Dense(1).
 
     ``hidden``: the two hidden layers' activation (``variants.HEAD_ACTIVATIONS``;
@@ -289,8 +333,10 @@ def regression_head(features, name, activation=None, hidden="relu"):
     same for every such pair, and no gradient passes it from that pair
     (measured on InceptionV3 MTL-CPL-A's pitch head:
     paper_results/inception-2000-ablations/collapsed-heads.md).
+    ``bias``: the last layer's starting bias (None: 0).
     """
     hidden = HIDDEN_ACTIVATIONS[hidden]
     x = keras.layers.Dense(120, activation=hidden, name=f"{name}_dense_120")(features)
     x = keras.layers.Dense(84, activation=hidden, name=f"{name}_dense_84")(x)
-    return keras.layers.Dense(1, activation=activation, name=name)(x)
+    start = "zeros" if bias is None else keras.initializers.Constant(float(bias))
+    return keras.layers.Dense(1, activation=activation, bias_initializer=start, name=name)(x)

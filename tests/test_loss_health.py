@@ -14,7 +14,8 @@ import numpy as np
 import pytest
 from keras import ops
 
-from cpl_keras import TARGETS, build_model, camera, compile_model, losses
+from cpl_keras import TARGETS, build_model, camera, compile_model
+from cpl_keras.models import losses
 from cpl_keras.models.batchnorm import batchnorm_layers, recompute_batchnorm_statistics
 
 from helpers import SIZE, batch

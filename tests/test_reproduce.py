@@ -400,7 +400,7 @@ def test_a_preset_is_a_frozen_checked_record():
     assert quick.weight_ema is None
     assert reproduce.Settings.from_dict({k: v for k, v in quick.to_dict().items()
                                          if k != "weight_ema"}).weight_ema == 0.0
-    with pytest.raises(ValueError, match="weight-ema must be in"):
+    with pytest.raises(ValueError, match="moving-average momentum must be in"):
         dataclasses.replace(quick, weight_ema=1.0)
     with pytest.raises(ValueError, match="unknown setting 'pear'"):
         reproduce.Settings.from_dict(dict(old, pear=3))

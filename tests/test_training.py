@@ -18,6 +18,7 @@ import h5py
 import numpy as np
 import pytest
 
+from cpl_keras.camera import TARGETS
 from helpers import REPO, RESUME_ARGS, train_py, write_stereo_fixture
 
 RUN_FILES = ("config.json", "model.keras", "best.weights.h5", "log.csv", "curves.png",
@@ -827,6 +828,15 @@ FLAG_CASES = {
                     lambda c: c["build"]["positive_focal_head"] is False
                     and c["build"]["head_activation"] == "leaky_relu_0.01"
                     and c["build"]["alpha_rate"] == 3.0 and c["weight_ema"] == 0.9),
+    "cpl-a recipe": (["--recipe", "sound", "--adaptive-weights", "range", "--weight-decay",
+                      "1e-4", "--head-activation", "relu"], "cpl-a",
+                     lambda c: c["build"]["head_norm"] is True
+                     and c["build"]["disparity_head"] == "softplus"
+                     and c["build"]["disparity_start"] > 0 and c["build"]["clip_norm"] == 1.0
+                     and "head_activation" not in c["build"]  # (given: the recipe's overridden)
+                     and c["build"]["adaptive_weights"] == "range"
+                     and c["build"]["alpha_rate"] == 0.0 and c["build"]["weight_decay"] == 1e-4
+                     and set(c["build"]["range_scales"]) == set(TARGETS)),
     "baseline steps": (["--target-scaling", "std", "--steps-per-execution", "2",
                         "--bn-recompute-batches", "0", "--split", "held-out-config",
                         "--augment", "photometric", "--exp-disparity-head"], "baseline",
@@ -877,6 +887,11 @@ def test_every_training_flag_reaches_the_run(case, tiny_run, tmp_path):
     if "alpha_rate" in config["build"]:
         assert model.alpha_rate == config["build"]["alpha_rate"]
     assert model.build_settings.get("head_activation") == config["build"].get("head_activation")
+    if case == "cpl-a recipe":  # (the softplus head and range weights, in safe mode)
+        assert model.get_layer("head_norm") is not None
+        assert type(model.get_layer("disparity").activation).__name__ == "SoftplusDisparity"
+        assert model.adaptive_weights()["u0"] == pytest.approx(
+            1 / config["build"]["range_scales"]["u0"], rel=1e-5)
     if case == "cpl-a heads":  # (a registered activation, loaded in safe mode)
         slope = model.get_layer("pitch_dense_120").activation(np.array([-1.0], "float32"))
         np.testing.assert_allclose(np.asarray(slope), [-0.01], rtol=1e-6)

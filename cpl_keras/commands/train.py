@@ -10,6 +10,7 @@ and in the command it records (``train.py`` from the repository,
 
 from __future__ import annotations
 
+import dataclasses
 import os
 import sys
 
@@ -21,6 +22,9 @@ from cpl_keras.data.storage import DatasetError
 from cpl_keras.datasets import SPLITS
 from cpl_keras.errors import Error
 from cpl_keras.models import BACKBONES, VARIANTS
+from cpl_keras.models.options import (
+    ADAPTIVE_WEIGHTS, DISPARITY_HEADS, RECIPES, ModelOptions, recipe,
+)
 from cpl_keras.models.variants import DISENTANGLE, HEAD_ACTIVATIONS, POINT_ERRORS
 from cpl_keras.training import summary_line, train
 
@@ -41,7 +45,7 @@ PROG = "cpl-train"
 def disparity_ceiling(text):
     """argparse type of --disparity-ceiling: auto, none or a positive number."""
     if text in ("auto", "none"):
-        return None if text == "none" else text
+        return text
     return cli.positive_float(text)
 
 
@@ -104,34 +108,57 @@ def _add_loop_arguments(parser):
 
 
 def _add_head_arguments(parser):
-    """The heads and what the camera projection loss trains: --disentangle,
-    --point-errors, --exp-disparity-head, --head-activation, --linear-pitch-head,
-    --linear-focal-head,
-    --alpha-rate, --disparity-ceiling."""
-    parser.add_argument("--disentangle", choices=DISENTANGLE, default="exact",
+    """The model's knobs (``ModelOptions``, one field each; None: the
+    record's default): --recipe, --disentangle, --point-errors,
+    --exp-disparity-head, --head-activation, --head-norm, --disparity-head,
+    --linear-pitch-head, --linear-focal-head, --alpha-rate, --adaptive-weights,
+    --disparity-ceiling, --weight-decay, --clip-norm."""
+    parser.add_argument("--recipe", choices=tuple(RECIPES),
+                        help="a named set of the options below: paper (default, changes "
+                        "nothing) or sound (leaky heads of slope 0.01, --head-norm, the softplus "
+                        "disparity head, --clip-norm 1; paper_results/fair-fight); an option "
+                        "given as well overrides the recipe's")
+    parser.add_argument("--disentangle", choices=DISENTANGLE,
                         help="CPL: the X, Y, Z terms of Eq. 7 train only the pixel heads "
                         "(exact, default) or every head the camera graph reads (partial)")
-    parser.add_argument("--point-errors", choices=POINT_ERRORS, default="metres",
+    parser.add_argument("--point-errors", choices=POINT_ERRORS,
                         help="CPL: Eq. 7's point errors in metres (default, the paper's) or "
                         "divided by each pair's true depth (relative; an ablation)")
-    parser.add_argument("--exp-disparity-head", action="store_true",
+    parser.add_argument("--exp-disparity-head", action="store_true", default=None,
                         help="MTL-Baseline: the CPL variants' disparity head, d = exp(z) up to "
                         "--disparity-ceiling, instead of a linear one (an ablation)")
-    parser.add_argument("--head-activation", choices=HEAD_ACTIVATIONS, default="relu",
+    parser.add_argument("--head-activation", choices=HEAD_ACTIVATIONS,
                         help="the regression heads' hidden activation: relu (default, the "
                         "release's) or a leaky ReLU of slope 0.2 or 0.01 (ablations)")
-    parser.add_argument("--linear-pitch-head", action="store_true",
+    parser.add_argument("--head-norm", action="store_true", default=None,
+                        help="a LayerNorm of the towers' features before the heads (not the "
+                        "paper's)")
+    parser.add_argument("--disparity-head", choices=DISPARITY_HEADS,
+                        help="default: each variant's own (CPL exp, MTL-Baseline linear); "
+                        "softplus: d = floor + softplus(z) starting at the training mean, for "
+                        "every variant alike (not the paper's)")
+    parser.add_argument("--linear-pitch-head", action="store_false", default=None,
+                        dest="bounded_pitch_head",
                         help="an unbounded pitch head (the release's; default: clipped to +-pi/2)")
-    parser.add_argument("--linear-focal-head", action="store_true",
+    parser.add_argument("--linear-focal-head", action="store_false", default=None,
+                        dest="positive_focal_head",
                         help="CPL: linear fx, fy heads (the release's; default clipped at 1 px, "
                         "straight-through, since the camera graph divides by them)")
     parser.add_argument("--alpha-rate", type=cli.non_negative_float, help="MTL-CPL-A: how "
                         "many times an ordinary weight's pace the adaptive weights move (default "
                         "10; 1 = Eq. 9 as the paper trains it; 0 = frozen at the first batch's)")
-    parser.add_argument("--disparity-ceiling", type=disparity_ceiling, default="auto",
-                        metavar="auto|none|PX",
-                        help="CPL: the exp disparity head's largest output (auto, default: twice "
-                        "the largest training label; none: 1e5 px, the bound before; or pixels)")
+    parser.add_argument("--adaptive-weights", choices=ADAPTIVE_WEIGHTS,
+                        help="MTL-CPL-A: Eq. 9's weights learned (default, the paper's) or fixed "
+                        "at 1 / mean|y_i| of the training split (range)")
+    parser.add_argument("--disparity-ceiling", type=disparity_ceiling, metavar="auto|none|PX",
+                        help="the positive disparity head's largest output (auto, default: "
+                        "twice the largest training label; none: 1e5 px, the bound before; or "
+                        "pixels)")
+    parser.add_argument("--weight-decay", type=cli.non_negative_float,
+                        help="decoupled weight decay (AdamW; default 0, the paper's Adam)")
+    parser.add_argument("--clip-norm", type=cli.positive_float,
+                        help="clip the gradient's global norm at this value (default: off, the "
+                        "paper's)")
 
 
 def _add_validation_arguments(parser):
@@ -295,19 +322,31 @@ def _weight_ema(args, demo):
     return args.weight_ema
 
 
+def model_fields(args, backbone):
+    """The ``ModelOptions`` fields the command line gives: the recipe's,
+    then every option given (an argparse destination named as a field)."""
+    fields = dict(recipe(args.recipe or "paper"), backbone=backbone,
+                  as_released=args.as_released)
+    names = {field.name for field in dataclasses.fields(ModelOptions)}
+    fields.update({name: value for name, value in vars(args).items()
+                   if name in names - {"backbone", "as_released", "disparity_ceiling"}
+                   and value is not None})
+    if args.disparity_ceiling is not None:  # ("none": None, the bound of before)
+        fields["disparity_ceiling"] = None if args.disparity_ceiling == "none" \
+            else args.disparity_ceiling
+    return fields
+
+
 def _train(args, demo, seed, epochs, backbone, run_dir, command, prog):
     try:
         data = demo_dataset() if demo else args.data
+        model = ModelOptions(**model_fields(args, backbone))
         summary = train(
-            data, variant=args.variant, run_dir=run_dir, epochs=epochs,
+            data, variant=args.variant, run_dir=run_dir, model=model, epochs=epochs,
             batch_size=args.batch_size, learning_rate=args.lr, image_size=args.image_size,
-            backbone=backbone, split=args.split, as_released=args.as_released, seed=seed,
-            data_parallel=args.data_parallel, patience=args.patience, workers=args.workers,
-            steps_per_execution=args.steps_per_execution, disentangle=args.disentangle,
-            point_errors=args.point_errors, exp_disparity_head=args.exp_disparity_head,
-            head_activation=args.head_activation, bounded_pitch_head=False if args.linear_pitch_head else None,
-            positive_focal_head=False if args.linear_focal_head else None,
-            alpha_rate=args.alpha_rate, disparity_ceiling=args.disparity_ceiling,
+            split=args.split, seed=seed, data_parallel=args.data_parallel,
+            patience=args.patience, workers=args.workers,
+            steps_per_execution=args.steps_per_execution,
             bn_recompute_batches=args.bn_recompute_batches, bn_statistics=args.bn_statistics,
             monitor=args.monitor, target_scaling=args.target_scaling,
             weight_ema=_weight_ema(args, demo), time_budget_s=args.time_budget,

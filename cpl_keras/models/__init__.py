@@ -10,14 +10,15 @@ does (``cpl_keras.load_model(path)``, or ``import cpl_keras.saving`` before
 ``keras.saving.load_model(path, safe_mode=True)``).
 """
 
+from cpl_keras.models.options import ModelOptions
 from cpl_keras.models.variants import BACKBONES, LOSS_MODES, LOSSES, VARIANTS
 
 __all__ = [
-    "BACKBONES", "LOSSES", "LOSS_MODES", "VARIANTS", "CalibrationModel", "build_model",
-    "compile_model",
+    "BACKBONES", "LOSSES", "LOSS_MODES", "VARIANTS", "CalibrationModel", "ModelOptions",
+    "build_from_config", "build_model", "compile_model",
 ]
 #: The names that import Keras, by the module that holds them.
-_KERAS = {"CalibrationModel": "calibration_model",
+_KERAS = {"CalibrationModel": "calibration_model", "build_from_config": "factory",
           "build_model": "factory", "compile_model": "factory"}
 
 

@@ -11,7 +11,7 @@ Loss modes:
 * ``"mae"``: Keras's per-output MAE, summed (the release; MTL-Baseline).
 * ``"projection-uniform"``: Eq. 7 (MTL-CPL-U as the paper writes it).
 * ``"projection-adaptive"``: Eq. 9 with learned weights (MTL-CPL-A as the
-  paper writes it); see ``cpl_keras.losses``.
+  paper writes it); see ``cpl_keras.models.losses``.
 * ``"euclidean"``: Deep-Homo's Euclidean distance between the 13-vectors.
 """
 
@@ -21,7 +21,8 @@ import keras
 import numpy as np
 from keras import ops
 
-from cpl_keras import camera, losses
+from cpl_keras import camera
+from cpl_keras.models import losses
 from cpl_keras.layers import PACKAGE
 from cpl_keras.models.variants import LOSS_MODES, LOSSES
 #: The log-variance floor before ``initialise_adaptive_weights``: none.
@@ -64,6 +65,11 @@ class CalibrationModel(keras.Model):
                 initializer=keras.initializers.Constant(NO_FLOOR),
                 name="log_variance_floor", trainable=False,
             )
+            if self.range_scales is not None:
+                # Eq. 9 read as a fixed range normalisation: alpha_i = 1 / mean|y_i|
+                # of the training split (``ModelOptions.adaptive_weights``)
+                self.log_variances.assign(np.log(np.asarray(
+                    [self.range_scales[name] for name in camera.TARGETS], "float32")))
 
     @property
     def loss_mode(self):
@@ -86,6 +92,13 @@ class CalibrationModel(keras.Model):
         at all after ``initialise_adaptive_weights`` (``s_i = w_i``, not
         trained): Eq. 9 as a fixed normalisation of the terms' ranges."""
         return float(self.build_settings.get("alpha_rate", 1.0))
+
+    @property
+    def range_scales(self):
+        """mean|y_i| per target where Eq. 9's weights are fixed at
+        1 / mean|y_i| (``adaptive_weights="range"``), else None."""
+        scales = self.build_settings.get("range_scales")
+        return None if scales is None else dict(scales)
 
     def _scale(self):
         """``s_i / w_i``: the alpha rate, or 1 for frozen weights (rate 0)."""
@@ -137,6 +150,8 @@ class CalibrationModel(keras.Model):
         """
         if not self.training_loss.adaptive:
             return None
+        if self.range_scales is not None:
+            return self.adaptive_weights()  # (fixed from the training split)
         y = {name: ops.convert_to_tensor(np.asarray(y[name], "float32")) for name in camera.TARGETS}
         average = {name: ops.broadcast_to(ops.mean(v, axis=0, keepdims=True), ops.shape(v))
                    for name, v in y.items()}

@@ -5,7 +5,7 @@ As the release modified it: one channel of each image stacked to
 ReLU, batch normalisation after each pair and 2x2 max-pooling after the
 first three pairs; Flatten, Dropout(0.75), Dense(1024) and Dense(13), both
 linear. Trained with the Euclidean distance between the 13-vectors
-(``cpl_keras.losses.euclidean_loss``), Adam 1.5e-3.
+(``cpl_keras.models.losses.euclidean_loss``), Adam 1.5e-3.
 
 The 13 values are split into named outputs so every variant has the same
 interface.

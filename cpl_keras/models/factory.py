@@ -55,11 +55,12 @@ import numpy as np
 
 from cpl_keras import camera
 from cpl_keras.layers import (
-    MAX_OUTPUT, LambdaOps, PositiveDisparity, bounded_pitch, multiply, positive_focal,
-    regression_head, stop_gradient,
+    MAX_OUTPUT, LambdaOps, PositiveDisparity, SoftplusDisparity, bounded_pitch, multiply,
+    positive_focal, regression_head, stop_gradient,
 )
 from cpl_keras.models import backbones, deep_homo, variants
 from cpl_keras.models.calibration_model import CalibrationModel
+from cpl_keras.models.options import ALWAYS_WRITTEN, ModelOptions, OptionsError, check_momentum
 from cpl_keras.models.variants import (  # noqa: F401
     DISENTANGLE, HEAD_ACTIVATIONS, POINT_ERRORS, VARIANTS,
 )
@@ -67,81 +68,43 @@ from cpl_keras.models.variants import (  # noqa: F401
 PIXEL_HEADS = ("u", "v")
 
 
-def build_model(variant, *, backbone="inception_v3", image_size=112, as_released=False,
-                floors=None, bounded_pitch_head=None, positive_focal_head=None,
-                disentangle="exact", alpha_rate=None, disparity_ceiling=None,
-                point_errors="metres", exp_disparity_head=False, head_activation="relu",
-                seed=None, name=None):
+def build_model(variant, options=None, *, image_size=112, seed=None, name=None, **fields):
     """Build one of the paper's networks.
 
     Args:
         variant: one of ``VARIANTS``.
-        backbone: ``"inception_v3"`` (the paper's), ``"small"`` (quick runs)
-            or ``"small_resnet"`` (CPU-scale experiments); neither of the last
-            two is the paper's (``backbones``). Deep-Homo has its own
-            convolutional stack.
+        options: a ``ModelOptions`` (default: the paper's): the towers, the
+            heads, the loss and its weights (``models.options``).
         image_size: side of the square input images, or ``(height, width)``
             or ``(height, width, 3)``. At least 75 for InceptionV3.
-        as_released: reproduce the released code instead of the paper's text
-            (see the module docstring).
-        floors: the camera graph's divisor floors per quantity (default
-            ``camera.FLOORS``; as released ``camera.RELEASED_FLOORS``).
-        bounded_pitch_head: pitch = clip(z, -pi/2, pi/2), straight-through, for the MTL variants
-            (default: True, as released False).
-        positive_focal_head: fx, fy = clip(z, the focal floor, 1e5) with z's
-            gradient (straight-through), for the CPL variants (default: True,
-            as released False: linear heads; see ``layers.positive_focal``).
-        disentangle: ``"exact"`` (the X, Y, Z terms of Eq. 7 reach only the
-            pixel heads u, v) or ``"partial"`` (they reach every head the
-            camera graph reads). CPL variants as the paper writes them only.
-        alpha_rate: how fast MTL-CPL-A's adaptive weights move (default
-            ``variants.ALPHA_RATE``; 1 is Eq. 9 trained like every other weight;
-            0 freezes them at their first-batch balance; see ``CalibrationModel``).
-        disparity_ceiling: the largest disparity (px) the CPL variants' exp
-            head can output (``layers.PositiveDisparity``; default
-            ``layers.MAX_OUTPUT``). Training sets it from its labels.
-        point_errors: how the CPL losses measure Eq. 7's point errors:
-            ``"metres"`` (the paper's) or ``"relative"`` (divided by each
-            pair's ground-truth depth; an ablation, ``losses.POINT_ERRORS``).
-        exp_disparity_head: MTL-Baseline only: its disparity head is the CPL
-            variants' ``d = exp(z)`` with their floor and ``disparity_ceiling``
-            instead of linear (an ablation; the CPL variants have it as the
-            paper writes them).
-        head_activation: the regression heads' hidden activation,
-            ``"relu"`` (the release's) or a leaky ReLU (ablations;
-            ``variants.HEAD_ACTIVATIONS``). Not Deep-Homo, whose head is its own.
         seed: seeds Keras's initialisers when given. Python's and NumPy's
             global random generators are left as they were.
         name: the model's name (default: the variant).
+        **fields: ``ModelOptions`` fields that replace those of ``options``
+            (``build_model("cpl-a", backbone="small")``).
+
+    Raises ``ValueError`` (``OptionsError``, one line) for a bad option.
     """
+    options = (options or ModelOptions()).replace(**fields).for_variant(variant)
+    if options.range_scales == "auto":
+        raise OptionsError("range weights' scales are read off the training labels "
+                           "(training sets them); give range_scales")
+    # (without training labels, "auto" is the bound of ``layers.MAX_OUTPUT``
+    # and the softplus head's own start)
+    options = options.replace(**{name: None for name in ("disparity_ceiling", "disparity_start")
+                                 if getattr(options, name) == "auto"})
     spec = variants.get(variant)
-    _check_choice("backbone", backbone, backbones.BACKBONES)
-    floors = camera.check_floors(
-        (camera.RELEASED_FLOORS if as_released else camera.FLOORS) if floors is None else floors
-    )
-    if bounded_pitch_head is None:
-        bounded_pitch_head = not as_released
-    if positive_focal_head is None:
-        positive_focal_head = not as_released
-    alpha_rate = _alpha_rate(alpha_rate)
-    _check_choice("disentangle", disentangle, DISENTANGLE)
-    _check_choice("point_errors", point_errors, POINT_ERRORS)
-    if exp_disparity_head and spec.builder != "direct":
-        raise ValueError(f"exp_disparity_head is MTL-Baseline's ablation; {variant} has its "
-                         f"own disparity head")
-    _check_choice("head_activation", head_activation, HEAD_ACTIVATIONS)
-    if head_activation != "relu" and spec.builder == "deep_homo":
-        raise ValueError(f"head_activation applies to the regression heads; {variant} has "
-                         f"its own")
-    disparity = PositiveDisparity(ceiling=MAX_OUTPUT if disparity_ceiling is None
-                                  else disparity_ceiling)
-    minimum = spec.min_image_size or backbones.MIN_IMAGE_SIZE[backbone]
-    height, width = _image_shape(image_size, minimum, backbone)
+    minimum = spec.min_image_size or backbones.MIN_IMAGE_SIZE[options.backbone]
+    height, width = _image_shape(image_size, minimum, options.backbone)
     with _seeded(seed):
-        return _build(spec, backbone, height, width, bool(as_released), floors,
-                      bool(bounded_pitch_head), bool(positive_focal_head), disentangle,
-                      alpha_rate, disparity, point_errors, bool(exp_disparity_head),
-                      head_activation, name)
+        return _build(spec, options, height, width, name)
+
+
+def build_from_config(variant, build):
+    """The model of config.json's ``variant`` and ``build`` (its options with
+    ``image_size`` and ``seed`` beside them)."""
+    return build_model(variant, ModelOptions.from_config(build),
+                       image_size=build["image_size"], seed=build.get("seed"))
 
 
 @contextlib.contextmanager
@@ -160,66 +123,77 @@ def _seeded(seed):
         np.random.set_state(numpy_state)
 
 
-def _build(spec, backbone, height, width, as_released, floors, bounded_pitch_head,
-           positive_focal_head, disentangle, alpha_rate, disparity, point_errors,
-           exp_disparity_head, head_activation, name):
+def _build(spec, options, height, width, name):
     left = keras.Input((height, width, 3), name="left_image")
     right = keras.Input((height, width, 3), name="right_image")
-    scaled_left, scaled_right = _scale_inputs(left, right, as_released)
-    loss = spec.training_loss(as_released)
-    outputs = BUILDERS[spec.builder](
-        spec, scaled_left, scaled_right, backbone=backbone, as_released=as_released,
-        floors=floors, pitch_activation=bounded_pitch if bounded_pitch_head else None,
-        positive_focal_head=positive_focal_head, disparity_activation=disparity,
-        detach=loss.projection and disentangle == "exact",
-        exp_disparity=disparity if exp_disparity_head else None, hidden=head_activation,
-    )
-    positive_disparity = loss.projection or exp_disparity_head
+    scaled_left, scaled_right = _scale_inputs(left, right, options.as_released)
+    loss = spec.training_loss(options.as_released)
+    outputs = BUILDERS[spec.builder](spec, scaled_left, scaled_right, options,
+                                     detach=loss.projection and options.disentangle == "exact")
+    positive_disparity = options.positive_disparity_head(spec.name)
+    ceiling = MAX_OUTPUT if options.disparity_ceiling is None else options.disparity_ceiling
     settings = {
-        "variant": spec.name, "backbone": backbone, "image_size": [height, width],
-        "as_released": as_released, "floors": floors, "loss": loss.name,
-        "bounded_pitch_head": bounded_pitch_head and spec.builder != "deep_homo",
+        "variant": spec.name, "backbone": options.backbone, "image_size": [height, width],
+        "as_released": options.as_released, "floors": options.floors, "loss": loss.name,
+        "bounded_pitch_head": options.bounded_pitch_head and spec.builder != "deep_homo",
         "positive_disparity_head": positive_disparity,
-        "disparity_ceiling": disparity.ceiling if positive_disparity else None,
-        "positive_focal_head": positive_focal_head and loss.projection and spec.camera_graph,
-        "disentangle": disentangle if loss.projection else None,
+        "disparity_ceiling": ceiling if positive_disparity else None,
+        "positive_focal_head": (options.positive_focal_head and loss.projection
+                                and spec.camera_graph),
+        "disentangle": options.disentangle if loss.projection else None,
     }
-    if loss.adaptive:
-        settings["alpha_rate"] = alpha_rate
-    if loss.projection and point_errors != "metres":  # (models built before it: metres)
-        settings["point_errors"] = point_errors
-    if exp_disparity_head:
-        settings["exp_disparity_head"] = True
-    if head_activation != "relu":  # (models built before it: relu)
-        settings["head_activation"] = head_activation
+    # (the fields added since: only where not their defaults, as in
+    # config.json, so that the models built before them read the same)
+    settings.update({key: value for key, value in options.to_config().items()
+                     if key not in settings and key not in ALWAYS_WRITTEN})
     return CalibrationModel(
         inputs={"left_image": left, "right_image": right}, outputs=outputs,
         name=name or spec.name.replace("-", "_"), build_settings=settings,
     )
 
 
-def _deep_homo_outputs(spec, left, right, *, as_released, **_):
-    return deep_homo.deep_homo_outputs(left, right, as_released)
+def _disparity_activation(spec, options):
+    """The disparity head's output activation and its first bias (None: 0):
+    the softplus head of ``options.disparity_head``; the CPL variants' exp
+    head as the paper writes them (and MTL-Baseline's with
+    ``exp_disparity_head``); else linear (MTL-Baseline, and as released)."""
+    ceiling = MAX_OUTPUT if options.disparity_ceiling is None else options.disparity_ceiling
+    if not options.positive_disparity_head(spec.name):
+        return None, None
+    if options.disparity_head == "softplus":
+        head = SoftplusDisparity(ceiling=ceiling)
+        return head, head.bias_for(options.disparity_start)
+    return PositiveDisparity(ceiling=ceiling), None
 
 
-def _direct_outputs(spec, left, right, *, backbone, pitch_activation, exp_disparity=None,
-                    hidden="relu", **_):
+def _features(left, right, options):
+    """The two towers' features, LayerNorm-ed with ``options.head_norm``."""
+    features = backbones.stereo_features(left, right, options.backbone)
+    if options.head_norm:
+        features = keras.layers.LayerNormalization(name="head_norm")(features)
+    return features
+
+
+def _deep_homo_outputs(spec, left, right, options, detach=False):
+    return deep_homo.deep_homo_outputs(left, right, options.as_released)
+
+
+def _direct_outputs(spec, left, right, options, detach=False):
     """Two towers and one regression head per target (X, Y, Z regressed too);
-    the disparity's is linear, or ``exp_disparity`` (``build_model``'s
-    ``exp_disparity_head``)."""
-    features = backbones.stereo_features(left, right, backbone)
-    activations = {"pitch": pitch_activation, "disparity": exp_disparity}
-    return [regression_head(features, target, activation=activations.get(target), hidden=hidden)
+    the disparity's is linear unless ``options`` give it a positive one."""
+    features = _features(left, right, options)
+    disparity, bias = _disparity_activation(spec, options)
+    activations = {"pitch": bounded_pitch if options.bounded_pitch_head else None,
+                   "disparity": disparity}
+    return [regression_head(features, target, activation=activations.get(target),
+                            hidden=options.head_activation,
+                            bias=bias if target == "disparity" else None)
             for target in camera.TARGETS]
 
 
-def _camera_graph_outputs(spec, left, right, *, backbone, as_released, floors,
-                          pitch_activation, positive_focal_head, disparity_activation, detach,
-                          hidden="relu", **_):
-    features = backbones.stereo_features(left, right, backbone)
-    return camera_projection_outputs(features, spec.name, as_released, floors, pitch_activation,
-                                     detach=detach, positive_focal_head=positive_focal_head,
-                                     disparity_activation=disparity_activation, hidden=hidden)
+def _camera_graph_outputs(spec, left, right, options, detach=False):
+    features = _features(left, right, options)
+    return camera_projection_outputs(features, spec, options, detach=detach)
 
 
 #: How each variant's outputs are made (``variants.Variant.builder``).
@@ -227,12 +201,7 @@ BUILDERS = {"deep_homo": _deep_homo_outputs, "direct": _direct_outputs,
             "camera_graph": _camera_graph_outputs}
 
 
-def camera_projection_outputs(features, variant, as_released, floors, pitch_activation=None,
-                              detach=False, positive_focal_head=None,
-                              disparity_activation=None, hidden="relu"):
-    # (the disparity head is positive where the projection loss trains it:
-    # as the paper writes it; see ``layers.PositiveDisparity``; likewise the
-    # focal heads unless ``positive_focal_head`` is False, ``layers.positive_focal``)
+def camera_projection_outputs(features, spec, options, detach=False):
     """The CPL heads and the Lambda camera graph (Eqs. 4a-5c).
 
     12 heads predict the 10 parameters and a pixel (u, v) (unsupervised: no
@@ -240,18 +209,20 @@ def camera_projection_outputs(features, variant, as_released, floors, pitch_acti
     With ``detach`` the graph reads the 10 parameters through
     ``stop_gradient`` (same values), so the X, Y, Z terms of Eq. 7 train
     only the pixel heads: each error is charged to the parameter that made
-    it. The released CPL-A multiplies X, Y, Z by per-sample sigmoid gates,
-    each its own Dense(120) -> Dense(84) -> Dense(1, sigmoid) branch.
+    it. The disparity head is positive where the projection loss trains it
+    (as the paper writes it; ``layers.PositiveDisparity``), and so are the
+    focal heads unless ``options.positive_focal_head`` is False
+    (``layers.positive_focal``). The released CPL-A multiplies X, Y, Z by
+    per-sample sigmoid gates, each its own Dense(120) -> Dense(84) ->
+    Dense(1, sigmoid) branch.
     """
-    if positive_focal_head is None:
-        positive_focal_head = not as_released
-    focal = positive_focal if positive_focal_head else None
-    activations = {"pitch": pitch_activation,
-                   "disparity": None if as_released
-                   else disparity_activation or PositiveDisparity(),
-                   "fx": focal, "fy": focal}
+    focal = positive_focal if options.positive_focal_head else None
+    disparity, bias = _disparity_activation(spec, options)
+    activations = {"pitch": bounded_pitch if options.bounded_pitch_head else None,
+                   "disparity": disparity, "fx": focal, "fy": focal}
+    hidden = options.head_activation
     params = {name: regression_head(features, name, activation=activations.get(name),
-                                    hidden=hidden)
+                                    hidden=hidden, bias=bias if name == "disparity" else None)
               for name in camera.PARAMETERS}
     pixel = {name: regression_head(features, name, hidden=hidden) for name in PIXEL_HEADS}
     graph_params = params
@@ -260,9 +231,10 @@ def camera_projection_outputs(features, variant, as_released, floors, pitch_acti
             name: keras.layers.Lambda(stop_gradient, name=f"{name}_detached")(tensor)
             for name, tensor in params.items()
         }
-    gated = as_released and variants.get(variant).released_gates
+    gated = options.as_released and spec.released_gates
     rename = {q: f"{q}_projected" for q in ("X", "Y", "Z")} if gated else None
-    X, Y, Z = camera.image_to_world(**graph_params, **pixel, ops=LambdaOps(floors, rename))
+    X, Y, Z = camera.image_to_world(**graph_params, **pixel,
+                                    ops=LambdaOps(options.floors, rename))
     points = {"X": X, "Y": Y, "Z": Z}
     if gated:
         for q in ("X", "Y", "Z"):
@@ -296,9 +268,7 @@ def compile_model(model, *, learning_rate=None, jit_compile="auto", steps_per_ex
         learning_rate = variants.get(model.build_settings.get("variant")).learning_rate
     if not (isinstance(learning_rate, numbers.Real) and learning_rate > 0):
         raise ValueError(f"learning rate must be a positive number, got {learning_rate!r}")
-    if not (isinstance(weight_ema, numbers.Real) and 0 <= weight_ema < 1):
-        raise ValueError(f"the weights' moving-average momentum must be in [0, 1), "
-                         f"got {weight_ema!r}")
+    check_momentum(weight_ema)
     names = list(model.output_names)
     loss_weights = None
     if model.training_loss.per_output:
@@ -317,12 +287,28 @@ def compile_model(model, *, learning_rate=None, jit_compile="auto", steps_per_ex
         loss_weights = {name: 1.0 / float(target_scale[name]) for name in names}
         metrics = {name: ["mae"] for name in names}  # the unscaled MAE in the logs
     model.compile(
-        optimizer=keras.optimizers.Adam(learning_rate=learning_rate, use_ema=weight_ema > 0,
-                                        ema_momentum=float(weight_ema) or 0.99),
+        optimizer=_optimizer(model, learning_rate, weight_ema),
         loss=loss, loss_weights=loss_weights, metrics=metrics, jit_compile=jit_compile,
         steps_per_execution=steps_per_execution,
     )
     return model
+
+
+def _optimizer(model, learning_rate, weight_ema):
+    """Adam at ``learning_rate`` (the paper's); AdamW with the model's
+    ``weight_decay`` (not on Eq. 9's weights) and a global gradient-norm clip
+    with its ``clip_norm`` (``ModelOptions``); the moving average of the
+    weights with ``weight_ema`` > 0."""
+    settings = model.build_settings
+    common = dict(learning_rate=learning_rate, use_ema=weight_ema > 0,
+                  ema_momentum=float(weight_ema) or 0.99,
+                  global_clipnorm=settings.get("clip_norm"))
+    decay = float(settings.get("weight_decay", 0.0))
+    if not decay:
+        return keras.optimizers.Adam(**common)
+    optimizer = keras.optimizers.AdamW(weight_decay=decay, **common)
+    optimizer.exclude_from_weight_decay(var_names=["log_variances"])
+    return optimizer
 
 
 def _scale_inputs(left, right, as_released):
@@ -330,23 +316,6 @@ def _scale_inputs(left, right, as_released):
         return left, right  # the release fed raw 0..255 pixels
     scale = keras.layers.Rescaling(1.0 / 127.5, offset=-1.0, name="input_scaling")
     return scale(left), scale(right)
-
-
-def _check_choice(what, value, choices):
-    """Raise ValueError (one line) unless ``value`` is one of ``choices``."""
-    if value not in choices:
-        raise ValueError(f"unknown {what} {value!r}; choose one of {', '.join(choices)}")
-
-
-def _alpha_rate(alpha_rate):
-    """MTL-CPL-A's adaptive weights' rate as a float (default
-    ``variants.ALPHA_RATE``); ValueError unless a finite number >= 0."""
-    if alpha_rate is None:
-        alpha_rate = variants.ALPHA_RATE
-    if isinstance(alpha_rate, bool) or not (isinstance(alpha_rate, numbers.Real)
-                                            and math.isfinite(alpha_rate) and alpha_rate >= 0):
-        raise ValueError(f"alpha rate must be a number >= 0 (0: frozen), got {alpha_rate!r}")
-    return float(alpha_rate)
 
 
 def _image_shape(image_size, minimum, backbone):

@@ -12,6 +12,7 @@ from typing import NamedTuple
 
 from cpl_keras.evaluation import PAPER_DIR
 from cpl_keras.models import variants as registry
+from cpl_keras.models.options import check_momentum
 from cpl_keras.models.variants import BACKBONES, MIN_IMAGE_SIZE, MTL_VARIANTS, TABLE_ORDER
 
 PROG = "python -m cpl_keras.reproduce"
@@ -131,10 +132,8 @@ class Preset:
             if value is not None and value not in choices:
                 raise ValueError(f"{key.replace('_', '-')} must be one of {', '.join(choices)}, "
                                  f"got {value!r}")
-        momentum = self.weight_ema
-        if momentum is not None and (isinstance(momentum, bool) or not isinstance(
-                momentum, (int, float)) or not 0 <= momentum < 1):
-            raise ValueError(f"weight-ema must be in [0, 1) or None, got {momentum!r}")
+        if self.weight_ema is not None:
+            check_momentum(self.weight_ema)
         if self.backbone not in BACKBONES:
             raise ValueError(f"unknown backbone {self.backbone!r}; choose one of "
                              f"{', '.join(BACKBONES)}")

@@ -57,10 +57,11 @@ def train(data, *, steps_per_execution=1, verbose=1, return_model=True, term_gra
     """Train a variant on the dataset file ``data``; returns a ``TrainResult``.
 
     ``options`` are ``planning.plan_run``'s keyword arguments (``variant``
-    and ``run_dir`` required; ``epochs``, ``batch_size``, ``learning_rate``,
-    ``backbone``, ``split``, ``seed``, ``as_released``, ``data_parallel``,
-    ``time_budget_s``, ``disparity_ceiling``, ... with the paper's
-    defaults): everything is validated before the run directory is created.
+    and ``run_dir`` required; the records ``model`` and ``training``, or
+    any of their fields by name: ``epochs``, ``batch_size``, ``backbone``,
+    ``split``, ``seed``, ``as_released``, ``head_norm``, ... with the
+    paper's defaults): everything is validated before the run directory is
+    created.
     An existing run directory holding the same run is resumed.
     The result holds the run's final ``config`` (``best_epoch``, 1-based,
     ``best_val_loss``, ``epochs_run``, ``run_dir``, ``status``, ``stopped``:
@@ -88,7 +89,9 @@ def train(data, *, steps_per_execution=1, verbose=1, return_model=True, term_gra
     ):
         raise TrainingError(
             f"steps per execution must be a positive integer, got {steps_per_execution!r}")
-    processes = join_processes(options.get("data_parallel"))  # (before any device is counted)
+    # (the group is joined before any device is counted)
+    processes = join_processes(options.get("data_parallel", getattr(
+        options.get("training"), "data_parallel", False)))
     plan = plan_run(data, **options)
     _check_probes(plan.config.variant, term_gradients, head_units)
     finished = finished_run(plan.config.run_dir, return_model)
@@ -160,7 +163,7 @@ def _run(plan, processes, steps_per_execution, verbose, probes=()):
 
     config = plan.config
     try:
-        model = models.build_model(config.variant, **config.build)
+        model = models.build_from_config(config.variant, config.build)
         models.compile_model(model, learning_rate=config.learning_rate,
                              steps_per_execution=steps_per_execution,
                              target_scale=_target_scale(plan) if config.target_scaling == "std" else None,
