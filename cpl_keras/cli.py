@@ -96,6 +96,14 @@ def named_path(text):
     return name, path
 
 
+def path(text):
+    """argparse type: a path, not empty (an empty one would name the working
+    directory or a command's default)."""
+    if not text.strip():
+        raise argparse.ArgumentTypeError("must name a file or folder, got an empty path")
+    return text
+
+
 def positive_float(text):
     """argparse type: a finite number > 0."""
     try:

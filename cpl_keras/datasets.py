@@ -15,6 +15,7 @@ used, so the numpy-side helpers stay light.
 from __future__ import annotations
 
 import os
+import zipfile
 
 import numpy as np
 
@@ -77,8 +78,23 @@ def targets_from_labels(labels, as_released=False):
     result = {name: out[name].astype(np.float32) for name in TARGETS}
     for name, values in result.items():
         if not np.all(np.isfinite(values)):
-            raise DatasetError(f"target '{name}' has non-finite values")
+            count = int(np.sum(~np.isfinite(values)))
+            raise DatasetError(f"target '{name}' has non-finite values on {count} of "
+                               f"{values.size} pairs")
+    # (as released, the disparity is StereoBM's mean, often negative)
+    positive = ("fx", "fy") if as_released else POSITIVE_TARGETS
+    for name in positive:
+        count = int(np.sum(result[name] <= 0))
+        if count:
+            raise DatasetError(f"label '{name}' is not positive on {count} of "
+                               f"{result[name].size} pairs, which no camera has; fix or drop "
+                               f"those pairs")
     return result
+
+
+#: The targets no camera has at or below zero: focal lengths (px) and the
+#: disparity (px; the camera graph divides by it, Eq. 4a).
+POSITIVE_TARGETS = ("fx", "fy", "disparity")
 
 
 # ---------------------------------------------------------------------------
@@ -228,6 +244,11 @@ def save_split(path, split):
 
 
 def load_split(path):
-    """Read a split written by ``save_split`` (no pickle)."""
-    with np.load(path, allow_pickle=False) as data:
-        return {name: data[name].astype(np.int64) for name in ("train", "val", "test")}
+    """Read a split written by ``save_split`` (no pickle); DatasetError (one
+    line naming the file) when it is missing, damaged or not a split."""
+    try:
+        with np.load(path, allow_pickle=False) as data:
+            return {name: data[name].astype(np.int64) for name in ("train", "val", "test")}
+    except (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile) as problem:
+        first = (str(problem).strip().splitlines() or [type(problem).__name__])[0]
+        raise DatasetError(f"cannot read the split {path} ({first})") from None

@@ -37,6 +37,9 @@ from cpl_keras.errors import Error, fail
 # ---------------------------------------------------------------------------
 #: Exit status of a command stopped by Ctrl-C (128 + SIGINT, as a shell reports it).
 INTERRUPTED = 130
+#: Exit status of a command stopped by SIGTERM (128 + SIGTERM), outside a
+#: process group (whose SIGTERM is its partners' Ctrl-C: ``terminate``).
+TERMINATED = 143
 
 
 class Interrupted(KeyboardInterrupt):
@@ -44,6 +47,9 @@ class Interrupted(KeyboardInterrupt):
 
 
 _pending = threading.Event()
+#: Set when the stop that is pending came by SIGTERM (``_sigterm``): the
+#: command's line says so and it exits ``TERMINATED``.
+_terminated = threading.Event()
 #: Whether this process has claimed its "interrupted" line (``interrupted``):
 #: set under ``_claim`` by the one caller that prints it.
 _announced = threading.Event()
@@ -85,6 +91,14 @@ def _handler(signum, frame):
     _pending.set()
     if not _in_import(frame):
         raise Interrupted()
+
+
+def _sigterm(signum, frame):
+    """SIGTERM (a ``kill``, a scheduler) in a command run by ``run``: the
+    same stop as Ctrl-C (the last completed epoch kept, one line), said as a
+    termination, exit ``TERMINATED``."""
+    _terminated.set()
+    _handler(signal.SIGINT, frame)
 
 
 def _unraisable(report, chain):
@@ -192,8 +206,9 @@ def guard_module_start():
 
 
 def _exit_interrupted():
-    """End the process now with status 130, stdout and stderr flushed."""
-    exit_now(INTERRUPTED)
+    """End the process now with status 130 (143 after SIGTERM), stdout and
+    stderr flushed."""
+    exit_now(TERMINATED if _terminated.is_set() else INTERRUPTED)
 
 
 #: Called (with no argument) just before this process ends at once
@@ -249,6 +264,10 @@ def run(main, prog, note=None):
             signal.getsignal(signal.SIGINT) is not signal.SIG_IGN:
         threading.Thread(target=_watchdog, args=(prog, note), daemon=True,
                          name="cpl_keras-ctrl-c").start()
+    if threading.current_thread() is threading.main_thread() and \
+            signal.getsignal(signal.SIGTERM) is signal.SIG_DFL:
+        _terminated.clear()
+        signal.signal(signal.SIGTERM, _sigterm)
     try:
         with interruptible():
             status = main()
@@ -261,7 +280,7 @@ def run(main, prog, note=None):
     # The command is done: a Ctrl-C from here on, in the interpreter's
     # teardown, would end a finished command by SIGINT (exit -2, no line).
     _ignore_interrupts()
-    if status == INTERRUPTED:
+    if status in (INTERRUPTED, TERMINATED):
         gc.collect()  # (a process pool's semaphores released, not warned of as leaked)
         _exit_interrupted()
     if files.teardown_unsafe():  # (a file library left in a failed state)
@@ -291,9 +310,12 @@ def _end_interrupted(prog, note):
 
 
 def _ignore_interrupts():
-    """From here on a Ctrl-C is ignored (the process is already ending)."""
+    """From here on a Ctrl-C is ignored (the process is already ending), and
+    a SIGTERM ends it as the system does."""
     if threading.current_thread() is threading.main_thread():
         signal.signal(signal.SIGINT, signal.SIG_IGN)
+        if signal.getsignal(signal.SIGTERM) is _sigterm:
+            signal.signal(signal.SIGTERM, signal.SIG_DFL)
 
 
 #: Called (with no argument) when this process is interrupted, before its
@@ -315,8 +337,9 @@ def terminate(signum, frame):
 
 
 def interrupted(prog, resume=None, note=None):
-    """Print ``<prog>: interrupted`` on one line on stderr, with how to resume
-    (``resume``: the command) or another ``note``; return 130.
+    """Print ``<prog>: interrupted`` on one line on stderr (after SIGTERM
+    ``<prog>: terminated (SIGTERM)``), with how to resume (``resume``: the
+    command) or another ``note``; return 130 (143).
 
     The line is printed once per command, whichever path ends it: the first
     caller claims it (under a lock), calls the ``on_interrupt`` callbacks and
@@ -327,10 +350,11 @@ def interrupted(prog, resume=None, note=None):
     with _claim:
         first = not _announced.is_set()
         _announced.set()
+    status = TERMINATED if _terminated.is_set() else INTERRUPTED
     if not first:
         _printed.wait(LINE_WAIT_S)
-        return INTERRUPTED
-    line = f"{prog}: interrupted"
+        return status
+    line = f"{prog}: " + ("terminated (SIGTERM)" if status == TERMINATED else "interrupted")
     if resume:
         line += f"; to resume, run the same command again: {resume}"
     elif note:
@@ -341,4 +365,4 @@ def interrupted(prog, resume=None, note=None):
     finally:
         print(line, file=sys.stderr, flush=True)
         _printed.set()
-    return INTERRUPTED
+    return status

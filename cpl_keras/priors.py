@@ -33,6 +33,7 @@ import numpy as np
 
 from cpl_keras import camera
 from cpl_keras.errors import Error
+from cpl_keras.images import pillow_limit
 
 #: The quantities in metres: a known baseline rescales them all.
 METRIC = ("baseline", "tx", "ty", "tz", "X", "Y", "Z")
@@ -83,10 +84,8 @@ def exif_focal_px(path, width, height):
     """The 35 mm equivalent focal length of the image file ``path`` in
     pixels of its ``width`` x ``height`` (over the diagonal), and the line
     that says where it came from. PriorError when the file has no such tag."""
-    from PIL import Image
-
     try:
-        with Image.open(path) as image:
+        with pillow_limit() as Image, Image.open(path) as image:
             exif = image.getexif()
             focal = exif.get_ifd(EXIF_IFD).get(FOCAL_35MM) or exif.get(FOCAL_35MM)
     except OSError as error:

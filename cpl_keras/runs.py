@@ -341,8 +341,8 @@ def load_run(run_dir):
         raise RunError(f"cannot read {paths[STATS]}: {problem}") from None
     try:
         split = load_split(paths[SPLIT])
-    except (OSError, ValueError, KeyError) as problem:
-        raise RunError(f"cannot read {paths[SPLIT]}: {problem}") from None
+    except ValueError as problem:  # (DatasetError, naming the file)
+        raise RunError(str(problem)) from None
     return Run(run_dir=run_dir, config=config, stats=stats, split=split,
                model_path=paths[MODEL])
 

@@ -152,3 +152,19 @@ def test_worker_counts_beyond_the_cpus_are_refused_when_parsed(capsys):
     from cpl_keras import cli
 
     assert cli.worker_count(str(cpus)) == cpus
+
+
+def test_an_empty_output_path_is_refused_when_parsed(capsys, tmp_path):
+    """``--run-dir ""`` trained into the default run directory; every output
+    path of the commands now refuses an empty one in one line (exit 2)."""
+    mains = main_functions()
+    for name, argv in (("train.py", ["--variant", "baseline", "--run-dir", ""]),
+                       ("evaluate.py", ["--out", " "]),
+                       ("data.generate", ["--pairs", "4", "--out", ""]),
+                       ("calibrate", ["a.png", "b.png", "--json-out", ""]),
+                       ("data.mix", ["--out", ""])):
+        with pytest.raises(SystemExit) as stop:
+            mains[name](argv)
+        assert stop.value.code == 2, name
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and "must name a file or folder, got an empty path" in err[0], err

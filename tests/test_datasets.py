@@ -447,3 +447,31 @@ def test_sequence_in_memory_serves_the_same_batches(tmp_path, monkeypatch):
     assert not StereoSequence(path, indices, targets).in_memory
     with pytest.raises(ValueError, match="in_memory"):
         StereoSequence(path, indices, targets, in_memory="yes")
+
+
+def test_labels_no_camera_has_are_refused_naming_the_label_and_count(tmp_path):
+    from cpl_keras.data.storage import DatasetError
+    from cpl_keras.datasets import targets_from_labels
+    from cpl_keras.training import plan_run
+    from helpers import fixture_labels, write_stereo_fixture
+
+    labels = fixture_labels(40, 32)
+    for name, value in (("fx", -100.0), ("disparity", 0.0), ("fy", 0.0)):
+        bad = dict(labels, **{name: labels[name].copy()})
+        bad[name][[3, 7]] = value
+        with pytest.raises(DatasetError, match=f"label '{name}' is not positive on 2 of 40 "
+                           "pairs, which no camera has"):
+            targets_from_labels(bad)
+    nan = dict(labels, tz=labels["tz"].copy())
+    nan["tz"][0] = np.nan
+    with pytest.raises(DatasetError, match="target 'tz' has non-finite values on 1 of 40"):
+        targets_from_labels(nan)
+    # as released, the disparity is StereoBM's mean: negative is what it is
+    assert (targets_from_labels(labels, as_released=True)["disparity"] < 0).any()
+    # training refuses such a file before anything is written
+    bad = dict(labels, fx=labels["fx"].copy())
+    bad["fx"][0] = -100.0
+    data = write_stereo_fixture(tmp_path / "bad.h5", labels=bad)
+    with pytest.raises(DatasetError, match="bad.h5: label 'fx' is not positive on 1 of 40"):
+        plan_run(data, variant="baseline", run_dir=str(tmp_path / "run"), backbone="small")
+    assert not (tmp_path / "run").exists()

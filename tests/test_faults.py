@@ -220,3 +220,61 @@ def test_a_refused_resume_leaves_the_run_directory_unchanged(tmp_path, stereo40,
         train(data, variant="baseline", run_dir=str(run_dir), backbone="small", epochs=2,
               batch_size=5, verbose=0)
     assert {name: (run_dir / name).read_bytes() for name in _files(run_dir)} == before
+
+
+# ---------------------------------------------------------------------------
+# Damaged run files: named, with the way out, and never reported as finished
+# ---------------------------------------------------------------------------
+def _interrupted_run(tmp_path, data, monkeypatch):
+    """A run of 2 epochs interrupted after its first: ``(run_dir, train)``."""
+    from cpl_keras.training import train
+    from helpers import interrupt_after_epoch
+
+    run_dir = tmp_path / "run"
+    settings = dict(variant="baseline", run_dir=str(run_dir), backbone="small", epochs=2,
+                    batch_size=5, verbose=0)
+    interrupt_after_epoch(monkeypatch, 1)
+    with pytest.raises(KeyboardInterrupt):
+        train(data, **settings)
+    monkeypatch.undo()
+    return run_dir, lambda: train(data, **settings)
+
+
+def test_a_damaged_split_or_checkpoint_is_named_with_the_way_out(tmp_path, stereo40,
+                                                                  monkeypatch):
+    from cpl_keras.training import TrainingError
+
+    run_dir, resume = _interrupted_run(tmp_path, stereo40, monkeypatch)
+    split = run_dir / "split.npz"
+    good = split.read_bytes()
+    split.write_bytes(good[: len(good) // 2])
+    with pytest.raises(TrainingError, match=f"cannot read the split {split} .*delete it") as e:
+        resume()
+    assert "\n" not in str(e.value)
+    split.write_bytes(good)
+    checkpoints = sorted((run_dir / "backup").glob("*.weights.h5"))
+    assert checkpoints
+    data = checkpoints[-1].read_bytes()
+    checkpoints[-1].write_bytes(data[: len(data) // 3])
+    with pytest.raises(TrainingError, match=f"cannot resume from the checkpoint "
+                       f"{checkpoints[-1]} .*delete {run_dir / 'backup'} to start") as e:
+        resume()
+    assert "\n" not in str(e.value)
+
+
+def test_a_finished_run_with_a_damaged_model_is_not_reported_finished(tmp_path, tiny_run):
+    from cpl_keras.training import TrainingError, train
+
+    run_dir = tmp_path / "run"
+    shutil.copytree(tiny_run["run"], run_dir)
+    settings = dict(variant="baseline", run_dir=str(run_dir), epochs=1, batch_size=8,
+                    backbone="small", verbose=0, return_model=False)
+    assert train(tiny_run["data"], **settings).finished_before  # (whole: finished)
+    for name in ("model.keras", "best.weights.h5"):
+        path = run_dir / name
+        whole = path.read_bytes()
+        path.write_bytes(whole[: len(whole) // 2])
+        with pytest.raises(TrainingError, match=f"finished run's {path} is damaged .*delete "
+                           "the run directory"):
+            train(tiny_run["data"], **settings)
+        path.write_bytes(whole)

@@ -108,6 +108,29 @@ def test_ctrl_c_stops_training_resumably(tmp_path, train_cache):
     assert config["status"] == "finished" and config["epochs_run"] == 6
 
 
+@pytest.mark.slow
+def test_sigterm_stops_training_resumably_with_its_own_line(tmp_path, train_cache):
+    """SIGTERM (a kill, a scheduler) ended train.py with 143 and no line;
+    now it stops as Ctrl-C does, says so in one line, and exits 143."""
+    data = write_stereo_fixture(tmp_path / "tiny.h5", n=40, image_size=32)
+    run_dir = str(tmp_path / "run")
+    args = ["train.py", "--variant", "baseline", "--backbone", "small", "--epochs", "6",
+            "--batch-size", "5", "--patience", "10", "--quiet", "--data", str(data),
+            "--run-dir", run_dir]
+    state = os.path.join(run_dir, "backup", "state.json")
+    process = _start(args, train_cache)
+    assert _wait_for(lambda: json.load(open(state))["epoch"] >= 1)
+    process.send_signal(signal.SIGTERM)
+    out, err = process.communicate(timeout=60)
+    assert process.returncode == 143, err
+    lines = [line for line in err.splitlines() if "terminated" in line]
+    assert len(lines) == 1 and lines[0].startswith("train.py: terminated (SIGTERM); to "
+                                                   "resume, run the same command again"), err
+    assert "Traceback" not in err, err
+    with open(os.path.join(run_dir, "config.json")) as f:
+        assert json.load(f)["status"] == "running"  # (resumable, not finished)
+
+
 def test_ctrl_c_stops_generation_and_the_same_command_continues_it_to_the_same_bytes(tmp_path):
     """Ctrl-C once the first block is written (the progress bar says so):
     the bar's line ended, one line, exit 130, the worker pool ended without

@@ -69,13 +69,13 @@ def main(argv=None):
                         f"positive number up to {known.MAX_FOCAL_PX:,.0f}), or exif: the left "
                         "image's 35 mm equivalent (JPEG EXIF); fx, fy and the depth X, Y, Z "
                         "follow it")
-    parser.add_argument("--json-out", help="also write the JSON to this file")
-    parser.add_argument("--opencv-yaml", metavar="FILE",
+    parser.add_argument("--json-out", type=cli.path, help="also write the JSON to this file")
+    parser.add_argument("--opencv-yaml", type=cli.path, metavar="FILE",
                         help="also write the calibration as OpenCV's stereo YAML (M1, D1, M2, "
                         "D2, R, T; cv2.FileStorage reads it)")
-    parser.add_argument("--ros-yaml", metavar="DIR",
+    parser.add_argument("--ros-yaml", type=cli.path, metavar="DIR",
                         help="also write ROS camera_info files DIR/left.yaml and DIR/right.yaml")
-    parser.add_argument("--colmap", metavar="DIR",
+    parser.add_argument("--colmap", type=cli.path, metavar="DIR",
                         help="also write COLMAP's DIR/cameras.txt (PINHOLE, the left and right "
                         "cameras)")
     args = parser.parse_args(argv)

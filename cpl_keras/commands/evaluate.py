@@ -37,7 +37,7 @@ def parse_args(argv=None, prog=PROG):
     parser.add_argument("--data", nargs="+", help="dataset file (HDF5); Table 2: one or more "
                         "real sets or folders of them (cpl_keras.real.build all), scored per "
                         "rig and pooled")
-    parser.add_argument("--out", help="output directory, created if missing (default: "
+    parser.add_argument("--out", type=cli.path, help="output directory, created if missing (default: "
                         f"{TABLES_DIR}/ for --table, so the committed paper_results/ is never "
                         "overwritten; with --run: the run's parent directory)")
     parser.add_argument("--batch-size", type=cli.positive_int, default=32,

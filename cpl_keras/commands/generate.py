@@ -26,7 +26,7 @@ def _parser():
                    "wild: the cameras rigs under a sun, haze and white balance drawn per "
                    "rig (default cvgl)")
     p.add_argument("--pairs", type=int, required=True, help="number of stereo pairs")
-    p.add_argument("--out", help="output HDF5 file (may be left out with --preview)")
+    p.add_argument("--out", type=cli.path, help="output HDF5 file (may be left out with --preview)")
     p.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
     p.add_argument("--image-size", type=int, default=112, help="square image side (default 112)")
     p.add_argument("--workers", type=cli.worker_count, default=None,

@@ -21,7 +21,7 @@ def main(argv=None, prog=PROG):
     parser.add_argument("--image-size", type=int, default=112,
                         help="square input side of the model drawn (default 112)")
     parser.add_argument("--as-released", action="store_true", help="the released code's graph")
-    parser.add_argument("--out", default=os.path.join("runs", "camera_graph.png"),
+    parser.add_argument("--out", type=cli.path, default=os.path.join("runs", "camera_graph.png"),
                         help="diagram file (.png, .svg or .pdf; default runs/camera_graph.png, "
                         "git-ignored; docs/camera_graph.png is made with --out)")
     parser.add_argument("--dot", help="also write the graph as Graphviz text to this file "

@@ -13,7 +13,7 @@ def main(argv=None):
     parser = cli.Parser(prog="python -m cpl_keras.learning_curves",
                         description=LIBRARY_DOC.split("\n\n")[0])
     parser.add_argument("runs", nargs="*", help="run directories")
-    parser.add_argument("--out", required=True, help="output folder (created if missing)")
+    parser.add_argument("--out", type=cli.path, required=True, help="output folder (created if missing)")
     parser.add_argument("--experiment", action="store_true",
                         help="make the datasets and train the four runs first")
     parser.add_argument("--pairs", type=int, default=8000,

@@ -16,7 +16,7 @@ from cpl_keras.data.storage import StereoFile
 def main(argv=None):
     parser = cli.Parser(prog=PROG, description=LIBRARY_DOC.split("\n")[0])
     parser.add_argument("sources", nargs="+", help="dataset files (.h5) to mix, in order")
-    parser.add_argument("--out", required=True, help="the mixed dataset file (.h5)")
+    parser.add_argument("--out", type=cli.path, required=True, help="the mixed dataset file (.h5)")
     args = parser.parse_args(argv)
     try:
         cli.check_output_file(args.out)

@@ -16,8 +16,8 @@ def parse_args(argv=None):
     parser.add_argument("source", choices=SOURCES,
                         help="the real rig to build, or all (every shipped rig and every root "
                         "given) into --out-dir")
-    parser.add_argument("--out", help="output HDF5 file (every source but all)")
-    parser.add_argument("--out-dir", help="output folder (all)")
+    parser.add_argument("--out", type=cli.path, help="output HDF5 file (every source but all)")
+    parser.add_argument("--out-dir", type=cli.path, help="output folder (all)")
     parser.add_argument("--root", help="dataset root (kitti, tsinghua, cityscapes; "
                         "chessboard: a folder of left*/right* pairs; oakd: of *_left.png/*_right.png "
                         "pairs and their calibration; default the shipped ones)")

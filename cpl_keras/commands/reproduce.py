@@ -173,7 +173,7 @@ def parse_args(argv=None):
     """The command line, checked and resolved (``resolve_args``); a bad one
     ends the process with one line and exit status 2."""
     parser = cli.Parser(prog=PROG, description=__doc__.split("\n")[0])
-    parser.add_argument("--out", help="output directory (default: paper_results/; with "
+    parser.add_argument("--out", type=cli.path, help="output directory (default: paper_results/; with "
                         "--quick: runs/quick/paper_results; with --preset P: "
                         "paper_results/P)")
     parser.add_argument("--geometric-max", type=cli.positive_int,

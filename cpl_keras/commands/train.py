@@ -90,7 +90,7 @@ def _add_run_arguments(parser):
                         "(random protocol)")
     parser.add_argument("--as-released", action="store_true",
                         help="reproduce the released code (labels, loss, val = test)")
-    parser.add_argument("--run-dir", help="run directory (default runs/<variant>-<split>-s<seed>)")
+    parser.add_argument("--run-dir", type=cli.path, help="run directory (default runs/<variant>-<split>-s<seed>)")
     parser.add_argument("--seed", type=cli.non_negative_int, help="seed of split, shuffling and weights (default 0)")
     parser.add_argument("--data-parallel", action="store_true",
                         help="data parallelism over all local devices, or over every "

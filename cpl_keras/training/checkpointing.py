@@ -89,7 +89,15 @@ class RunState(keras.callbacks.Callback):
         # optimizer first so they are loaded rather than skipped.
         if not model.optimizer.built:
             model.optimizer.build(model.trainable_variables)
-        model.load_weights(os.path.join(self.backup, ckpt + ".weights.h5"))
+        path = os.path.join(self.backup, ckpt + ".weights.h5")
+        try:
+            model.load_weights(path)
+        except (OSError, ValueError) as error:  # (missing, truncated, another model's)
+            first = (str(error).strip().splitlines() or [type(error).__name__])[0]
+            raise TrainingError(
+                f"cannot resume from the checkpoint {path} ({first}); delete "
+                f"{self.backup} to start the run again from epoch 1, or use another "
+                f"--run-dir") from None
         # log.csv again from the state (atomically): a run begun by older code
         # has a 0-based log, renumbered from 1 here, before training goes on
         if self.processes.writes:

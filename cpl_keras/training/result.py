@@ -11,8 +11,10 @@ from __future__ import annotations
 
 import dataclasses
 import os
+import zipfile
 
 from cpl_keras import files, runs
+from cpl_keras.training.options import TrainingError
 
 
 @dataclasses.dataclass(frozen=True)
@@ -37,10 +39,41 @@ def finished_run(run_dir, load_model=True):
     config = runs.read_run_config(run_dir) if os.path.isdir(run_dir) else None
     if config is None or config.status != "finished":
         return None
+    check_saved_files(run_dir)
     path = os.path.join(run_dir, runs.MODEL)
     model = runs.load_model_file(path) if load_model and os.path.isfile(path) else None
     return TrainResult(config=dataclasses.replace(config, run_dir=run_dir), model=model,
                        has_model=os.path.isfile(path), finished_before=True)
+
+
+def check_saved_files(run_dir):
+    """TrainingError (one line, with the way out) when a finished run's
+    model.keras or best.weights.h5 is there but damaged (truncated, not its
+    format): such a run is not reported as finished. Reads the files'
+    structure (the zip's directory and CRCs, the HDF5 superblock), no Keras."""
+    import h5py
+
+    model = os.path.join(run_dir, runs.MODEL)
+    weights = os.path.join(run_dir, runs.BEST_WEIGHTS)
+    problem = None
+    if os.path.isfile(model):
+        try:
+            with zipfile.ZipFile(model) as archive:
+                bad = archive.testzip()
+            if bad is not None:
+                problem = f"{model} is damaged ({bad} fails its CRC)"
+        except (OSError, zipfile.BadZipFile, EOFError) as error:
+            problem = f"{model} is damaged ({error})"
+    if problem is None and os.path.isfile(weights):
+        try:
+            with h5py.File(weights, "r"):
+                pass
+        except OSError as error:
+            first = (str(error).strip().splitlines() or ["unreadable"])[0]
+            problem = f"{weights} is damaged ({first})"
+    if problem is not None:
+        raise TrainingError(f"the finished run's {problem}; delete the run directory to train "
+                            f"it again, or use another --run-dir")
 
 
 def finish_run(model, config, state, processes):

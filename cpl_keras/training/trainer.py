@@ -39,7 +39,7 @@ import numpy as np
 from cpl_keras import backend, files, models, runs
 from cpl_keras.baselines.average import save_statistics, training_statistics
 from cpl_keras.camera import PARAMETERS
-from cpl_keras.data.storage import StereoFile
+from cpl_keras.data.storage import DatasetError, StereoFile
 from cpl_keras.models import variants
 from cpl_keras.datasets import load_split, save_split, targets_from_labels
 from cpl_keras.training.gradients import TermGradients
@@ -285,7 +285,11 @@ def _write_run_files(plan, config, run_dir):
     resumed run keeps its outcome so far)."""
     split_path = os.path.join(run_dir, runs.SPLIT)
     if os.path.exists(split_path):  # (checked before anything is written: a refusal writes nothing)
-        old = load_split(split_path)
+        try:
+            old = load_split(split_path)
+        except DatasetError as problem:
+            raise TrainingError(f"{problem}: delete it (the run writes it again from its "
+                                f"seed) or use another --run-dir") from None
         if any(not np.array_equal(old[k], plan.split[k]) for k in old):
             raise TrainingError(f"{split_path} differs from this run's split; use another --run-dir")
     previous = runs.read_run_config(run_dir)  # (a run to resume: checked by plan_run)
