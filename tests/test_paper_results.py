@@ -204,3 +204,26 @@ def test_every_published_run_restores_and_publishes_again(tmp_path):
         assert runs.read_run_config(again) == dataclasses.replace(
             run.config, data=config.data, run_dir=str(number)), record
         assert (again / "log.csv").read_bytes() == (record / "log.csv").read_bytes()
+
+
+def _words(text):
+    """Words as a reader counts them: link targets and table rules left out."""
+    text = re.sub(r"\]\([^)]*\)", "]", text)
+    return re.findall(r"[A-Za-z0-9][\w.,'=-]*", text.replace("|", " "))
+
+
+def test_the_readme_answer_fits_one_screen():
+    """README's answer: at most 300 words with its table, at most 6 rows, no
+    cell over 40 words, each row linking its evidence."""
+    text = (Path(REPO) / "README.md").read_text()
+    start = text.index("## The answer")
+    section = text[start:text.index("\n## ", start + 1)]
+    assert len(_words(section)) <= 300, len(_words(section))
+    rows = [line for line in section.splitlines()
+            if line.startswith("|") and not line.startswith("|---")][1:]
+    assert 1 <= len(rows) <= 6, rows
+    for row in rows:
+        cells = [cell.strip() for cell in row.strip("|").split("|")]
+        assert max(len(_words(cell)) for cell in cells) <= 40, row
+        assert re.search(r"\]\((paper_results|docs)/", cells[-1]), row
+    assert len(_words("a b [c](d/e.md) | f")) == 4  # (the count can tell)
