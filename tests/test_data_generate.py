@@ -392,3 +392,29 @@ def test_configurations_own_contiguous_drives():
         assert configs[-1] == num_configs(protocol, pairs) - 1
         for (c0, f0), (c1, f1) in zip(ids, ids[1:]):
             assert (f1 == f0 + 1) if c1 == c0 else (f1 == 0)
+
+
+def test_a_dataset_of_other_settings_is_not_replaced_without_force(tmp_path):
+    """The docs once made data/random.h5 twice with other settings, the
+    second silently replacing the first: now another dataset at --out is
+    refused in one line naming both, the same one is left as it is, and
+    --force replaces it."""
+    from cpl_keras.data.generate import generate_dataset
+    from cpl_keras.data.storage import StereoFile
+
+    out = str(tmp_path / "d.h5")
+    generate_dataset(out, pairs=12, image_size=32, workers=1, progress=False)
+    before = os.path.getmtime(out), open(out, "rb").read()
+    lines = []
+    assert generate_dataset(out, pairs=12, image_size=32, workers=1, progress=False,
+                            log=lines.append) == out
+    assert (os.path.getmtime(out), open(out, "rb").read()) == before
+    assert lines and "already holds this dataset" in lines[-1]
+    with pytest.raises(ValueError, match=r"d.h5 holds another dataset \(12 cvgl pairs at 32 px, "
+                       r"seed 0, .*\), not 12 cvgl pairs at 32 px, seed 1, .*give --force"):
+        generate_dataset(out, pairs=12, seed=1, image_size=32, workers=1, progress=False)
+    assert open(out, "rb").read() == before[1]
+    generate_dataset(out, pairs=12, seed=1, image_size=32, workers=1, progress=False,
+                     force=True)
+    with StereoFile(out) as f:
+        assert f.metadata["seed"] == 1

@@ -36,6 +36,9 @@ def _parser():
     p.add_argument("--restart", action="store_true",
                    help="discard the OUT.partial file of an interrupted run and start again "
                    "(by default it is continued; one of other arguments is refused)")
+    p.add_argument("--force", action="store_true",
+                   help="replace a dataset already at OUT made with other settings (by default "
+                   "it is refused; one made with these settings is left as it is)")
     return p
 
 
@@ -49,7 +52,7 @@ def _main(args, command_line):
         if args.out is not None:
             path = generate_file(args.out, args.protocol, args.pairs, args.seed, args.image_size,
                              args.workers, not args.no_progress, command_line,
-                             restart=args.restart,
+                             restart=args.restart, force=args.force,
                              log=lambda line: print(line, file=sys.stderr, flush=True))
             print(path)
             sys.stderr.write(f"summary: {summary_text(path)}\n")

@@ -37,7 +37,7 @@ from cpl_keras.data import protocols, scenes
 from cpl_keras.data.blocks import iter_blocks, render_block
 from cpl_keras.data.pair import EXTRA_UNITS, FLOAT_LABELS, INT_LABELS, LABEL_DESCRIPTIONS
 from cpl_keras.data.storage import GENERATOR_VERSION  # noqa: F401  (the generator's own)
-from cpl_keras.data.storage import min_bytes_per_pair, StereoFile
+from cpl_keras.data.storage import DatasetError, StereoFile, min_bytes_per_pair
 from cpl_keras.data.writer import StereoWriter
 
 MIN_IMAGE_SIZE = 16
@@ -175,19 +175,52 @@ def check_room(out, protocol, pairs, image_size, workers, restart=False):
                    memory=pairs * BYTES_PER_PAIR_HELD + rigs * BYTES_PER_RIG_HELD * (1 + workers))
 
 
+#: The settings that make a dataset what it is: a file of other values is
+#: another dataset (``existing_dataset``).
+DEFINING = ("protocol", "pairs", "seed", "image_size", "generator_version")
+
+
+def _describe(meta):
+    return (f"{meta.get('pairs')} {meta.get('protocol')} pairs at {meta.get('image_size')} px, "
+            f"seed {meta.get('seed')}, generator {meta.get('generator_version')}")
+
+
+def existing_dataset(out, meta, force=False):
+    """Whether ``out`` already holds this dataset (same ``DEFINING`` values:
+    it is left as it is). A file there of other settings, or one that is not
+    a dataset, is refused (ValueError, one line naming both) unless
+    ``force``, which replaces it."""
+    if force or not os.path.exists(out):
+        return False
+    try:
+        with StereoFile(out) as f:
+            old = f.metadata
+    except DatasetError as error:
+        raise ValueError(f"{out} exists and is not a dataset this can replace ({error}); "
+                         f"give --force to replace it, or another --out") from None
+    if all(old.get(key) == meta.get(key) for key in DEFINING):
+        return True
+    raise ValueError(f"{out} holds another dataset ({_describe(old)}), not {_describe(meta)}; "
+                     f"give --force to replace it, or another --out")
+
+
 def generate_file(out, protocol, pairs, seed, image_size, workers, progress, command_line=None,
-                  restart=False, log=None):
+                  restart=False, log=None, force=False):
     """``generate_dataset`` with its checks first (arguments, the output path,
-    the disk and memory it needs), continuing ``out``'s interrupted
-    ``.partial`` file unless ``restart``; returns the path written."""
+    a dataset already there: ``existing_dataset``, the disk and memory it
+    needs), continuing ``out``'s interrupted ``.partial`` file unless
+    ``restart``; returns the path written (or found)."""
     pairs, seed, image_size, workers = check_arguments(protocol, pairs, seed, image_size, workers)
     out = check_output_path(out)
     if workers is None:
         workers = os.cpu_count() or 1
-    check_room(out, protocol, pairs, image_size, workers, restart)
     meta = metadata(protocol, pairs, seed, image_size, command_line)
     if log is None:
         log = (lambda line: print(line, file=sys.stderr)) if progress else (lambda line: None)
+    if existing_dataset(out, meta, force):
+        log(f"{out} already holds this dataset ({_describe(meta)}); left as it is")
+        return out
+    check_room(out, protocol, pairs, image_size, workers, restart)
 
     make_parent(out)
     writer = StereoWriter(out, pairs, image_size, metadata=meta,
@@ -216,7 +249,7 @@ def generate_file(out, protocol, pairs, seed, image_size, workers, progress, com
 
 
 def generate_dataset(out, *, protocol="cvgl", pairs, seed=0, image_size=112, workers=None,
-                     progress=True, restart=False, log=None):
+                     progress=True, restart=False, log=None, force=False):
     """Render ``pairs`` stereo pairs and write them to the HDF5 file ``out``.
 
     ``protocol`` is one of ``PROTOCOLS``; ``workers=None`` uses every core.
@@ -226,11 +259,14 @@ def generate_dataset(out, *, protocol="cvgl", pairs, seed=0, image_size=112, wor
     written in full, and the next call for ``out`` continues it (``log``
     receives a line saying so; default: stderr when ``progress``). A
     partial file of other arguments is refused unless ``restart``, which
-    starts again. Returns the path written. Raises ``ValueError`` (one
-    line) on bad arguments, or when the file cannot fit (``check_room``).
+    starts again. A finished file already at ``out`` is left as it is when
+    it holds this dataset, and refused when it holds another unless
+    ``force`` (``existing_dataset``). Returns the path written. Raises
+    ``ValueError`` (one line) on bad arguments, or when the file cannot fit
+    (``check_room``).
     """
     return generate_file(out, protocol, pairs, seed, image_size, workers, progress,
-                     restart=restart, log=log)
+                         restart=restart, log=log, force=force)
 
 
 def dataset_name(protocol, pairs, seed, image_size, prefix=""):
