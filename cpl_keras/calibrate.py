@@ -49,9 +49,11 @@ exports describe the rig.
 
 from __future__ import annotations
 
-from cpl_keras.calibration import Calibration, CalibrationError, Calibrator, RigCalibration
+from cpl_keras.calibration import (
+    Calibration, CalibrationError, CalibrationWarning, Calibrator, RigCalibration,
+)
 
-__all__ = ["Calibration", "CalibrationError", "Calibrator", "RigCalibration"]
+__all__ = ["Calibration", "CalibrationError", "CalibrationWarning", "Calibrator", "RigCalibration"]
 
 
 if __name__ == "__main__":  # the command line: cpl_keras/commands/calibrate.py

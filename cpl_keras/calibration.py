@@ -30,6 +30,7 @@ from __future__ import annotations
 import copy
 import math
 import os
+import warnings
 
 import numpy as np
 
@@ -37,7 +38,7 @@ from cpl_keras import evaluation, priors as known, real_record, runs
 from cpl_keras.calibration_records import (
     RIG_PARAMETERS, TTA_CROPS, TTA_FRACTION, Calibration, RigCalibration,
 )
-from cpl_keras.camera import PARAMETERS
+from cpl_keras.camera import FLOORS, PARAMETERS
 from cpl_keras.data.storage import StereoFile
 from cpl_keras.image_pairs import CalibrationError, find_pairs, is_grey, read_pair
 from cpl_keras.images import resize_image
@@ -49,8 +50,20 @@ SPREAD_WARNING = 0.2
 #: (m): the widest vehicle rigs of the public datasets are under 1 m (KITTI
 #: 0.54 m); a calibrated pair's baseline beyond this is named as impossible.
 MAX_RIG_BASELINE_M = 5.0
+#: The narrowest baseline taken as possible (m): a phone's two cameras are
+#: about a centimetre apart; below a millimetre no rig's two views differ.
+MIN_RIG_BASELINE_M = 1e-3
 #: How fy is reported: "square" pixels (fy = fx), or the "model"'s fy head.
 ASPECTS = ("square", "model")
+
+
+class CalibrationWarning(UserWarning):
+    """A calibration's warning, from the Python API without ``warn``."""
+
+
+def python_warning(line):
+    """``Calibrator``'s ``warn`` by default: the line as a ``CalibrationWarning``."""
+    warnings.warn(line.removeprefix("warning: "), CalibrationWarning, stacklevel=3)
 
 
 def crop_windows(width, height, count=TTA_CROPS, seed=0):
@@ -151,9 +164,9 @@ def impossible_geometry(camera, disparity):
     if d >= width:
         lines.append(f"a disparity of {d:.4g} px is at or beyond the image width ({width} px): "
                      "no point seen in both images can have it")
-    if not fx > 0:
-        lines.append(f"a focal length of {fx:.4g} px gives no field of view between 0 and "
-                     "180 degrees")
+    if not fx >= FLOORS["focal"]:
+        lines.append(f"a focal length of {fx:.4g} px (under {FLOORS['focal']:g} px) gives no "
+                     "field of view between 0 and 180 degrees")
     elif d > fx and b > 0:
         lines.append(f"the projection pixel's depth fx b / d = {fx * b / d:.3g} m is nearer "
                      f"than the baseline ({b:.4g} m): a disparity of {d:.4g} px is over fx "
@@ -161,6 +174,9 @@ def impossible_geometry(camera, disparity):
     if b > MAX_RIG_BASELINE_M:
         lines.append(f"a baseline of {b:.4g} m is wider than any handheld or vehicle stereo "
                      f"rig (over {MAX_RIG_BASELINE_M:g} m)")
+    elif not b >= MIN_RIG_BASELINE_M:
+        lines.append(f"a baseline of {b:.4g} m is narrower than any stereo rig (under "
+                     f"{MIN_RIG_BASELINE_M * 1000:g} mm)")
     return lines
 
 
@@ -195,7 +211,10 @@ class Calibrator:
     files (``calibrate``) and folders of one rig's pairs
     (``calibrate_folder``). ``warn(line)``, when given, is called with each
     warning (a grey image, a prediction outside the training labels' range,
-    a large spread, the demonstration model)."""
+    a large spread, the demonstration model, an impossible value); without
+    it each is a Python warning (``CalibrationWarning``), so the API is
+    never silent about them. Impossible values are also on the result
+    (``impossible``)."""
 
     def __init__(self, run, model):
         self.run, self.model = run, model
@@ -212,7 +231,7 @@ class Calibrator:
         ``cpl_keras.priors.Priors`` of known values (its ``focal_source``
         "exif": the left image's EXIF)."""
         _check_arguments(aspect, priors)
-        warn = warn or (lambda line: None)
+        warn = warn or python_warning
         run, (size_h, size_w) = self.run, evaluation.model_image_shape(self.model)
         left_image, right_image = _read_pair(left, right, size_w, size_h, warn)
         height, width = left_image.shape[:2]
@@ -261,7 +280,7 @@ class Calibrator:
         with their spread over the pairs. Warnings name their pair; each is
         given once."""
         _check_arguments(aspect, priors)
-        warn = warn or (lambda line: None)
+        warn = warn or python_warning
         said, results = set(), []
 
         def warn_once(line):
@@ -315,8 +334,14 @@ def _rig(folder, results, aspect, warn):
     _check_spread(spread, camera, aspect, warn, between=f"the {len(results)} pairs",
                   of="median")
     first = results[0]
+    # what no pair can show: the rig's own (its medians) and each pair's
+    impossible = [f"the rig: {line}" for line in impossible_geometry(
+        camera, float(np.median([r.disparity for r in results])))]
+    for line in impossible:
+        warn(f"warning: impossible for any pair: {line}")
+    impossible += [f"{os.path.basename(r.left)}: {line}" for r in results for line in r.impossible]
     return RigCalibration(
         folder=os.path.abspath(folder), run=first.run, variant=first.variant, camera=camera,
         spread_over_pairs=spread, demonstration_model=first.demonstration_model, aspect=aspect,
         real_camera_record=copy.deepcopy(first.real_camera_record), priors=first.priors,
-        pairs=tuple(results))
+        pairs=tuple(results), impossible=tuple(impossible))

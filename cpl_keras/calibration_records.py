@@ -186,6 +186,7 @@ class RigCalibration(_Record):
     real_camera_record: dict  #: the run's record on real cameras
     priors: known.Priors      #: the known values given (the first pair's)
     pairs: tuple = ()         #: each pair's ``Calibration``
+    impossible: tuple = ()    #: what no pair can show: the rig's medians', then each pair's
 
     @property
     def num_pairs(self):
@@ -210,4 +211,6 @@ class RigCalibration(_Record):
                "aspect_note": ASPECT_NOTES[self.aspect],
                "real_camera_record": copy.deepcopy(self.real_camera_record),
                "priors": known.describe(self.priors), "from_prior": self.from_prior}
+        if self.impossible:
+            rig["impossible"] = list(self.impossible)
         return {"rig": rig, "pairs": [pair.as_dict() for pair in self.pairs]}

@@ -62,6 +62,8 @@ def _opencv_yaml(tmp, calibration, path):
             fs.write(name, np.asarray(value, np.float64))
         fs.write("baseline_m", calibration.camera.baseline)
         fs.write("source", f"cpl_keras.calibrate, run {calibration.run}")
+        if calibration.impossible:  # (read with the matrices: not a calibration to use)
+            fs.write("impossible", "; ".join(calibration.impossible))
     finally:
         fs.release()
 

@@ -393,6 +393,17 @@ def test_a_folder_of_pairs_is_one_rig_of_medians_with_their_spread(setup, calibr
     assert M1[0, 0] == pytest.approx(rig["parameters"]["fx"])
     lines = captured.err.splitlines()
     assert len(lines) == len(set(lines))
+    # what no pair can show reaches the rig's record, its JSON and its YAML,
+    # and the Python API warns of it without a ``warn`` of its own
+    from_pairs = [f"{os.path.basename(p.left)}: {line}" for p in record.pairs
+                  for line in p.impossible]
+    assert from_pairs and list(record.impossible[-len(from_pairs):]) == from_pairs
+    assert rig["impossible"] == list(record.impossible)
+    fs = cv2.FileStorage(str(opencv), cv2.FILE_STORAGE_READ)
+    assert fs.getNode("impossible").string() == "; ".join(record.impossible)
+    fs.release()
+    with pytest.warns(calibration.CalibrationWarning, match="impossible for any pair"):
+        calibrator.calibrate(str(folder / "1_left.png"), str(folder / "1_right.png"))
 
 
 def test_folder_and_pair_arguments_are_one_or_the_other(setup, tmp_path, capsys):
@@ -706,6 +717,13 @@ def test_impossible_geometry_is_named_whatever_the_training():
     lines = impossible_geometry(demo, 9748.0)
     assert len(lines) == 3 and lines[-1] == ("a baseline of 117.5 m is wider than any "
                                              "handheld or vehicle stereo rig (over 5 m)")
+    # known values that make an impossible camera are named alike (--focal 1e-30
+    # gave a 180-degree field of view, --baseline 1e-30 passed without a word)
+    assert impossible_geometry(dataclasses.replace(board, fx=1e-30), 120.0) == [
+        "a focal length of 1e-30 px (under 1 px) gives no field of view between 0 and 180 "
+        "degrees"]
+    assert impossible_geometry(dataclasses.replace(board, baseline=1e-30), 120.0) == [
+        "a baseline of 1e-30 m is narrower than any stereo rig (under 1 mm)"]
 
 
 def test_the_documented_python_snippet_runs_as_printed_and_catches_a_missing_run(tmp_path):
