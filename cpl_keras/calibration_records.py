@@ -45,9 +45,10 @@ FIELDS = {
 }
 #: What the JSON says of the quantities a pair does not fix.
 SCALE_PRIORS = ("baseline", "tx", "ty", "tz", "X", "Y", "Z")
-SCALE_NOTE = ("what does not rest on the scene scale seen in training: the pair's matches "
-              "fix the disparity, in pixels of the input images (it scales with the images' "
-              "size: not scale-free); baseline / depth = disparity / fx is unitless, but for "
+SCALE_NOTE = ("what does not rest on the scene scale seen in training: disparity_px is the "
+              "network's estimate from the pair, not a measurement of its matches (the pair's "
+              "matches could fix it, in pixels of the input images; it scales with the "
+              "images' size: not scale-free); baseline / depth = disparity / fx is unitless, but for "
               "a rectified or nearly rectified rig (parallel optical axes) the matches carry "
               "nothing of fx, fy, u0, v0 (its fundamental matrix does not depend on them), so "
               "fx, and through it baseline / depth, come from how scenes looked in training; "
