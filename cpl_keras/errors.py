@@ -9,6 +9,7 @@ nothing of the package."""
 
 from __future__ import annotations
 
+import os
 import sys
 
 
@@ -24,7 +25,22 @@ def one_line(error):
     return type(error).__name__ if isinstance(error, BaseException) else "error"
 
 
+#: Exit status of a command whose output's reader went away (128 + SIGPIPE,
+#: as a shell reports ``yes | head -1``).
+READER_GONE = 141
+
+
 def fail(prog, error):
-    """Print ``<prog>: error: <one line>`` to stderr; return the exit status 2."""
+    """Print ``<prog>: error: <one line>`` to stderr; return the exit status 2.
+    A ``BrokenPipeError`` (``| head``: stdout's reader has gone) is not an
+    error to report: nothing is printed, stdout is pointed at /dev/null (so
+    that flushing it at exit does not fail again) and the status is
+    ``READER_GONE``, as for any Unix tool."""
+    if isinstance(error, BrokenPipeError):
+        try:
+            os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+        except (OSError, ValueError):
+            pass
+        return READER_GONE
     print(f"{prog}: error: {one_line(error)}", file=sys.stderr)
     return 2

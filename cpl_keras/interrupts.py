@@ -273,8 +273,8 @@ def run(main, prog, note=None):
             status = main()
     except KeyboardInterrupt:
         status = _end_interrupted(prog, note)
-    except (Error, OSError) as error:  # (a missing or bad file: one line, 2)
-        status = fail(prog, error)
+    except (Error, OSError) as error:  # (a missing or bad file: one line, 2; a
+        status = fail(prog, error)       # reader gone from the pipe: silence, 141)
     except SystemExit as done:  # (argparse's --help and errors: the same way out)
         status = _exit_status(done)
     # The command is done: a Ctrl-C from here on, in the interpreter's

@@ -168,3 +168,16 @@ def test_an_empty_output_path_is_refused_when_parsed(capsys, tmp_path):
         assert stop.value.code == 2, name
         err = capsys.readouterr().err.strip().splitlines()
         assert len(err) == 1 and "must name a file or folder, got an empty path" in err[0], err
+
+
+def test_a_reader_gone_from_the_pipe_ends_a_command_silently_with_141():
+    """``python -m cpl_keras.real.chessboard --pair 01 | head -1`` ended with
+    ``error: [Errno 32] Broken pipe`` and 2; now as any Unix tool: nothing
+    on stderr, 141 (128 + SIGPIPE)."""
+    process = subprocess.Popen([sys.executable, "-m", "cpl_keras.real.chessboard", "--pair",
+                                "01"], cwd=REPO, stdout=subprocess.PIPE,
+                               stderr=subprocess.PIPE, env=dict(os.environ, KERAS_BACKEND="jax"))
+    process.stdout.close()
+    err = process.stderr.read().decode()
+    assert process.wait(timeout=120) == 141, err
+    assert err == ""
