@@ -12,13 +12,34 @@ import os
 import sys
 
 from cpl_keras.backend import keras_backend
+from cpl_keras.errors import Error
+
+
+class CacheError(Error):
+    """The cache directory cannot be one (one-line message)."""
 
 
 def cache_dir():
-    """The project's cache directory: ``$CPL_KERAS_CACHE`` or ``~/.cache/cpl_keras``."""
-    return os.environ.get("CPL_KERAS_CACHE") or os.path.join(
+    """The project's cache directory: ``$CPL_KERAS_CACHE`` or
+    ``~/.cache/cpl_keras``; CacheError when that names something that is
+    not a folder."""
+    path = os.environ.get("CPL_KERAS_CACHE") or os.path.join(
         os.path.expanduser("~"), ".cache", "cpl_keras"
     )
+    if os.path.exists(path) and not os.path.isdir(path):
+        where = "CPL_KERAS_CACHE" if os.environ.get("CPL_KERAS_CACHE") else "the cache directory"
+        raise CacheError(f"{where} names a file, not a folder: {path}; point CPL_KERAS_CACHE "
+                         f"at a folder")
+    return path
+
+
+def _writable(path):
+    """Whether ``path`` is (or can be made) a folder this process can write in."""
+    try:
+        os.makedirs(path, exist_ok=True)
+    except OSError:
+        return False
+    return os.path.isdir(path) and os.access(path, os.W_OK | os.X_OK)
 
 
 def enable_compile_cache():
@@ -33,11 +54,16 @@ def enable_compile_cache():
     of the same model then loads instead of compiling. The quick reproduction
     (nine runs in processes of their own, two at a time) took 90 and 91 s
     with this against 100 and 103 s with JAX's default, from an empty cache
-    (paper_results/notes/pipeline-and-suite.md). Returns the directory, or None on other backends.
+    (paper_results/notes/pipeline-and-suite.md). Returns the directory, or None on other
+    backends and where it cannot be written (a read-only one: compiling goes on without it).
     """
     if keras_backend() != "jax":
         return None
     path = os.environ.get("JAX_COMPILATION_CACHE_DIR") or os.path.join(cache_dir(), "xla")
+    if not _writable(path):
+        # (a read-only cache: compiling goes on without it, and without
+        # JAX's warning of every program it could not write)
+        return None
     keep_all = "JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS" not in os.environ
     jax = sys.modules.get("jax")
     if jax is None:
