@@ -18,8 +18,7 @@ default monitor; the arms differ only in the variant and Eq. 9's weights:
 A killed run resumes when the same command is run again (``train.py``'s
 resume); a run already published is skipped. Two of these commands may run
 side by side (``--seeds 0 1 2`` and ``--seeds 2 1 0 --arms cpl-a-range cpl-a
-baseline``: on 2 cores two compact runs together go about 1.5 times as fast
-as one after the other): each claims a run before training it
+baseline``): each claims a run before training it
 (``<run dir>.claim``, its pid) and skips one the other has claimed. Each run's test predictions,
 log, curves, config and split go to ``--out/<towers>/runs/cvgl_<arm>-s<seed>``
 (``cpl_keras.reproduce.jobs.publish_run``); weights stay in ``--runs-dir``.
