@@ -131,17 +131,40 @@ def read_run_outputs(path, indices, names):
 # ---------------------------------------------------------------------------
 def write_files(folder, files):
     """Write ``{file name: arrays}`` into ``folder`` (created if missing), all
-    files or none (``cpl_keras.files.atomic_path``); returns their paths."""
+    files or none (``cpl_keras.files.atomic_path``); returns their paths. A
+    file that already holds the same arrays is left as it is, byte for byte
+    (an .npz's bytes carry the time it was written)."""
     os.makedirs(folder, exist_ok=True)
     paths = [os.path.join(folder, name) for name in files]
-    if not paths:
-        return []
-    with atomic_path(*paths) as tmps:
+    changed = [(path, arrays) for path, arrays in zip(paths, files.values())
+               if not same_arrays(path, arrays)]
+    if not changed:
+        return paths
+    with atomic_path(*[path for path, _ in changed]) as tmps:
         tmps = tmps if isinstance(tmps, list) else [tmps]
-        for tmp, arrays in zip(tmps, files.values()):
+        for tmp, (_, arrays) in zip(tmps, changed):
             with open(tmp, "wb") as f:
                 np.savez(f, **arrays)
     return paths
+
+
+def same_arrays(path, arrays):
+    """Whether the .npz file ``path`` holds exactly ``arrays`` (the same
+    names, dtypes, shapes and values, NaN equal to NaN); False when it is
+    missing or cannot be read."""
+    try:
+        with np.load(path, allow_pickle=False) as f:
+            if sorted(f.files) != sorted(arrays):
+                return False
+            for name, value in arrays.items():
+                old, new = f[name], np.asarray(value)
+                if old.dtype != new.dtype or old.shape != new.shape:
+                    return False
+                if not np.array_equal(old, new, equal_nan=new.dtype.kind in "fc"):
+                    return False
+    except Exception:  # (a missing or damaged file is written again)
+        return False
+    return True
 
 
 

@@ -127,10 +127,16 @@ def test_published_runs_are_restored_not_trained_again(quick, tmp_path):
     assert len(list((out / "runs" / "cvgl_cpl-a" / "predictions").glob("*.npz"))) == 1 + 3
     args = ["--quick", "--out", str(out), "--data-dir", str(quick["data"]),
             "--runs-dir", str(tmp_path / "runs")]
+    before = _contents(out)
     result = run(*args)
     assert result.returncode == 0, result.stderr[-3000:]
     assert "training " not in result.stderr
     assert result.stderr.count("restored from its published record") == 9
+    # nothing new: the published record is left byte for byte (a rerun of a
+    # documented preset once rewrote six of its tracked files)
+    assert "the published record is up to date with its runs and data; nothing written" in \
+        result.stderr
+    assert _contents(out) == before
     for stem in ("table1_cvgl", "table1_random", "table2"):
         again = json.loads((out / f"{stem}.json").read_text())
         first = json.loads((quick["out"] / f"{stem}.json").read_text())
@@ -602,3 +608,36 @@ def test_settings_without_real_sets_make_table_1_alone(tmp_path, monkeypatch):
     # with real sets the same runs make Table 2 on each seed as well
     pipeline.make_predictions(config, dict(paths, real=["x.h5"]), trained, str(tmp_path))
     assert groups[2:] == [(1, "table1_cvgl")] * 2 + [(2, "table2")] * 2
+
+
+def test_a_rerun_over_a_published_record_writes_what_differs_beside_it(tmp_path, capsys):
+    """In a published folder, predictions files whose arrays are unchanged
+    are left byte for byte, a new one is added, and one whose arrays differ
+    is written into rerun/ beside the folder's runs/, with one line saying
+    how many values differ; the published file stays."""
+    from cpl_keras import prediction_files
+    from cpl_keras.reproduce import pipeline
+
+    folder = tmp_path / "out" / "runs"
+    pred = np.arange(26, dtype=np.float32).reshape(2, 13)
+    prediction_files.write_files(str(folder), {"a.npz": {"pred": pred, "key": np.array("k")},
+                                               "b.npz": {"pred": pred, "key": np.array("k")}})
+    before = _contents(folder)
+    changed = pred.copy()
+    changed[1, 3] += 0.5
+    paths = pipeline.write_group(str(folder), {
+        "a.npz": {"pred": pred, "key": np.array("k")},
+        "b.npz": {"pred": changed, "key": np.array("k")},
+        "c.npz": {"pred": pred, "key": np.array("k")}}, published=True)
+    assert paths == [str(folder / name) for name in ("a.npz", "b.npz", "c.npz")]
+    after = _contents(folder)
+    assert {name: after[name] for name in before} == before  # (a unchanged, b published kept)
+    assert "c.npz" in after
+    with np.load(tmp_path / "out" / "rerun" / "runs" / "b.npz") as f:
+        assert np.array_equal(f["pred"], changed)
+    err = capsys.readouterr().err
+    assert "b.npz: 1 of 26 predicted values differ (by up to 0.5) from the published file" in err
+    # outside a published record a changed file is written in place
+    pipeline.write_group(str(folder), {"b.npz": {"pred": changed, "key": np.array("k")}})
+    with np.load(folder / "b.npz") as f:
+        assert np.array_equal(f["pred"], changed)

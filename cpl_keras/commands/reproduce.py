@@ -165,7 +165,7 @@ def run(args, command, prog=PROG):
         return cli.interrupted(prog, resume=command)
     except (ValueError, DatasetError, OSError) as error:  # EvaluationError is a ValueError
         return cli.fail(prog, error)
-    print(f"report written to {report}")
+    print(f"report: {report}")
     return 0
 
 

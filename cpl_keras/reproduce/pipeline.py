@@ -4,10 +4,13 @@ and REPORT.md from the published predictions alone."""
 
 from __future__ import annotations
 
+import glob
 import json
 import os
 import platform
 import time
+
+import numpy as np
 
 from cpl_keras import cli, evaluation, prediction_files, predictions, published, report, runs
 from cpl_keras.cache import enable_compile_cache
@@ -55,10 +58,15 @@ def make_datasets(config, data_dir, seed, real_roots=None):
 # ---------------------------------------------------------------------------
 # Stage 3: published predictions
 # ---------------------------------------------------------------------------
-def _group_predictions(number, stem, prefix, run_dirs, data, config, out_dir, suffix):
+def _group_predictions(number, stem, prefix, run_dirs, data, config, out_dir, suffix,
+                       reused=None):
     """The predictions files of one table of one seed: reused when they were
     made from the same runs, data and settings after the runs' models were
-    written, else computed and written (all files or none)."""
+    written, or when the runs were restored from their published records
+    (no weights: their outputs are the stored ones, and the published files
+    are the record), else computed and written (all files or none; a file
+    whose arrays are unchanged is left as it is). ``reused`` (a list) gets
+    True or False."""
     folder = os.path.join(out_dir, "runs")
     key = json.dumps({"table": stem, "runs": [runs.relative(r, out_dir) for r in run_dirs],
                       "data": [runs.relative(p, out_dir) for p in data] if data else None,
@@ -70,12 +78,19 @@ def _group_predictions(number, stem, prefix, run_dirs, data, config, out_dir, su
              for s in stems for r in rows]
     expected = [os.path.join(folder, name) for name in names]
     models = [os.path.join(r, runs.MODEL) for r in run_dirs]
-    if all(os.path.exists(p) for p in expected + models) and \
-            all(prediction_files.read_key(p) == key for p in expected) and \
-            min(os.path.getmtime(p) for p in expected) >= max(os.path.getmtime(m) for m in models):
+    restored = not any(os.path.exists(m) for m in models)
+    if all(os.path.exists(p) for p in expected) and \
+            all(prediction_files.read_key(p) == key for p in expected) and (restored or (
+                all(os.path.exists(m) for m in models) and
+                min(os.path.getmtime(p) for p in expected)
+                >= max(os.path.getmtime(m) for m in models))):
         log(f"{stem} ({', '.join(os.path.basename(r) for r in run_dirs)}): published "
              f"predictions up to date with their runs, reused")
+        if reused is not None:
+            reused.append(True)
         return expected
+    if reused is not None:
+        reused.append(False)
     log(f"evaluating {stem}: {', '.join(os.path.basename(r) for r in run_dirs)}")
     if number == 1:
         context, raw = evaluation.table_rows(1, run_dirs, geometric=True,
@@ -90,12 +105,62 @@ def _group_predictions(number, stem, prefix, run_dirs, data, config, out_dir, su
     if sorted(files) != sorted(names):
         raise evaluation.EvaluationError(f"{stem}: predictions files {sorted(files)} are not "
                                          f"the expected {sorted(names)}")
-    return prediction_files.write_files(folder, {name: files[name] for name in names})
+    return write_group(folder, {name: files[name] for name in names},
+                       published=os.path.exists(os.path.join(out_dir, SUMMARY)))
 
 
-def make_predictions(config, paths, trained, out_dir):
+#: Where a reproduction over a published folder writes the predictions
+#: files whose arrays differ from the published ones (inside that folder).
+RERUN = "rerun"
+
+
+def write_group(folder, files, published=False):
+    """Write one group's predictions files (``{name: arrays}``) into
+    ``folder`` (``prediction_files.write_files``: unchanged ones are left as
+    they are). In a ``published`` record a file whose arrays differ from the
+    published file's is written beside it, into ``<folder>/../rerun/runs/``,
+    with one line saying how many values differ and by how much; the
+    published file is left as it is. Returns the paths the tables read (the
+    published ones)."""
+    if not published:
+        return prediction_files.write_files(folder, files)
+    paths, same, beside = [], {}, {}
+    for name, arrays in files.items():
+        path = os.path.join(folder, name)
+        paths.append(path)
+        if not os.path.exists(path) or prediction_files.same_arrays(path, arrays):
+            same[name] = arrays
+        else:
+            beside[name] = arrays
+    prediction_files.write_files(folder, same)
+    if beside:
+        rerun = os.path.join(os.path.dirname(folder), RERUN, os.path.basename(folder))
+        prediction_files.write_files(rerun, beside)
+        for name, arrays in beside.items():
+            log(f"{name}: {_difference(os.path.join(folder, name), arrays)} from the "
+                f"published file; written beside it in {rerun}, the published file left as "
+                f"it is")
+    return paths
+
+
+def _difference(path, arrays):
+    """How the predictions ``arrays`` differ from the file ``path``'s, in words."""
+    with np.load(path, allow_pickle=False) as old:
+        if "pred" in arrays and "pred" in old.files and old["pred"].shape == np.shape(
+                arrays["pred"]):
+            new, was = np.asarray(arrays["pred"], np.float64), old["pred"].astype(np.float64)
+            differ = ~((new == was) | (np.isnan(new) & np.isnan(was)))
+            if differ.any():
+                largest = float(np.nanmax(np.abs(new - was)[differ]))
+                return (f"{int(differ.sum())} of {differ.size} predicted values differ (by up "
+                        f"to {largest:.4g})")
+    return "its arrays differ"
+
+
+def make_predictions(config, paths, trained, out_dir, reused=None):
     """Stage 3: the predictions of every row of every table, for every seed;
-    returns their paths (Table 1 per table key, then Table 2)."""
+    returns their paths (Table 1 per table key, then Table 2). ``reused``
+    (a list) gets, per group, whether its published files were reused."""
     groups = []
     for key, by_seed in trained.items():
         for run_seed, run_dirs in by_seed.items():
@@ -107,7 +172,8 @@ def make_predictions(config, paths, trained, out_dir):
                        f"-s{run_seed}" if len(cvgl) > 1 else ""))
     files = []
     for number, stem, prefix, run_dirs, data, suffix in groups:
-        files += _group_predictions(number, stem, prefix, run_dirs, data, config, out_dir, suffix)
+        files += _group_predictions(number, stem, prefix, run_dirs, data, config, out_dir, suffix,
+                                    reused)
     return files
 
 
@@ -208,7 +274,9 @@ def reproduce(*, out_dir, data_dir, runs_dir, config, seed=0, command="", discus
 
     enable_compile_cache()
     paths = make_datasets(config, data_dir, seed, real_roots)
+    records = _published_records(out_dir)
     trained = train_all(config, paths, runs_dir, seed, jobs, out_dir=out_dir, train=not partial)
+    published_before = not partial and os.path.exists(os.path.join(out_dir, SUMMARY))
     partial_info = None
     if partial:
         trained, left_out = complete_seeds(config, trained, seed)
@@ -219,7 +287,14 @@ def reproduce(*, out_dir, data_dir, runs_dir, config, seed=0, command="", discus
         os.makedirs(out_dir, exist_ok=True)
         partial_info = {"seeds": {key: sorted(by_seed) for key, by_seed in trained.items()},
                         "left_out": left_out}
-    files = make_predictions(config, paths, trained, out_dir)
+    reused = []
+    files = make_predictions(config, paths, trained, out_dir, reused)
+    if published_before and all(reused) and _published_records(out_dir) == records:
+        # nothing new: the record stays as published, byte for byte (its
+        # summary would change only by this machine and this wall time)
+        log(f"{out_dir}: the published record is up to date with its runs and data; "
+            f"nothing written")
+        return os.path.join(out_dir, "REPORT.md")
     tables = make_tables(files, out_dir, command)
     summaries = collect_run_files(trained, out_dir)
     info = dict(machine(), wall_time_s=time.time() - start)
@@ -240,6 +315,16 @@ def reproduce(*, out_dir, data_dir, runs_dir, config, seed=0, command="", discus
     write_json(os.path.join(out_dir, SUMMARY), summary)
     write_report(out_dir, dict(summary, settings=config), tables)
     return os.path.join(out_dir, "REPORT.md")
+
+
+def _published_records(out_dir):
+    """The published run records in ``out_dir/runs`` (their config.json's
+    contents), to tell whether a reproduction published a run."""
+    found = {}
+    for path in sorted(glob.glob(os.path.join(out_dir, "runs", "*", runs.CONFIG))):
+        with open(path, "rb") as f:
+            found[path] = f.read()
+    return found
 
 
 # ---------------------------------------------------------------------------
