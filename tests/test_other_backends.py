@@ -37,6 +37,35 @@ def test_core_model_tests_pass_under_another_backend(backend):
     assert done.returncode == 0, f"{backend}:\n{done.stdout[-4000:]}\n{done.stderr[-2000:]}"
 
 
+#: Builds the faithful model (InceptionV3 towers) and takes one training step.
+ONE_STEP = """
+import numpy as np
+from cpl_keras import TARGETS, build_model, compile_model
+model = compile_model(build_model("cpl-a", image_size=75, seed=0))
+rng = np.random.default_rng(0)
+x = {name: rng.uniform(0, 255, (2, 75, 75, 3)).astype("float32")
+     for name in ("left_image", "right_image")}
+y = {name: rng.uniform(1, 3, (2, 1)).astype("float32") for name in TARGETS}
+model.initialise_adaptive_weights(y)
+loss = model.train_on_batch(x, y, return_dict=True)["loss"]
+assert np.isfinite(float(loss)), loss
+print("one step", model.count_params(), float(loss))
+"""
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("backend", ["tensorflow", "torch"])
+def test_the_faithful_model_builds_and_trains_a_step_under_another_backend(backend):
+    """Under PyTorch every tower build crashed (Keras lists no devices
+    there, and the towers asked it which device they were on)."""
+    if importlib.util.find_spec(backend) is None:
+        pytest.skip(f"{backend} is not installed (docs/performance.md: the benchmark environment)")
+    done = subprocess.run([sys.executable, "-c", ONE_STEP], cwd=REPO, capture_output=True,
+                          text=True, timeout=900,
+                          env=dict(os.environ, KERAS_BACKEND=backend, TF_CPP_MIN_LOG_LEVEL="3"))
+    assert done.returncode == 0 and "one step" in done.stdout, done.stderr[-3000:]
+
+
 # ---------------------------------------------------------------------------
 # A backend that is not installed: one line, never Keras's traceback
 # ---------------------------------------------------------------------------

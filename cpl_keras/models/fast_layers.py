@@ -47,7 +47,12 @@ def on_accelerator():
     after 125 s; with ``--plain-conv`` it compiled and ran its first epoch in
     53 s and trained 369 samples/s (docs/performance.md).
     """
-    devices = keras.distribution.list_devices()
+    try:
+        devices = keras.distribution.list_devices()
+    except (NotImplementedError, RuntimeError, ValueError):
+        devices = None
+    # (under PyTorch Keras 3.15 lists no devices: None. The patch paths are
+    # then taken; they are Conv2D's and MaxPooling2D's results on any device)
     return bool(devices) and not str(devices[0]).lower().startswith("cpu")
 
 
