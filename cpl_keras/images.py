@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import contextlib
 import os
+import warnings
 
 import numpy as np
 
@@ -27,8 +28,6 @@ MAX_PIXELS = 250_000_000
 def pillow_limit():
     """Pillow opens images up to ``MAX_PIXELS`` without its decompression-bomb
     warning or error (its limit is restored after)."""
-    import warnings
-
     from PIL import Image
 
     before = Image.MAX_IMAGE_PIXELS
