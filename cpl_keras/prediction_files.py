@@ -58,6 +58,7 @@ from __future__ import annotations
 
 import json
 import os
+import sys
 import zipfile
 
 import numpy as np
@@ -165,6 +166,55 @@ def same_arrays(path, arrays):
     except Exception:  # (a missing or damaged file is written again)
         return False
     return True
+
+
+#: Where a reproduction over a published folder writes the predictions
+#: files whose arrays differ from the published ones (inside that folder).
+RERUN = "rerun"
+
+
+def write_group(folder, files, published=False, log=None):
+    """Write one group's predictions files (``{name: arrays}``) into
+    ``folder`` (``write_files``: unchanged ones are left as
+    they are). In a ``published`` record a file whose arrays differ from the
+    published file's is written beside it, into ``<folder>/../rerun/runs/``,
+    with one line saying how many values differ and by how much; the
+    published file is left as it is (``log(line)``, default stderr). Returns
+    the paths the tables read (the published ones)."""
+    if not published:
+        return write_files(folder, files)
+    log = log or (lambda line: print(line, file=sys.stderr, flush=True))
+    paths, same, beside = [], {}, {}
+    for name, arrays in files.items():
+        path = os.path.join(folder, name)
+        paths.append(path)
+        if not os.path.exists(path) or same_arrays(path, arrays):
+            same[name] = arrays
+        else:
+            beside[name] = arrays
+    write_files(folder, same)
+    if beside:
+        rerun = os.path.join(os.path.dirname(folder), RERUN, os.path.basename(folder))
+        write_files(rerun, beside)
+        for name, arrays in beside.items():
+            log(f"{name}: {_difference(os.path.join(folder, name), arrays)} from the "
+                f"published file; written beside it in {rerun}, the published file left as "
+                f"it is")
+    return paths
+
+
+def _difference(path, arrays):
+    """How the predictions ``arrays`` differ from the file ``path``'s, in words."""
+    with np.load(path, allow_pickle=False) as old:
+        if "pred" in arrays and "pred" in old.files and old["pred"].shape == np.shape(
+                arrays["pred"]):
+            new, was = np.asarray(arrays["pred"], np.float64), old["pred"].astype(np.float64)
+            differ = ~((new == was) | (np.isnan(new) & np.isnan(was)))
+            if differ.any():
+                largest = float(np.nanmax(np.abs(new - was)[differ]))
+                return (f"{int(differ.sum())} of {differ.size} predicted values differ (by up "
+                        f"to {largest:.4g})")
+    return "its arrays differ"
 
 
 

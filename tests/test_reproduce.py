@@ -616,7 +616,6 @@ def test_a_rerun_over_a_published_record_writes_what_differs_beside_it(tmp_path,
     is written into rerun/ beside the folder's runs/, with one line saying
     how many values differ; the published file stays."""
     from cpl_keras import prediction_files
-    from cpl_keras.reproduce import pipeline
 
     folder = tmp_path / "out" / "runs"
     pred = np.arange(26, dtype=np.float32).reshape(2, 13)
@@ -625,7 +624,7 @@ def test_a_rerun_over_a_published_record_writes_what_differs_beside_it(tmp_path,
     before = _contents(folder)
     changed = pred.copy()
     changed[1, 3] += 0.5
-    paths = pipeline.write_group(str(folder), {
+    paths = prediction_files.write_group(str(folder), {
         "a.npz": {"pred": pred, "key": np.array("k")},
         "b.npz": {"pred": changed, "key": np.array("k")},
         "c.npz": {"pred": pred, "key": np.array("k")}}, published=True)
@@ -638,6 +637,6 @@ def test_a_rerun_over_a_published_record_writes_what_differs_beside_it(tmp_path,
     err = capsys.readouterr().err
     assert "b.npz: 1 of 26 predicted values differ (by up to 0.5) from the published file" in err
     # outside a published record a changed file is written in place
-    pipeline.write_group(str(folder), {"b.npz": {"pred": changed, "key": np.array("k")}})
+    prediction_files.write_group(str(folder), {"b.npz": {"pred": changed, "key": np.array("k")}})
     with np.load(folder / "b.npz") as f:
         assert np.array_equal(f["pred"], changed)

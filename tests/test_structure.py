@@ -214,30 +214,54 @@ def test_every_error_of_the_package_is_an_errors_error():
 #: reads top to bottom, and imports of the package's own modules at the top
 #: (inside a function only where a module imports Keras and the caller must
 #: start without it).
-MAX_MODULE_LINES = 500
-MAX_FUNCTION_LINES = 80
+MAX_MODULE_LINES = 400
+MAX_FUNCTION_LINES = 60
 MAX_OWN_FUNCTION_LEVEL_IMPORTS = 10
+#: What may pass those limits, each with its reason; the test fails when one
+#: of them is back under its limit (then it leaves this list) or grows past
+#: the size given here.
+EXCEPTIONS = {
+    "cpl_keras.camera": (430, "the camera equations written once, forward (Eqs. 4a-5c) and "
+                              "inverse, with the op sets every caller runs them on"),
+    "cpl_keras.data.protocols": (490, "the five rig protocols side by side, so that their "
+                                      "ranges read against each other"),
+    "cpl_keras.data.render": (430, "one vectorised ray caster: splitting it splits its one "
+                                   "loop's state"),
+    "cpl_keras.reproduce.presets": (430, "every named preset's record in one table"),
+    "cpl_keras.datasets.make_split": (80, "the three splits' rules side by side"),
+    "cpl_keras.evaluation.table1.table_rows": (75, "every row of Table 1 in the paper's order"),
+    "cpl_keras.reproduce.page.write_report": (75, "REPORT.md's sections in the order a reader "
+                                                  "meets them"),
+    "cpl_keras.data.scenes._make_objects": (70, "a town's objects, one kind after another"),
+}
 
 
-def oversized(limit_module=MAX_MODULE_LINES, limit_function=MAX_FUNCTION_LINES):
+def oversized(limit_module=MAX_MODULE_LINES, limit_function=MAX_FUNCTION_LINES,
+              exceptions=None):
     """``[(what, lines)]``: modules over ``limit_module`` lines and functions
-    (from ``def`` to their last line) over ``limit_function``."""
+    (from ``def`` to their last line) over ``limit_function``, but those of
+    ``exceptions`` within the size given there."""
+    exceptions = exceptions or {}
     found = []
     for module, path in _modules().items():
         with open(path) as f:
             text = f.read()
-        if len(text.splitlines()) > limit_module:
+        if len(text.splitlines()) > exceptions.get(module, (limit_module,))[0]:
             found.append((module, len(text.splitlines())))
         for node in ast.walk(ast.parse(text)):
             if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef)):
                 lines = node.end_lineno - node.lineno + 1
-                if lines > limit_function:
-                    found.append((f"{module}.{node.name}", lines))
+                name = f"{module}.{node.name}"
+                if lines > exceptions.get(name, (limit_function,))[0]:
+                    found.append((name, lines))
     return found
 
 
 def test_modules_and_functions_stay_readable():
-    assert oversized() == []
+    assert oversized(exceptions=EXCEPTIONS) == []
+    # each exception is still needed: it passes the house's limit
+    needed = {what for what, _ in oversized()}
+    assert set(EXCEPTIONS) <= needed, set(EXCEPTIONS) - needed
     own = [(m, n) for m, n in function_level_imports() if n.startswith("cpl_keras")]
     assert len(own) <= MAX_OWN_FUNCTION_LEVEL_IMPORTS, own
     # and the check can fail: tighter limits find the longest module and function

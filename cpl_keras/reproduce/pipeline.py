@@ -10,8 +10,6 @@ import os
 import platform
 import time
 
-import numpy as np
-
 from cpl_keras import cli, evaluation, prediction_files, predictions, published, report, runs
 from cpl_keras.cache import enable_compile_cache
 from cpl_keras.data.generate import cached_dataset
@@ -105,56 +103,9 @@ def _group_predictions(number, stem, prefix, run_dirs, data, config, out_dir, su
     if sorted(files) != sorted(names):
         raise evaluation.EvaluationError(f"{stem}: predictions files {sorted(files)} are not "
                                          f"the expected {sorted(names)}")
-    return write_group(folder, {name: files[name] for name in names},
-                       published=os.path.exists(os.path.join(out_dir, SUMMARY)))
-
-
-#: Where a reproduction over a published folder writes the predictions
-#: files whose arrays differ from the published ones (inside that folder).
-RERUN = "rerun"
-
-
-def write_group(folder, files, published=False):
-    """Write one group's predictions files (``{name: arrays}``) into
-    ``folder`` (``prediction_files.write_files``: unchanged ones are left as
-    they are). In a ``published`` record a file whose arrays differ from the
-    published file's is written beside it, into ``<folder>/../rerun/runs/``,
-    with one line saying how many values differ and by how much; the
-    published file is left as it is. Returns the paths the tables read (the
-    published ones)."""
-    if not published:
-        return prediction_files.write_files(folder, files)
-    paths, same, beside = [], {}, {}
-    for name, arrays in files.items():
-        path = os.path.join(folder, name)
-        paths.append(path)
-        if not os.path.exists(path) or prediction_files.same_arrays(path, arrays):
-            same[name] = arrays
-        else:
-            beside[name] = arrays
-    prediction_files.write_files(folder, same)
-    if beside:
-        rerun = os.path.join(os.path.dirname(folder), RERUN, os.path.basename(folder))
-        prediction_files.write_files(rerun, beside)
-        for name, arrays in beside.items():
-            log(f"{name}: {_difference(os.path.join(folder, name), arrays)} from the "
-                f"published file; written beside it in {rerun}, the published file left as "
-                f"it is")
-    return paths
-
-
-def _difference(path, arrays):
-    """How the predictions ``arrays`` differ from the file ``path``'s, in words."""
-    with np.load(path, allow_pickle=False) as old:
-        if "pred" in arrays and "pred" in old.files and old["pred"].shape == np.shape(
-                arrays["pred"]):
-            new, was = np.asarray(arrays["pred"], np.float64), old["pred"].astype(np.float64)
-            differ = ~((new == was) | (np.isnan(new) & np.isnan(was)))
-            if differ.any():
-                largest = float(np.nanmax(np.abs(new - was)[differ]))
-                return (f"{int(differ.sum())} of {differ.size} predicted values differ (by up "
-                        f"to {largest:.4g})")
-    return "its arrays differ"
+    return prediction_files.write_group(
+        folder, {name: files[name] for name in names},
+        published=os.path.exists(os.path.join(out_dir, SUMMARY)), log=log)
 
 
 def make_predictions(config, paths, trained, out_dir, reused=None):

@@ -79,9 +79,8 @@ def train(data, *, steps_per_execution=1, verbose=1, return_model=True, term_gra
     ``head_units``: log, every epoch, each regression head's live units on
     the same probe pairs (``dead_<head>``, ``units_<head>``;
     ``training.head_units``): when a head dies. A diagnostic too.
-    ``verbose``: 0 prints nothing, 1 one short line per epoch (the loss, the
-    validation loss and key validation MAEs; every metric is in log.csv)
-    and a progress bar during the epoch when stdout is a terminal, 2 the
+    ``verbose``: 0 prints nothing, 1 one short line per epoch (every metric
+    is in log.csv) and a progress bar when stdout is a terminal, 2 the
     epoch lines only.
     """
     if isinstance(steps_per_execution, bool) or not (
