@@ -741,3 +741,24 @@ def test_the_documented_python_snippet_runs_as_printed_and_catches_a_missing_run
     lines = done.stdout.strip().splitlines()
     assert len(lines) == 1 and lines[0].startswith("cannot calibrate: "), done.stdout
     assert "runs/cpl-a-paper-s0" in lines[0]
+
+
+def test_the_readme_python_example_runs_as_printed_on_a_run(tiny_run):
+    """README's front-door example, with the tiny run in place of the
+    demonstration run the first command makes: it calibrates the shipped
+    chessboard pair and prints the parameters, K and the field of view."""
+    import re
+
+    with open(os.path.join(REPO, "README.md")) as f:
+        text = f.read()
+    start = text.index("## From Python")
+    [snippet] = re.findall(r"```python\n(.*?)```", text[start:text.index("\n## ", start + 1)],
+                           re.S)
+    assert len(snippet.strip().splitlines()) <= 12
+    assert text[:start].count("\n") < 60  # (within the README's first 60 lines)
+    snippet = snippet.replace('"runs/demo-cpl-a-paper-s0"', repr(tiny_run["run"]))
+    done = subprocess.run([sys.executable, "-c", snippet], cwd=REPO, text=True,
+                          capture_output=True, timeout=300,
+                          env=dict(os.environ, KERAS_BACKEND="jax"))
+    assert done.returncode == 0, done.stderr[-3000:]
+    assert "'fx':" in done.stdout and "pitch" in done.stdout
