@@ -34,7 +34,7 @@ import warnings
 
 import numpy as np
 
-from cpl_keras import evaluation, priors as known, real_record, runs
+from cpl_keras import priors as known, real_record, runs
 from cpl_keras.calibration_records import (
     RIG_PARAMETERS, TTA_CROPS, TTA_FRACTION, Calibration, RigCalibration,
 )
@@ -42,6 +42,7 @@ from cpl_keras.camera import FLOORS, PARAMETERS
 from cpl_keras.data.storage import StereoFile
 from cpl_keras.image_pairs import CalibrationError, find_pairs, is_grey, read_pair
 from cpl_keras.images import resize_image
+from cpl_keras.models.inference import model_image_shape, predict_images
 from cpl_keras.stereo_camera import Point, StereoCamera
 
 #: A spread of fx or fy above this share of the value is warned about.
@@ -125,9 +126,9 @@ def predict_windows(model, left, right, windows, released):
     """The model's outputs on each window of the pair (resized to its input):
     ``(raw, mapped)``, two lists of dicts, as the model gives them and in the
     full image's pixels with pitch in radians."""
-    size_h, size_w = evaluation.model_image_shape(model)
+    size_h, size_w = model_image_shape(model)
     height, width = left.shape[:2]
-    pred = evaluation.predict_images(
+    pred = predict_images(
         model, np.stack([resize_image(left[y:y + h, x:x + w], size_w, size_h)
                          for x, y, w, h in windows]),
         np.stack([resize_image(right[y:y + h, x:x + w], size_w, size_h)
@@ -232,7 +233,7 @@ class Calibrator:
         "exif": the left image's EXIF)."""
         _check_arguments(aspect, priors)
         warn = warn or python_warning
-        run, (size_h, size_w) = self.run, evaluation.model_image_shape(self.model)
+        run, (size_h, size_w) = self.run, model_image_shape(self.model)
         left_image, right_image = _read_pair(left, right, size_w, size_h, warn)
         height, width = left_image.shape[:2]
         windows = crop_windows(width, height)

@@ -317,3 +317,16 @@ def test_tests_import_helpers_from_helpers_only():
     assert sorted(imports_of_test_modules(bad, "t.py")) == [
         "t.py:1: test_a", "t.py:2: conftest", "t.py:3: tests.test_b", "t.py:4: tests.test_c",
         "t.py:6: tests.conftest", "t.py:8: test_d"]
+
+
+def test_calibration_imports_nothing_of_evaluation():
+    """Inference apart from evaluation: calibrating a pair runs the forward
+    pass of ``models.inference`` and loads no table or score code."""
+    import subprocess
+    import sys
+
+    code = ("import sys, cpl_keras.calibration, cpl_keras.calibrate; "
+            "print(sorted(m for m in sys.modules if m.startswith('cpl_keras.evaluation')))")
+    done = subprocess.run([sys.executable, "-c", code], cwd=os.path.dirname(TESTS),
+                          capture_output=True, text=True, timeout=120)
+    assert done.returncode == 0 and done.stdout.strip() == "[]", (done.stdout, done.stderr)
