@@ -39,10 +39,14 @@ from cpl_keras.runs import RELEASED
 ROWS = ("Average", "Average (release bug)") + MODEL_ROWS + ("Geometric",)
 #: Which NMAE convention the paper used for each table (REPRODUCTION_NOTES.md).
 PAPER_CONVENTION = {1: "nmae_signed", 2: "nmae"}
-#: Where the paper's tables are (``paper_table1.csv``, ``paper_table2.csv``).
+#: The repository's results folder (the reproduction's default output).
 PAPER_DIR = os.path.join(
     os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__)))),
     "paper_results")
+#: Where the paper's own tables are (``paper_table1.csv``, ``paper_table2.csv``):
+#: package data beside this module, so that an install that is not editable
+#: has them too.
+PAPER_TABLES = os.path.dirname(os.path.abspath(__file__))
 
 
 def score(truth, predictions, width):
@@ -75,8 +79,9 @@ def evaluate_run(run_dir, data_path, batch_size=32):
     }))
 
 
-def read_paper_table(number, directory=PAPER_DIR):
-    """The paper's Table ``number`` as {row: {column: float}} (from CSV)."""
+def read_paper_table(number, directory=PAPER_TABLES):
+    """The paper's Table ``number`` as {row: {column: float}} (from CSV; {}
+    where ``directory`` has no such file)."""
     path = os.path.join(directory, f"paper_table{number}.csv")
     table = {}
     try:
