@@ -83,8 +83,11 @@ def targets_from_labels(labels, as_released=False):
                                f"{values.size} pairs")
     # (as released, the disparity is StereoBM's mean, often negative)
     positive = ("fx", "fy") if as_released else POSITIVE_TARGETS
+    # (a real set marks a pair without a measured disparity: disparity_valid 0)
+    valid = np.asarray(labels["disparity_valid"]) != 0 if "disparity_valid" in labels else True
     for name in positive:
-        count = int(np.sum(result[name] <= 0))
+        checked = valid if name == "disparity" else True
+        count = int(np.sum((result[name] <= 0) & checked))
         if count:
             raise DatasetError(f"label '{name}' is not positive on {count} of "
                                f"{result[name].size} pairs, which no camera has; fix or drop "

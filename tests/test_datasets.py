@@ -468,6 +468,12 @@ def test_labels_no_camera_has_are_refused_naming_the_label_and_count(tmp_path):
         targets_from_labels(nan)
     # as released, the disparity is StereoBM's mean: negative is what it is
     assert (targets_from_labels(labels, as_released=True)["disparity"] < 0).any()
+    # a real set's pair without a measured disparity says so (disparity_valid 0)
+    unmeasured = dict(labels, disparity=labels["disparity"].copy(),
+                      disparity_valid=np.ones(40, np.int32))
+    unmeasured["disparity"][5] = 0.0
+    unmeasured["disparity_valid"][5] = 0
+    assert targets_from_labels(unmeasured)["disparity"][5] == 0.0
     # training refuses such a file before anything is written
     bad = dict(labels, fx=labels["fx"].copy())
     bad["fx"][0] = -100.0
