@@ -100,7 +100,7 @@ def _cells(folder, document=None):
 
 def _discussions():
     """(document, its text, the folder whose tables back it): each
-    reproduction's comparison with the paper, and paper_results/REPORT.md."""
+    reproduction's comparison with the paper, and paper_results/README.md."""
     import json
 
     found = []
@@ -108,7 +108,7 @@ def _discussions():
         text = json.loads((folder / "reproduce.json").read_text()).get("discussion") or ""
         if text:
             found.append((str(folder.relative_to(RESULTS)) + "/reproduce.json", text, folder))
-    found.append(("REPORT.md", (RESULTS / "REPORT.md").read_text(), RESULTS))
+    found.append(("README.md", (RESULTS / "README.md").read_text(), RESULTS))
     return found
 
 
@@ -227,3 +227,14 @@ def test_the_readme_answer_fits_one_screen():
         assert max(len(_words(cell)) for cell in cells) <= 40, row
         assert re.search(r"\]\((paper_results|docs)/", cells[-1]), row
     assert len(_words("a b [c](d/e.md) | f")) == 4  # (the count can tell)
+
+
+def test_the_index_lists_every_folder_of_paper_results():
+    """paper_results/README.md has a line for every folder, each with its status."""
+    text = (RESULTS / "README.md").read_text()
+    folders = sorted(p.name for p in RESULTS.iterdir() if p.is_dir())
+    listed = re.findall(r"^\| \[([\w.-]+)/\]\([^)]*\) \|", text, re.M)
+    assert sorted(listed) == folders, set(folders) ^ set(listed)
+    for line in text.splitlines():
+        if re.match(r"^\| \[[\w.-]+/\]", line):
+            assert line.rstrip(" |").split("|")[-1].strip(), line  # (a status)
