@@ -37,7 +37,10 @@ fi
 out=${1:?usage: bash bench/paper_gpu.sh OUT [--dry-run] | --fetch-wheels}
 mode=${2:-}
 mkdir -p "$out"
-work=$(mktemp -d)
+# the reproduction's folders under OUT, so that an interrupted one is resumed
+# by the same command (its own resume line names them) and removed once packed
+work="$out/work"
+mkdir -p "$work"
 export KERAS_BACKEND=jax PYTHONUNBUFFERED=1
 if [ -d .whl ] && [ "$mode" != "--dry-run" ]; then
     python3 -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upgrade \
@@ -72,9 +75,16 @@ timeout --foreground -s INT -k 30 "$limit" python3 -m cpl_keras.reproduce "${arg
 status=${PIPESTATUS[0]}
 set -e
 echo "reproduce: exit $status after $(( $(date +%s) - start )) s" | tee -a "$out/machine.txt"
-if [ -d "$work/paper-gpu" ]; then
+if [ -n "$(find "$work/paper-gpu" -type f -print -quit 2>/dev/null)" ]; then
     tar czf "$out/paper-gpu.tar.gz" -C "$work" paper-gpu
     tar tzf "$out/paper-gpu.tar.gz" | sed 's/^/packed: /'
+else
+    echo "packed nothing: the reproduction wrote no results yet"
 fi
-rm -rf "$work"
+if [ "$status" = 130 ] || [ "$status" = 143 ]; then
+    # (interrupted: the same command goes on from what $work holds)
+    echo "interrupted; to resume, run the same command again: bash bench/paper_gpu.sh $out $mode"
+else
+    rm -rf "$work"
+fi
 exit "$status"
