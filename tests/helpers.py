@@ -222,3 +222,32 @@ def assert_refuses_a_bare_log(script, tmp_path, capsys, message):
     err = capsys.readouterr().err
     assert message in err and err.count("\n") == 1
     assert not (tmp_path / "bare.md").exists()
+
+
+# ---------------------------------------------------------------------------
+# Waiting on a process that trains
+# ---------------------------------------------------------------------------
+def wait_for(condition, timeout=120):
+    """Poll ``condition()`` (a file it reads may not be there yet: an
+    ``OSError``, ``ValueError`` or ``KeyError`` counts as False) until it is
+    true or ``timeout`` seconds have passed; returns whether it came true."""
+    import time
+
+    deadline = time.time() + timeout
+    while time.time() < deadline:
+        try:
+            if condition():
+                return True
+        except (OSError, ValueError, KeyError):
+            pass
+        time.sleep(0.02)
+    return False
+
+
+def epochs_done(run_dir):
+    """The epochs a run directory's resume state says are committed."""
+    import json
+
+    with open(os.path.join(run_dir, "backup", "state.json")) as f:
+        return json.load(f)["epoch"]
+

@@ -13,7 +13,7 @@ import time
 import pytest
 
 from cpl_keras.data.storage import StereoFile
-from helpers import REPO, write_stereo_fixture
+from helpers import REPO, epochs_done, wait_for, write_stereo_fixture
 
 
 @pytest.fixture(autouse=True)
@@ -40,18 +40,6 @@ def _start(args, cache=None):
 
 def _ctrl_c(process):
     os.killpg(process.pid, signal.SIGINT)
-
-
-def _wait_for(condition, timeout=120):
-    deadline = time.time() + timeout
-    while time.time() < deadline:
-        try:
-            if condition():
-                return True
-        except (OSError, ValueError, KeyError):
-            pass
-        time.sleep(0.02)
-    return False
 
 
 def _one_line_130(process, prog, timeout=30):
@@ -86,18 +74,13 @@ def test_ctrl_c_stops_training_resumably(tmp_path, train_cache):
             "--batch-size", "5", "--patience", "10", "--quiet", "--data", str(data),
             "--run-dir", run_dir]
     cache = train_cache  # (warm: the same programs as the kill-and-resume runs)
-    state = os.path.join(run_dir, "backup", "state.json")
-
-    def epochs_done():
-        with open(state) as f:
-            return json.load(f)["epoch"]
 
     process = _start(args, cache)
-    assert _wait_for(lambda: epochs_done() >= 1)
+    assert wait_for(lambda: epochs_done(run_dir) >= 1)
     _ctrl_c(process)
     line = _one_line_130(process, "train.py")
     assert "run the same command again" in line and run_dir in line
-    done = epochs_done()
+    done = epochs_done(run_dir)
     assert 1 <= done < 6, "the run must be stopped mid-training"
     process = _start(args, cache)
     out, err = process.communicate(timeout=300)
@@ -117,9 +100,8 @@ def test_sigterm_stops_training_resumably_with_its_own_line(tmp_path, train_cach
     args = ["train.py", "--variant", "baseline", "--backbone", "small", "--epochs", "6",
             "--batch-size", "5", "--patience", "10", "--quiet", "--data", str(data),
             "--run-dir", run_dir]
-    state = os.path.join(run_dir, "backup", "state.json")
     process = _start(args, train_cache)
-    assert _wait_for(lambda: json.load(open(state))["epoch"] >= 1)
+    assert wait_for(lambda: epochs_done(run_dir) >= 1)
     process.send_signal(signal.SIGTERM)
     out, err = process.communicate(timeout=60)
     assert process.returncode == 143, err
@@ -240,7 +222,7 @@ def test_ctrl_c_stops_the_reproduction_resumably(tmp_path):
     command = ["-m", "cpl_keras.reproduce", "--quick", "--out", str(tmp_path / "out"),
                "--data-dir", str(data_dir), "--runs-dir", str(runs_dir)]
     process = _start(command)
-    assert _wait_for(lambda: os.listdir(data_dir))  # generating its first dataset
+    assert wait_for(lambda: os.listdir(data_dir))  # generating its first dataset
     time.sleep(0.3)
     _ctrl_c(process)
     line = _one_line_130(process, "python -m cpl_keras.reproduce")

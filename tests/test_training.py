@@ -19,7 +19,9 @@ import numpy as np
 import pytest
 
 from cpl_keras.camera import TARGETS
-from helpers import REPO, RESUME_ARGS, train_py, write_stereo_fixture
+from helpers import (
+    REPO, RESUME_ARGS, epochs_done, train_py, wait_for, write_stereo_fixture,
+)
 
 RUN_FILES = ("config.json", "model.keras", "best.weights.h5", "log.csv", "curves.png",
              "train_stats.json", "split.npz")
@@ -143,18 +145,6 @@ FINISHED = "already finished, left as it is: "
 PER_PROCESS = ("wall_time_s", "run_dir", "command")
 
 
-def _wait_for(condition, timeout=90):
-    deadline = time.time() + timeout
-    while time.time() < deadline:
-        try:
-            if condition():
-                return True
-        except (OSError, ValueError, KeyError):
-            pass
-        time.sleep(0.02)
-    return False
-
-
 @pytest.fixture(scope="module")
 def uninterrupted(early):
     """The run of RESUME_ARGS on ``stereo40`` made in one go, through
@@ -239,16 +229,11 @@ def test_killed_run_resumes_and_ends_like_an_uninterrupted_run(
         when, dataset, tmp_path, xla_cache, uninterrupted):
     run_dir = str(tmp_path / "run")
     args = [*RESUME_ARGS, "--data", dataset, "--run-dir", run_dir]
-    state = os.path.join(run_dir, "backup", "state.json")
-
-    def epochs_done():
-        with open(state) as f:
-            return json.load(f)["epoch"]
 
     if when == "after an epoch's commit":
         process = cli(*args, cache=xla_cache)
         # as reported: killed as soon as log.csv has two epoch rows
-        assert _wait_for(lambda: len(read_log(run_dir)) >= 2)
+        assert wait_for(lambda: len(read_log(run_dir)) >= 2)
         process.send_signal(signal.SIGKILL)
         process.wait(timeout=300)
     else:
@@ -274,7 +259,7 @@ def test_killed_run_resumes_and_ends_like_an_uninterrupted_run(
         training, batch, steps = (int(g) for g in bar.groups())
         assert 1 <= batch < steps, bar.group(0)  # mid-epoch: batches of it still to train
         committed = training - 1
-    done = epochs_done()
+    done = epochs_done(run_dir)
     assert 1 <= done < 4, f"the run must be killed mid-training ({when})"
     assert len(read_log(run_dir)) == done
     if when == "in the middle of an epoch":
@@ -283,6 +268,7 @@ def test_killed_run_resumes_and_ends_like_an_uninterrupted_run(
         assert done == committed, (done, bar.group(0))
         curves = os.path.join(run_dir, "curves.png")
         assert os.path.isfile(curves), "killed before epoch N's curves.png was published"
+        state = os.path.join(run_dir, "backup", "state.json")
         assert os.stat(curves).st_mtime_ns >= os.stat(state).st_mtime_ns, \
             "curves.png is older than epoch N's commit: killed during its publishing"
 
@@ -307,7 +293,7 @@ def test_second_process_waits_for_the_first_and_ends_like_it(
     run_dir = str(tmp_path / "run")
     args = [*RESUME_ARGS, "--data", dataset, "--run-dir", run_dir]
     first = cli(*args, cache=xla_cache)
-    assert _wait_for(lambda: os.path.exists(os.path.join(run_dir, "backup", "lock"))
+    assert wait_for(lambda: os.path.exists(os.path.join(run_dir, "backup", "lock"))
                      and os.path.exists(os.path.join(run_dir, "config.json")))
     os.kill(first.pid, signal.SIGSTOP)  # the first holds the lock, frozen mid-run
     try:
