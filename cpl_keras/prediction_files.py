@@ -149,15 +149,22 @@ def write_files(folder, files):
     return paths
 
 
-def same_arrays(path, arrays):
+#: The arrays of a predictions file that say where it was made (paths
+#: relative to its folder), not what it holds.
+LOCATION_KEYS = ("key", "source", "dataset_path", "context")
+
+
+def same_arrays(path, arrays, ignore=()):
     """Whether the .npz file ``path`` holds exactly ``arrays`` (the same
-    names, dtypes, shapes and values, NaN equal to NaN); False when it is
-    missing or cannot be read."""
+    names, dtypes, shapes and values, NaN equal to NaN), leaving out the
+    arrays named in ``ignore``; False when it is missing or cannot be read."""
     try:
         with np.load(path, allow_pickle=False) as f:
             if sorted(f.files) != sorted(arrays):
                 return False
             for name, value in arrays.items():
+                if name in ignore:
+                    continue
                 old, new = f[name], np.asarray(value)
                 if old.dtype != new.dtype or old.shape != new.shape:
                     return False
@@ -179,20 +186,24 @@ def write_group(folder, files, published=False, log=None):
     they are). In a ``published`` record a file whose arrays differ from the
     published file's is written beside it, into ``<folder>/../rerun/runs/``,
     with one line saying how many values differ and by how much; the
-    published file is left as it is (``log(line)``, default stderr). Returns
-    the paths the tables read (the published ones)."""
+    published file is left as it is (``log(line)``, default stderr); so is
+    one that differs only by where it was made (``LOCATION_KEYS``). Returns
+    the paths the tables read (the published ones) and whether any file was
+    written or put beside."""
     if not published:
-        return write_files(folder, files)
+        changed = not all(same_arrays(os.path.join(folder, name), arrays)
+                          for name, arrays in files.items())
+        return write_files(folder, files), changed
     log = log or (lambda line: print(line, file=sys.stderr, flush=True))
-    paths, same, beside = [], {}, {}
+    paths, new, beside = [], {}, {}
     for name, arrays in files.items():
         path = os.path.join(folder, name)
         paths.append(path)
-        if not os.path.exists(path) or same_arrays(path, arrays):
-            same[name] = arrays
-        else:
+        if not os.path.exists(path):
+            new[name] = arrays
+        elif not same_arrays(path, arrays, ignore=LOCATION_KEYS):
             beside[name] = arrays
-    write_files(folder, same)
+    write_files(folder, new)
     if beside:
         rerun = os.path.join(os.path.dirname(folder), RERUN, os.path.basename(folder))
         write_files(rerun, beside)
@@ -200,7 +211,7 @@ def write_group(folder, files, published=False, log=None):
             log(f"{name}: {_difference(os.path.join(folder, name), arrays)} from the "
                 f"published file; written beside it in {rerun}, the published file left as "
                 f"it is")
-    return paths
+    return paths, bool(new or beside)
 
 
 def _difference(path, arrays):

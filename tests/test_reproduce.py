@@ -624,11 +624,11 @@ def test_a_rerun_over_a_published_record_writes_what_differs_beside_it(tmp_path,
     before = _contents(folder)
     changed = pred.copy()
     changed[1, 3] += 0.5
-    paths = prediction_files.write_group(str(folder), {
+    paths, wrote = prediction_files.write_group(str(folder), {
         "a.npz": {"pred": pred, "key": np.array("k")},
         "b.npz": {"pred": changed, "key": np.array("k")},
         "c.npz": {"pred": pred, "key": np.array("k")}}, published=True)
-    assert paths == [str(folder / name) for name in ("a.npz", "b.npz", "c.npz")]
+    assert paths == [str(folder / name) for name in ("a.npz", "b.npz", "c.npz")] and wrote
     after = _contents(folder)
     assert {name: after[name] for name in before} == before  # (a unchanged, b published kept)
     assert "c.npz" in after
@@ -636,6 +636,10 @@ def test_a_rerun_over_a_published_record_writes_what_differs_beside_it(tmp_path,
         assert np.array_equal(f["pred"], changed)
     err = capsys.readouterr().err
     assert "b.npz: 1 of 26 predicted values differ (by up to 0.5) from the published file" in err
+    # made elsewhere (other relative paths) but the same predictions: nothing written
+    _, wrote = prediction_files.write_group(str(folder), {
+        "a.npz": {"pred": pred, "key": np.array("made elsewhere")}}, published=True)
+    assert not wrote and _contents(folder)["a.npz"] == before["a.npz"]
     # outside a published record a changed file is written in place
     prediction_files.write_group(str(folder), {"b.npz": {"pred": changed, "key": np.array("k")}})
     with np.load(folder / "b.npz") as f:

@@ -103,9 +103,12 @@ def _group_predictions(number, stem, prefix, run_dirs, data, config, out_dir, su
     if sorted(files) != sorted(names):
         raise evaluation.EvaluationError(f"{stem}: predictions files {sorted(files)} are not "
                                          f"the expected {sorted(names)}")
-    return prediction_files.write_group(
+    paths, changed = prediction_files.write_group(
         folder, {name: files[name] for name in names},
         published=os.path.exists(os.path.join(out_dir, SUMMARY)), log=log)
+    if reused is not None:
+        reused[-1] = not changed  # (computed again, but nothing to write: as reused)
+    return paths
 
 
 def make_predictions(config, paths, trained, out_dir, reused=None):
