@@ -644,3 +644,24 @@ def test_a_rerun_over_a_published_record_writes_what_differs_beside_it(tmp_path,
     prediction_files.write_group(str(folder), {"b.npz": {"pred": changed, "key": np.array("k")}})
     with np.load(folder / "b.npz") as f:
         assert np.array_equal(f["pred"], changed)
+
+
+@pytest.mark.slow
+def test_rerunning_a_documented_preset_leaves_the_published_record_untouched(tmp_path):
+    """``python -m cpl_keras.reproduce --preset inception-2000-ema`` over
+    the committed folder, in a fresh clone: its runs restored from their
+    records, nothing trained, nothing written into paper_results/ (it once
+    rewrote six tracked files), ``git status`` empty."""
+    clone = tmp_path / "clone"
+    subprocess.run(["git", "clone", "--quiet", "--shared", REPO, str(clone)], check=True,
+                   capture_output=True, timeout=120)
+    done = subprocess.run([sys.executable, "-m", "cpl_keras.reproduce", "--preset",
+                           "inception-2000-ema", "--workers", "2"], cwd=clone,
+                          capture_output=True, text=True, timeout=900,
+                          env=dict(os.environ, KERAS_BACKEND="jax", PYTHONPATH=str(clone)))
+    assert done.returncode == 0, done.stderr[-3000:]
+    assert "training " not in done.stderr
+    assert "nothing written" in done.stderr, done.stderr[-3000:]
+    status = subprocess.run(["git", "status", "--porcelain"], cwd=clone, capture_output=True,
+                            text=True, timeout=60).stdout
+    assert status == "", status
