@@ -188,7 +188,7 @@ class PositiveDisparity:
 
 
 @keras.saving.register_keras_serializable(package=PACKAGE)
-class SoftplusDisparity:
+class SoftplusDisparity(PositiveDisparity):
     """A disparity head that every MTL variant can share (``ModelOptions``'s
     ``disparity_head="softplus"``; not the paper's): ``d = floor +
     softplus(z)``, capped at ``ceiling`` straight-through.
@@ -200,15 +200,9 @@ class SoftplusDisparity:
     lost as much on the disparity as the CPL variants
     (paper_results/inception-2000-ablations/README.md). Its last bias starts
     at ``bias_for(start)``, so the head first puts out ``start`` (the
-    training mean) instead of the floor.
+    training mean) instead of the floor. Its floor, ceiling and config are
+    ``PositiveDisparity``'s.
     """
-
-    def __init__(self, floor=camera.FLOORS["disparity"], ceiling=MAX_OUTPUT):
-        floor, ceiling = float(floor), float(ceiling)
-        if not (0 < floor < ceiling and math.isfinite(ceiling)):
-            raise ValueError(f"disparity ceiling must be a finite number above the floor "
-                             f"({floor:g}), got {ceiling!r}")
-        self.floor, self.ceiling = floor, ceiling
 
     def __call__(self, x):
         d = self.floor + ops.softplus(x)
@@ -222,13 +216,6 @@ class SoftplusDisparity:
         excess = max(float(start) - self.floor, 1e-3)
         # (the inverse of softplus, log(exp(x) - 1), without overflow)
         return excess + math.log(-math.expm1(-excess))
-
-    def get_config(self):
-        return {"floor": self.floor, "ceiling": self.ceiling}
-
-    @classmethod
-    def from_config(cls, config):
-        return cls(**config)
 
 
 @keras.saving.register_keras_serializable(package=PACKAGE)
