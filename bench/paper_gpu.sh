@@ -39,7 +39,7 @@ mode=${2:-}
 mkdir -p "$out"
 # the reproduction's folders under OUT, so that an interrupted one is resumed
 # by the same command (its own resume line names them) and removed once packed
-work="$out/work"
+work="$out/in-progress"
 mkdir -p "$work"
 export KERAS_BACKEND=jax PYTHONUNBUFFERED=1
 if [ -d .whl ] && [ "$mode" != "--dry-run" ]; then
