@@ -135,18 +135,23 @@ def write_files(folder, files):
     files or none (``cpl_keras.files.atomic_path``); returns their paths. A
     file that already holds the same arrays is left as it is, byte for byte
     (an .npz's bytes carry the time it was written)."""
+    return _write(folder, files)[0]
+
+
+def _write(folder, files):
+    """``write_files``, and whether it wrote any file."""
     os.makedirs(folder, exist_ok=True)
     paths = [os.path.join(folder, name) for name in files]
     changed = [(path, arrays) for path, arrays in zip(paths, files.values())
                if not same_arrays(path, arrays)]
     if not changed:
-        return paths
+        return paths, False
     with atomic_path(*[path for path, _ in changed]) as tmps:
         tmps = tmps if isinstance(tmps, list) else [tmps]
         for tmp, (_, arrays) in zip(tmps, changed):
             with open(tmp, "wb") as f:
                 np.savez(f, **arrays)
-    return paths
+    return paths, True
 
 
 #: The arrays of a predictions file that say where it was made (paths
@@ -191,9 +196,7 @@ def write_group(folder, files, published=False, log=None):
     the paths the tables read (the published ones) and whether any file was
     written or put beside."""
     if not published:
-        changed = not all(same_arrays(os.path.join(folder, name), arrays)
-                          for name, arrays in files.items())
-        return write_files(folder, files), changed
+        return _write(folder, files)
     log = log or (lambda line: print(line, file=sys.stderr, flush=True))
     paths, new, beside = [], {}, {}
     for name, arrays in files.items():
