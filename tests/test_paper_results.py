@@ -238,3 +238,36 @@ def test_the_index_lists_every_folder_of_paper_results():
     for line in text.splitlines():
         if re.match(r"^\| \[[\w.-]+/\]", line):
             assert line.rstrip(" |").split("|")[-1].strip(), line  # (a status)
+
+
+def _sentences(text):
+    """Prose sentences of a Markdown page: tables, headings, images and
+    link targets left out."""
+    prose = "\n".join(line for line in text.splitlines()
+                      if not line.startswith(("|", "#", "!", "<!--")))
+    prose = re.sub(r"\]\([^)]*\)", "]", prose).replace("**", "")
+    blocks = re.split(r"\n\s*\n|\n- ", prose)
+    return [s for block in blocks
+            for s in re.split(r"(?<=[.!?])\s+(?=[A-Z(])", re.sub(r"\s+", " ", block))
+            if s.strip()]
+
+
+def test_the_explanation_page_is_short_and_in_order():
+    """why.md: its title starts with "Why", at most 1,500 words, no sentence
+    over 40 words, and its parts in order: the question, the answer in three
+    sentences, the findings, what is not decided."""
+    text = (RESULTS / "inception-2000-ablations" / "why.md").read_text()
+    assert text.startswith("# Why ")
+    assert len(_words(text)) <= 1500, len(_words(text))
+    long = [s for s in _sentences(text) if len(_words(s)) > 40]
+    assert not long, long
+    headings = re.findall(r"^## (.+)$", text, re.M)
+    assert headings == ["The question", "The answer in three sentences", "The findings",
+                        "What is not decided"], headings
+    answer = text.split("## The answer in three sentences", 1)[1].split("\n## ", 1)[0]
+    assert len(_sentences(answer)) == 3, _sentences(answer)
+    # every finding links its evidence
+    findings = text.split("## The findings", 1)[1].split("\n## ", 1)[0]
+    for finding in re.split(r"\n(?=\*\*\d+\.)", findings.strip()):
+        assert re.search(r"\]\([^)]+\.md\)", finding), finding[:80]
+    assert len(_sentences("One. Two (three). Four")) == 3  # (the count can tell)
