@@ -22,7 +22,10 @@ pairs:
 
 A setting's spread per column is the largest measured for its towers on
 the test pairs. For every committed comparison of MTL-CPL-A with
-MTL-Baseline (its verdicts.json), each decided column is counted as beyond
+MTL-Baseline (its verdicts.json; for the one-seed InceptionV3 pairs, at
+8,000 pairs and with patience 20, their gaps.json, decided by the paired
+bootstrap alone), each
+decided column is counted as beyond
 twice that spread or not (|mean A - mean B| over the seeds). Two trainings
 of one seed by the same code are identical on this machine (the fair
 fight's settling, ``fair-fight/settling.md``), so the spread measured here
@@ -70,6 +73,10 @@ COMPARISONS = (
     ("compact, 2,000 pairs", "compact", "compact-2000-ema/verdicts.json"),
     ("InceptionV3, 2,000 pairs", "InceptionV3", "inception-2000-ema/verdicts.json"),
     ("fair fight, compact", "compact", "fair-fight/compact/verdicts.json"),
+    ("InceptionV3, 8,000 pairs, seed 0, 12 epochs", "InceptionV3",
+     "inception-8000/gaps.json#InceptionV3, 8,000 pairs, averaged weights, 12 epochs"),
+    ("InceptionV3, 2,000 pairs, seed 0, both patience 20 (ablation (d))", "InceptionV3",
+     "inception-2000-ablations/patience20-gaps.json#against MTL-Baseline with patience 20"),
 )
 PAIR = "MTL-CPL-A vs MTL-Baseline"
 
@@ -113,8 +120,12 @@ def validation_spread(published, other):
                    for c in COLUMNS}
 
 
-def _pair_columns(verdicts):
+def _pair_columns(verdicts, setting=None):
     """``[(column, mean_a, mean_b, verdict)]`` of the MTL-CPL-A / MTL-Baseline pair."""
+    if setting is not None:  # (analyses/variant_gaps.py's pages: one seed, the bootstrap)
+        sides = {"lower": "A lower", "higher": "B lower"}
+        return [(column, r["a"], r["b"], sides.get(r["answer"], "undecided"))
+                for column, r in verdicts[setting]["columns"].items()]
     if "splits" in verdicts:  # (analyses/verdicts.py's pages)
         rows = verdicts["splits"]["cvgl"]["pairs"][PAIR]["columns"]
     else:  # (the fair fight's)
@@ -136,8 +147,9 @@ def compute():
                        for c in COLUMNS} for towers in ("compact", "InceptionV3")}
     comparisons = []
     for label, towers, page in COMPARISONS:
+        page, _, setting = page.partition("#")
         with open(os.path.join(RESULTS, page)) as f:
-            rows = _pair_columns(json.load(f))
+            rows = _pair_columns(json.load(f), setting or None)
         decided = {}
         for column, mean_a, mean_b, verdict in rows:
             if verdict == "undecided":
@@ -150,6 +162,8 @@ def compute():
                                        if d["verdict"] == side and d["beyond_twice_spread"])}
                   for side in ("A lower", "B lower")}
         comparisons.append({"setting": label, "towers": towers, "verdicts": page,
+                            "rule": "the paired bootstrap of one seed" if setting else
+                                    "the seed spread and the paired bootstrap, 3 seeds",
                             "counts": counts, "columns": decided})
     return {"command": COMMAND, "what": "|NMAE(rerun) - NMAE(published)| of one seed, and the "
             "decided columns of MTL-CPL-A against MTL-Baseline beyond twice it",
@@ -186,11 +200,14 @@ def markdown(result):
     for c in result["comparisons"]:
         a, b = c["counts"]["A lower"], c["counts"]["B lower"]
         within = [k for k, d in c["columns"].items() if not d["beyond_twice_spread"]]
-        lines.append(f"| {c['setting']} ([verdicts]({c['verdicts'].replace('.json', '.md')})) "
+        link = c["verdicts"].split("#")[0].replace(".json", ".md")
+        lines.append(f"| {c['setting']} ([{os.path.basename(link)}]({link})) "
                      f"| {a['beyond']} / {a['decided']} | {b['beyond']} / {b['decided']} "
                      f"| {', '.join(within) or 'none'} |")
     lines += ["", "The compact spread is measured at 2,000 pairs under the defaults; the "
-              "8,000-pair setting and the fair fight's recipe borrow it.", ""]
+              "8,000-pair settings and the fair fight's recipe borrow their towers' spread. "
+              "The InceptionV3 pairs at 8,000 pairs and with patience 20 are one seed, "
+              "their columns decided by the paired bootstrap alone.", ""]
     return "\n".join(lines)
 
 

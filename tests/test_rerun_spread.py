@@ -28,3 +28,30 @@ def test_the_counts_follow_the_rule_and_the_check_can_fail(tmp_path, monkeypatch
     (tmp_path / "spread.md").write_text(script.markdown(result))
     monkeypatch.setattr(script, "OUT", str(tmp_path / "spread"))
     assert script.main(["--check"]) == 1
+
+
+def test_the_readme_counts_beyond_twice_the_spread_are_the_pages():
+    """README's answer: each "(K beyond)" is spread.json's count for its row."""
+    import re
+    from pathlib import Path
+
+    from helpers import REPO
+
+    result = json.loads((Path(REPO) / "paper_results" / "spread.json").read_text())
+    counts = {c["setting"]: c["counts"] for c in result["comparisons"]}
+    rows = {"compact, 8,000 pairs, 3 seeds": ("compact, 8,000 pairs", "A lower"),
+            "compact, 2,000 pairs, 3 seeds": ("compact, 2,000 pairs", "A lower"),
+            "InceptionV3, 2,000 pairs, 3 seeds": ("InceptionV3, 2,000 pairs", "B lower"),
+            "InceptionV3, 8,000 pairs, seed 0, 12 epochs":
+                ("InceptionV3, 8,000 pairs, seed 0, 12 epochs", "A lower"),
+            "fair fight: one recipe, 50 epochs": ("fair fight, compact", "A lower")}
+    text = (Path(REPO) / "README.md").read_text()
+    seen = 0
+    for line in text.splitlines():
+        cells = [c.strip() for c in line.strip("|").split("|")]
+        if line.startswith("|") and cells[0] in rows:
+            setting, side = rows[cells[0]]
+            n, k = map(int, re.search(r"lower on (\d+)[^(]*\((\d+) beyond", cells[1]).groups())
+            assert (k, n) == (counts[setting][side]["beyond"], counts[setting][side]["decided"]), line
+            seen += 1
+    assert seen == len(rows)
