@@ -29,12 +29,16 @@ With ``--units`` (only for runs whose ``model.keras`` is at hand; published
 runs carry no weights), a forward pass also measures it in the heads: per
 head, the share of test pairs with every unit of the first layer at zero,
 and how many of its 120 units are above zero for any test pair.
+
+``regenerate`` rebuilds a committed page from its JSON and the command on
+its first line (no dataset or weights needed).
 """
 
 from __future__ import annotations
 
 import argparse
 import os
+import shlex
 import sys
 
 import numpy as np
@@ -184,9 +188,12 @@ def _number(value, digits=3):
 
 
 def markdown(result, args, command):
+    """The page of ``result`` (``analyse``'s, or its JSON) written by ``command``."""
+    from cpl_keras import files
     from cpl_keras.evaluation.verdicts import COLUMNS
 
-    lines = ["# Collapsed heads: test pairs on one output value", "", "```", command, "```",
+    lines = [files.generated_line(command), "",
+             "# Collapsed heads: test pairs on one output value", "", "```", command, "```",
              "", "Share of the test pairs on the run's most common output value, per column "
              "(a working head's outputs differ from pair to pair):", "",
              "| run | seed, test pairs | epochs (kept) | " + " | ".join(COLUMNS) + " |",
@@ -247,6 +254,17 @@ def command_line(args):
                        if args.reference_name != "MTL-Baseline" else [])
                     + ([f"--min-share {args.min_share:g}"] if args.min_share != 0.05 else [])
                     + (["--units"] if args.units else []) + [f"--out {args.out}"])
+
+
+def regenerate(page_path):
+    """The committed page ``page_path`` as this script writes it, from its
+    JSON beside it and the command on its first line (its options)."""
+    from cpl_keras import files
+
+    with open(page_path) as f:
+        command = files.generated_command(f.read())
+    args = parse_args(shlex.split(command)[2:])
+    return markdown(files.read_json(os.path.splitext(page_path)[0] + ".json"), args, command)
 
 
 def main(argv=None):

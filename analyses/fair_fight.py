@@ -29,6 +29,7 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import glob
+import json
 import os
 import shlex
 import subprocess
@@ -116,37 +117,66 @@ def write_verdicts(towers, out, data, command, resamples=2000):
         raw, config = paired_outputs(record, data)
         rows.setdefault(arm, {})[int(seed)] = raw
         configs[(arm, int(seed))] = config
-    md = [files.generated_line(command),
+    result = {"command": command, "rules": page.RULES,
+              "runs": [{"arm": arm, "seed": seed, "epochs_run": config.epochs_run,
+                        "best_epoch": config.best_epoch, "wall_time_s": config.wall_time_s}
+                       for (arm, seed), config in sorted(configs.items())],
+              "pairs": {}}
+    for a, b in PAIRS:
+        seeds = sorted(set(rows.get(a, {})) & set(rows.get(b, {})))
+        title = f"{NAMES[a]} vs {NAMES[b]}"
+        if len(seeds) < 2:
+            result["pairs"][title] = {"a": NAMES[a], "b": NAMES[b], "seeds": seeds}
+            continue
+        found = rules.compare({s: rows[a][s] for s in seeds}, {s: rows[b][s] for s in seeds},
+                              resamples=resamples, bootstrap_seed=0)
+        result["pairs"][title] = {"a": NAMES[a], "b": NAMES[b], "seeds": seeds,
+                                  "verdict": protocol_verdict(found),
+                                  "columns": page.summary(found),
+                                  "detail": [dataclasses.asdict(v) for v in found]}
+    result = json.loads(json.dumps(result))
+    path = os.path.join(folder, "verdicts.md")
+    files.write_text(path, verdicts_markdown(towers, result))
+    files.write_json(os.path.join(folder, "verdicts.json"), result)
+    return path
+
+
+def verdicts_markdown(towers, result):
+    """verdicts.md from verdicts.json's content ``result``."""
+    from cpl_keras import files
+
+    sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+    import verdicts as page  # (analyses/verdicts.py: the same tables as every folder's)
+
+    md = [files.generated_line(result["command"]),
           f"# Fair fight, {towers} towers: verdicts", "",
           "The protocol's rules ([../protocol.md](../protocol.md)): a column is decided "
           "where the seed-spread rule and the paired bootstrap (every seed) agree; the "
           "pair's verdict is A lower (A decided lower somewhere, B nowhere), B lower, mixed "
           "or not decided.", "",
           "| run | seed | epochs (kept) | training time (s) |", "|---|---|---|---|"]
-    for (arm, seed), config in sorted(configs.items()):
-        md.append(f"| {NAMES[arm]} | {seed} | {config.epochs_run} ({config.best_epoch}) | "
-                  f"{config.wall_time_s:,.0f} |")
+    for run in result["runs"]:
+        md.append(f"| {NAMES[run['arm']]} | {run['seed']} | {run['epochs_run']} "
+                  f"({run['best_epoch']}) | {run['wall_time_s']:,.0f} |")
     md.append("")
-    result = {"command": command, "rules": page.RULES, "pairs": {}}
-    for a, b in PAIRS:
-        seeds = sorted(set(rows.get(a, {})) & set(rows.get(b, {})))
-        title = f"{NAMES[a]} vs {NAMES[b]}"
-        if len(seeds) < 2:
-            md += [f"### {title}", "", f"Not yet: seeds published for both: {seeds}.", ""]
+    for title, pair in result["pairs"].items():
+        if "detail" not in pair:
+            md += [f"### {title}", "", f"Not yet: seeds published for both: {pair['seeds']}.",
+                   ""]
             continue
-        found = rules.compare({s: rows[a][s] for s in seeds}, {s: rows[b][s] for s in seeds},
-                              resamples=resamples, bootstrap_seed=0)
-        verdict = protocol_verdict(found)
-        md += page.pair_markdown(NAMES[a], NAMES[b], found)
-        md += [f"**The protocol's verdict: {verdict}** (A = {NAMES[a]}, seeds "
-               f"{', '.join(map(str, seeds))}).", ""]
-        result["pairs"][title] = {"a": NAMES[a], "b": NAMES[b], "seeds": seeds,
-                                  "verdict": verdict, "columns": page.summary(found),
-                                  "detail": [dataclasses.asdict(v) for v in found]}
-    path = os.path.join(folder, "verdicts.md")
-    files.write_text(path, "\n".join(md))
-    files.write_json(os.path.join(folder, "verdicts.json"), result)
-    return path
+        md += page.pair_markdown(pair["a"], pair["b"], [page.verdict_from_json(c) for c in pair["detail"]])
+        md += [f"**The protocol's verdict: {pair['verdict']}** (A = {pair['a']}, seeds "
+               f"{', '.join(map(str, pair['seeds']))}).", ""]
+    return "\n".join(md)
+
+
+def regenerate(page_path):
+    """The committed ``<towers>/verdicts.md`` from verdicts.json beside it."""
+    from cpl_keras import files
+
+    folder = os.path.dirname(os.path.abspath(page_path))
+    return verdicts_markdown(os.path.basename(folder),
+                             files.read_json(os.path.join(folder, "verdicts.json")))
 
 
 def main(argv=None):

@@ -13,7 +13,9 @@ Per pair and target the page gives the run's MAE over the reference's at the
 chosen epochs and at the run's last epoch, the first epoch at which the run's
 MAE is below the reference's, and in how many of the run's epochs it is; and
 the run's ``alpha_<target>`` (Eq. 9's weights) at the same epochs, where it
-has them. The same figures go to a JSON file beside the page.
+has them. The same figures go to a JSON file beside the page;
+``regenerate`` rebuilds a committed page from it and the command on the
+page's first line.
 """
 
 from __future__ import annotations
@@ -21,6 +23,7 @@ from __future__ import annotations
 import argparse
 import csv
 import os
+import shlex
 import sys
 
 REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
@@ -88,8 +91,13 @@ def _f(value, digits=2):
 
 
 def page(results, epochs, command):
+    """The page of ``results`` (per pair and target, ``compare``'s) at
+    ``epochs``, written by ``command``."""
+    from cpl_keras import files
+
     at = ", ".join(str(e) for e in epochs)
-    lines = ["# Training fit against a reference run", "", "Command:", "", "```", command, "```",
+    lines = [files.generated_line(command), "",
+             "# Training fit against a reference run", "", "Command:", "", "```", command, "```",
              "", "The run's training MAE over the reference's (below 1: the run fits the "
              f"training pairs better) at epochs {at} and at the run's last epoch; the first "
              "epoch at which the run is below the reference, and in how many of the epochs "
@@ -111,6 +119,27 @@ def page(results, epochs, command):
                 + " | ".join(_f(a, 3) for a in alpha) + " |")
         lines.append("")
     return "\n".join(lines)
+
+
+def from_json(results):
+    """``results`` as read back from the JSON (its epochs, keys there, are
+    strings): the epochs numbers again, as ``page`` takes them."""
+    return {name: {target: {**r, "ratio": {int(e): v for e, v in r["ratio"].items()},
+                            "alpha": {int(e): v for e, v in r["alpha"].items()}}
+                   for target, r in targets.items()}
+            for name, targets in results.items()}
+
+
+def regenerate(page_path):
+    """The committed page ``page_path`` as this script writes it, from its
+    JSON beside it and the command on its first line (its ``--epochs``)."""
+    from cpl_keras import files
+
+    with open(page_path) as f:
+        command = files.generated_command(f.read())
+    args = parse_args(shlex.split(command)[2:])
+    results = from_json(files.read_json(os.path.splitext(page_path)[0] + ".json"))
+    return page(results, args.epochs, command)
 
 
 def command_line(args):

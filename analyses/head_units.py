@@ -15,13 +15,15 @@ layer at or below zero, where a ReLU head puts out its biases' value; and
 JSON beside it): per run and head, the epochs logged, the first epoch with
 a dead share of ``--dead-share`` or more, the units at the first and the last
 logged epoch and their fewest; then, for each ``--head``, both numbers of
-every logged epoch, the runs side by side.
+every logged epoch, the runs side by side. ``regenerate`` rebuilds a
+committed page from its JSON and the command on its first line.
 """
 
 from __future__ import annotations
 
 import argparse
 import os
+import shlex
 import sys
 
 REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
@@ -68,7 +70,12 @@ def summarise(rows, dead_share):
 
 
 def page(summaries, args, command):
-    lines = ["# Head units, epoch by epoch", "", "```", command, "```", "",
+    """The page of ``summaries`` (``summarise``'s per run, or their JSON)
+    written by ``command`` (``args``, its options)."""
+    from cpl_keras import files
+
+    lines = [files.generated_line(command), "",
+             "# Head units, epoch by epoch", "", "```", command, "```", "",
              "Per run and head: the first epoch with the dead share (of the 64 probe pairs, "
              f"every first-layer unit at or below zero) {args.dead_share:g} or more, then the "
              "units above zero for some probe pair at the first and last logged epoch and "
@@ -93,6 +100,17 @@ def page(summaries, args, command):
                            if e == epoch), "-") for n in names]
             lines.append(f"| {epoch} | " + " | ".join(cells) + " |")
     return "\n".join(lines) + "\n"
+
+
+def regenerate(page_path):
+    """The committed page ``page_path`` as this script writes it, from its
+    JSON beside it and the command on its first line (its options)."""
+    from cpl_keras import files
+
+    with open(page_path) as f:
+        command = files.generated_command(f.read())
+    args = parse_args(shlex.split(command)[2:])
+    return page(files.read_json(os.path.splitext(page_path)[0] + ".json"), args, command)
 
 
 def command_line(args):

@@ -15,13 +15,15 @@ beside it): each run's test NMAE per column, its epochs, and for every
 other run and column the paired bootstrap interval (95 %, 2,000 resamples
 of the test pairs, ``cpl_keras.evaluation.verdicts.seed_intervals``) of its
 NMAE minus each reference's, with the side it decides ("lower", "higher")
-or "=".
+or "=". ``regenerate`` rebuilds a committed page from its JSON and the
+command on its first line (no dataset needed).
 """
 
 from __future__ import annotations
 
 import argparse
 import os
+import shlex
 import sys
 
 REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
@@ -83,9 +85,12 @@ def compare(runs, data_path, resamples):
 
 
 def markdown(result, command):
+    """The page of ``result`` (``compare``'s, or its JSON) written by ``command``."""
+    from cpl_keras import files
     from cpl_keras.evaluation.verdicts import COLUMNS
 
-    lines = [f"# Seed {result['seed']} runs on one test split", "", "```", command, "```", "",
+    lines = [files.generated_line(command), "",
+             f"# Seed {result['seed']} runs on one test split", "", "```", command, "```", "",
              f"Dataset `{result['data']}`; test NMAE per column:", "",
              "| run | epochs (kept) | " + " | ".join(COLUMNS) + " |",
              "|---|---|" + "---|" * len(COLUMNS)]
@@ -104,6 +109,17 @@ def markdown(result, command):
             for c, a in zip(COLUMNS, answers))
             + f" | {answers.count('lower')} / {answers.count('higher')} |")
     return "\n".join(lines) + "\n"
+
+
+def regenerate(page_path):
+    """The committed page ``page_path`` as this script writes it, from its
+    JSON beside it and the command on its first line."""
+    from cpl_keras import files
+
+    with open(page_path) as f:
+        command = files.generated_command(f.read())
+    parse_args(shlex.split(command)[2:])  # (a command this script takes)
+    return markdown(files.read_json(os.path.splitext(page_path)[0] + ".json"), command)
 
 
 def main(argv=None):

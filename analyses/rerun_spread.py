@@ -211,6 +211,11 @@ def markdown(result):
     return "\n".join(lines)
 
 
+def regenerate(page_path):
+    """spread.md as this script writes it, from the committed files."""
+    return markdown(json.loads(json.dumps(compute())))
+
+
 def main(argv=None):
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--check", action="store_true",

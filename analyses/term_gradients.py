@@ -15,6 +15,8 @@ page (and the same as JSON beside it) with, per run and term: the median
 norm over the logged epochs, its median share of the sum over the terms,
 and in how many epochs the term sent the largest and the smallest gradient;
 and, where the log has them, the median of Eq. 9's weights ``alpha_<target>``.
+``regenerate`` rebuilds a committed page from its JSON and the command on
+its first line.
 """
 
 from __future__ import annotations
@@ -22,6 +24,7 @@ from __future__ import annotations
 import argparse
 import csv
 import os
+import shlex
 import sys
 
 import numpy as np
@@ -77,7 +80,12 @@ def _figure(value):
 
 
 def page(summaries, command):
-    lines = ["# Which loss terms drive the towers", "", "Command:", "", "```", command, "```", "",
+    """The page of ``summaries`` (``summarise``'s per run, or their JSON)
+    written by ``command``."""
+    from cpl_keras import files
+
+    lines = [files.generated_line(command), "",
+             "# Which loss terms drive the towers", "", "Command:", "", "```", command, "```", "",
              "Per run and loss term: the median over the logged epochs of the norm of the "
              "gradient the weighted term sends into the towers' shared features (first 64 "
              "training pairs), its median share of the sum over the 13 terms, and the "
@@ -97,6 +105,17 @@ def page(summaries, command):
                          f"{m['epochs_largest']} | {m['epochs_smallest']} |{alpha}")
         lines.append("")
     return "\n".join(lines)
+
+
+def regenerate(page_path):
+    """The committed page ``page_path`` as this script writes it, from its
+    JSON beside it and the command on its first line."""
+    from cpl_keras import files
+
+    with open(page_path) as f:
+        command = files.generated_command(f.read())
+    parse_args(shlex.split(command)[2:])  # (a command this script takes)
+    return page(files.read_json(os.path.splitext(page_path)[0] + ".json"), command)
 
 
 def main(argv=None):

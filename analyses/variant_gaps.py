@@ -17,13 +17,15 @@ run's test NMAE; A's NMAE minus B's with its paired bootstrap interval (95 %,
 2,000 resamples of the test pairs, ``cpl_keras.evaluation.verdicts.
 seed_intervals``, as ``paired_runs.py`` and ``verdicts.py`` draw them) and
 the side it decides; and A's NMAE over B's, which stays comparable when
-more data lowers both.
+more data lowers both. ``regenerate`` rebuilds a committed page from its
+JSON and the command on its first line (no dataset needed).
 """
 
 from __future__ import annotations
 
 import argparse
 import os
+import shlex
 import sys
 
 REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
@@ -118,11 +120,14 @@ def compare(settings, resamples):
 
 
 def markdown(result, a, b, command):
+    """The page of ``result`` (``compare``'s, or its JSON) written by ``command``."""
+    from cpl_keras import files
     from cpl_keras.evaluation.verdicts import COLUMNS
 
     head = "| " + " | ".join(COLUMNS) + " |"
     rule = "|---" * (len(COLUMNS) + 1) + "|---|"
-    lines = [f"# {a} against {b}, setting by setting", "", "```", command, "```", "",
+    lines = [files.generated_line(command), "",
+             f"# {a} against {b}, setting by setting", "", "```", command, "```", "",
              "Test NMAE per column (lower is better); epochs run (kept):", "",
              "| setting | run | epochs (kept) " + head, "|---" + rule]
     for name, s in result.items():
@@ -170,6 +175,18 @@ def command_line(args):
                     + ([f'--a "{args.a}"'] if args.a != "MTL-CPL-A" else [])
                     + ([f'--b "{args.b}"'] if args.b != "MTL-Baseline" else [])
                     + [f"--out {args.out}"])
+
+
+def regenerate(page_path):
+    """The committed page ``page_path`` as this script writes it, from its
+    JSON beside it and the command on its first line (``--a``, ``--b``)."""
+    from cpl_keras import files
+
+    with open(page_path) as f:
+        command = files.generated_command(f.read())
+    args = parse_args(shlex.split(command)[2:])
+    return markdown(files.read_json(os.path.splitext(page_path)[0] + ".json"), args.a, args.b,
+                    command)
 
 
 def main(argv=None):

@@ -18,7 +18,9 @@ seed, is refused with one line: the seed-spread rule needs a spread).
 
 Produces: ``verdicts.md`` and ``verdicts.json`` in ``--folder``; committed
 for paper_results/cpu-8000/ and paper_results/compact-2000/ (rebuilt from
-their committed tables and predictions, no weights needed).
+their committed tables and predictions, no weights needed). The page is
+rendered from the JSON (``markdown``), so ``regenerate`` rebuilds a
+committed page from verdicts.json and the command on its first line.
 """
 
 from __future__ import annotations
@@ -162,12 +164,11 @@ def header(resamples, level, seed):
 
 
 def decide_split(folder, split, resamples, seed):
-    """One split's JSON entry and Markdown lines: every pair of ``PAIRS``."""
+    """One split's JSON entry: every pair of ``PAIRS`` the folder has."""
     from cpl_keras.evaluation import verdicts as rules
 
     title = SPLITS[split]
     entry = {"title": title, "table": f"table1_{split}.json", "pairs": {}}
-    md = [f"## {title[0].upper() + title[1:]}", ""]
     for variant_a, variant_b in PAIRS:
         if not (has_rows(folder, split, variant_a) and has_rows(folder, split, variant_b)):
             continue  # (a folder without that variant: inception-2000 has no MTL-CPL-U)
@@ -181,9 +182,8 @@ def decide_split(folder, split, resamples, seed):
                 f"predictions of {name_a} seed(s) {sorted(rows_a)} and {name_b} seed(s) "
                 f"{sorted(rows_b)}")
         if "same_quantity" not in entry:
-            same = rules.same_quantities([rows_b[s]["truth"] for s in sorted(rows_b)])
-            entry["same_quantity"] = same
-            md += [same_quantity_note(same), ""]
+            entry["same_quantity"] = rules.same_quantities([rows_b[s]["truth"]
+                                                            for s in sorted(rows_b)])
         verdicts = rules.compare(rows_a, rows_b, resamples=resamples, bootstrap_seed=seed)
         check_against_table(folder, split, name_a, name_b, verdicts)
         entry["pairs"][f"{name_a} vs {name_b}"] = {
@@ -191,9 +191,45 @@ def decide_split(folder, split, resamples, seed):
             "verdict": summary(verdicts), "seed_spread": summary(verdicts, "spread_rule"),
             "bootstrap": summary(verdicts, "bootstrap_rule"),
             "columns": [dataclasses.asdict(v) for v in verdicts]}
-        md += pair_markdown(name_a, name_b, verdicts)
         print(f"{split} {name_a} vs {name_b}: {summary(verdicts)}")
-    return entry, md
+    return entry
+
+
+def verdict_from_json(cell):
+    """A column of verdicts.json as ``pair_markdown`` reads a verdict (its
+    attributes; an undefined Welch's p, null there, as NaN)."""
+    from types import SimpleNamespace
+
+    welch_p = float("nan") if cell["welch_p"] is None else cell["welch_p"]
+    return SimpleNamespace(**{**cell, "welch_p": welch_p,
+                              "per_seed": [SimpleNamespace(**i) for i in cell["per_seed"]]})
+
+
+def markdown(result, command):
+    """verdicts.md from verdicts.json's content ``result``, written by ``command``."""
+    from cpl_keras import files
+
+    md = [files.generated_line(command), ""]
+    md += header(result["resamples"], result["level"], result["bootstrap_seed"])
+    for entry in result["splits"].values():
+        title = entry["title"]
+        md += [f"## {title[0].upper() + title[1:]}", ""]
+        if "same_quantity" in entry:
+            md += [same_quantity_note(entry["same_quantity"]), ""]
+        for pair in entry["pairs"].values():
+            md += pair_markdown(pair["a"], pair["b"], [verdict_from_json(c) for c in pair["columns"]])
+    return "\n".join(md).rstrip() + "\n"
+
+
+def regenerate(page_path):
+    """The committed verdicts.md ``page_path`` as this script writes it, from
+    verdicts.json beside it and the command on its first line."""
+    from cpl_keras import files
+
+    with open(page_path) as f:
+        command = files.generated_command(f.read())
+    return markdown(files.read_json(os.path.join(os.path.dirname(page_path), "verdicts.json")),
+                    command)
 
 
 def main(argv=None):
@@ -205,11 +241,11 @@ def main(argv=None):
     parser.add_argument("--seed", type=int, default=0, help="the bootstrap Generator's seed")
     args = parser.parse_args(argv)
 
+    from cpl_keras import cli
     from cpl_keras.evaluation import verdicts as rules
     from cpl_keras.files import write_json, write_text
     from cpl_keras.metrics import jsonable
 
-    md = header(args.resamples, rules.LEVEL, args.seed)
     out = {"rules": RULES, "resamples": args.resamples, "level": rules.LEVEL,
            "bootstrap_seed": args.seed, "splits": {}}
     splits = [split for split in SPLITS
@@ -219,11 +255,11 @@ def main(argv=None):
 
         raise EvaluationError(f"no table1_{{{','.join(SPLITS)}}}.json in {args.folder}")
     for split in splits:  # (the splits the folder has: compact-2000 the paper's only)
-        out["splits"][split], lines = decide_split(args.folder, split, args.resamples,
-                                                   args.seed)
-        md += lines
-    write_json(os.path.join(args.folder, "verdicts.json"), jsonable(out))
-    write_text(os.path.join(args.folder, "verdicts.md"), "\n".join(md).rstrip() + "\n")
+        out["splits"][split] = decide_split(args.folder, split, args.resamples, args.seed)
+    out = jsonable(out)
+    command = cli.command_line("analyses/verdicts.py", argv)
+    write_json(os.path.join(args.folder, "verdicts.json"), out)
+    write_text(os.path.join(args.folder, "verdicts.md"), markdown(out, command))
     return 0
 
 

@@ -11,16 +11,22 @@ Motorcycle pair), against the rig's true calibration at full resolution.
 without this machine's paths, the OpenCV and ROS YAML files, the warnings)
 and one table, ``--out/summary.md``: the rig's fx, fy and horizontal field of
 view, true and calibrated, the relative errors, the spreads over the pairs,
-and the warnings calibrate printed.
+and the warnings calibrate printed. ``summary_markdown`` renders it from the
+files written beside it and the true focal lengths of the committed rigs
+(``true_focals``), so ``regenerate`` rebuilds the committed page without
+the runs.
 """
 
 from __future__ import annotations
 
 import dataclasses
+import json
 import math
 import os
 import sys
 import tempfile
+
+from cpl_keras import files
 
 os.environ.setdefault("KERAS_BACKEND", "jax")
 
@@ -29,29 +35,40 @@ os.environ.setdefault("KERAS_BACKEND", "jax")
 RIGS = ("chessboard", "middlebury", "oakd")
 
 
-def truths():
-    """rig -> (its folder of pairs or a function writing one, true fx, fy at full resolution)."""
+def true_focals(rig):
+    """The rig's true (fx, fy) at full resolution, from the committed rigs
+    (``cpl_keras/real``: the chessboard pairs' calibration, the OAK-D's
+    calibration file, the Motorcycle pair's documented focal length)."""
     from cpl_keras.real import chessboard, middlebury, oakd
 
-    def board():
-        rig = chessboard.calibrate()["rig"]
-        return chessboard.DATA_DIR, rig["fx"], rig["fy"]
-
-    def oak():
+    if rig == "chessboard":
+        cal = chessboard.calibrate()["rig"]
+    elif rig == "oakd":
         cal = oakd.load_calibration()
-        return oakd.DATA_DIR, cal["fx"], cal["fy"]
+    else:
+        cal = {"fx": middlebury.CALIBRATION["focal"], "fy": middlebury.CALIBRATION["focal"]}
+    return cal["fx"], cal["fy"]
+
+
+def folders():
+    """rig -> a function returning its folder of whole pairs (the
+    Motorcycle pair written to a temporary folder)."""
+    from cpl_keras.real import chessboard, oakd
 
     def motorcycle():
         import cv2
 
-        left, right, _, cal = middlebury.load_motorcycle()
+        from cpl_keras.real import middlebury
+
+        left, right, _, _ = middlebury.load_motorcycle()
         folder = tempfile.mkdtemp(prefix="motorcycle-")
         for side, image in (("left", left), ("right", right)):
             cv2.imwrite(os.path.join(folder, f"motorcycle_{side}.png"),
                         cv2.cvtColor(image, cv2.COLOR_RGB2BGR))
-        return folder, cal["focal"], cal["focal"]
+        return folder
 
-    return {"chessboard": board, "middlebury": motorcycle, "oakd": oak}
+    return {"chessboard": lambda: chessboard.DATA_DIR, "middlebury": motorcycle,
+            "oakd": lambda: oakd.DATA_DIR}
 
 
 def without_paths(result, folder_name):
@@ -78,6 +95,49 @@ def held_out_runs(runs_dir):
     return found
 
 
+def summary_markdown(out, rigs, command):
+    """summary.md of the calibrations in ``out`` (``<rig>.json`` and
+    ``<rig>_warnings.txt`` of each of ``rigs``) against the true focal
+    lengths (``true_focals``), its generated line naming ``command`` first."""
+    import numpy as np
+
+    lines = [files.generated_line(command), "",
+             "# Calibrating each shipped rig with the model that never saw it", "",
+             f"`{command}`: `calibrate --folder` on the rig's whole images, the rig's parameters "
+             "the medians over its pairs (network fy: the median of the network's own fy head "
+             "over the pairs).", "",
+             "| rig | pairs | image | fx true / calibrated (rel. error) | fy true / calibrated "
+             "(rel. error) | network fy (rel. error) | hFoV true / calibrated | fx spread over "
+             "pairs | warnings |", "|---|---|---|---|---|---|---|---|---|"]
+    for rig in rigs:
+        with open(os.path.join(out, f"{rig}.json")) as f:
+            result = json.load(f)
+        with open(os.path.join(out, f"{rig}_warnings.txt")) as f:
+            warnings = f.read().splitlines()
+        calib, (fx, fy) = result["rig"], true_focals(rig)
+        p, width = calib["parameters"], calib["image_width"]
+        network_fy = float(np.median([pair["network_fy"] for pair in result["pairs"]]))
+        hfov = math.degrees(2 * math.atan2(width, 2 * fx))
+        lines.append(
+            f"| {rig} | {calib['num_pairs']} | {width} x {calib['image_height']} | "
+            f"{fx:.1f} / {p['fx']:.1f} ({abs(p['fx'] / fx - 1):.3f}) | "
+            f"{fy:.1f} / {p['fy']:.1f} ({abs(p['fy'] / fy - 1):.3f}) | "
+            f"{network_fy:.1f} ({abs(network_fy / fy - 1):.3f}) | "
+            f"{hfov:.1f} / {calib['fov_horizontal_deg']:.1f} deg | "
+            f"{calib['spread_over_pairs']['fx']:.1f} px | {len(warnings)} |")
+    return "\n".join(lines) + "\n"
+
+
+def regenerate(page_path):
+    """The text ``main`` wrote for the committed summary.md ``page_path``:
+    the rigs calibrated beside it, the command from its first line."""
+    out = os.path.dirname(page_path)
+    with open(page_path) as f:
+        command = files.generated_command(f.read())
+    rigs = [rig for rig in RIGS if os.path.exists(os.path.join(out, f"{rig}.json"))]
+    return summary_markdown(out, rigs, command)
+
+
 def main(argv=None):
     from cpl_keras import cli
 
@@ -89,49 +149,32 @@ def main(argv=None):
     args = parser.parse_args(argv)
     runs = held_out_runs(args.runs_dir)  # (before anything is written)
 
-    import numpy as np
-
     from cpl_keras import exports
     from cpl_keras.calibrate import Calibrator
-    from cpl_keras.files import write_json, write_text
 
     os.makedirs(args.out, exist_ok=True)
-    lines = ["| rig | pairs | image | fx true / calibrated (rel. error) | fy true / calibrated "
-             "(rel. error) | network fy (rel. error) | hFoV true / calibrated | fx spread over "
-             "pairs | warnings |", "|---|---|---|---|---|---|---|---|---|"]
-    for rig, truth in truths().items():
+    done = []
+    for rig, folder_of in folders().items():
         run_dir = runs.get(rig)
         if run_dir is None:
             print(f"{rig}: no run without-{rig} in {args.runs_dir}, skipped", flush=True)
             continue
-        folder, fx, fy = truth()
+        folder = folder_of()
         warnings = []
         calib = Calibrator.from_run(run_dir).calibrate_folder(
             folder, aspect=args.aspect, warn=warnings.append)
-        write_json(os.path.join(args.out, f"{rig}.json"),
-                   without_paths(calib, os.path.basename(folder.rstrip("/"))))
-        write_text(os.path.join(args.out, f"{rig}_warnings.txt"), "".join(
+        files.write_json(os.path.join(args.out, f"{rig}.json"),
+                         without_paths(calib, os.path.basename(folder.rstrip("/"))))
+        files.write_text(os.path.join(args.out, f"{rig}_warnings.txt"), "".join(
             line.replace(os.path.join(folder, ""), "") + "\n" for line in warnings))
         published = dataclasses.replace(calib, run=os.path.basename(calib.run))  # no paths
         exports.write_opencv_yaml(os.path.join(args.out, f"{rig}_opencv.yml"), published)
         exports.write_ros_yaml(os.path.join(args.out, f"{rig}_ros"), published)
-        p, width = calib.parameters, calib.image_width
-        network_fy = float(np.median([pair.network_fy for pair in calib.pairs]))
-        hfov = math.degrees(2 * math.atan2(width, 2 * fx))
-        lines.append(
-            f"| {rig} | {calib.num_pairs} | {width} x {calib.image_height} | "
-            f"{fx:.1f} / {p['fx']:.1f} ({abs(p['fx'] / fx - 1):.3f}) | "
-            f"{fy:.1f} / {p['fy']:.1f} ({abs(p['fy'] / fy - 1):.3f}) | "
-            f"{network_fy:.1f} ({abs(network_fy / fy - 1):.3f}) | "
-            f"{hfov:.1f} / {calib.fov_horizontal_deg:.1f} deg | "
-            f"{calib.spread_over_pairs['fx']:.1f} px | {len(warnings)} |")
-        print(lines[-1], flush=True)
-    text = ("# Calibrating each shipped rig with the model that never saw it\n\n"
-            f"`python bench/calibrate_held_out.py {' '.join(argv or sys.argv[1:])}`: "
-            "`calibrate --folder` on the rig's whole images, the rig's parameters the medians "
-            "over its pairs (network fy: the median of the network's own fy head over the "
-            "pairs).\n\n" + "\n".join(lines) + "\n")
-    write_text(os.path.join(args.out, "summary.md"), text)
+        done.append(rig)
+        print(f"{rig}: calibrated", flush=True)
+    command = f"python bench/calibrate_held_out.py {' '.join(argv or sys.argv[1:])}"
+    text = summary_markdown(args.out, done, command)
+    files.write_text(os.path.join(args.out, "summary.md"), text)
     print(text)
     return 0
 

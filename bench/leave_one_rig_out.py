@@ -20,7 +20,9 @@ resume where they stopped (the same command again); every finished model's
 Table 2 goes to ``--out/<model>/`` (and its record on those rigs into its run
 directory, ``real_cameras.json``, which calibrate reports), its log, curves
 and config to ``--out/runs/``, and ``--out/summary.md`` collects the
-field's metrics per rig with the targets.
+field's metrics per rig with the targets. ``--out/summary.json`` holds
+everything summary.md shows (``summary_markdown`` renders the page from it,
+``regenerate`` again from the committed file).
 
 fy is scored twice: the network's fy head (Table 2), and fy from square
 pixels (``camera.square_pixel_fy``: fx and the crop's width and height, as
@@ -33,6 +35,7 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import glob
+import json
 import os
 import sys
 
@@ -113,9 +116,9 @@ def square_pixel_fy_error(run_dir, path):
 
 
 def own_test_rows(name, run_dir):
-    """Lines of the model's scores on its own test split, per source of its
-    training file (the rendered pairs, each trained-on rig's held-out
-    crops): median relative error of fx and of the fy head."""
+    """The model's scores on its own test split, per source of its training
+    file (the rendered pairs, each trained-on rig's held-out crops): median
+    relative error of fx and of the fy head, one dict per source."""
     import numpy as np
 
     from cpl_keras import evaluation
@@ -131,36 +134,85 @@ def own_test_rows(name, run_dir):
         evaluation.forget_model(run)
     source = labels["source_index"][test] if "source_index" in labels else np.zeros(len(test), int)
     names = [r.get("rig") or "rendered" for r in meta.get("sources", [{}])]
-    lines = []
+    rows = []
     for k, source_name in enumerate(names):
         mask = source == k
         if not mask.any():
             continue
-        errors = [float(np.median(np.abs(pred[n][mask] / labels[n][test][mask] - 1.0)))
-                  for n in ("fx", "fy")]
-        lines.append(f"| {name} | {source_name} | {int(mask.sum())} | {errors[0]:.3f} | "
-                     f"{errors[1]:.3f} |")
-    return lines
+        fx, fy = (float(np.median(np.abs(pred[n][mask] / labels[n][test][mask] - 1.0)))
+                  for n in ("fx", "fy"))
+        rows.append({"model": name, "source": source_name, "test_pairs": int(mask.sum()),
+                     "fx_relative_median": fx, "fy_head_relative_median": fy})
+    return rows
 
 
 def summary_rows(name, table, row, square_fy):
-    """One line per rig of a model's Table 2: its field metrics and the
+    """One dict per rig of a model's Table 2: its field metrics and the
     Average row's, fy from square pixels (``square_fy``: rig -> median
-    relative error), and whether each target is met (fy: square pixels)."""
-    lines = []
+    relative error), and which targets are met (fy: square pixels)."""
+    rows = []
     for rig, part in table.rigs.items():
         model, average = part.rows[row], part.rows["Average"]
-        field, within = model["field"], model["fov_within_deg"][str(TARGETS["fov_deg"])] / 100
-        met = [field["relative_fx_median"] <= TARGETS["relative"],
-               square_fy[rig] <= TARGETS["relative"],
-               within >= TARGETS["fov_share"]]
+        field = {k: float(model["field"][k]) for k in
+                 ("relative_fx_median", "relative_fy_median", "hfov_error_deg_median")}
+        within = float(model["fov_within_deg"][str(TARGETS["fov_deg"])]) / 100
+        fy_square = float(square_fy[rig])
+        rows.append({
+            "rig": rig, "model": name, "pairs": int(model["num_pairs"]),
+            "fx_relative_median": field["relative_fx_median"],
+            "fx_relative_median_average": float(average["field"]["relative_fx_median"]),
+            "fy_square_pixels_relative_median": fy_square,
+            "fy_head_relative_median": field["relative_fy_median"],
+            "fy_head_relative_median_average": float(average["field"]["relative_fy_median"]),
+            "hfov_error_deg_median": field["hfov_error_deg_median"],
+            "hfov_within_share": within,
+            "targets_met": {"fx": bool(field["relative_fx_median"] <= TARGETS["relative"]),
+                            "fy_square_pixels": bool(fy_square <= TARGETS["relative"]),
+                            "hfov": bool(within >= TARGETS["fov_share"])}})
+    return rows
+
+
+def summary_markdown(summary):
+    """summary.md from summary.json's dict (``summary``: ``command``,
+    ``targets``, ``held_out``, ``own_test``), its generated line first."""
+    targets = summary["targets"]
+    lines = [files.generated_line(summary["command"]), "",
+             "# Real rigs held out from training", "",
+             f"Targets: median relative error of fx and of fy at most {targets['relative']}, "
+             f"hFoV within {targets['fov_deg']} deg on at least "
+             f"{100 * targets['fov_share']:.0f} % of the pairs; fy judged from square pixels "
+             "(fx and the crop's sides, as calibrate reports it).", "",
+             "| rig | model | pairs | fx rel. error (Average) | fy rel. error, square pixels | "
+             "fy rel. error, fy head (Average) | hFoV error, deg | hFoV within 5 deg | "
+             "targets met |", "|---|---|---|---|---|---|---|---|---|"]
+    for r in summary["held_out"]:
         lines.append(
-            f"| {rig} | {name} | {model['num_pairs']} | {field['relative_fx_median']:.3f} "
-            f"({average['field']['relative_fx_median']:.3f}) | {square_fy[rig]:.3f} | "
-            f"{field['relative_fy_median']:.3f} ({average['field']['relative_fy_median']:.3f}) | "
-            f"{field['hfov_error_deg_median']:.1f} | {100 * within:.0f} % | "
-            f"{'yes' if all(met) else 'no'} |")
-    return lines
+            f"| {r['rig']} | {r['model']} | {r['pairs']} | {r['fx_relative_median']:.3f} "
+            f"({r['fx_relative_median_average']:.3f}) | "
+            f"{r['fy_square_pixels_relative_median']:.3f} | "
+            f"{r['fy_head_relative_median']:.3f} ({r['fy_head_relative_median_average']:.3f}) | "
+            f"{r['hfov_error_deg_median']:.1f} | {100 * r['hfov_within_share']:.0f} % | "
+            f"{'yes' if all(r['targets_met'].values()) else 'no'} |")
+    lines += ["", "On each model's own test split (pairs of its training file it did not train "
+              "on, per source):", "",
+              "| model | source | test pairs | fx rel. error | fy rel. error (fy head) |",
+              "|---|---|---|---|---|"]
+    lines += [f"| {r['model']} | {r['source']} | {r['test_pairs']} | "
+              f"{r['fx_relative_median']:.3f} | {r['fy_head_relative_median']:.3f} |"
+              for r in summary["own_test"]]
+    return "\n".join(lines) + "\n"
+
+
+def regenerate(page_path):
+    """The text ``main`` wrote for the committed page ``page_path``: a
+    summary.md from summary.json beside it, a model's table2.md from its
+    table2.json (``report.regenerate``)."""
+    if os.path.basename(page_path) != "summary.md":
+        from cpl_keras import report
+
+        return report.regenerate(page_path)
+    with open(os.path.join(os.path.dirname(page_path), "summary.json")) as f:
+        return summary_markdown(json.load(f))
 
 
 def main(argv=None):
@@ -191,40 +243,31 @@ def main(argv=None):
 
     os.makedirs(args.runs_dir, exist_ok=True)
     rigs = real_sets(args.real_dir)
-    lines = ["| rig | model | pairs | fx rel. error (Average) | fy rel. error, square pixels | "
-             "fy rel. error, fy head (Average) | hFoV error, deg | hFoV within 5 deg | "
-             "targets met |", "|---|---|---|---|---|---|---|---|---|"]
-    own = ["| model | source | test pairs | fx rel. error | fy rel. error (fy head) |",
-           "|---|---|---|---|---|"]
+    command = "python bench/leave_one_rig_out.py " + " ".join(argv or sys.argv[1:])
+    held_out, own = [], []
     for name, data, tested in plan(args, rigs):
         run_dir = os.path.join(args.runs_dir, name)
         split = args.split or ("paper" if args.with_real_crops else "held-out-config")
-        summary = train(data, variant=args.variant, run_dir=run_dir, backbone=args.backbone,
-                        epochs=args.epochs, split=split, seed=args.seed,
-                        augment=None if args.augment == "none" else args.augment,
-                        time_budget_s=args.time_budget, verbose=2)
-        if summary.config.status != "finished":
-            raise SystemExit(f"{run_dir}: {summary.config.status} ({summary.config.stopped})")
+        result = train(data, variant=args.variant, run_dir=run_dir, backbone=args.backbone,
+                       epochs=args.epochs, split=split, seed=args.seed,
+                       augment=None if args.augment == "none" else args.augment,
+                       time_budget_s=args.time_budget, verbose=2)
+        if result.config.status != "finished":
+            raise SystemExit(f"{run_dir}: {result.config.status} ({result.config.stopped})")
         publish(run_dir, os.path.join(args.out, "runs"), name)
         table = evaluation.make_table2([run_dir], [rigs[r] for r in tested], geometric=False)
-        command = "python bench/leave_one_rig_out.py " + " ".join(argv or sys.argv[1:])
         report.write_outputs(os.path.join(args.out, name), "table2", table, command)
         # the run's own record on the rigs it never saw, for calibrate to say
         real_record.write_record(run_dir, table, command=command)
         square_fy = {r: square_pixel_fy_error(run_dir, rigs[r]) for r in tested}
-        lines += summary_rows(name, table, ROW[args.variant], square_fy)
+        held_out += summary_rows(name, table, ROW[args.variant], square_fy)
         own += own_test_rows(name, run_dir)
         print(f"{name}: scored on {', '.join(tested)}", flush=True)
-    text = ("# Real rigs held out from training\n\n"
-            f"Targets: median relative error of fx and of fy at most {TARGETS['relative']}, "
-            f"hFoV within {TARGETS['fov_deg']} deg on at least "
-            f"{100 * TARGETS['fov_share']:.0f} % of the pairs; fy judged from square pixels "
-            "(fx and the crop's sides, as calibrate reports it).\n\n" + "\n".join(lines) + "\n"
-            "\nOn each model's own test split (pairs of its training file it did not train on, "
-            "per source):\n\n" + "\n".join(own) + "\n")
+    summary = {"command": command, "args": vars(args), "rigs": rigs, "targets": TARGETS,
+               "held_out": held_out, "own_test": own}
+    text = summary_markdown(summary)
     files.write_text(os.path.join(args.out, "summary.md"), text)  # (atomically)
-    files.write_json(os.path.join(args.out, "summary.json"), {"args": vars(args), "rigs": rigs},
-                     indent=1)
+    files.write_json(os.path.join(args.out, "summary.json"), summary, indent=1)
     print(text)
     return 0
 

@@ -22,6 +22,7 @@ from __future__ import annotations
 import json
 import math
 import os
+import shlex
 import sys
 import time
 
@@ -205,7 +206,33 @@ def budget_table(payload, epoch):
     return "\n".join(lines) + "\n"
 
 
-def write_outputs(run_dirs, out_dir, loads=None, keep_earlier=False, at_epoch=None):
+def page(payload, at_epoch=None, command=None):
+    """learning_curves.md from its JSON (``payload``, one entry per run):
+    the kept-epoch table, with ``at_epoch`` the equal-budget table, and
+    with ``command`` the generated line first (``files.generated_line``)."""
+    rows = [{k: v for k, v in row.items() if k not in ("samples_seen", "nmae", "wall_times")}
+            for row in payload]
+    text = markdown(rows)
+    if at_epoch:
+        text += "\n" + budget_table(_finite(payload), at_epoch)
+    return (files.generated_line(command) + "\n\n" if command else "") + text
+
+
+def regenerate(page_path):
+    """The text ``write_outputs`` wrote for ``page_path`` (a committed
+    learning_curves.md), from its JSON beside it and the command on its
+    first line (for ``--at-epoch``)."""
+    with open(page_path) as f:
+        command = files.generated_command(f.read())
+    with open(os.path.join(os.path.dirname(page_path), "learning_curves.json")) as f:
+        payload = json.load(f)
+    words = shlex.split(command or "")
+    at_epoch = int(words[words.index("--at-epoch") + 1]) if "--at-epoch" in words else None
+    return page(payload, at_epoch, command)
+
+
+def write_outputs(run_dirs, out_dir, loads=None, keep_earlier=False, at_epoch=None,
+                  command=None):
     """Figures and the summary table of ``run_dirs`` into ``out_dir``, and
     each run's log.csv and curves.png into ``out_dir/runs/``.
 
@@ -229,9 +256,7 @@ def write_outputs(run_dirs, out_dir, loads=None, keep_earlier=False, at_epoch=No
         rows.append(row)
         payload.append(dict(row, samples_seen=curve["samples_seen"], nmae=curve["nmae"],
                             wall_times=[r.get("wall_time_s") for r in curve["rows"]]))
-    table = markdown(rows)
-    if at_epoch:
-        table += "\n" + budget_table(_finite(payload), at_epoch)
+    table = page(payload, at_epoch, command)
     for filename, text in (("learning_curves.md", table),
                            ("learning_curves.json", json.dumps(_finite(payload), indent=1))):
         files.write_text(os.path.join(out_dir, filename), text)
@@ -271,7 +296,8 @@ def run_experiment(*, data_dir, runs_dir, out_dir, pairs, backbone, image_size=1
         print(f"{name}: {summary.config.epochs_run} epochs, {summary.config.stopped}",
               file=sys.stderr)
     run_dirs = [r for r in run_dirs if os.path.exists(os.path.join(r, "log.csv"))]
-    return write_outputs(run_dirs, out_dir, loads)
+    return write_outputs(run_dirs, out_dir, loads,
+                         command=f"python -m cpl_keras.learning_curves --experiment --out {out_dir}")
 
 
 if __name__ == "__main__":  # the command line: cpl_keras/commands/learning_curves.py

@@ -178,19 +178,25 @@ def test_monitor_steadiness_reads_the_swings_and_the_shared_training(tmp_path, c
         script.read(str(tmp_path / "c.csv"))
 
 
-def test_equal_epochs_compares_two_runs_column_by_column(tmp_path, capsys):
+def _nmae_log(path, rows):
+    """A log.csv of train.py's nmae monitor: ``rows``, the ten validation
+    NMAEs of each epoch (their sum the monitor). Returns its path."""
     from cpl_keras.camera import PARAMETERS
+
+    header = "epoch,loss,val_nmae," + ",".join(f"val_nmae_{p}" for p in PARAMETERS)
+    path.write_text(header + "\n" + "".join(
+        f"{epoch},1.0,{sum(nmae)},{','.join(map(str, nmae))}\n"
+        for epoch, nmae in enumerate(rows, 1)))
+    return str(path)
+
+
+def test_equal_epochs_compares_two_runs_column_by_column(tmp_path, capsys):
     from cpl_keras.evaluation import EvaluationError
 
     script = _script("equal_epochs")
-    header = "epoch,loss,val_nmae," + ",".join(f"val_nmae_{p}" for p in PARAMETERS)
 
     def log(name, rows):
-        path = tmp_path / f"{name}.csv"
-        path.write_text(header + "\n" + "".join(
-            f"{epoch},1.0,{sum(nmae)},{','.join(map(str, nmae))}\n"
-            for epoch, nmae in enumerate(rows, 1)))
-        return str(path)
+        return _nmae_log(tmp_path / f"{name}.csv", rows)
 
     # A: lower on fx..v0 at every epoch, far higher on the disparity; B
     # runs longer and its monitor falls below A's from epoch 2 on.
@@ -211,3 +217,43 @@ def test_equal_epochs_compares_two_runs_column_by_column(tmp_path, capsys):
     (tmp_path / "c.csv").write_text("epoch,loss,val_nmae\n1,2,3\n")
     with pytest.raises(EvaluationError, match="no per-parameter val_nmae columns"):
         script.validation(str(tmp_path / "c.csv"))
+
+
+def test_equal_epochs_writes_its_page_and_regenerates_it(tmp_path, capsys):
+    """--out: the page is the title, the command in a code block and what it
+    printed; --pair: a section per pair under its heading, each with its own
+    command. ``regenerate`` rebuilds both from the logs their first line names."""
+    from cpl_keras import files
+
+    script = _script("equal_epochs")
+    a = _nmae_log(tmp_path / "a.csv", [[0.1] * 10, [0.05] * 10])
+    b = _nmae_log(tmp_path / "b.csv", [[0.2] * 10, [0.01] * 10, [0.01] * 10])
+    page = tmp_path / "pages" / "equal.md"
+    page.parent.mkdir()
+    assert script.main([a, b, "--epochs", "1", "2", "--title", "A's and B's, seed 0",
+                        "--out", str(page)]) == 0
+    printed = capsys.readouterr().out
+    text = page.read_text()
+    command = files.generated_command(text)
+    assert command.startswith("python analyses/equal_epochs.py ") and "--out " in command
+    head = text.split("\n\n```\n", 1)[0]
+    assert head.endswith("\n\n# A's and B's, seed 0")
+    block, report = text.split("\n```\n\n", 1)
+    assert block.endswith("b.csv --epochs 1 2") and "--title" not in block.split("```")[-1]
+    assert printed == report + f"wrote {os.path.relpath(page, REPO)}\n"
+    assert "A: " in report and "A's val_nmae is lower at 1 (1)." in report
+    assert script.regenerate(str(page)) == text
+
+    # Two pairs under their headings, an introduction under the title.
+    assert script.main(["--pair", "Seed 0", a, b, "--pair", "Seed 1", b, a, "--title", "Both",
+                        "--intro", "Two seeds.", "--out", str(page)]) == 0
+    text = page.read_text()
+    assert text.split("\n", 2)[2].startswith("# Both\n\nTwo seeds.\n\n## Seed 0\n\n```\n")
+    assert text.count("\n```\npython analyses/equal_epochs.py ") == 2
+    assert "\n\n## Seed 1\n\n```\n" in text
+    assert "lower at 1 (1).\n\n## Seed 1" in text and text.endswith("lower at 1 (2).\n")
+    assert script.regenerate(str(page)) == text
+    for bad in (["--title", "T", a, b], [a, b, "--out", str(page)], [a],
+                ["--pair", "S", a, b, a, b, "--title", "T", "--out", str(page)]):
+        with pytest.raises(SystemExit):
+            script.parse_args(bad)

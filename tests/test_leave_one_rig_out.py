@@ -77,6 +77,14 @@ def test_each_rig_is_scored_by_a_model_that_never_saw_it(tiny_run, real32, tmp_p
         fx_true = f.labels["fx"][test]
     fx_error = np.median(np.abs(pred["fx"][rendered] / fx_true[rendered] - 1.0))
     assert f"| without-oakd | rendered | {rendered.sum()} | {fx_error:.3f} |" in own[0]
+    # summary.json holds what the page shows: the page and the model's table
+    # render again from the written files alone
+    stored = json.loads((out / "summary.json").read_text())
+    assert [r["rig"] for r in stored["held_out"]] == ["oakd"]
+    assert stored["held_out"][0]["fy_square_pixels_relative_median"] == pytest.approx(
+        expected, rel=1e-5)
+    for page in (out / "summary.md", out / "without-oakd" / "table2.md"):
+        assert script.regenerate(str(page)) == page.read_text()
 
 
 def test_calibrate_held_out_writes_each_rigs_calibration_against_its_truth(tiny_run, tmp_path):
@@ -111,3 +119,5 @@ def test_calibrate_held_out_writes_each_rigs_calibration_against_its_truth(tiny_
     fs = cv2.FileStorage(str(out / "oakd_opencv.yml"), cv2.FILE_STORAGE_READ)
     assert fs.getNode("M1").mat()[0, 0] == pytest.approx(fx)
     fs.release()
+    # the page renders again from the files written beside it
+    assert script.regenerate(str(out / "summary.md")) == (out / "summary.md").read_text()

@@ -27,6 +27,7 @@ from cpl_keras.report.text import (
 
 __all__ = [
     "best_rows",
+    "regenerate",
     "cell",
     "COLUMN_PARAMETER",
     "COLUMNS",
@@ -93,6 +94,15 @@ def portable_paths(data, out_dir):
         return runs.relative(path, out_dir) + sep + rest if os.path.isabs(path) else text
 
     return convert(None, data)
+
+
+def regenerate(page_path):
+    """The text ``write_outputs`` wrote for the table page ``page_path``,
+    rendered again from its JSON twin (the same name, ``.json``): a
+    committed table page regenerates without weights or datasets."""
+    with open(os.path.splitext(page_path)[0] + ".json") as f:
+        payload = json.load(f)
+    return markdown(table_from_json(payload), payload.get("command"))
 
 
 def write_outputs(out_dir, stem, table, command, *, render_markdown=markdown,

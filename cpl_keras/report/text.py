@@ -14,7 +14,7 @@ from __future__ import annotations
 import math
 
 
-from cpl_keras import metrics
+from cpl_keras import files, metrics
 from cpl_keras.camera import PARAMETERS
 from cpl_keras.evaluation.seeds import beyond_spread
 from cpl_keras.evaluation.tables import Table2
@@ -215,12 +215,17 @@ def coverage_notes(table):
     return lines
 
 
+def _generated(command):
+    """A page's first line when a command wrote it (``files.generated_line``)."""
+    return [files.generated_line(command), ""] if command else []
+
+
 def table1_markdown(table, command=None):
     """Table 1 (or one run's scores) as Markdown: one table per NMAE convention, best marked in
     bold, the paper's numbers beside ours in the paper's convention."""
     number = table.table
     title = f"Table {number}" if number else "Evaluation"
-    lines = [f"# {title}: NMAE per parameter", ""]
+    lines = _generated(command) + [f"# {title}: NMAE per parameter", ""]
     if command:
         lines += ["Command:", "", "```", command, "```", ""]
     lines += [f"Data: `{table.data}` ({table.data_description}; source: "
@@ -333,7 +338,7 @@ def field_table(table):
 
 def table2_markdown(table, command=None):
     """Table 2 as Markdown: the pooled table (with the paper's numbers), then one section per rig."""
-    lines = ["# Table 2: NMAE per parameter on real rigs", ""]
+    lines = _generated(command) + ["# Table 2: NMAE per parameter on real rigs", ""]
     if command:
         lines += ["Command:", "", "```", command, "```", ""]
     lines += [f"Pooled: {table.data_description}; image width {table.image_width} px. "

@@ -116,7 +116,7 @@ def write_report(out_dir, summary, tables, rebuilt_by=None):
     ``rebuilt_by``: the command that rebuilt them from the published
     predictions."""
     config, info = summary["settings"], summary["machine"]
-    lines = ["# Reproducing Tables 1 and 2", ""]
+    lines = [files.generated_line(summary["command"]), "", "# Reproducing Tables 1 and 2", ""]
     lines += ["Everything on this page was produced by one command:", "", "```",
               summary["command"], "```", ""]
     if rebuilt_by:
