@@ -515,7 +515,7 @@ def test_presets_resolve():
     before = {k: v for k, v in config.to_dict().items() if k != "disparity_ceiling"}
     assert training_arguments(reproduce.Settings.from_dict(before), "r", job)[
         "disparity_ceiling"] == "auto"
-    with pytest.raises(ValueError, match="disparity-ceiling"):
+    with pytest.raises(ValueError, match="disparity.ceiling"):
         dataclasses.replace(reproduce.PRESETS["cpu"], disparity_ceiling="high")
     # explicit flags override the preset's values
     mine = _parsed("--preset", "cpu", "--epochs", "7", "--seeds", "2", "--out", "x").config

@@ -5,15 +5,15 @@ machine without a GPU is told about GPU-sized settings."""
 from __future__ import annotations
 
 import dataclasses
-import math
 import os
 import sys
 from typing import NamedTuple
 
 from cpl_keras.evaluation import PAPER_DIR
 from cpl_keras.models import variants as registry
-from cpl_keras.models.options import check_momentum
-from cpl_keras.models.variants import BACKBONES, MIN_IMAGE_SIZE, MTL_VARIANTS, TABLE_ORDER
+from cpl_keras.models.options import ModelOptions
+from cpl_keras.models.variants import MIN_IMAGE_SIZE, MTL_VARIANTS, TABLE_ORDER
+from cpl_keras.training.options import TrainingOptions
 
 PROG = "python -m cpl_keras.reproduce"
 
@@ -30,9 +30,10 @@ TABLE1 = {
     "random": ("random", "held-out-config", "random_seeds"),
 }
 DEFAULT_TABLES = ("cvgl", "random")
-#: Settings that are counts: positive integers (patience may be 0).
-POSITIVE = ("pairs", "random_pairs", "epochs", "image_size", "crops", "chessboard_crops",
-            "geometric_max", "batch_size", "seeds", "random_seeds", "workers")
+#: The preset's own counts: positive integers (epochs, batch size and
+#: patience are checked by the training's rules, ``training_rules``).
+POSITIVE = ("pairs", "random_pairs", "image_size", "crops", "chessboard_crops",
+            "geometric_max", "seeds", "random_seeds", "workers")
 #: Smallest image side of the real sets (StereoBM's block of 15 and 16 disparities).
 MIN_REAL_IMAGE_SIZE = 32
 
@@ -109,40 +110,17 @@ class Preset:
         if unknown:
             raise ValueError(f"unknown real set {unknown[0]!r}; choose from "
                              f"{', '.join(REAL_SETS)}")
-        for key in POSITIVE + ("patience",):
+        for key in POSITIVE:
             value = getattr(self, key)
             if value is None and key in ("geometric_max", "workers"):
                 continue
-            least = 0 if key == "patience" else 1
-            if isinstance(value, bool) or not isinstance(value, int) or value < least:
-                what = "non-negative" if least == 0 else "positive"
-                raise ValueError(f"{key.replace('_', '-')} must be {what}, got {value}")
-        budget = self.run_budget_s
-        if budget is not None and (isinstance(budget, bool)
-                                   or not isinstance(budget, (int, float))
-                                   or not math.isfinite(budget) or budget <= 0):
-            raise ValueError(f"run-budget must be a positive number of seconds, got {budget}")
-        ceiling = self.disparity_ceiling
-        if ceiling not in (None, "auto") and (isinstance(ceiling, (bool, str)) or not (
-                isinstance(ceiling, (int, float)) and math.isfinite(ceiling) and ceiling > 0)):
-            raise ValueError(f"disparity-ceiling must be 'auto', None or a positive number of "
-                             f"pixels, got {ceiling!r}")
-        for key, choices in (("bn_statistics", ("fixed", "epoch")), ("monitor", ("nmae", "loss"))):
-            value = getattr(self, key)
-            if value is not None and value not in choices:
-                raise ValueError(f"{key.replace('_', '-')} must be one of {', '.join(choices)}, "
-                                 f"got {value!r}")
-        if self.weight_ema is not None:
-            check_momentum(self.weight_ema)
-        if self.backbone not in BACKBONES:
-            raise ValueError(f"unknown backbone {self.backbone!r}; choose one of "
-                             f"{', '.join(BACKBONES)}")
+            if isinstance(value, bool) or not isinstance(value, int) or value < 1:
+                raise ValueError(f"{key.replace('_', '-')} must be positive, got {value}")
+        training_rules(self)
         unknown = [t for t in self.tables if t not in TABLE1]
         if unknown or not self.tables:
             raise ValueError(f"unknown table {unknown[0] if unknown else '(none)'!r}; choose "
                              f"from {', '.join(TABLE1)}")
-        for variant in self.variants:
-            registry.get(variant)
         for variant in self.first_variants:
             if variant not in self.variants:
                 raise ValueError(f"first variant {variant!r} is not trained by these settings "
@@ -158,6 +136,19 @@ class Preset:
         if self.image_size < least:
             raise ValueError(f"image-size must be at least {least} (the {self.backbone} "
                              f"backbone and the real sets), got {self.image_size}")
+
+
+def training_rules(preset):
+    """Check a preset's training and model settings by the rules every run
+    is checked by (``TrainingOptions``, ``ModelOptions``: the same rules as
+    ``train.py`` and ``plan_run``, written once), before anything trains."""
+    TrainingOptions(epochs=preset.epochs, batch_size=preset.batch_size,
+                    patience=preset.patience, time_budget_s=preset.run_budget_s,
+                    bn_statistics=preset.bn_statistics, monitor=preset.monitor,
+                    weight_ema=preset.weight_ema)
+    options = ModelOptions(backbone=preset.backbone, disparity_ceiling=preset.disparity_ceiling)
+    for variant in preset.variants:
+        options.for_variant(variant)
 
 
 #: The named scales (``--preset``), each a ``Preset``.
