@@ -271,3 +271,36 @@ def test_the_explanation_page_is_short_and_in_order():
     for finding in re.split(r"\n(?=\*\*\d+\.)", findings.strip()):
         assert re.search(r"\]\([^)]+\.md\)", finding), finding[:80]
     assert len(_sentences("One. Two (three). Four")) == 3  # (the count can tell)
+
+
+FOLDER_HEADINGS = ["Question", "Answer", "Status", "Command", "Evidence", "Not decided"]
+STATUSES = ("finished", "in progress", "stopped", "superseded", "kept up to date")
+
+
+def test_every_folder_readme_has_the_fixed_headings_and_its_status_agrees_with_the_index():
+    """Each folder of paper_results/ has a README.md written by hand whose
+    first sections are Question, Answer (at most 150 words), Status, Command,
+    Evidence and Not decided; its status is the one the index gives; a
+    superseded folder says so before its first section."""
+    index = (RESULTS / "README.md").read_text()
+    for folder in sorted(p for p in RESULTS.iterdir() if p.is_dir()):
+        page = folder / "README.md"
+        assert page.exists(), f"{folder.name} has no README.md"
+        text = page.read_text()
+        assert text.startswith("# ") and "Written by hand" in text.split("\n## ", 1)[0], \
+            folder.name
+        headings = re.findall(r"^## (.+)$", text, re.M)
+        assert headings[:6] == FOLDER_HEADINGS, (folder.name, headings[:6])
+        sections = dict(re.findall(r"^## (.+?)\n(.*?)(?=^## |\Z)", text, re.M | re.S))
+        assert len(_words(sections["Answer"])) <= 150, (folder.name,
+                                                        len(_words(sections["Answer"])))
+        status = sections["Status"].strip().split("\n")[0].lower()
+        assert status.startswith(STATUSES), (folder.name, status)
+        row = re.search(rf"^\| \[{re.escape(folder.name)}/\]\([^)]*\) \|.*\| ([^|]+) \|$", index,
+                        re.M)
+        assert row, folder.name
+        assert row.group(1).strip().lower().split(",")[0].split(" (")[0] in status, \
+            (folder.name, row.group(1), status)
+        if "superseded" in status or "superseded" in row.group(1):
+            assert "superseded" in status, (folder.name, status)
+            assert "superseded" in text.split("\n## ", 1)[0].lower(), folder.name
