@@ -295,14 +295,6 @@ def alone():
         keras.distribution.set_distribution(previous)
 
 
-def to_numpy(value):
-    """A tensor as a NumPy array; a global array that spans other processes'
-    devices must be replicated, and its local copy is read."""
-    if getattr(value, "is_fully_addressable", True) is False:
-        value = value.addressable_data(0)
-    return np.asarray(value)
-
-
 def refuse_prediction():
     """``DistributedError`` inside a group of several processes, where
     ``model.predict`` cannot run (its outputs span non-addressable devices)."""

@@ -31,9 +31,10 @@ that needs it, behind a file lock, and read by the other:
 * ``train_cache``: the session's compile cache (for the tests that pass one
   to a command explicitly).
 
-Each is read only: a test that changes a run copies it first. The helpers
-that tests share (the fixture dataset, the ``EARLY`` commands' arguments) are
-in helpers.py, which the tests import instead of this file.
+Each is read only, on disk too (``made_once``): a test that changes one
+changes a copy of it (``helpers.writable_copy``). The helpers that tests
+share (the fixture dataset, the ``EARLY`` commands' arguments) are in
+helpers.py, which the tests import instead of this file.
 
 Tests marked ``slow`` (the quick reproduction, InceptionV3 builds, data
 parallelism, kill-and-resume, every train.py flag, the documented commands,
@@ -50,7 +51,9 @@ import tempfile
 import pytest
 from filelock import FileLock
 
-from helpers import REPO, RESUME_ARGS, quick_reproduction_args, train_py, write_stereo_fixture
+from helpers import (
+    REPO, RESUME_ARGS, quick_reproduction_args, set_writable, train_py, write_stereo_fixture,
+)
 
 os.environ.setdefault("KERAS_BACKEND", "jax")
 
@@ -89,6 +92,7 @@ def pytest_configure(config):
 def pytest_unconfigure(config):
     folder = getattr(config, "_cpl_keras_session", None)
     if folder:
+        set_writable(folder, True)  # (made_once's files, read only)
         shutil.rmtree(folder, ignore_errors=True)
         for name in session_env(folder):
             os.environ.pop(name, None)
@@ -103,15 +107,23 @@ def shared_folder():
 def made_once(folder, name, make):
     """``make(path)`` for ``folder/name`` by the first process of the
     session that asks, behind a file lock; the others wait and get the same
-    path. ``make`` writes ``path`` (a file or a folder); ``path/.done`` or
-    ``path.done`` marks it complete."""
+    path. ``make`` writes ``path`` (a file or a folder); ``path.done`` marks
+    it complete. Once made, ``path`` is read only (files 0o444, folders
+    0o555), so that a test that writes into it fails at once rather than
+    changing what the tests after it read (``helpers.writable_copy`` makes
+    a copy to change). (Root writes through file modes: run as root, the
+    suite catches such a test only without CAP_DAC_OVERRIDE, e.g. under
+    ``setpriv --bounding-set -dac_override,-dac_read_search,-fowner``.)"""
     path = os.path.join(folder, name)
     done = path + ".done"
     with FileLock(path + ".lock"):
         if not os.path.exists(done):
-            if os.path.isdir(path):
-                shutil.rmtree(path)
+            if os.path.lexists(path):  # (an attempt that failed half-way)
+                set_writable(path, True)
+                if os.path.isdir(path):
+                    shutil.rmtree(path)
             make(path)
+            set_writable(path, False)
             with open(done, "w"):
                 pass
     return path

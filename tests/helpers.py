@@ -1,6 +1,8 @@
 """What several test files share: the repository's folder, the small
-fixture datasets and batches they build, the commands' main functions and
-the arguments of the whole commands that conftest.py starts early.
+fixture datasets and batches they build, the commands' main functions, the
+arguments of the whole commands that conftest.py starts early, waiting on
+what a process prints or writes, and writable copies of the session's
+read-only files.
 
 Tests import their helpers from here, never from one another or from
 conftest.py (tests/test_structure.py checks it). Heavy imports (Keras's
@@ -8,8 +10,10 @@ models, OpenCV) stay inside the functions, so that conftest.py can import
 this module before the backend is chosen.
 """
 
+import csv
 import os
 import shutil
+import stat
 import sys
 
 import numpy as np
@@ -244,6 +248,34 @@ def wait_for(condition, timeout=120):
     return False
 
 
+def wait_for_output(stream, needle, timeout=120):
+    """``wait_for`` a process to print ``needle``: read its pipe ``stream``
+    (its stdout or stderr, unbuffered, as the text comes) until what was read
+    holds ``needle``, the stream ends or ``timeout`` seconds have passed.
+    Returns the text read (the caller checks for ``needle``); the rest stays
+    in the pipe for ``communicate``."""
+    import select
+
+    seen = bytearray()
+
+    def printed():
+        if select.select([stream], [], [], 0)[0]:
+            chunk = os.read(stream.fileno(), 65536)
+            if not chunk:
+                return True  # (the stream ended)
+            seen.extend(chunk)
+        return needle.encode() in seen
+
+    wait_for(printed, timeout)
+    return seen.decode(errors="replace")
+
+
+def read_log(run_dir):
+    """A run directory's log.csv: a dict of strings per epoch."""
+    with open(os.path.join(run_dir, "log.csv")) as f:
+        return list(csv.DictReader(f))
+
+
 def epochs_done(run_dir):
     """The epochs a run directory's resume state says are committed."""
     import json
@@ -251,3 +283,31 @@ def epochs_done(run_dir):
     with open(os.path.join(run_dir, "backup", "state.json")) as f:
         return json.load(f)["epoch"]
 
+
+# ---------------------------------------------------------------------------
+# The session's shared files (conftest.py), read only
+# ---------------------------------------------------------------------------
+def set_writable(path, writable):
+    """Give ``path`` (a file, or a folder and everything in it; links left
+    alone) back its owner's write permission, or take write permission from
+    everyone (a file 0o644 becomes 0o444, a folder 0o755 0o555)."""
+    paths = [path]
+    if os.path.isdir(path) and not os.path.islink(path):
+        for folder, folders, names in os.walk(path):
+            paths += [os.path.join(folder, name) for name in folders + names]
+    for name in paths:
+        if not os.path.islink(name):
+            mode = os.stat(name).st_mode
+            os.chmod(name, (mode | stat.S_IWUSR) if writable else (mode & ~0o222))
+
+
+def writable_copy(source, destination):
+    """A copy of a session fixture's file or folder (which conftest.py makes
+    read only, and ``shutil``'s copies keep read only) that the test may
+    change: times kept, write permission given back. Returns its path."""
+    if os.path.isdir(source):
+        shutil.copytree(source, destination)
+    else:
+        shutil.copy2(source, destination)
+    set_writable(destination, True)
+    return str(destination)

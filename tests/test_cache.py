@@ -1,10 +1,13 @@
 """``cpl_keras/cache.py``: the cache directory and the compile cache."""
 
 import os
+import subprocess
+import sys
 
 import pytest
 
 from cpl_keras import cache
+from helpers import REPO
 
 
 def test_a_cache_directory_that_is_a_file_is_one_line(tmp_path, monkeypatch):
@@ -30,3 +33,34 @@ def test_a_compile_cache_that_cannot_be_written_is_left_off(tmp_path, monkeypatc
     # (a folder that can be: made and taken; not handed to this process's JAX,
     # whose cache the other tests share)
     assert cache._writable(str(tmp_path / "xla")) and os.path.isdir(tmp_path / "xla")
+
+
+@pytest.mark.parametrize("jax_first", [True, False], ids=["jax imported", "jax not yet"])
+@pytest.mark.parametrize("setting", [None, "2.5"])
+def test_compile_cache_keeps_every_program_unless_told_otherwise(setting, jax_first, tmp_path):
+    """enable_compile_cache: the directory from $JAX_COMPILATION_CACHE_DIR,
+    programs kept whatever their compile time (0 s), and a
+    $JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS the user set left as set; a
+    small program compiled after it lands in the directory; alike whether
+    JAX was imported before it or is after it (nor does it import Keras). In
+    a process of its own: the setting is global to JAX."""
+    enable = ("from cpl_keras.cache import enable_compile_cache\n"
+              "print(enable_compile_cache())\n"
+              "import sys; assert 'keras' not in sys.modules\n")
+    code = (("import jax, jax.numpy as jnp\n" + enable) if jax_first else
+            (enable + "import jax, jax.numpy as jnp\n")) + (
+            "print(jax.config.jax_persistent_cache_min_compile_time_secs)\n"
+            "jax.jit(lambda x: jnp.sin(x) * 3)(jnp.ones(7)).block_until_ready()\n")
+    env = dict(os.environ, KERAS_BACKEND="jax", JAX_COMPILATION_CACHE_DIR=str(tmp_path / "xla"))
+    env.pop("JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS", None)
+    env.pop("JAX_COMPILATION_CACHE_MAX_SIZE", None)  # (the suite's: a lock file)
+    if setting is not None:
+        env["JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS"] = setting
+    done = subprocess.run([sys.executable, "-c", code], cwd=REPO, env=env, capture_output=True,
+                          text=True, timeout=120)
+    assert done.returncode == 0, done.stderr[-2000:]
+    directory, minimum = done.stdout.split()
+    assert directory == str(tmp_path / "xla")
+    assert float(minimum) == (0.0 if setting is None else 2.5)
+    kept = os.listdir(tmp_path / "xla") if os.path.isdir(tmp_path / "xla") else []
+    assert bool(kept) == (setting is None), kept

@@ -3,7 +3,6 @@
 import dataclasses
 import json
 import os
-import shutil
 import subprocess
 import sys
 
@@ -11,7 +10,7 @@ import cv2
 import numpy as np
 import pytest
 
-from helpers import REPO
+from helpers import REPO, writable_copy
 from cpl_keras import calibration, calibration_records, evaluation, exports
 from cpl_keras.calibrate import Calibration, CalibrationError, Calibrator, RigCalibration
 from cpl_keras.commands import calibrate as calibrate_command
@@ -142,7 +141,7 @@ def test_bad_inputs(setup, tmp_path, capsys):
     _fails([left, str(root / "small.png"), "--run", run, "--json-out", str(out)], capsys,
            "differ in size", out)
     no_weights = tmp_path / "no_weights"
-    shutil.copytree(run, no_weights)
+    writable_copy(run, no_weights)
     os.remove(no_weights / "model.keras")
     _fails([left, right, "--run", str(no_weights), "--json-out", str(out)], capsys,
            "weights", out)
@@ -198,7 +197,7 @@ def test_warns_about_grey_images_and_says_what_the_run_was_trained_on(setup, tmp
 
 def test_warns_about_predictions_outside_the_training_labels(setup, tmp_path, capsys):
     run = tmp_path / "run"
-    shutil.copytree(setup["run"], run)
+    writable_copy(setup["run"], run)
     with open(run / "train_stats.json") as f:
         stats = json.load(f)
     stats["min"]["fx"], stats["max"]["fx"] = 1e6, 1e6 + 1   # no prediction can be in there
@@ -316,7 +315,7 @@ def test_spread_scale_priors_fields_and_the_demonstration_notice(setup, tmp_path
     assert set(result["fields"]) == set(PARAMETERS) | {"X", "Y", "Z"}
     assert result["demonstration_model"] is False and "demonstration" not in captured.err
     demo = tmp_path / "demo-run"
-    shutil.copytree(setup["run"], demo)
+    writable_copy(setup["run"], demo)
     config = json.loads((demo / "config.json").read_text())
     config["data"] = "/cache/demo-cvgl-800-112px-s0-v3.0.h5"
     (demo / "config.json").write_text(json.dumps(config))
@@ -499,7 +498,7 @@ def test_the_real_camera_record_is_said_in_one_line_and_in_the_json(setup, tmp_p
     assert lines[0].startswith(f"{calibrate_command.PROG}: warning: ")
 
     run = tmp_path / "run"
-    shutil.copytree(setup["run"], run)
+    writable_copy(setup["run"], run)
     row = "MTL-Baseline"
     rows = {row: {"num_pairs": 5, "field": {"relative_fx_median": 0.58,
                                             "hfov_error_deg_median": 12.5}},

@@ -8,7 +8,7 @@ import shutil
 
 import numpy as np
 import pytest
-from helpers import load_script
+from helpers import load_script, writable_copy
 
 from cpl_keras.camera import PARAMETERS
 
@@ -76,7 +76,7 @@ def test_a_head_switched_off_puts_out_one_value(tiny_run, tmp_path):
     from cpl_keras.saving import load_model
 
     run = str(tmp_path / "run")
-    shutil.copytree(tiny_run["run"], run)
+    writable_copy(tiny_run["run"], run)
     shutil.rmtree(os.path.join(run, "predictions"), ignore_errors=True)
     model = load_model(os.path.join(run, "model.keras"))
     layer = model.get_layer("pitch_dense_120")

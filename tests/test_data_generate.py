@@ -4,7 +4,6 @@ import os
 import signal
 import subprocess
 import sys
-import time
 
 import h5py
 import numpy as np
@@ -16,7 +15,7 @@ from cpl_keras.data.generate import generate_dataset
 from cpl_keras.data.pair import released_disparity
 from cpl_keras.data.protocols import PROTOCOLS
 from cpl_keras.data.storage import REQUIRED_LABELS, StereoFile
-from helpers import REPO
+from helpers import REPO, wait_for_output
 
 
 def _read(path):
@@ -356,16 +355,14 @@ def test_killed_write_leaves_no_file_at_final_path(tmp_path):
     out = tmp_path / "big.h5"
     proc = subprocess.Popen(
         [sys.executable, "-m", "cpl_keras.data.generate", "--pairs", "5000", "--image-size", "32",
-         "--workers", "1", "--out", str(out), "--no-progress"],
-        cwd=REPO, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
-    partial = tmp_path / "big.h5.partial"
-    deadline = time.time() + 60
-    while not partial.exists() and time.time() < deadline:
-        time.sleep(0.05)
-    assert partial.exists(), "the writer never started"
-    time.sleep(0.3)
+         "--workers", "1", "--out", str(out)],
+        cwd=REPO, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+    # killed while it writes: its progress bar shows the first block in big.h5.partial
+    seen = wait_for_output(proc.stderr, "/5000 pairs")
+    assert "/5000 pairs" in seen and (tmp_path / "big.h5.partial").exists(), seen
     proc.send_signal(signal.SIGKILL)
     proc.wait(timeout=300)
+    proc.stderr.close()
     assert not out.exists()
 
 

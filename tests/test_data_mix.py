@@ -4,7 +4,6 @@ never scored on a rig it was trained on."""
 
 import json
 import os
-import shutil
 import subprocess
 import sys
 
@@ -15,7 +14,7 @@ from cpl_keras.data import mix
 from cpl_keras.data.storage import DatasetError, StereoFile
 from cpl_keras.data.writer import StereoWriter
 
-from helpers import REPO, fixture_labels, write_stereo_fixture
+from helpers import REPO, fixture_labels, writable_copy, write_stereo_fixture
 
 
 def write_rig(path, n=6, image_size=16, rig="bench"):
@@ -87,7 +86,7 @@ def test_training_records_the_rigs_and_table2_refuses_them(sources, tmp_path, ti
                     backbone="small", batch_size=4).config.training_rigs == []
     # a run trained on the bench rig (the shared run, its record rewritten)
     run_dir = tmp_path / "trained_on_bench"
-    shutil.copytree(tiny_run["run"], run_dir)
+    writable_copy(tiny_run["run"], run_dir)
     config = json.loads((run_dir / "config.json").read_text())
     (run_dir / "config.json").write_text(json.dumps(dict(config, training_rigs=["bench"])))
     with pytest.raises(EvaluationError, match="trained on pairs of the rig 'bench'"):

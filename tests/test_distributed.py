@@ -3,7 +3,8 @@ each process reads, the group's checks, and two local processes of
 ``train.py --data-parallel`` against one process on one and on two devices,
 a partner killed with -9, the group resumed, then each process stopped by SIGTERM."""
 
-import csv
+import contextlib
+import functools
 import json
 import os
 import signal
@@ -18,7 +19,7 @@ import pytest
 
 from cpl_keras import distributed, heartbeats
 from cpl_keras.training.sequence import StereoSequence
-from helpers import REPO, train_py
+from helpers import REPO, read_log, train_py, wait_for
 
 #: Every subprocess of these tests ends within this many seconds or fails.
 TIMEOUT_S = 240
@@ -46,10 +47,32 @@ def fixture60(tmp_path_factory):
     return path
 
 
-def _free_port():
-    with socket.socket() as s:
-        s.bind(("localhost", 0))
-        return s.getsockname()[1]
+@contextlib.contextmanager
+def _coordinator_port():
+    """A port for a group's coordinator, held by this process for the block.
+
+    Race-free, not retried: the port stays bound here (SO_REUSEADDR, never
+    listening) until the coordinator has it, so that no other socket of the
+    machine is given the number in between (a port bound and released at
+    once, as before, could be taken by another process before process 0's
+    coordination service bound it). Its gRPC server sets SO_REUSEADDR too,
+    so it binds and listens beside this idle socket."""
+    with socket.socket() as reserved:
+        reserved.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+        reserved.bind(("localhost", 0))
+        yield reserved.getsockname()[1]
+
+
+def _listening(port):
+    """Whether a socket of this machine listens on TCP ``port`` (/proc/net)."""
+    for table in ("/proc/net/tcp", "/proc/net/tcp6"):
+        if os.path.exists(table):
+            with open(table) as f:
+                for line in list(f)[1:]:
+                    local, state = line.split()[1], line.split()[3]
+                    if state == "0A" and int(local.rsplit(":", 1)[1], 16) == port:
+                        return True
+    return False
 
 
 def _group_env(port, process_id, extra=None):
@@ -60,16 +83,20 @@ def _group_env(port, process_id, extra=None):
 
 
 def _start_group(tmp, cache, data_paths, run_dir, epochs, extra=()):
-    """Two train.py processes of one group; returns the Popen objects."""
-    port, processes = _free_port(), []
-    for process_id, data in enumerate(data_paths):
-        argv, environ = train_py(*ARGS, *extra, "--data", data, "--epochs", str(epochs),
-                                 "--data-parallel", "--run-dir", run_dir,
-                                 cache=cache, env=_group_env(port, process_id))
-        out = open(os.path.join(tmp, f"p{process_id}.{len(os.listdir(tmp))}.txt"), "w+")
-        processes.append(subprocess.Popen(argv, env=environ, stdout=out,
-                                          stderr=subprocess.STDOUT, text=True))
-        processes[-1].log = out
+    """Two train.py processes of one group; returns the Popen objects once
+    process 0's coordination service listens (or a process has ended)."""
+    processes = []
+    with _coordinator_port() as port:
+        for process_id, data in enumerate(data_paths):
+            argv, environ = train_py(*ARGS, *extra, "--data", data, "--epochs", str(epochs),
+                                     "--data-parallel", "--run-dir", run_dir,
+                                     cache=cache, env=_group_env(port, process_id))
+            out = open(os.path.join(tmp, f"p{process_id}.{len(os.listdir(tmp))}.txt"), "w+")
+            processes.append(subprocess.Popen(argv, env=environ, stdout=out,
+                                              stderr=subprocess.STDOUT, text=True))
+            processes[-1].log = out
+        wait_for(lambda: _listening(port) or any(p.poll() is not None for p in processes),
+                 TIMEOUT_S)
     return processes
 
 
@@ -86,11 +113,6 @@ def _wait(process, timeout=TIMEOUT_S):
 def _lines(text):
     """The output without the Gloo library's own connection notices."""
     return [line for line in text.splitlines() if line and not line.startswith("[Gloo]")]
-
-
-def _log(run_dir):
-    with open(os.path.join(run_dir, "log.csv")) as f:
-        return list(csv.DictReader(f))
 
 
 def _weights(run_dir):
@@ -120,7 +142,8 @@ def test_each_process_reads_a_disjoint_equal_part_of_every_global_batch(fixture5
     train = np.arange(0, 50, 1)[::-1][:38]
     whole = StereoSequence(fixture52, train, batch_size=4, shuffle=True, seed=3, multiple_of=2)
     parts = [StereoSequence(fixture52, train, batch_size=4, shuffle=True, seed=3, multiple_of=2,
-                            process=(p, 2)) for p in range(2)]
+                            part=functools.partial(distributed.local_part, process_id=p,
+                                                   num_processes=2)) for p in range(2)]
     assert len(parts[0]) == len(parts[1]) == len(whole)
     for epoch in (0, 1, 5):
         for sequence in [whole] + parts:
@@ -132,8 +155,10 @@ def test_each_process_reads_a_disjoint_equal_part_of_every_global_batch(fixture5
                 np.concatenate([p[0]["left_image"] for p in pieces]), x["left_image"])
             np.testing.assert_array_equal(np.concatenate([p[1]["fx"] for p in pieces]), y["fx"])
             np.testing.assert_array_equal(parts[1].batch_targets(index)["fx"], y["fx"])
-    with pytest.raises(ValueError, match="equal part"):
-        StereoSequence(fixture52, train, batch_size=3, process=(0, 2))
+    with pytest.raises(ValueError, match="does not split"):
+        StereoSequence(fixture52, train, batch_size=3,
+                       part=functools.partial(distributed.local_part, process_id=0,
+                                              num_processes=2))
 
 
 def test_group_from_environment():
@@ -157,7 +182,9 @@ def test_one_process_writes_everything_and_waits_for_nobody():
 
     calls = []
     one = SingleProcess()
-    assert one.writes and one.part is None
+    assert one.writes and one.count == 1
+    batch = np.arange(6)
+    assert one.part(batch) is batch and one.global_batch(batch) is batch
     assert one.write("what", lambda a, b: calls.append((a, b)) or a + b, 1, 2) == 3
     assert calls == [(1, 2)]
     assert one.decide("stop", "early stopping") == "early stopping"
@@ -177,11 +204,13 @@ def test_a_group_writes_on_process_0_and_every_process_waits(monkeypatch):
     monkeypatch.setattr(distributed, "check_same", lambda what, values: calls.append(values))
     write = lambda: calls.append("written") or "config"  # noqa: E731
     other = Group(distributed.ProcessGroup("localhost:1", 2, 1))
-    assert not other.writes and other.part == (1, 2)
+    assert not other.writes and other.count == 2
+    np.testing.assert_array_equal(other.part(np.arange(6)), [3, 4, 5])
     assert other.write("run directory ready", write) is None
     assert calls == [("barrier", "run directory ready")]
     chief = Group(distributed.ProcessGroup("localhost:1", 2, 0))
-    assert chief.writes and chief.part == (0, 2)
+    assert chief.writes and chief.count == 2
+    np.testing.assert_array_equal(chief.part(np.arange(6)), [0, 1, 2])
     assert chief.write("run finished", write) == "config"
     assert calls[1:] == ["written", ("barrier", "run finished")]
     assert other.decide("stop", None) == "process 0's stop"
@@ -200,7 +229,7 @@ def test_a_group_writes_on_process_0_and_every_process_waits(monkeypatch):
     # no KERAS_DISTRIBUTION_* variables: one process; set, they need data parallelism
     for name in distributed.ENVIRONMENT:
         monkeypatch.delenv(name, raising=False)
-    assert join_processes(data_parallel=False).part is None
+    assert join_processes(data_parallel=False).count == 1
     for name, value in _group_env(1, 0).items():
         monkeypatch.setenv(name, value)
     with pytest.raises(TrainingError, match="needs --data-parallel"):
@@ -217,7 +246,7 @@ from keras.src.utils import rng_utils
 from cpl_keras import distributed, heartbeats
 from cpl_keras.training.processes import join_processes
 processes = join_processes(data_parallel=True)
-out = dict(writes=processes.writes, part=processes.part,
+out = dict(writes=processes.writes, part=processes.part([0, 1]), count=processes.count,
            written=processes.write("w", lambda a: a + 1, 1),
            decided=processes.decide("stop", "early stopping"),
            gathered=distributed.gather("g", {"a": 1}),
@@ -233,13 +262,14 @@ print(json.dumps(out))
 
 
 def test_a_group_of_one_process_joins_agrees_writes_and_saves_alone():
-    environ = {**os.environ, "KERAS_BACKEND": "jax", **_group_env(_free_port(), 0),
-               "KERAS_DISTRIBUTION_NUM_PROCESSES": "1"}
-    result = subprocess.run([sys.executable, "-c", GROUP_OF_ONE], env=environ,
-                            capture_output=True, text=True, timeout=TIMEOUT_S, cwd=REPO)
+    with _coordinator_port() as port:
+        environ = {**os.environ, "KERAS_BACKEND": "jax", **_group_env(port, 0),
+                   "KERAS_DISTRIBUTION_NUM_PROCESSES": "1"}
+        result = subprocess.run([sys.executable, "-c", GROUP_OF_ONE], env=environ,
+                                capture_output=True, text=True, timeout=TIMEOUT_S, cwd=REPO)
     assert result.returncode == 0, result.stderr
     assert json.loads(result.stdout.splitlines()[-1]) == {
-        "writes": True, "part": [0, 1], "written": 2, "decided": "early stopping",
+        "writes": True, "part": [0, 1], "count": 1, "written": 2, "decided": "early stopping",
         "gathered": [{"a": 1}], "missing": None, "seed": True, "alone": True,
         "after": "DataParallel"}
 
@@ -292,9 +322,9 @@ def test_two_processes_train_one_model_as_one_process_does(compared_runs):
     runs, outputs = compared_runs
     config = json.load(open(os.path.join(runs["two_processes"], "config.json")))
     assert (config["num_devices"], config["num_processes"], config["status"]) == (2, 2, "finished")
-    reference = _log(runs["one"])
+    reference = read_log(runs["one"])
     for name in ("two_devices", "two_processes"):
-        rows = _log(runs[name])
+        rows = read_log(runs[name])
         assert len(rows) == len(reference) == 2
         for row, expected in zip(rows, reference):
             for key in ("loss", "val_loss", "val_nmae"):
@@ -326,7 +356,7 @@ def _when_logged(run_dir, rows, processes, timeout=TIMEOUT_S):
     deadline = time.monotonic() + timeout
     path = os.path.join(run_dir, "log.csv")
     while time.monotonic() < deadline:
-        if os.path.exists(path) and len(_log(run_dir)) >= rows:
+        if os.path.exists(path) and len(read_log(run_dir)) >= rows:
             return
         assert all(p.poll() is None for p in processes), "the group ended too soon"
         time.sleep(0.05)
@@ -346,7 +376,7 @@ def test_a_killed_or_stopped_partner_ends_the_group_and_the_same_command_resumes
     status0, text0 = _wait(group[0], 120)
     assert status0 == heartbeats.PARTNER_FAILED, text0
     assert "process 1 of 2 gave no sign of life" in _lines(text0)[-1]
-    killed_at = len(_log(run_dir))
+    killed_at = len(read_log(run_dir))
 
     # the same command resumes the group after the last epoch; SIGTERM to
     # process 1, then (resumed again) to process 0, ends both within seconds,
@@ -365,7 +395,7 @@ def test_a_killed_or_stopped_partner_ends_the_group_and_the_same_command_resumes
             _lines(texts[stopped])[-1], texts[stopped]
         assert f"process {stopped} interrupted" in _lines(texts[1 - stopped])[-1], texts
         assert f"Resuming {run_dir} after epoch {killed_at}" in text0
-        rows = _log(run_dir)
+        rows = read_log(run_dir)
         assert len(rows) > killed_at
         assert [int(r["epoch"]) for r in rows] == list(range(1, len(rows) + 1))
         killed_at = len(rows)

@@ -2,7 +2,6 @@
 
 import json
 import os
-import shutil
 
 import numpy as np
 import pytest
@@ -12,6 +11,7 @@ from cpl_keras import evaluation, metrics, report
 from cpl_keras.camera import PARAMETERS
 from cpl_keras.data.storage import StereoFile
 from cpl_keras.data.writer import StereoWriter
+from helpers import writable_copy
 
 SIZE = 32
 
@@ -102,7 +102,7 @@ def test_tables_without_out_go_to_runs_tables_not_paper_results():
 def test_single_run_writes_next_to_the_run(tiny, tmp_path):
     """Without --out, --run writes beside the run directory, not into paper_results/."""
     run = tmp_path / "runs" / "mine"
-    shutil.copytree(tiny["run"], run)
+    writable_copy(tiny["run"], run)
     before = sorted(os.listdir(evaluation.PAPER_DIR))
     assert evaluate.main(["--run", str(run), "--data", tiny["data"]]) == 0
     assert (tmp_path / "runs" / "eval_mine.json").exists()
@@ -117,7 +117,7 @@ def test_a_published_record_scores_its_test_split_as_its_run_did(tiny, tmp_path)
     from cpl_keras import published
 
     run = tmp_path / "run"
-    shutil.copytree(tiny["run"], run)
+    writable_copy(tiny["run"], run)
     evaluation.store_predictions(str(run), [])
     published.publish_run_dir(str(run), str(tmp_path / "record"))
     for source in ("run", "record"):
@@ -142,7 +142,7 @@ def test_bad_inputs(tiny, tmp_path, capsys):
     out = tmp_path / "out"
     out.mkdir()
     no_weights = tmp_path / "no_weights"
-    shutil.copytree(tiny["run"], no_weights)
+    writable_copy(tiny["run"], no_weights)
     os.remove(no_weights / "model.keras")
     _fails(["--run", str(no_weights), "--data", tiny["data"], "--out", str(out)], capsys,
            "weights")

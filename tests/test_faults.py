@@ -15,7 +15,7 @@ import uuid
 
 import pytest
 
-from helpers import REPO, write_stereo_fixture
+from helpers import REPO, writable_copy, write_stereo_fixture
 
 
 def _limited(limit):
@@ -266,7 +266,7 @@ def test_a_finished_run_with_a_damaged_model_is_not_reported_finished(tmp_path, 
     from cpl_keras.training import TrainingError, train
 
     run_dir = tmp_path / "run"
-    shutil.copytree(tiny_run["run"], run_dir)
+    writable_copy(tiny_run["run"], run_dir)
     settings = dict(variant="baseline", run_dir=str(run_dir), epochs=1, batch_size=8,
                     backbone="small", verbose=0, return_model=False)
     assert train(tiny_run["data"], **settings).finished_before  # (whole: finished)

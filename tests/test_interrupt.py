@@ -13,7 +13,7 @@ import time
 import pytest
 
 from cpl_keras.data.storage import StereoFile
-from helpers import REPO, epochs_done, wait_for, write_stereo_fixture
+from helpers import REPO, epochs_done, wait_for, wait_for_output, write_stereo_fixture
 
 
 @pytest.fixture(autouse=True)
@@ -222,8 +222,9 @@ def test_ctrl_c_stops_the_reproduction_resumably(tmp_path):
     command = ["-m", "cpl_keras.reproduce", "--quick", "--out", str(tmp_path / "out"),
                "--data-dir", str(data_dir), "--runs-dir", str(runs_dir)]
     process = _start(command)
-    assert wait_for(lambda: os.listdir(data_dir))  # generating its first dataset
-    time.sleep(0.3)
+    # generating its first dataset: its progress bar shows the first block written
+    seen = wait_for_output(process.stderr, " pairs/s ")
+    assert " pairs/s " in seen, seen
     _ctrl_c(process)
     line = _one_line_130(process, "python -m cpl_keras.reproduce")
     assert "run the same command again: python -m cpl_keras.reproduce --quick" in line
@@ -296,29 +297,36 @@ def test_ctrl_c_during_evaluate_is_one_line(tiny_run, tmp_path, moment):
 
 def _interrupt_at(args, moment, cache):
     """Start ``args`` with an empty compile cache of its own (so that it
-    compiles), send Ctrl-C after ``moment`` seconds; (exit status, stderr)."""
+    compiles), send Ctrl-C as soon as its stderr shows ``moment`` (its
+    imports reported by ``-X importtime``, its compilations by
+    ``JAX_LOG_COMPILES``); (exit status, stderr, whether ``moment`` came)."""
     env = dict(os.environ, KERAS_BACKEND="jax", CPL_KERAS_CACHE=cache,
-               JAX_COMPILATION_CACHE_DIR=os.path.join(cache, "xla"))
-    process = subprocess.Popen([sys.executable, *args], cwd=REPO, env=env, text=True,
-                               stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+               JAX_COMPILATION_CACHE_DIR=os.path.join(cache, "xla"), JAX_LOG_COMPILES="1")
+    process = subprocess.Popen([sys.executable, "-X", "importtime", *args], cwd=REPO, env=env,
+                               text=True, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
                                start_new_session=True)
-    time.sleep(moment)
     try:
-        _ctrl_c(process)
-    except ProcessLookupError:
-        pass
-    try:
+        seen = wait_for_output(process.stderr, moment)
+        try:
+            _ctrl_c(process)
+        except ProcessLookupError:
+            pass
         _, err = process.communicate(timeout=120)
     finally:
         if process.poll() is None:
             process.kill()
-    return process.returncode, err
+    return process.returncode, seen + err, moment in seen
 
 
-#: Moments (seconds after its start) to interrupt evaluate.py at, each for
-#: what it exercises: the interpreter's start-up, the imports (NumPy, JAX,
-#: Keras), the model's load and XLA's compilation (an empty cache).
-MOMENTS = {"start-up": 0.3, "imports": 1.5, "model load": 4.0, "compilation": 7.0}
+#: Moments to interrupt evaluate.py at, each for what it exercises, and the
+#: line on its stderr that marks it: the start of the command (cli.run's
+#: guard set, the command's imports begun), the imports (NumPy and JAX done,
+#: Keras's own under way), the model's load (Keras imported, the custom
+#: objects registered) and XLA's compilation (of the prediction step, an
+#: empty cache).
+MOMENTS = {"start-up": " cpl_keras.commands\n", "imports": " jax\n",
+           "model load": " cpl_keras.models.factory\n",
+           "compilation": "Compiling jit(predict_step)"}
 
 
 @pytest.mark.slow
@@ -329,42 +337,38 @@ def test_ctrl_c_of_evaluate_at_four_moments_exits_130_with_one_line(tiny_run, tm
     interrupts with a segmentation fault, exit -11 / 139; ``cli.run`` ends
     an interrupted process with ``os._exit(130)``.) Each command has an
     empty compile cache of its own, so that it compiles; two at a time, on
-    2 cores. A command that finished before its moment (a fast machine) is
-    not counted (a Ctrl-C in its exit path is ignored: exit 0, its tables
-    written); start-up and the imports come before any evaluation can end,
-    however fast."""
+    2 cores. Each Ctrl-C is sent when the command's stderr says it has
+    reached its moment, whatever the machine's speed."""
     from concurrent.futures import ThreadPoolExecutor
 
     def one(name):
         out = tmp_path / f"out-{name}"
-        status, err = _interrupt_at(["evaluate.py", "--run", tiny_run["run"], "--data",
-                                     tiny_run["data"], "--out", str(out)],
-                                    MOMENTS[name], str(tmp_path / f"cache-{name}"))
-        return name, status, err, sorted(os.listdir(out)) if out.exists() else []
+        status, err, came = _interrupt_at(["evaluate.py", "--run", tiny_run["run"], "--data",
+                                           tiny_run["data"], "--out", str(out)],
+                                          MOMENTS[name], str(tmp_path / f"cache-{name}"))
+        return name, status, err, came, sorted(os.listdir(out)) if out.exists() else []
 
     with ThreadPoolExecutor(2) as pool:
         results = list(pool.map(one, MOMENTS))
-    interrupted = []
-    for name, status, err, written in results:
-        if status == 0 and "wrote" in err:  # finished before the moment came
-            continue
-        interrupted.append(name)
+    for name, status, err, came, written in results:
+        assert came, f"evaluate.py never reached {name}: {err[-3000:]}"
         assert status == 130, f"at {name}: exit {status}: {err}"
         assert "Traceback" not in err and "Segmentation" not in err, err
         lines = [line for line in err.strip().splitlines() if "interrupted" in line]
         assert lines == ["evaluate.py: interrupted; nothing was written"], err
         assert written == [], f"at {name} it wrote {written}"
-    assert {"start-up", "imports"} <= set(interrupted), interrupted
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("moment", [2.5, 4.5])
+@pytest.mark.parametrize("moment", ["Compiling jit(", "Compiling jit(train_step)"],
+                         ids=["its first compilation", "the training step's compilation"])
 def test_ctrl_c_of_a_benchmark_while_it_compiles_exits_130_with_one_line(tmp_path, moment):
     """The benchmark scripts go through the same exit path (``cli.run``):
     no traceback, no crash."""
-    status, err = _interrupt_at(["bench/bench_variants.py", "--variants", "baseline",
-                                 "--image-size", "32", "--rounds", "50"],
-                                moment, str(tmp_path / "cache"))
+    status, err, came = _interrupt_at(["bench/bench_variants.py", "--variants", "baseline",
+                                       "--image-size", "32", "--rounds", "50"],
+                                      moment, str(tmp_path / "cache"))
+    assert came, err[-3000:]
     assert status == 130, err
     assert "Traceback" not in err, err
     assert [line for line in err.splitlines() if "interrupted" in line] == [
@@ -541,16 +545,19 @@ def test_a_ctrl_c_after_the_command_is_done_is_ignored(tmp_path, end):
     script.write_text(
         "import atexit, sys, time\n"
         "from cpl_keras import cli\n"
+        "def teardown():  # (slow)\n"
+        "    print('teardown', flush=True)\n"
+        "    time.sleep(1.5)\n"
         "def main():\n"
-        "    atexit.register(time.sleep, 1.5)  # (the teardown, slow)\n"
+        "    atexit.register(teardown)\n"
         "    print('done', flush=True)\n"
         f"    {end}\n"
         "cli.run(main, 'prog')\n")
     process = subprocess.Popen([sys.executable, str(script)], text=True, stdout=subprocess.PIPE,
                                stderr=subprocess.PIPE, env=dict(os.environ, PYTHONPATH=REPO),
                                start_new_session=True)
-    assert process.stdout.readline() == "done\n"
-    time.sleep(0.3)
+    seen = wait_for_output(process.stdout, "teardown\n")  # (main has returned)
+    assert seen == "done\nteardown\n", seen
     _ctrl_c(process)
     out, err = process.communicate(timeout=60)
     assert process.returncode == 0, (process.returncode, err)

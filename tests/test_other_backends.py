@@ -21,7 +21,8 @@ from helpers import REPO
 
 #: Test files that hold the core model tests; the ones that need JAX itself skip themselves.
 CORE_TESTS = ("tests/test_models.py", "tests/test_camera.py", "tests/test_backbones.py",
-              "tests/test_training.py")
+              "tests/test_training.py", "tests/test_training_faults.py", "tests/test_planning.py",
+              "tests/test_checkpointing.py")
 
 
 @pytest.mark.slow

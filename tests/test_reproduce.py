@@ -2,6 +2,7 @@
 published predictions and the tables rebuilt from them alone, the presets,
 and the checks of its arguments."""
 
+import contextlib
 import dataclasses
 import json
 import os
@@ -17,7 +18,7 @@ from cpl_keras import reproduce
 from cpl_keras.commands import reproduce as reproduce_command
 from cpl_keras.camera import TARGETS
 # (REPO: the repository root; no result may name it)
-from helpers import REPO, quick_reproduction_args
+from helpers import REPO, quick_reproduction_args, set_writable, writable_copy
 
 
 def run(*args, cwd=None):
@@ -32,14 +33,27 @@ def rebuild(directory):
 
 @pytest.fixture(scope="module")
 def quick(early):
-    """One quick reproduction, shared by the tests of this module (read it;
-    a test that moves its folders puts them back). It starts as soon as the
+    """One quick reproduction, shared by the tests of this module (read only:
+    ``lent_to`` the two tests that need it writable). It starts as soon as the
     tests are collected (conftest's ``early``)."""
     folder, result = early("quick")
     assert result.returncode == 0, result.stderr[-3000:]
     root = Path(folder)
     return {"root": root, "out": root / "out", "data": root / "data", "runs": root / "runs",
             "args": quick_reproduction_args(folder)}
+
+
+@contextlib.contextmanager
+def lent_to(quick):
+    """The shared reproduction writable for the block, read only again after
+    it: for the test that runs its command again in place (a copy would name
+    other data than its runs were trained on) and the one that moves its
+    datasets and runs away (no copy would show that they are not read)."""
+    set_writable(quick["root"], True)
+    try:
+        yield
+    finally:
+        set_writable(quick["root"], False)
 
 
 def _contents(directory):
@@ -102,10 +116,14 @@ def test_quick_reproduction_end_to_end(quick):
 
 @pytest.mark.slow
 def test_quick_reproduction_reuses_every_stage(quick):
-    """The same command again: datasets, runs and predictions are reused."""
-    again = run(*quick["args"])
+    """The same command again: datasets, runs and predictions are reused,
+    and not a byte of the reproduction changes."""
+    before = _contents(quick["root"])
+    with lent_to(quick):  # (its datasets' folder must be writable)
+        again = run(*quick["args"])
     assert again.returncode == 0 and "evaluating" not in again.stderr, again.stderr[-3000:]
     assert "published predictions up to date" in again.stderr
+    assert _contents(quick["root"]) == before
 
 
 @pytest.mark.slow
@@ -115,7 +133,7 @@ def test_published_runs_are_restored_not_trained_again(quick, tmp_path):
     but no run directories (a later session), the same command restores
     every run from its record, trains none, and scores the same tables."""
     out = tmp_path / "out"
-    shutil.copytree(quick["out"], out)
+    writable_copy(quick["out"], out)
     records = sorted(p for p in (out / "runs").iterdir() if p.is_dir())
     assert len(records) == 9
     for record in records:
@@ -125,8 +143,8 @@ def test_published_runs_are_restored_not_trained_again(quick, tmp_path):
     # the cvgl runs also stored their outputs on every real set (Table 2):
     # its test split and the three real rigs
     assert len(list((out / "runs" / "cvgl_cpl-a" / "predictions").glob("*.npz"))) == 1 + 3
-    args = ["--quick", "--out", str(out), "--data-dir", str(quick["data"]),
-            "--runs-dir", str(tmp_path / "runs")]
+    data = writable_copy(quick["data"], tmp_path / "data")  # (where real sets are made)
+    args = ["--quick", "--out", str(out), "--data-dir", data, "--runs-dir", str(tmp_path / "runs")]
     before = _contents(out)
     result = run(*args)
     assert result.returncode == 0, result.stderr[-3000:]
@@ -156,10 +174,10 @@ def test_partial_tables_of_the_seeds_whose_runs_have_all_finished(quick, tmp_pat
     gone), the cvgl table and Table 2 are left out, the random table is the
     full reproduction's, and REPORT.md names what was left out."""
     out = tmp_path / "out"
-    shutil.copytree(quick["out"], out)
+    writable_copy(quick["out"], out)
     shutil.rmtree(out / "runs" / "cvgl_cpl-u")
     args = ["--quick", "--partial", "--out", str(out), "--data-dir",
-            str(quick["data"]), "--runs-dir", str(tmp_path / "runs")]
+            writable_copy(quick["data"], tmp_path / "data"), "--runs-dir", str(tmp_path / "runs")]
     result = run(*args)
     assert result.returncode == 0, result.stderr[-3000:]
     assert "training " not in result.stderr
@@ -202,19 +220,20 @@ def test_tables_rebuilt_from_predictions_alone(quick, tmp_path):
     and REPORT.md exactly as the reproduction made them."""
     original = _contents(quick["out"])
     copy = tmp_path / "results"
-    shutil.copytree(quick["out"], copy)
+    writable_copy(quick["out"], copy)
     away = {quick["data"]: tmp_path / "data_away", quick["runs"]: tmp_path / "runs_away"}
-    for path, moved in away.items():
-        shutil.move(str(path), str(moved))
-    try:
-        for name in list(original):
-            if name.endswith((".md", ".csv", ".json", ".png")) and not name.startswith("runs") \
-                    and name != "reproduce.json":
-                os.remove(copy / name)          # every table is written anew
-        result = rebuild(copy)
-    finally:
+    with lent_to(quick):
         for path, moved in away.items():
-            shutil.move(str(moved), str(path))
+            shutil.move(str(path), str(moved))
+        try:
+            for name in list(original):
+                if name.endswith((".md", ".csv", ".json", ".png")) and \
+                        not name.startswith("runs") and name != "reproduce.json":
+                    os.remove(copy / name)          # every table is written anew
+            result = rebuild(copy)
+        finally:
+            for path, moved in away.items():
+                shutil.move(str(moved), str(path))
     assert result.returncode == 0, result.stderr[-3000:]
     rebuilt = _contents(copy)
     assert set(rebuilt) == set(original)
@@ -233,7 +252,7 @@ def test_rebuild_with_a_new_discussion(quick, tmp_path):
     written after the tables were seen, replaces the stored one (REPORT.md and
     reproduce.json); the tables are untouched. A missing FILE: exit 2."""
     copy = tmp_path / "results"
-    shutil.copytree(quick["out"], copy)
+    writable_copy(quick["out"], copy)
     tables = {k: v for k, v in _contents(copy).items() if k.startswith("table")}
     (tmp_path / "comparison.md").write_text("MTL-CPL-A beats MTL-Baseline on fx.\n")
     result = subprocess.run([sys.executable, "-m", "cpl_keras.reproduce", "--from-predictions",
@@ -260,7 +279,7 @@ def test_rebuild_refuses_bad_predictions(quick, tmp_path):
     """A corrupt or missing predictions file, or a folder that is not a
     reproduction's: one line, exit 2, nothing written."""
     copy = tmp_path / "results"
-    shutil.copytree(quick["out"], copy)
+    writable_copy(quick["out"], copy)
     target = copy / "runs" / "cvgl_cpl-u_predictions.npz"
     data = target.read_bytes()
     for damage, expected in ((lambda: target.write_bytes(data[: len(data) // 2]),

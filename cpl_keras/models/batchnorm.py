@@ -21,7 +21,6 @@ from __future__ import annotations
 import keras
 import numpy as np
 
-from cpl_keras import distributed
 
 
 def batchnorm_layers(model):
@@ -56,7 +55,15 @@ def _batch_statistics_function(model, layers):
     return statistics
 
 
-def recompute_batchnorm_statistics(model, batches, population=False):
+def _to_numpy(value):
+    """A tensor as a NumPy array; a global array that spans other processes'
+    devices is replicated, and its local copy is read."""
+    if getattr(value, "is_fully_addressable", True) is False:
+        value = value.addressable_data(0)
+    return np.asarray(value)
+
+
+def recompute_batchnorm_statistics(model, batches, population=False, global_batch=None):
     """Set every BatchNorm layer's moving mean and variance to the average of
     its batch statistics over ``batches`` (an iterable of model inputs, or of
     ``(inputs, targets)`` tuples). Returns the number of batches used (0 when
@@ -68,7 +75,9 @@ def recompute_batchnorm_statistics(model, batches, population=False):
     Training uses the average (Keras's own per-batch variance); on the
     faithful-2000 InceptionV3 MTL-CPL-A run the population variance gave a
     validation loss 5-8 % lower in each of 5 draws
-    (``analyses/diagnose_inference_mode.py``)."""
+    (``analyses/diagnose_inference_mode.py``). ``global_batch``: turns a
+    process's part of a batch into the whole batch where several processes
+    train together (``training.processes``); None: the batch is whole."""
     layers = batchnorm_layers(model)
     if not layers:
         return 0
@@ -84,8 +93,9 @@ def recompute_batchnorm_statistics(model, batches, population=False):
             inputs = batch[0] if isinstance(batch, tuple) else batch
             # (in a process group each process holds a part of the batch; the
             # statistics are those of the whole batch, on every process)
-            inputs = distributed.global_batch(inputs)
-            stats = [np.asarray(distributed.to_numpy(s), np.float64)
+            if global_batch is not None:
+                inputs = global_batch(inputs)
+            stats = [np.asarray(_to_numpy(s), np.float64)
                      for s in statistics(trainable, non_trainable, inputs)]
             if population:
                 # (mean, variance) -> (mean, E[x^2]) so that the average over

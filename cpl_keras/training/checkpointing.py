@@ -120,12 +120,13 @@ class RunState(keras.callbacks.Callback):
         if self.bn_sequence is not None:
             recompute_batchnorm_statistics(
                 self.model, (self.bn_sequence[i] for i in range(len(self.bn_sequence))),
-                population=True,
+                population=True, global_batch=self.processes.global_batch,
             )
         elif self.bn_recompute_batches:
             count = min(self.bn_recompute_batches, len(self.sequence))
             recompute_batchnorm_statistics(
-                self.model, (self.sequence[i] for i in range(count))
+                self.model, (self.sequence[i] for i in range(count)),
+                global_batch=self.processes.global_batch,
             )
 
     def on_epoch_begin(self, epoch, logs=None):

@@ -15,7 +15,7 @@ import dataclasses
 import os
 
 
-from cpl_keras import distributed, runs
+from cpl_keras import runs
 from cpl_keras.backend import keras_backend
 from cpl_keras.data.mix import training_rigs
 from cpl_keras.data.storage import DatasetError, StereoFile
@@ -163,7 +163,8 @@ def _read_dataset(data, *, image_size, split, seed, test_fraction, val_fraction,
     return {"fields": fields, "image_size": [height, width], "targets": targets, "split": indices}
 
 
-def plan_run(data, *, variant, run_dir, model=None, training=None, command=None, **fields):
+def plan_run(data, *, variant, run_dir, model=None, training=None, command=None, processes=1,
+             **fields):
     """Check the dataset and the settings; return the run's plan (a
     ``RunPlan``: its ``config`` is what config.json will hold).
 
@@ -182,8 +183,9 @@ def plan_run(data, *, variant, run_dir, model=None, training=None, command=None,
     ``stopped`` saying so, keeping its best epoch. The validation settings
     left None get the defaults of ``_validation_settings`` (as released, the
     release's). ``command``: the command line recorded. Raises
-    ``DatasetError`` or ``TrainingError`` with a one-line message. Writes
-    nothing.
+    ``DatasetError`` or ``TrainingError`` with a one-line message.
+    ``processes``: how many processes train the run together (the group
+    ``training.train`` joined). Writes nothing.
     """
     model_fields, training_fields = split_fields(fields)
     try:
@@ -197,7 +199,7 @@ def plan_run(data, *, variant, run_dir, model=None, training=None, command=None,
                             seed=training.seed, test_fraction=training.test_fraction,
                             val_fraction=training.val_fraction, as_released=model.as_released,
                             batch_size=training.batch_size)
-    devices, processes = _devices_and_processes(training.data_parallel)
+    devices = _devices(training.data_parallel, processes)
     train_labels = {name: values[dataset["split"]["train"]]
                     for name, values in dataset["targets"].items()}
     options = options.for_training_set(train_labels, DISPARITY_CEILING_FACTOR)
@@ -226,17 +228,15 @@ def plan_run(data, *, variant, run_dir, model=None, training=None, command=None,
 AUTOMATIC = ("disparity_ceiling", "disparity_start", "range_scales")
 
 
-def _devices_and_processes(data_parallel):
-    """``(devices, processes)`` a run trains on: every device Keras sees with
-    ``data_parallel`` (else 1), over the processes of the group joined by
-    ``training.train`` (else 1); each process must hold as many devices."""
+def _devices(data_parallel, processes):
+    """The devices a run trains on: every device Keras sees with
+    ``data_parallel`` (else 1), over ``processes`` processes, each of which
+    must hold as many devices."""
     devices = _device_count() if data_parallel else 1
-    group = distributed.current()
-    processes = 1 if group is None else group.num_processes
     if devices % processes:
         raise TrainingError(f"{devices} devices do not split evenly over {processes} "
                             f"processes; give every process as many devices")
-    return devices, processes
+    return devices
 
 
 def _device_count():

@@ -39,7 +39,15 @@ class SingleProcess:
     """A run trained by this process alone: it writes, and waits for nobody."""
 
     writes = True
-    part = None
+    count = 1
+
+    def part(self, batch):
+        """The whole ``batch``: this process trains on all of it."""
+        return batch
+
+    def global_batch(self, inputs):
+        """``inputs`` unchanged: this process's batch is the whole batch."""
+        return inputs
 
     def write(self, what, function, *args):
         """``function(*args)``."""
@@ -68,7 +76,16 @@ class Group:
     def __init__(self, group):
         self.group = group
         self.writes = group.chief
-        self.part = (group.process_id, group.num_processes)
+        self.count = group.num_processes
+
+    def part(self, batch):
+        """This process's share of a global ``batch`` (``distributed.local_part``)."""
+        return distributed.local_part(batch, self.group.process_id, self.group.num_processes)
+
+    def global_batch(self, inputs):
+        """This process's ``inputs`` as the group's global arrays
+        (``distributed.global_batch``), for BatchNorm's statistics of the whole batch."""
+        return distributed.global_batch(inputs)
 
     def write(self, what, function, *args):
         """``function(*args)`` on process 0 (its result; None on the

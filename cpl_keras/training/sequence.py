@@ -14,7 +14,6 @@ import numpy as np
 from cpl_keras.camera import TARGETS
 from cpl_keras.data.storage import StereoFile
 from cpl_keras.datasets import targets_from_labels
-from cpl_keras.distributed import local_part
 from cpl_keras.training.augment import AUGMENTATIONS, photometric
 
 #: A sequence keeps its images in memory ("auto") when they take at most this
@@ -54,8 +53,9 @@ class StereoSequence(keras.utils.PyDataset):
             batches of a gzip-compressed file read at about 190 pairs/s
             on one core, slower than the compact backbone trains; the
             batches are the same either way.
-        process: None, or ``(process_id, num_processes)`` in a process group
-            (``cpl_keras.distributed``): every batch is then this process's
+        part: None, or in a process group the function that takes this
+            process's share of a batch (``training.processes.Group.part``,
+            handed over by the trainer): every batch is then this process's
             part of the global batch of ``batch_size`` pairs (the
             ``process_id``-th of ``num_processes`` equal slices), from the
             same order on every process.
@@ -67,7 +67,7 @@ class StereoSequence(keras.utils.PyDataset):
 
     def __init__(self, path, indices, targets=None, batch_size=16, shuffle=False,
                  seed=0, multiple_of=1, workers=1, use_multiprocessing=False,
-                 max_queue_size=10, in_memory="auto", augment=None, process=None):
+                 max_queue_size=10, in_memory="auto", augment=None, part=None):
         super().__init__(workers=workers, use_multiprocessing=use_multiprocessing,
                          max_queue_size=max_queue_size)
         self.path = os.path.abspath(os.fspath(path))
@@ -107,13 +107,9 @@ class StereoSequence(keras.utils.PyDataset):
             raise ValueError(f"augment must be None or one of {', '.join(AUGMENTATIONS)}, "
                              f"got {augment!r}")
         self.augment = augment
-        if process is not None:
-            process_id, num_processes = (int(v) for v in process)
-            if not 0 <= process_id < num_processes or self.batch_size % num_processes:
-                raise ValueError(f"process {process!r} cannot take an equal part of batches of "
-                                 f"{self.batch_size}")
-            process = (process_id, num_processes)
-        self.process = process
+        if part is not None:
+            part(np.arange(self.batch_size))  # (ValueError unless a batch splits evenly)
+        self.part = part
 
     # -- keras.utils.PyDataset -------------------------------------------
     @property
@@ -127,8 +123,8 @@ class StereoSequence(keras.utils.PyDataset):
         if not 0 <= index < self.num_batches:
             raise IndexError(f"batch {index} out of range")
         batch = self.batch_indices(index)
-        if self.process is not None:
-            batch = local_part(batch, *self.process)
+        if self.part is not None:
+            batch = self.part(batch)
         if self.in_memory:
             left_all, right_all = self._cached_images()
             rows = np.searchsorted(self._unique, batch)

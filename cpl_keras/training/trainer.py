@@ -91,7 +91,7 @@ def train(data, *, steps_per_execution=1, verbose=1, return_model=True, term_gra
     # (the group is joined before any device is counted)
     processes = join_processes(options.get("data_parallel", getattr(
         options.get("training"), "data_parallel", False)))
-    plan = plan_run(data, **options)
+    plan = plan_run(data, processes=processes.count, **options)
     _check_probes(plan.config.variant, term_gradients, head_units)
     finished = finished_run(plan.config.run_dir, return_model)
     processes.agree("the run", group_fingerprint, plan, finished)
@@ -190,7 +190,7 @@ def _run_locked(plan, model, config, processes, verbose, probes=()):
         return finished
     config = written or config  # (the config.json written; the other processes keep theirs)
     common = dict(targets=plan.targets, batch_size=config.device_batch_size,
-                  multiple_of=config.num_devices, workers=plan.workers, process=processes.part)
+                  multiple_of=config.num_devices, workers=plan.workers, part=processes.part)
     train_seq = StereoSequence(config.data, plan.split["train"], shuffle=True,
                                seed=config.seed, augment=config.augment, **common)
     val_seq = StereoSequence(config.data, plan.split["val"], shuffle=False, **common)
