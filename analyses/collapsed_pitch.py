@@ -23,10 +23,11 @@ difference.
 
 from __future__ import annotations
 
-import argparse
-import json
 import os
 import sys
+
+sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+from committed_numbers import check_or_write, parser, save  # noqa: E402
 
 import numpy as np
 
@@ -114,7 +115,6 @@ def plot(result, data, path):
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from cpl_keras import files
     from cpl_keras.evaluation.verdicts import COLUMN_PARAMETER
 
     name = COLUMN_PARAMETER[result["column"]]
@@ -168,33 +168,15 @@ def plot(result, data, path):
             if j == 0:
                 ax.set_ylabel(f"predicted {result['column']} (rad)")
     fig.suptitle(f"InceptionV3 towers, 2,000 pairs: test pairs ({FOLDER})", fontsize=9)
-    fig.tight_layout()
-    files.save_figure(fig, path, dpi=120, metadata={"Software": None})
+    save(fig, path)
 
 
 def main(argv=None):
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--check", action="store_true",
-                        help="recompute and compare with the committed JSON (exit 1 if not)")
-    args = parser.parse_args(argv)
+    args = parser(__doc__).parse_args(argv)
     data = load()
     result = compute(data)
-    if args.check:
-        with open(OUT + ".json") as f:
-            committed = json.load(f)
-        if committed != json.loads(json.dumps(result)):
-            print(f"collapsed_pitch: the committed {os.path.relpath(OUT, REPO)}.json differs "
-                  "from what the committed predictions give", file=sys.stderr)
-            return 1
-        print(f"collapsed_pitch: {os.path.relpath(OUT, REPO)}.json is what the predictions "
-              "give")
-        return 0
-    from cpl_keras import files
-
-    files.write_json(OUT + ".json", result)
-    plot(result, data, OUT + ".png")
-    print(OUT + ".json")
-    return 0
+    return check_or_write("collapsed_pitch", OUT, result, check=args.check,
+                          draw=lambda: plot(result, data, OUT + ".png"))
 
 
 if __name__ == "__main__":

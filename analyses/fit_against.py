@@ -135,10 +135,9 @@ def regenerate(page_path):
     JSON beside it and the command on its first line (its ``--epochs``)."""
     from cpl_keras import files
 
-    with open(page_path) as f:
-        command = files.generated_command(f.read())
+    command, payload = files.page_source(page_path)
     args = parse_args(shlex.split(command)[2:])
-    results = from_json(files.read_json(os.path.splitext(page_path)[0] + ".json"))
+    results = from_json(payload)
     return page(results, args.epochs, command)
 
 

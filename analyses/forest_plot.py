@@ -18,9 +18,11 @@ predictions and fails (exit 1) on a difference.
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import sys
+
+sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+from committed_numbers import check_or_write  # noqa: E402
 
 import numpy as np
 
@@ -118,21 +120,8 @@ def main(argv=None):
                         help="recompute and compare with the committed JSON (exit 1 if not)")
     args = parser.parse_args(argv)
     result = compute(args.resamples)
-    if args.check:
-        with open(OUT + ".json") as f:
-            committed = json.load(f)
-        if committed != json.loads(json.dumps(result)):
-            print("forest_plot: the committed paper_results/forest.json differs from what "
-                  "the committed predictions give", file=sys.stderr)
-            return 1
-        print("forest_plot: paper_results/forest.json is what the predictions give")
-        return 0
-    from cpl_keras import files
-
-    files.write_json(OUT + ".json", result)
-    plot(result, OUT + ".png")
-    print(OUT + ".json")
-    return 0
+    return check_or_write("forest_plot", OUT, result, check=args.check,
+                          draw=lambda: plot(result, OUT + ".png"))
 
 
 if __name__ == "__main__":

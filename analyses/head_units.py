@@ -107,10 +107,9 @@ def regenerate(page_path):
     JSON beside it and the command on its first line (its options)."""
     from cpl_keras import files
 
-    with open(page_path) as f:
-        command = files.generated_command(f.read())
+    command, payload = files.page_source(page_path)
     args = parse_args(shlex.split(command)[2:])
-    return page(files.read_json(os.path.splitext(page_path)[0] + ".json"), args, command)
+    return page(payload, args, command)
 
 
 def command_line(args):

@@ -41,6 +41,9 @@ import json
 import os
 import sys
 
+sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+from committed_numbers import check_or_write  # noqa: E402
+
 import numpy as np
 
 REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
@@ -222,25 +225,8 @@ def main(argv=None):
                         help="recompute and compare with the committed JSON and page (exit 1 if not)")
     args = parser.parse_args(argv)
     result = json.loads(json.dumps(compute()))
-    page = markdown(result)
-    if args.check:
-        with open(OUT + ".json") as f:
-            committed = json.load(f)
-        with open(OUT + ".md") as f:
-            committed_page = f.read()
-        if committed != result or committed_page != page:
-            print("rerun_spread: paper_results/spread.{json,md} differ from what the "
-                  "committed predictions and logs give", file=sys.stderr)
-            return 1
-        print("rerun_spread: paper_results/spread.{json,md} are what the committed files give")
-        return 0
-    from cpl_keras import files
-
-    files.write_json(OUT + ".json", result)
-    files.write_text(OUT + ".md", page)
-    print(OUT + ".md")
-    return 0
-
+    return check_or_write("rerun_spread", OUT, result, check=args.check, draw=lambda: None,
+                          pages={OUT + ".md": markdown(result)})
 
 if __name__ == "__main__":
     from cpl_keras import cli

@@ -112,10 +112,9 @@ def regenerate(page_path):
     JSON beside it and the command on its first line."""
     from cpl_keras import files
 
-    with open(page_path) as f:
-        command = files.generated_command(f.read())
+    command, payload = files.page_source(page_path)
     parse_args(shlex.split(command)[2:])  # (a command this script takes)
-    return page(files.read_json(os.path.splitext(page_path)[0] + ".json"), command)
+    return page(payload, command)
 
 
 def main(argv=None):

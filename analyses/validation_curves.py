@@ -19,12 +19,14 @@ figure as JSON; ``--check`` recomputes them from the committed logs and fails
 
 from __future__ import annotations
 
-import argparse
 import csv
 import glob
 import json
 import os
 import sys
+
+sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+from committed_numbers import check_or_write, parser, save  # noqa: E402
 
 import numpy as np
 
@@ -110,7 +112,6 @@ def plot(result, path):
     from matplotlib.lines import Line2D
     from matplotlib.ticker import FuncFormatter, LogLocator
 
-    from cpl_keras import files
 
     towers = result["towers"]
     fig, axes = plt.subplots(1, len(towers), figsize=(5.5 * len(towers), 4.3))
@@ -144,31 +145,14 @@ def plot(result, path):
                   Line2D([], [], color="grey", marker="x", ls="", mew=1.5,
                          label="last epoch (early stop)")])
     axes[-1].legend(handles=handles, fontsize=8, loc="upper right")
-    fig.tight_layout()
-    files.save_figure(fig, path, dpi=120, metadata={"Software": None})
+    save(fig, path)
 
 
 def main(argv=None):
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--check", action="store_true",
-                        help="recompute and compare with the committed JSON (exit 1 if not)")
-    args = parser.parse_args(argv)
+    args = parser(__doc__).parse_args(argv)
     result = compute()
-    if args.check:
-        with open(OUT + ".json") as f:
-            committed = json.load(f)
-        if committed != json.loads(json.dumps(result)):
-            print(f"validation_curves: the committed {os.path.relpath(OUT, REPO)}.json "
-                  "differs from what the committed logs give", file=sys.stderr)
-            return 1
-        print(f"validation_curves: {os.path.relpath(OUT, REPO)}.json is what the logs give")
-        return 0
-    from cpl_keras import files
-
-    files.write_json(OUT + ".json", result)
-    plot(result, OUT + ".png")
-    print(OUT + ".json")
-    return 0
+    return check_or_write("validation_curves", OUT, result, check=args.check,
+                          draw=lambda: plot(result, OUT + ".png"))
 
 
 if __name__ == "__main__":

@@ -182,10 +182,9 @@ def regenerate(page_path):
     JSON beside it and the command on its first line (``--a``, ``--b``)."""
     from cpl_keras import files
 
-    with open(page_path) as f:
-        command = files.generated_command(f.read())
+    command, payload = files.page_source(page_path)
     args = parse_args(shlex.split(command)[2:])
-    return markdown(files.read_json(os.path.splitext(page_path)[0] + ".json"), args.a, args.b,
+    return markdown(payload, args.a, args.b,
                     command)
 
 

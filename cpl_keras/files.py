@@ -272,6 +272,15 @@ def generated_command(text):
     return None
 
 
+def page_source(page_path):
+    """``(command, payload)`` of a generated page: the command on its first
+    line and the JSON beside it (the same name, ``.json``), what a writer's
+    ``regenerate`` renders the page again from."""
+    with open(page_path) as f:
+        command = generated_command(f.read())
+    return command, read_json(os.path.splitext(page_path)[0] + ".json")
+
+
 def write_page(path, text, payload):
     """A Markdown page ``path`` (``.md``) and its figures as JSON beside it
     (the same name, ``.json``), each atomically; returns the JSON's path."""
