@@ -330,3 +330,15 @@ def test_calibration_imports_nothing_of_evaluation():
     done = subprocess.run([sys.executable, "-c", code], cwd=os.path.dirname(TESTS),
                           capture_output=True, text=True, timeout=120)
     assert done.returncode == 0 and done.stdout.strip() == "[]", (done.stdout, done.stderr)
+
+
+def test_the_model_factory_and_the_run_plan_take_few_parameters():
+    """``build_model`` takes at most 6 parameters and ``plan_run`` at most 8
+    (the knobs travel in ``ModelOptions`` and ``TrainingOptions``)."""
+    import inspect
+
+    from cpl_keras.models.factory import build_model
+    from cpl_keras.training.planning import plan_run
+
+    assert len(inspect.signature(build_model).parameters) <= 6
+    assert len(inspect.signature(plan_run).parameters) <= 8
