@@ -304,3 +304,49 @@ def test_every_folder_readme_has_the_fixed_headings_and_its_status_agrees_with_t
         if "superseded" in status or "superseded" in row.group(1):
             assert "superseded" in status, (folder.name, status)
             assert "superseded" in text.split("\n## ", 1)[0].lower(), folder.name
+
+
+def _log_rows(path):
+    import csv
+
+    with open(path, newline="") as f:
+        return {int(row["epoch"]): row for row in csv.DictReader(f)}
+
+
+def test_the_corrected_statements_hold_against_the_committed_files():
+    """Figures that a review found wrong, as now written, recomputed from the
+    committed logs and configs."""
+    ablations = RESULTS / "inception-2000-ablations" / "runs"
+    # inception-8000: each run's training time, and the epochs' pace (epochs 1 and 4 aside)
+    page = (RESULTS / "inception-8000" / "README.md").read_text()
+    for variant, row in (("cpl-a", "InceptionV3 MTL-CPL-A, seed 0, 12 epochs"),
+                         ("baseline", "InceptionV3 MTL-Baseline, seed 0, 12 epochs")):
+        config = json.loads((RESULTS / "inception-8000" / "runs" / f"cvgl_{variant}-12ep-s0"
+                             / "config.json").read_text())
+        line = next(line for line in page.splitlines() if line.startswith(f"| {row} |"))
+        assert f"{config['wall_time_s']:,.3f} s" in line, (variant, config["wall_time_s"])
+        log = _log_rows(RESULTS / "inception-8000" / "runs" / f"cvgl_{variant}-12ep-s0_log.csv")
+        walls = [float(log[e]["wall_time_s"]) for e in sorted(log)]
+        epochs = [b - a for a, b in zip([0.0] + walls, walls)]
+        paced = [t for e, t in enumerate(epochs, 1) if e not in (1, 4)]
+        assert 620 <= round(min(paced)) and round(max(paced)) <= 678, (variant, paced)
+    # the published InceptionV3 MTL-CPL-A seed 0: Eq. 9's weights at the end of its log
+    log = _log_rows(RESULTS / "inception-2000-ema" / "runs" / "cvgl_cpl-a-s0_log.csv")
+    last = log[max(log)]
+    assert [round(float(last[f"alpha_{p}"]), 2) for p in ("u0", "v0")] == [12.03, 9.93]
+    assert [round(float(last[f"alpha_{p}"]), 3) for p in ("baseline", "tx")] == [1.136, 0.826]
+    # (d): with patience 5 it would have stopped at epoch 35, not 22
+    d = _log_rows(ablations / "cvgl_cpl-a-patience20-s0_log.csv")
+    best, since = float("inf"), 0
+    for epoch in sorted(d):
+        value = float(d[epoch]["val_nmae"])
+        best, since = (value, 0) if value < best else (best, since + 1)
+        if since == 5:
+            break
+    assert epoch == 35
+    # (d) against the patience-20 MTL-Baseline on validation, at equal epochs
+    b = _log_rows(ablations / "cvgl_baseline-patience20-s0_log.csv")
+    names = ("fx", "fy", "u0", "v0", "baseline", "disparity", "tx", "ty", "tz", "pitch")
+    lower = {e: sum(float(d[e][f"val_nmae_{n}"]) < float(b[e][f"val_nmae_{n}"]) for n in names)
+             for e in (83, 103)}
+    assert lower == {83: 8, 103: 7}, lower
