@@ -222,10 +222,7 @@ def regenerate(page_path):
     """The text ``write_outputs`` wrote for ``page_path`` (a committed
     learning_curves.md), from its JSON beside it and the command on its
     first line (for ``--at-epoch``)."""
-    with open(page_path) as f:
-        command = files.generated_command(f.read())
-    with open(os.path.join(os.path.dirname(page_path), "learning_curves.json")) as f:
-        payload = json.load(f)
+    command, payload = files.page_source(page_path)
     words = shlex.split(command or "")
     at_epoch = int(words[words.index("--at-epoch") + 1]) if "--at-epoch" in words else None
     return page(payload, at_epoch, command)

@@ -4,17 +4,9 @@ NMAE against epochs for run directories, or the experiment that trains them
 
 from __future__ import annotations
 
-import shlex
-import sys
-
 from cpl_keras import cli
 from cpl_keras.learning_curves import CurveError, markdown, run_experiment, write_outputs
 from cpl_keras.learning_curves import __doc__ as LIBRARY_DOC
-
-
-def cli_arguments(argv):
-    """The arguments as given (``sys.argv``'s when ``argv`` is None)."""
-    return list(sys.argv[1:] if argv is None else argv)
 
 
 def main(argv=None):
@@ -49,7 +41,7 @@ def main(argv=None):
         elif args.runs:
             rows = write_outputs(args.runs, args.out, keep_earlier=args.keep_earlier,
                                  at_epoch=args.at_epoch,
-                                 command=f"{parser.prog} {shlex.join(cli_arguments(argv))}")
+                                 command=cli.command_line(parser.prog, argv))
         else:
             parser.error("give run directories or --experiment")
     except (CurveError, OSError, ValueError) as error:

@@ -100,8 +100,7 @@ def regenerate(page_path):
     """The text ``write_outputs`` wrote for the table page ``page_path``,
     rendered again from its JSON twin (the same name, ``.json``): a
     committed table page regenerates without weights or datasets."""
-    with open(os.path.splitext(page_path)[0] + ".json") as f:
-        payload = json.load(f)
+    _, payload = files.page_source(page_path)
     return markdown(table_from_json(payload), payload.get("command"))
 
 
