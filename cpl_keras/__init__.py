@@ -10,13 +10,58 @@ processes the package starts use the same one), and checks the backend the
 moment Keras is first imported (``cpl_keras.backend.check_backend``: one
 line, ``BackendError``, when it is not installed). Started as ``python -m
 cpl_keras.X``, it also sets the command's Ctrl-C guard before the
-command's own imports (``cpl_keras.cli.guard_module_start``).
+command's own imports and the package's (``_guard_module_start``: the
+first statement, so no Ctrl-C after Python's own start-up ends in a
+traceback from the package).
 """
 
 import os
 import sys
 
-from cpl_keras import backend as _backend
+
+def _module_prog():
+    """``python -m cpl_keras.X`` as this process was started, else None."""
+    argv = list(getattr(sys, "orig_argv", []))
+    for i, arg in enumerate(argv[1:], 1):
+        if arg.startswith(("-m", "-c")):
+            module = arg[2:] or "".join(argv[i + 1:i + 2])
+            ours = arg[1] == "m" and module.startswith("cpl_keras.")
+            return f"python -m {module}" if ours else None
+    return None
+
+
+def _guard_module_start():
+    """Started as ``python -m cpl_keras.X`` (runpy imports the packages
+    above X while ``sys.argv[0]`` is "-m"): until X's ``cli.run`` sets its own
+    guard, a Ctrl-C ends the process at once with X's line and exit 130
+    (nothing is written yet), not with Python's KeyboardInterrupt traceback
+    from inside the imports (exit 1, or death by SIGINT). Only builtin
+    modules are used (``_signal``), so the guard is set before the package
+    imports anything. Not in a process started with Ctrl-C ignored, nor
+    outside the main thread."""
+    prog = _module_prog() if getattr(sys, "argv", [])[:1] == ["-m"] else None
+    if prog is None:
+        return
+    import _signal
+
+    def at_start(signum, frame):
+        _signal.signal(_signal.SIGINT, _signal.SIG_IGN)
+        try:
+            sys.stderr.write(f"{prog}: interrupted\n")  # (interrupts.interrupted's line)
+            sys.stderr.flush()
+        finally:
+            os._exit(130)  # (interrupts.INTERRUPTED)
+
+    try:
+        if _signal.getsignal(_signal.SIGINT) is not _signal.SIG_IGN:
+            _signal.signal(_signal.SIGINT, at_start)
+    except ValueError:  # (not the main thread)
+        pass
+
+
+_guard_module_start()
+
+from cpl_keras import backend as _backend  # noqa: E402  (after the guard)
 
 if not os.environ.get("KERAS_BACKEND"):
     # (JAX, or Keras's backend when Keras was imported first; an empty value
@@ -38,14 +83,6 @@ class _KerasImport:
 
 if not any(type(finder).__name__ == "_KerasImport" for finder in sys.meta_path):
     sys.meta_path.insert(0, _KerasImport())
-
-if getattr(sys, "argv", [])[:1] == ["-m"]:
-    # ``python -m cpl_keras.X`` (runpy imports the packages above X while
-    # sys.argv[0] is "-m"): Ctrl-C ends the command in one line from here,
-    # before X's imports, until X's ``cli.run`` takes over.
-    from cpl_keras import cli as _cli
-
-    _cli.guard_module_start()
 
 __version__ = "0.1.0"
 

@@ -31,7 +31,7 @@ import sys
 
 from cpl_keras.errors import Error, fail, one_line  # noqa: F401  (one_line: also here)
 from cpl_keras.interrupts import (  # noqa: F401  (the commands reach them as cli.*)
-    INTERRUPTED, Interrupted, before_exit, check_interrupt, exit_now, guard_module_start,
+    INTERRUPTED, Interrupted, before_exit, check_interrupt, exit_now,
     interrupted, interruptible, on_interrupt, run, terminate,
 )
 

@@ -14,8 +14,9 @@ half-written file, no crash in the interpreter's teardown.
   process ends at once (``os._exit``) without the interpreter's teardown:
   that teardown, with XLA's compilation threads still at work, is where a
   Ctrl-C used to end in a segmentation fault (exit 139).
-* ``guard_module_start()``: ``python -m cpl_keras.X``'s Ctrl-C guard before
-  X's imports, until ``run`` takes over (set by ``cpl_keras/__init__.py``).
+
+(``python -m cpl_keras.X``'s Ctrl-C guard before X's imports, until ``run``
+takes over, is the package's first statement: ``cpl_keras/__init__.py``.)
 """
 
 from __future__ import annotations
@@ -173,36 +174,6 @@ def _watchdog(prog, note):
     files.remove_unfinished()
     interrupted(prog, note=note)  # (prints nothing when the command has)
     _exit_interrupted()
-
-
-def _module_prog():
-    """``python -m cpl_keras.X`` as this process was started, else None."""
-    argv = list(getattr(sys, "orig_argv", []))
-    for i, arg in enumerate(argv[1:], 1):
-        if arg.startswith(("-m", "-c")):
-            module = arg[2:] or "".join(argv[i + 1:i + 2])
-            ours = arg[1] == "m" and module.startswith("cpl_keras.")
-            return f"python -m {module}" if ours else None
-    return None
-
-
-def guard_module_start():
-    """Started as ``python -m cpl_keras.X``: until X's ``run`` sets its own
-    guard, a Ctrl-C ends the process at once with X's line and exit 130
-    (nothing is written yet), not with Python's KeyboardInterrupt traceback
-    from inside X's imports (exit 1). Not in a process started with Ctrl-C
-    ignored, nor outside the main thread."""
-    prog = _module_prog()
-    if prog is None or threading.current_thread() is not threading.main_thread() or \
-            signal.getsignal(signal.SIGINT) is signal.SIG_IGN:
-        return
-
-    def at_start(signum, frame):
-        signal.signal(signal.SIGINT, signal.SIG_IGN)
-        interrupted(prog)
-        _exit_interrupted()
-
-    signal.signal(signal.SIGINT, at_start)
 
 
 def _exit_interrupted():

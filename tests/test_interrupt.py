@@ -193,6 +193,37 @@ def test_ctrl_c_during_the_imports_of_python_m_is_one_line(tmp_path, module):
     assert os.listdir(tmp_path) == []
 
 
+#: A ``sitecustomize`` (found through PYTHONPATH during Python's start-up)
+#: that sends this process a SIGINT the moment the package asks for its first
+#: module, ``cpl_keras.backend``: a Ctrl-C at the package's first import.
+SIGINT_AT_FIRST_IMPORT = """\
+import os, signal, sys
+
+
+class CtrlCAtFirstImport:
+    def find_spec(self, fullname, path=None, target=None):
+        if fullname == "cpl_keras.backend":
+            sys.meta_path.remove(self)
+            os.kill(os.getpid(), signal.SIGINT)
+        return None
+
+
+sys.meta_path.insert(0, CtrlCAtFirstImport())
+"""
+
+
+def test_ctrl_c_at_the_packages_first_import_is_one_line(tmp_path):
+    """A Ctrl-C as soon as ``cpl_keras/__init__.py`` imports its first module
+    (sent by the process itself, so the moment is exact): one line, exit 130
+    (the guard was set only after the package's own imports, and such a
+    Ctrl-C ended in a KeyboardInterrupt traceback and death by SIGINT)."""
+    (tmp_path / "sitecustomize.py").write_text(SIGINT_AT_FIRST_IMPORT)
+    env = dict(os.environ, KERAS_BACKEND="jax", PYTHONPATH=str(tmp_path))
+    done = subprocess.run([sys.executable, "-m", "cpl_keras.calibrate", "l.png", "r.png"],
+                          cwd=REPO, env=env, capture_output=True, text=True, timeout=60)
+    assert (done.returncode, done.stderr) == (130, "python -m cpl_keras.calibrate: interrupted\n")
+
+
 def test_a_ctrl_c_swallowed_during_generation_stops_it_before_the_file_is_written(
         tmp_path, monkeypatch, capsys):
     """A SIGINT that lands where an exception is swallowed (an h5py
