@@ -15,6 +15,7 @@ first statement, so no Ctrl-C after Python's own start-up ends in a
 traceback from the package).
 """
 
+import _signal
 import os
 import sys
 
@@ -42,7 +43,6 @@ def _guard_module_start():
     prog = _module_prog() if getattr(sys, "argv", [])[:1] == ["-m"] else None
     if prog is None:
         return
-    import _signal
 
     def at_start(signum, frame):
         _signal.signal(_signal.SIGINT, _signal.SIG_IGN)

@@ -143,8 +143,9 @@ def test_ctrl_c_stops_generation_and_the_same_command_continues_it_to_the_same_b
     text = err.decode()
     assert "Traceback" not in text and "leaked" not in text, text
     last = text.split("\n")[-2]           # (its own line, not after the bar's \r)
-    assert last == ("python -m cpl_keras.data.generate: interrupted; x.h5.partial keeps the "
-                    "blocks written in full; the same command continues it"), text
+    kept = int(re.fullmatch(r"python -m cpl_keras\.data\.generate: interrupted; x\.h5\.partial "
+                            r"keeps the first (\d+) of 480 pairs; the same command continues it",
+                            last).group(1))
     assert os.listdir(tmp_path / "a") == ["x.h5.partial"]
 
     resumed = subprocess.run([sys.executable, *command], cwd=tmp_path / "a", env=env,
@@ -152,7 +153,7 @@ def test_ctrl_c_stops_generation_and_the_same_command_continues_it_to_the_same_b
     assert resumed.returncode == 0, resumed.stderr
     start = int(re.search(r"^resuming x\.h5\.partial at pair (\d+) of 480$",
                           resumed.stderr, re.M).group(1))
-    assert 32 <= start < 480 and start % 32 == 0
+    assert start == kept and 32 <= start < 480 and start % 32 == 0
     whole = subprocess.run([sys.executable, *command], cwd=tmp_path / "b", env=env,
                            capture_output=True, text=True, timeout=300)
     assert whole.returncode == 0 and "resuming" not in whole.stderr, whole.stderr
@@ -222,6 +223,42 @@ def test_ctrl_c_at_the_packages_first_import_is_one_line(tmp_path):
     done = subprocess.run([sys.executable, "-m", "cpl_keras.calibrate", "l.png", "r.png"],
                           cwd=REPO, env=env, capture_output=True, text=True, timeout=60)
     assert (done.returncode, done.stderr) == (130, "python -m cpl_keras.calibrate: interrupted\n")
+
+
+def _ctrl_c_inside(monkeypatch, owner, name):
+    """``owner.name`` sends this process a SIGINT, then does its work."""
+    original = getattr(owner, name)
+
+    def ctrl_c_then(*args, **kwargs):
+        os.kill(os.getpid(), signal.SIGINT)
+        return original(*args, **kwargs)
+
+    monkeypatch.setattr(owner, name, ctrl_c_then)
+
+
+@pytest.mark.parametrize("moment", ["the new file's layout", "the worker pool's start"])
+def test_the_first_ctrl_c_of_generation_is_never_lost(tmp_path, monkeypatch, capsys, moment):
+    """A Ctrl-C just after ``.partial`` appears (the file's datasets being
+    made) or while the worker processes start: exit 130, a line that says
+    no pair was kept, no file. (The first left a half-made ``.partial`` that
+    the line said "keeps the blocks written in full" and the next run could
+    not read; the second was ignored, and generation ended with exit 0.)"""
+    import multiprocessing.pool
+
+    from cpl_keras.commands import generate
+    from cpl_keras.data import writer
+
+    if moment == "the new file's layout":
+        _ctrl_c_inside(monkeypatch, writer.StereoWriter, "_lay_out")
+    else:
+        _ctrl_c_inside(monkeypatch, multiprocessing.pool.Pool, "_repopulate_pool")
+    out = tmp_path / "x.h5"
+    assert generate.main(["--pairs", "40", "--image-size", "16", "--workers", "2",
+                          "--no-progress", "--out", str(out)]) == 130
+    assert capsys.readouterr().err == (
+        f"python -m cpl_keras.data.generate: interrupted; {out} was not written; the same "
+        "command starts again from the first pair\n")
+    assert os.listdir(tmp_path) == []
 
 
 def test_a_ctrl_c_swallowed_during_generation_stops_it_before_the_file_is_written(

@@ -3,7 +3,6 @@ stereo dataset to one HDF5 file (``cpl_keras.data.generate``)."""
 
 from __future__ import annotations
 
-import os
 import sys
 
 from cpl_keras import cli
@@ -12,6 +11,7 @@ from cpl_keras.data.generate import (
     PROG, check_arguments, check_output_path, generate_file, summary_text,
 )
 from cpl_keras.data.preview import write_preview
+from cpl_keras.data.writer import pairs_kept
 from cpl_keras.data.protocols import PROTOCOLS
 
 
@@ -75,10 +75,10 @@ def main(argv=None):
         with cli.interruptible():
             return _main(args, command_line)
     except KeyboardInterrupt:  # cli.Interrupted, or a Ctrl-C outside the block
-        note = None
-        if args.out is not None and os.path.exists(args.out + ".partial"):
-            note = (f"{args.out}.partial keeps the blocks written in full; the same command "
-                    "continues it")
+        note, kept = None, pairs_kept(args.out + ".partial") if args.out is not None else 0
+        if kept:
+            note = (f"{args.out}.partial keeps the first {kept} of {args.pairs} pairs; the same "
+                    "command continues it")
         elif args.out is not None:
             note = f"{args.out} was not written; the same command starts again from the first pair"
         return cli.interrupted(PROG, note=note)

@@ -41,16 +41,31 @@ def render_block(protocol, seed, pairs, image_size, start, stop):
 
 
 @contextlib.contextmanager
-def _sigint_ignored():
-    """SIGINT ignored within the block (in the main thread; elsewhere a no-op)."""
-    if threading.current_thread() is not threading.main_thread():
+def _sigint_deferred():
+    """A Ctrl-C while the block runs (the worker pool's start) is held back
+    and delivered to the handler in place when the block ends, so none is
+    lost; and the processes started in the block begin with SIGINT blocked
+    (a process keeps its signal mask across exec), so a Ctrl-C while a
+    worker imports cannot print its traceback. In the main thread; elsewhere
+    (or where Python did not set SIGINT's handler) a no-op."""
+    if threading.current_thread() is not threading.main_thread() or \
+            signal.getsignal(signal.SIGINT) is None:
         yield
         return
-    previous = signal.signal(signal.SIGINT, signal.SIG_IGN)
+    came = []
+    # (one that another thread receives runs this in the main thread)
+    previous = signal.signal(signal.SIGINT, lambda signum, frame: came.append(signum))
+    masks = hasattr(signal, "pthread_sigmask")
+    if masks:
+        signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT})
     try:
         yield
     finally:
         signal.signal(signal.SIGINT, previous)
+        if masks:  # (one held pending by the mask reaches ``previous`` here)
+            signal.pthread_sigmask(signal.SIG_UNBLOCK, {signal.SIGINT})
+        if came:
+            signal.raise_signal(signal.SIGINT)
 
 
 def _ignore_sigint():
@@ -85,14 +100,14 @@ def iter_blocks(protocol, seed, pairs, image_size, workers, first=0):
     # re-import the caller's script)
     task = _render_block_task
     window = 2 * workers
-    # spawn: safe even when the caller has started threads (e.g. JAX).
-    with _without_main_module(), _sigint_ignored():
-        # (started with SIGINT ignored, which exec keeps: a Ctrl-C while a
-        # worker imports cannot print its traceback)
-        pool = mp.get_context("spawn").Pool(min(workers, count),
-                                            initializer=_ignore_sigint)
-    pending = []
+    pool, pending = None, []
     try:
+        # spawn: safe even when the caller has started threads (e.g. JAX);
+        # a Ctrl-C during the start is delivered once the pool is there
+        # (and ends it, below)
+        with _without_main_module(), _sigint_deferred():
+            pool = mp.get_context("spawn").Pool(min(workers, count),
+                                                initializer=_ignore_sigint)
         for block in blocks:
             pending.append(pool.apply_async(task, ((protocol, seed, pairs, image_size) + block,)))
             if len(pending) >= window:
@@ -113,8 +128,9 @@ def iter_blocks(protocol, seed, pairs, image_size, workers, first=0):
         # semaphores are unlinked when the queues are collected, which a
         # process that ends by ``os._exit`` (``cli.run`` after a Ctrl-C)
         # never does (the resource tracker then warned of leaked semaphores).
-        pool.terminate()
-        pool.join()
+        if pool is not None:
+            pool.terminate()
+            pool.join()
         pending.clear()  # (each unfinished result holds the pool)
         del pool
         gc.collect()

@@ -13,6 +13,7 @@ from __future__ import annotations
 import contextlib
 import json
 import os
+import sys
 
 import numpy as np
 
@@ -80,10 +81,20 @@ class StereoWriter:
             mark_unfinished(self.tmp_path)  # (removed by a Ctrl-C's exit too)
         try:
             self._file = h5py.File(self.tmp_path, "w")
-        except OSError as error:
+        except BaseException as error:  # (a full disk; a Ctrl-C: nothing left)
             self._discard()
-            raise DatasetError(write_failed(self.path, error)) from None
-        f = self._file
+            if isinstance(error, OSError):
+                raise DatasetError(write_failed(self.path, error)) from None
+            raise
+        try:
+            self._lay_out(self._file)
+        except BaseException:  # (a Ctrl-C, say: no half-made file is left)
+            self.__exit__(*sys.exc_info())
+            raise
+        return self
+
+    def _lay_out(self, f):
+        """The new file's datasets and attributes (no pair written yet)."""
         n, (h, w, c) = self.num_pairs, self.shape
         # (held for the file's life: a handle that HDF5 closes on its own,
         # after a failed write, prints an ignored exception)
@@ -99,7 +110,6 @@ class StereoWriter:
         f.attrs["metadata_json"] = json.dumps(self.metadata, sort_keys=True)
         if self.resumable:
             f.attrs["pairs_complete"] = np.int64(0)
-        return self
 
     def _resume(self, h5py):
         """Open the partial file of an earlier writer to continue it; False
@@ -256,3 +266,17 @@ class StereoWriter:
         unmark_unfinished(self.tmp_path)
         with contextlib.suppress(OSError):
             os.remove(self.tmp_path)
+
+
+def pairs_kept(partial_path):
+    """The leading pairs that a resumable writer's ``partial_path`` holds
+    written in full (its ``pairs_complete``): what the next writer continues
+    from; 0 when there is no such file or it cannot be read (the next writer
+    starts again)."""
+    import h5py
+
+    try:
+        with h5py.File(partial_path, "r") as f:
+            return max(0, int(f.attrs["pairs_complete"]))
+    except (OSError, KeyError, TypeError, ValueError):
+        return 0
