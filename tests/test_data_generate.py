@@ -11,7 +11,7 @@ import pytest
 
 from cpl_keras import camera
 from cpl_keras.data import blocks, generate
-from cpl_keras.data.generate import generate_dataset
+from cpl_keras.data.generate import generate_dataset, generate_file
 from cpl_keras.data.pair import released_disparity
 from cpl_keras.data.protocols import PROTOCOLS
 from cpl_keras.data.storage import REQUIRED_LABELS, StereoFile
@@ -323,6 +323,33 @@ def test_a_partial_file_of_other_arguments_is_refused_untouched_or_restarted(
     assert lines == [] and os.listdir(tmp_path) == ["d.h5"]
     with StereoFile(out) as data:
         assert data.metadata["seed"] == 1 and len(data) == 6
+
+
+def test_an_unfinished_partial_file_is_refused_as_data_naming_the_command_that_finishes_it(
+        tmp_path, monkeypatch, capsys):
+    """Given to training or evaluation, an interrupted generation's
+    ``.partial`` file (its other pairs zeros) is named as unfinished, with the
+    command that made it; train.py says so in one line, exit 2 (it said that
+    label 'fx' is not positive on the pairs never written)."""
+    from cpl_keras.commands import train
+
+    mend = _crash_after_first_block(monkeypatch)
+    out = tmp_path / "d.h5"
+    with pytest.raises(RuntimeError):
+        generate_file(out, "cvgl", 6, 0, 16, 1, False,
+                      "python -m cpl_keras.data.generate --pairs 6 --out d.h5")
+    mend()
+    line = (f"{out}.partial is an unfinished dataset (2 of 6 pairs written): finish it with the "
+            "command that made it (python -m cpl_keras.data.generate --pairs 6 --out d.h5), "
+            "then use the file without .partial")
+    with pytest.raises(ValueError) as refused:
+        StereoFile(f"{out}.partial")
+    assert str(refused.value) == line
+    capsys.readouterr()
+    assert train.main(["--variant", "baseline", "--backbone", "small", "--data",
+                       f"{out}.partial", "--run-dir", str(tmp_path / "run")]) == 2
+    assert capsys.readouterr().err == f"cpl-train: error: {line}\n"
+    assert os.listdir(tmp_path) == ["d.h5.partial"]
 
 
 def test_an_unreadable_partial_file_is_started_again(tmp_path):

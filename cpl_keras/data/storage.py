@@ -167,6 +167,7 @@ class StereoFile:
         self.image_shape = tuple(int(s) for s in left.shape[1:])
         if self.num_pairs == 0:
             raise DatasetError(f"{self.path}: dataset holds no pairs")
+        self._check_finished(f)
         if "labels" not in f or not isinstance(f["labels"], h5py.Group):
             raise DatasetError(f"{self.path}: missing label group '/labels'")
         group = f["labels"]
@@ -195,6 +196,25 @@ class StereoFile:
         if not isinstance(self.metadata, dict):
             raise DatasetError(f"{self.path}: metadata is not a JSON object")
         check_generator_version(self.path, self.metadata)
+
+    def _check_finished(self, f):
+        """``DatasetError`` for the ``.partial`` file of a generation that has
+        not finished (its ``pairs_complete`` short of its pairs): its other
+        pairs are zeros, its labels there zeros too."""
+        try:
+            complete = int(f.attrs["pairs_complete"])
+        except (KeyError, TypeError, ValueError):
+            return  # (not a resumable writer's file)
+        if complete >= self.num_pairs:
+            return
+        try:
+            command = json.loads(f.attrs["metadata_json"]).get("command_line")
+        except (KeyError, TypeError, ValueError, AttributeError):
+            command = None
+        finish = f"the command that made it ({command})" if command else "the call that made it"
+        raise DatasetError(
+            f"{self.path} is an unfinished dataset ({complete} of {self.num_pairs} pairs "
+            f"written): finish it with {finish}, then use the file without .partial")
 
     def read_pairs(self, indices):
         """Left and right images (uint8, (n, H, W, 3)) of ``indices``, in that order."""
