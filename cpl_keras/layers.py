@@ -10,9 +10,11 @@ stores their names, not their bytecode, and loads with ``safe_mode=True``.
 
 from __future__ import annotations
 
+import contextlib
 import math
 
 import keras
+import numpy as np
 from keras import ops
 
 from cpl_keras import camera
@@ -293,6 +295,18 @@ class LambdaOps:
 
     def cos(self, a, name=None):
         return self._layer(cos, a, name)
+
+
+@contextlib.contextmanager
+def placeholder_arithmetic_quiet():
+    """NumPy's floating-point warnings off within the block: where a model
+    is built or loaded. Keras's NumPy backend finds a Lambda layer's output
+    shape by calling its function on ``np.empty`` arrays (whatever the
+    memory held), and the overflows and 0/0 of those placeholder values,
+    not of any image, reached the user as raw RuntimeWarnings. The model's
+    own outputs are not computed here."""
+    with np.errstate(all="ignore"):
+        yield
 
 
 def is_camera_layer(layer):

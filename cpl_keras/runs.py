@@ -379,13 +379,15 @@ def load_model_file(path):
     import keras
 
     import cpl_keras.models.factory  # noqa: F401  (registers the custom layers)
+    from cpl_keras.layers import placeholder_arithmetic_quiet
 
     if os.path.isfile(path) and not zipfile.is_zipfile(path):
         # (Keras reports a damaged archive as "File not found")
         raise RunError(f"cannot load {path}: the file is truncated or corrupt (not a complete "
                        ".keras archive)")
     try:
-        return keras.saving.load_model(path, safe_mode=True)
+        with placeholder_arithmetic_quiet():  # (Keras's NumPy backend's shape inference)
+            return keras.saving.load_model(path, safe_mode=True)
     except Exception as problem:  # corrupt archives raise many kinds of errors
         detail = one_line(problem)
         if os.path.isfile(path) and (isinstance(problem, (zipfile.BadZipFile, EOFError))

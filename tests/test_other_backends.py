@@ -67,6 +67,32 @@ def test_the_faithful_model_builds_and_trains_a_step_under_another_backend(backe
     assert done.returncode == 0 and "one step" in done.stdout, done.stderr[-3000:]
 
 
+#: Builds, saves, loads and runs a CPL model with every RuntimeWarning an error.
+QUIET_NUMPY = """
+import sys, warnings
+import numpy as np
+warnings.simplefilter("error", RuntimeWarning)
+from cpl_keras import build_model, load_model
+from cpl_keras.models.inference import predict_images
+build_model("cpl-a", backbone="small", image_size=32, seed=0).save(sys.argv[1])
+images = np.random.default_rng(0).integers(0, 256, (2, 32, 32, 3), dtype=np.uint8)
+pred = predict_images(load_model(sys.argv[1]), images, images[::-1])
+assert all(np.isfinite(v).all() for v in pred.values()), pred
+print("quiet")
+"""
+
+
+def test_the_numpy_backend_builds_and_loads_a_model_without_raw_warnings(tmp_path):
+    """Under ``KERAS_BACKEND=numpy`` a build or a load printed NumPy's
+    overflow and invalid-value warnings (calibrate showed them): Keras infers
+    each Lambda layer's output shape there from ``np.empty`` placeholders."""
+    done = subprocess.run([sys.executable, "-c", QUIET_NUMPY, str(tmp_path / "m.keras")],
+                          cwd=REPO, capture_output=True, text=True, timeout=300,
+                          env=dict(os.environ, KERAS_BACKEND="numpy"))
+    assert done.returncode == 0 and done.stdout == "quiet\n", done.stderr[-3000:]
+    assert "Warning" not in done.stderr, done.stderr
+
+
 # ---------------------------------------------------------------------------
 # A backend that is not installed: one line, never Keras's traceback
 # ---------------------------------------------------------------------------

@@ -56,7 +56,7 @@ import numpy as np
 from cpl_keras import camera
 from cpl_keras.layers import (
     MAX_OUTPUT, LambdaOps, PositiveDisparity, SoftplusDisparity, bounded_pitch, multiply,
-    positive_focal, regression_head, stop_gradient,
+    placeholder_arithmetic_quiet, positive_focal, regression_head, stop_gradient,
 )
 from cpl_keras.models import backbones, deep_homo, variants
 from cpl_keras.models.calibration_model import CalibrationModel
@@ -96,7 +96,7 @@ def build_model(variant, options=None, *, image_size=112, seed=None, name=None, 
     spec = variants.get(variant)
     minimum = spec.min_image_size or backbones.MIN_IMAGE_SIZE[options.backbone]
     height, width = _image_shape(image_size, minimum, options.backbone)
-    with _seeded(seed):
+    with _seeded(seed), placeholder_arithmetic_quiet():
         return _build(spec, options, height, width, name)
 
 
