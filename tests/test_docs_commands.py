@@ -151,6 +151,89 @@ def test_the_cheap_documented_commands_leave_a_clean_checkout(tmp_path):
     assert _git("status", "--porcelain", cwd=REPO) == before   # nothing written into it
 
 
+#: Flags whose value is a file or folder the command writes.
+WRITES = ("--out", "--out-dir", "--preview", "--json-out", "--opencv-yaml", "--ros-yaml",
+          "--run-dir", "--runs-dir", "--data-dir", "--dot", "--from-predictions")
+#: Tracked places a documented command writes again, and the test that shows
+#: its rerun leaves their bytes as they are (so `git status` stays empty).
+REWRITTEN = {
+    "paper_results/": "test_reproduce.py::test_rerunning_a_documented_preset_leaves_the_published"
+                      "_record_untouched; test_paper_results.py (tables rebuilt from predictions)",
+    "docs/camera_graph.": "test_graph.py::test_cli_prints_the_table_and_writes_the_diagram",
+    "docs/": "test_data_cli.py::test_the_committed_contact_sheets_are_the_current_generators",
+}
+
+
+def written_paths(command):
+    """The files and folders a documented shell line writes: the path flags'
+    values, a reproduction's default folders, train.py's default run
+    directory, and what ``python -m venv``, ``mkdir``, ``cp`` and ``tar -C``
+    make."""
+    from cpl_keras.reproduce.presets import default_folders
+
+    words = shlex.split(command.split(" #")[0])
+    if words[:3] == ["python", "-m", "venv"]:
+        return [w + "/" for w in words[3:]]
+    if words[:1] == ["mkdir"]:
+        return [w + "/" for w in words[1:] if not w.startswith("-")]
+    if words[:1] == ["cp"]:
+        return words[-1:]
+    if words[:1] == ["tar"]:
+        return [words[words.index("-C") + 1]] if "-C" in words else []
+    if words[:1] != ["python"]:
+        return []
+    entry, argv = _argv(" ".join(shlex.quote(w) for w in words))
+    paths = [argv[i + 1] + ("/" if word.endswith("dir") else "")
+             for i, word in enumerate(argv[:-1]) if word in WRITES]
+    if entry == "cpl_keras.reproduce" and "--from-predictions" not in argv:
+        preset = "quick" if "--quick" in argv else (
+            argv[argv.index("--preset") + 1] if "--preset" in argv else None)
+        out, data_dir, runs_dir = default_folders(preset)
+        given = dict(zip(argv, argv[1:]))
+        paths += [given.get("--out", out), given.get("--data-dir", data_dir),
+                  given.get("--runs-dir", runs_dir)]
+    if entry == "train.py" and "--run-dir" not in argv:
+        paths.append("runs/")
+    return paths
+
+
+def shell_lines():
+    """``(document, line)`` for every line of the docs' code blocks, the
+    parts of ``a && b`` apart."""
+    found = []
+    for document in DOCUMENTS:
+        with open(os.path.join(REPO, document)) as f:
+            text = f.read()
+        for block in re.findall(r"```[a-z]*\n(.*?)```", text, re.S):
+            for line in block.replace("\\\n", " ").splitlines():
+                found += [(document, part.strip()) for part in re.split(r"\s&&\s", line.strip())
+                          if part.strip().split(" ")[0] in ("python", "mkdir", "cp", "tar")]
+    return found
+
+
+def test_every_place_a_documented_command_writes_is_ignored_or_rewritten_the_same():
+    """What the documented commands make (datasets, runs, a venv, folders)
+    goes where git ignores it; the tracked places they write (the published
+    record, the docs' figures) are rewritten byte for byte, each with the
+    test that shows it: so a documented command, run as printed, leaves
+    `git status` empty. (``python -m venv bench-venv`` left an untracked
+    folder.)"""
+    checked, outside = 0, []
+    for document, line in shell_lines():
+        if _fill(line) != line:
+            continue  # (a template: the user names its places)
+        for path in written_paths(line):
+            path = os.path.relpath(path, REPO) if os.path.isabs(path) else path
+            path = os.path.normpath(path) + ("/" if path.endswith("/") else "")
+            checked += 1
+            ignored = subprocess.run(["git", "check-ignore", "-q", "--no-index", path], cwd=REPO,
+                                     timeout=60).returncode == 0
+            if not ignored and not any(path.startswith(place) for place in REWRITTEN):
+                outside.append((document, line, path))
+    assert checked > 60
+    assert outside == [], "\n".join(map(str, outside))
+
+
 def test_no_script_writes_gits_own_files():
     """No command, script or benchmark of the repository edits .git/ (the
     wheels bench/paper_gpu.sh fetches go to .whl/, which .gitignore

@@ -4,12 +4,14 @@ writes it as Graphviz text."""
 import re
 import subprocess
 import sys
+from pathlib import Path
 
 import pytest
 
 from cpl_keras import build_model
 from cpl_keras.commands.graph import main
 from cpl_keras.graph import camera_graph, layout, to_dot
+from helpers import REPO
 
 
 def test_camera_graph_lists_every_equation():
@@ -40,6 +42,11 @@ def test_cli_prints_the_table_and_writes_the_diagram(tmp_path, capsys):
     assert out.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     assert '"xCam_over_fy" -> "zCam";' in dot.read_text()
     assert sorted(p.name for p in tmp_path.rglob("*")) == ["graph.dot", "graph.png", "new", "other"]
+    # docs/method.md's command (at 112 px; the graph does not depend on the
+    # size) writes the committed figure and text again byte for byte, so its
+    # rerun leaves `git status` empty
+    for made, committed in ((out, "camera_graph.png"), (dot, "camera_graph.dot")):
+        assert made.read_bytes() == (Path(REPO) / "docs" / committed).read_bytes(), committed
     svg = tmp_path / "graph.svg"
     assert main(["--variant", "cpl-u", "--image-size", "32", "--out", str(svg)]) == 0
     assert b"<svg" in svg.read_bytes()[:2000]
