@@ -189,7 +189,10 @@ def test_ctrl_c_during_the_imports_of_python_m_is_one_line(tmp_path, module):
             process.kill()
     assert process.returncode == 130, err
     assert "Traceback" not in err, err
-    assert [line for line in err.splitlines() if not line.startswith("import time:")] == [
+    # (-X importtime's own lines; under heavy load one came split in two, its
+    # module name alone on a line)
+    assert [line for line in err.splitlines() if not line.startswith("import time:")
+            and not re.fullmatch(r"\s*[\w.]+", line)] == [
         f"python -m {module}: interrupted"], err
     assert os.listdir(tmp_path) == []
 
