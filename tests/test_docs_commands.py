@@ -34,20 +34,25 @@ ENTRY = {"train.py": "train.py", "evaluate.py": "evaluate.py",
          "cpl_keras.learning_curves": "learning_curves"}
 
 
-def documented_commands():
-    """``(document, command text)`` for every ``python ...`` line of a code
-    block (continuation lines joined, the shell comment dropped)."""
+def shell_lines():
+    """``(document, line)`` for every line of the docs' code blocks, the
+    parts of ``a && b`` apart."""
     found = []
     for document in DOCUMENTS:
         with open(os.path.join(REPO, document)) as f:
             text = f.read()
         for block in re.findall(r"```[a-z]*\n(.*?)```", text, re.S):
             for line in block.replace("\\\n", " ").splitlines():
-                for part in re.split(r"\s&&\s", line.strip()):
-                    part = part.strip()
-                    if part.startswith("python ") and "<<" not in part:
-                        found.append((document, re.sub(r"\s+#.*$", "", part)))
+                found += [(document, part.strip()) for part in re.split(r"\s&&\s", line.strip())
+                          if part.strip().split(" ")[0] in ("python", "mkdir", "cp", "tar")]
     return found
+
+
+def documented_commands():
+    """``(document, command text)`` for every ``python ...`` line of a code
+    block (continuation lines joined, the shell comment dropped)."""
+    return [(document, re.sub(r"\s+#.*$", "", line)) for document, line in shell_lines()
+            if line.startswith("python ") and "<<" not in line]
 
 
 def _fill(command):
@@ -213,20 +218,6 @@ def written_paths(command):
     if entry == "train.py" and "--run-dir" not in argv:
         paths.append("runs/")
     return paths
-
-
-def shell_lines():
-    """``(document, line)`` for every line of the docs' code blocks, the
-    parts of ``a && b`` apart."""
-    found = []
-    for document in DOCUMENTS:
-        with open(os.path.join(REPO, document)) as f:
-            text = f.read()
-        for block in re.findall(r"```[a-z]*\n(.*?)```", text, re.S):
-            for line in block.replace("\\\n", " ").splitlines():
-                found += [(document, part.strip()) for part in re.split(r"\s&&\s", line.strip())
-                          if part.strip().split(" ")[0] in ("python", "mkdir", "cp", "tar")]
-    return found
 
 
 def test_every_place_a_documented_command_writes_is_ignored_or_rewritten_the_same():
