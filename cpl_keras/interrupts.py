@@ -334,6 +334,10 @@ def interrupted(prog, resume=None, note=None):
         for callback in _interrupt_hooks:
             callback()
     finally:
-        print(line, file=sys.stderr, flush=True)
+        # (one write: stderr writes through, so print's line and its newline
+        # were two, and another thread's output, -X importtime's in the main
+        # thread, came between them)
+        sys.stderr.write(line + "\n")
+        sys.stderr.flush()
         _printed.set()
     return status
