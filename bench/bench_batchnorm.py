@@ -48,16 +48,18 @@ def main(argv=None):
     parser.add_argument("--momentum", type=float, nargs="+", default=[0.99, 0.9])
     args = parser.parse_args(argv)
 
-    from cpl_keras import build_model, compile_model
     from cpl_keras.data.storage import StereoFile
     from cpl_keras.datasets import make_split, targets_from_labels
-    from cpl_keras.training.sequence import StereoSequence
-    from cpl_keras.models.batchnorm import batchnorm_layers, recompute_batchnorm_statistics
 
-    with StereoFile(args.data) as f:
+    with StereoFile(args.data) as f:  # (a bad file is refused before Keras's import)
         labels = f.labels
         if f.image_shape[:2] != (args.image_size, args.image_size):
             parser.error(f"{args.data} has {f.image_shape[0]}px images, not {args.image_size}")
+
+    from cpl_keras import build_model, compile_model
+    from cpl_keras.models.batchnorm import batchnorm_layers, recompute_batchnorm_statistics
+    from cpl_keras.training.sequence import StereoSequence
+
     targets = targets_from_labels(labels)
     split = make_split(labels, seed=0)
     train = StereoSequence(args.data, split["train"], targets=targets, batch_size=16,

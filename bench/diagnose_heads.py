@@ -67,12 +67,14 @@ def main(argv=None):
 
     from cpl_keras.data.storage import StereoFile
     from cpl_keras.datasets import make_split, targets_from_labels
+
+    with StereoFile(args.data) as f:  # (a bad file is refused before Keras's import)
+        labels = f.labels
+        size = f.image_shape[0]
+
     from cpl_keras.models import build_model, compile_model
     from cpl_keras.training.sequence import StereoSequence
 
-    with StereoFile(args.data) as f:
-        labels = f.labels
-        size = f.image_shape[0]
     targets = targets_from_labels(labels)
     split = make_split(labels, kind="paper", seed=args.seed)
     build = {}

@@ -37,6 +37,9 @@ print("exit", code, "heavy", ",".join(heavy) or "none")
     ("cpl_keras.reproduce", ["--pairs", "0"]),
     ("cpl_keras.calibrate", ["--bogus"]),
     ("cpl_keras.data.generate", ["--pairs", "0"]),
+    # a missing data file, as on a fresh clone, is refused before the model's imports
+    ("bench/diagnose_heads.py", ["--data", "data/no-such-dataset.h5"]),
+    ("bench/bench_batchnorm.py", ["--data", "data/no-such-dataset.h5"]),
 ])
 def test_bad_arguments_are_refused_before_keras_or_jax_is_imported(script, argv):
     env = dict(os.environ, KERAS_BACKEND="jax")
