@@ -217,9 +217,17 @@ def _data_parallel(root, data):
                     env={"XLA_FLAGS": "--xla_force_host_platform_device_count=2"})
 
 
+#: XLA's optimisation level for the quick reproduction: its nine one-epoch
+#: runs are compilation, not training steps, and at level 0 the command took
+#: 0.69 of its CPU time (145 s -> 100 s of user CPU, beside a training run;
+#: paper_results/notes/pipeline-and-suite.md). The suite as a whole keeps
+#: XLA's defaults (no saving there: the same page).
+QUICK_XLA_FLAGS = "--xla_backend_optimization_level=0 --xla_llvm_disable_expensive_passes=true"
+
+
 def _quick(root, data):
     return [sys.executable, "-m", "cpl_keras.reproduce", *quick_reproduction_args(root)], \
-        dict(os.environ, KERAS_BACKEND="jax")
+        dict(os.environ, KERAS_BACKEND="jax", XLA_FLAGS=QUICK_XLA_FLAGS)
 
 
 #: name -> ``(argv, environment)`` given the command's folder and the
