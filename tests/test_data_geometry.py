@@ -6,8 +6,8 @@ import numpy as np
 import pytest
 
 from cpl_keras import camera
-from cpl_keras.data import protocols, render, scenes
-from cpl_keras.data.pair import render_pair
+from cpl_keras.data import pixels, protocols, render, scenes
+from cpl_keras.data.pair import pair_setup, render_pair
 
 SIZE = 48
 
@@ -96,7 +96,7 @@ def test_labels_obey_camera_equations_and_describe_the_rendered_point(protocol):
             lab["pitch"], lab["tx"], lab["ty"], lab["tz"], lab["u"], lab["v"])
         np.testing.assert_allclose([X, Y, Z], [lab["X"], lab["Y"], lab["Z"]], rtol=1e-9)
         # the rendered point, in the left camera's frame
-        s = protocols.pair_setup(protocol, 5, pairs, SIZE, index)
+        s = pair_setup(protocol, 5, pairs, SIZE, index)
         right, left = s["right"], s["left"]
         xCam = render.depth_at(s["town"], right, lab["u"], lab["v"])[0]
         assert lab["disparity"] == pytest.approx(lab["fx"] * lab["baseline"] / xCam)
@@ -119,13 +119,13 @@ def test_label_point_is_the_rendered_point_in_both_cameras(protocol):
     pairs, seen, matched = 40, 0, 0
     for index in range(0, pairs, 2):
         _, _, lab = render_pair(protocol, 2, pairs, SIZE, index)
-        s = protocols.pair_setup(protocol, 2, pairs, SIZE, index)
+        s = pair_setup(protocol, 2, pairs, SIZE, index)
         fx, fy, u0, v0 = lab["fx"], lab["fy"], lab["u0"], lab["v0"]
         xCam = render.depth_at(s["town"], s["right"], lab["u"], lab["v"])[0]
         assert xCam == pytest.approx(fx * lab["baseline"] / lab["disparity"], rel=1e-9)
         # never the sky dome: the point is a surface point near the right camera
         ray = camera.camera_point(1.0, fx, fy, u0, v0, lab["u"], lab["v"])
-        assert xCam * math.hypot(1.0, *ray) < protocols.MAX_LABEL_DISTANCE
+        assert xCam * math.hypot(1.0, *ray) < pixels.MAX_LABEL_DISTANCE
         X, Y, Z = lab["X"], lab["Y"], lab["Z"]
         u_left, v_left = camera.camera_to_pixel(X, Y, Z, fx, fy, u0, v0)
         if not (X > 0 and 0 <= u_left <= SIZE - 1 and 0 <= v_left <= SIZE - 1):
@@ -146,7 +146,7 @@ def test_random_rigs_have_no_relative_yaw_or_roll():
     """The right camera's rotation relative to the left is Ry(pitch) (Eq. 5)."""
     configs = protocols.configurations("random", 4, 80, 64)
     for index in range(0, 80, 8):
-        s = protocols.pair_setup("random", 4, 80, 64, index)
+        s = pair_setup("random", 4, 80, 64, index)
         cfg = s["config"]
         relative = s["left"].rotation.T @ s["right"].rotation
         np.testing.assert_allclose(relative, camera.rotation_matrix(cfg["pitch"]), atol=1e-12)
@@ -162,8 +162,8 @@ def test_projection_pixel_on_geometry_and_release_pixel_sky_flag(protocol):
     sky_flags = []
     for index in range(0, pairs, 5):
         _, _, lab = render_pair(protocol, 0, pairs, SIZE, index)
-        s = protocols.pair_setup(protocol, 0, pairs, SIZE, index)
-        margin = protocols.projection_margin(SIZE)
+        s = pair_setup(protocol, 0, pairs, SIZE, index)
+        margin = pixels.projection_margin(SIZE)
         assert lab["u"] == int(lab["u"]) and lab["v"] == int(lab["v"])
         assert margin <= lab["u"] < SIZE - margin and margin <= lab["v"] < SIZE - margin
         assert lab["projection_fallback"] in (0, 1)
@@ -180,7 +180,7 @@ def test_projection_pixel_on_geometry_and_release_pixel_sky_flag(protocol):
 
 
 def test_projection_fallback_takes_the_nearest_pixel_inside_the_margin():
-    from cpl_keras.data.pair import choose_projection_pixel
+    from cpl_keras.data.pixels import choose_projection_pixel
 
     cfg = {"fx": 30.0, "fy": 30.0, "u0": 16.0, "v0": 16.0}
     depth = np.full((32, 32), scenes.SKY_DISTANCE)
@@ -271,7 +271,7 @@ def test_projection_pixel_is_the_first_geometry_down_the_off_centre_column(proto
     column, first = SIZE // 2 + SIZE // 8, SIZE // 2 + SIZE // 16   # 30, 27 at 48 px
     below = checked = 0
     for index in range(12):
-        s = protocols.pair_setup(protocol, 3, 12, SIZE, index)
+        s = pair_setup(protocol, 3, 12, SIZE, index)
         _, _, lab = render_pair(protocol, 3, 12, SIZE, index)
         if lab["projection_fallback"]:
             continue
@@ -279,12 +279,12 @@ def test_projection_pixel_is_the_first_geometry_down_the_off_centre_column(proto
         assert lab["u"] == column and lab["v"] >= first
         cfg = s["config"]
         for v in range(first, int(lab["v"]) + 1):
-            if abs(v - cfg["v0"]) < protocols.PRINCIPAL_CLEARANCE:
+            if abs(v - cfg["v0"]) < pixels.PRINCIPAL_CLEARANCE:
                 continue
             ray = camera.camera_point(1.0, cfg["fx"], cfg["fy"], cfg["u0"], cfg["v0"],
                                       column, v)
             depth = render.depth_at(s["town"], s["right"], column, v)[0]
-            near = depth * math.hypot(1.0, *ray) < protocols.MAX_LABEL_DISTANCE
+            near = depth * math.hypot(1.0, *ray) < pixels.MAX_LABEL_DISTANCE
             assert near == (v == lab["v"]), (index, v)
         below += lab["v"] > first
     assert checked >= 9, checked  # (fallback pairs are a few %: most pairs are checked)
@@ -302,24 +302,24 @@ def test_projection_pixels_avoid_the_principal_row_and_column(protocol):
         _, _, lab = render_pair(protocol, 0, 60, SIZE, index)
         us.append(lab["u"] - lab["u0"])
         vs.append(lab["v"] - lab["v0"])
-    assert min(np.abs(us)) >= protocols.PRINCIPAL_CLEARANCE
-    assert min(np.abs(vs)) >= protocols.PRINCIPAL_CLEARANCE
+    assert min(np.abs(us)) >= pixels.PRINCIPAL_CLEARANCE
+    assert min(np.abs(vs)) >= pixels.PRINCIPAL_CLEARANCE
     # the candidates themselves, for any principal point
     for u0, v0 in ((24.0, 24.0), (31.0, 27.0), (32.5, 33.0)):
-        c = protocols.projection_candidates(SIZE, SIZE, u0, v0)
+        c = pixels.projection_candidates(SIZE, SIZE, u0, v0)
         assert len(c) > 0
         assert np.all(np.abs(c[:, 0] - u0) >= 1.0) and np.all(np.abs(c[:, 1] - v0) >= 1.0)
     # column 30 from row 27 down to row 41 (the margin is 6 at 48 px); row 27 skipped
     # when it is the principal row, every row when the column is the principal column
-    assert protocols.projection_candidates(SIZE, SIZE, 24.0, 24.0)[:, 1].tolist() == \
+    assert pixels.projection_candidates(SIZE, SIZE, 24.0, 24.0)[:, 1].tolist() == \
         list(range(27, 42))
-    assert protocols.projection_candidates(SIZE, SIZE, 24.0, 27.0)[:, 1].tolist() == \
+    assert pixels.projection_candidates(SIZE, SIZE, 24.0, 27.0)[:, 1].tolist() == \
         list(range(28, 42))
-    assert len(protocols.projection_candidates(SIZE, SIZE, 30.0, 0.0)) == 0
+    assert len(pixels.projection_candidates(SIZE, SIZE, 30.0, 0.0)) == 0
 
 
 def test_projection_fallback_avoids_the_principal_row_and_column():
-    from cpl_keras.data.pair import choose_projection_pixel
+    from cpl_keras.data.pixels import choose_projection_pixel
 
     cfg = {"fx": 30.0, "fy": 30.0, "u0": 16.0, "v0": 16.0}
     depth = np.full((32, 32), scenes.SKY_DISTANCE)

@@ -7,7 +7,7 @@ import pytest
 
 from cpl_keras.data import protocols, scenes
 from cpl_keras.data.generate import generate_dataset
-from cpl_keras.data.pair import render_pair
+from cpl_keras.data.pair import pair_setup, render_pair
 from cpl_keras.data.storage import StereoFile
 
 
@@ -79,7 +79,7 @@ def test_wild_appearance_is_drawn_per_configuration_and_changes_no_town():
     many = protocols.configurations("wild", 1, 400, 16)
     assert few[1]["appearance"] == many[1]["appearance"]
     assert few[1]["appearance"] != protocols.configurations("wild", 2, 16, 16)[1]["appearance"]
-    setup = protocols.pair_setup("wild", 1, 16, 16, 0)
+    setup = pair_setup("wild", 1, 16, 16, 0)
     assert setup["town"] is not town and setup["town"].buildings is town.buildings
     np.testing.assert_array_equal(setup["town"].sun, few[0]["appearance"]["sun"])
     assert setup["white_balance"] == few[0]["appearance"]["white_balance"]
@@ -87,7 +87,7 @@ def test_wild_appearance_is_drawn_per_configuration_and_changes_no_town():
     assert scenes.make_town(0) is town and town.haze == haze
     np.testing.assert_array_equal(town.sun, sun)
     np.testing.assert_array_equal(town.haze_colour, colour)
-    assert protocols.pair_setup("cameras", 1, 16, 16, 0)["white_balance"] is None
+    assert pair_setup("cameras", 1, 16, 16, 0)["white_balance"] is None
 
 
 def test_zoom_is_wild_with_the_fov_drawn_from_10_to_120_degrees():

@@ -223,8 +223,6 @@ MAX_OWN_FUNCTION_LEVEL_IMPORTS = 10
 EXCEPTIONS = {
     "cpl_keras.camera": (430, "the camera equations written once, forward (Eqs. 4a-5c) and "
                               "inverse, with the op sets every caller runs them on"),
-    "cpl_keras.data.protocols": (490, "the five rig protocols side by side, so that their "
-                                      "ranges read against each other"),
     "cpl_keras.data.render": (430, "one vectorised ray caster: splitting it splits its one "
                                    "loop's state"),
     "cpl_keras.reproduce.presets": (415, "every named preset's record in one table"),

@@ -33,7 +33,7 @@ from filelock import FileLock, Timeout
 
 from cpl_keras import camera, cli
 from cpl_keras.cli import check_interrupt, check_output_file, make_parent
-from cpl_keras.data import protocols, scenes
+from cpl_keras.data import pixels, protocols, scenes
 from cpl_keras.data.blocks import iter_blocks, render_block
 from cpl_keras.data.pair import EXTRA_UNITS, FLOAT_LABELS, INT_LABELS, LABEL_DESCRIPTIONS
 from cpl_keras.data.storage import GENERATOR_VERSION  # noqa: F401  (the generator's own)
@@ -354,7 +354,7 @@ def label_summary(labels):
     ``pairs``; ``sky_at_release_pixel``: pairs whose release pixel (W/2, H/2)
     sees the sky; ``projection_fallback``: pairs where no drawn candidate was
     near enough and the nearest pixel was taken; ``beyond_max_distance``:
-    label points at least ``protocols.MAX_LABEL_DISTANCE`` from the right
+    label points at least ``pixels.MAX_LABEL_DISTANCE`` from the right
     camera (0 unless a whole image is sky or far); ``distance_median_m``,
     ``distance_max_m``: the label points' distances from the right camera.
     """
@@ -367,7 +367,7 @@ def label_summary(labels):
         "pairs": int(len(distance)),
         "sky_at_release_pixel": int(np.sum(labels["sky_at_release_pixel"])),
         "projection_fallback": int(np.sum(labels["projection_fallback"])),
-        "beyond_max_distance": int(np.sum(distance >= protocols.MAX_LABEL_DISTANCE)),
+        "beyond_max_distance": int(np.sum(distance >= pixels.MAX_LABEL_DISTANCE)),
         "distance_median_m": float(np.median(distance)),
         "distance_max_m": float(distance.max()),
     }
@@ -382,7 +382,7 @@ def summary_text(path):
     n = s["pairs"]
     return (f"{n} {protocol} pairs at {w} px; label points {s['distance_median_m']:.1f} m "
             f"(median), {s['distance_max_m']:.1f} m (max) from the right camera, "
-            f"{s['beyond_max_distance']} beyond {protocols.MAX_LABEL_DISTANCE:g} m, "
+            f"{s['beyond_max_distance']} beyond {pixels.MAX_LABEL_DISTANCE:g} m, "
             f"{s['projection_fallback']} from the fallback (nearest pixel); the release's "
             f"pixel ({w / 2:g}, {h / 2:g}) sees the sky in {s['sky_at_release_pixel']} of {n} "
             f"pairs ({100.0 * s['sky_at_release_pixel'] / n:.1f} %)")

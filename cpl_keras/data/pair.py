@@ -11,7 +11,7 @@ targets:
 * the true disparity at the projection pixel (u, v) of the right image,
   ``d = fx * baseline / xCam`` (Eq. 4a inverted), xCam being the rendered
   depth of that pixel; (u, v) is chosen on scene geometry, never the sky
-  (``choose_projection_pixel``),
+  (``pixels.choose_projection_pixel``),
 * X, Y, Z = ``camera.image_to_world`` of those labels (Eqs. 4a-5c), so the
   labels obey the camera equations exactly and name the rendered point in
   the left camera's frame.
@@ -32,7 +32,7 @@ from __future__ import annotations
 import numpy as np
 
 from cpl_keras import camera
-from cpl_keras.data import protocols, render
+from cpl_keras.data import pixels, protocols, render, scenes
 from cpl_keras.data.scenes import SKY_DISTANCE
 
 LABEL_DESCRIPTIONS = {
@@ -124,22 +124,51 @@ def released_disparity(left, right):
 # ---------------------------------------------------------------------------
 # A pair and its labels
 # ---------------------------------------------------------------------------
+def pair_setup(protocol, seed, pairs, image_size, index):
+    """Everything needed to render pair ``index``: its configuration, town,
+    the two cameras' views and the candidate projection pixels."""
+    cfg, frame = protocols.pair_config(protocol, seed, pairs, image_size, index)
+    town = scenes.make_town(cfg["town_id"])
+    appearance = cfg.get("appearance")
+    if appearance is not None:
+        town = protocols.appearance_town(town, appearance)
+    vehicle = protocols.vehicle_position(cfg, frame, town.period)
+    W = H = int(image_size)
+    left_rot = _rotation(cfg["left_pose"])
+    if "right_rotation" in cfg:
+        right_rot = np.asarray(cfg["right_rotation"])
+    else:
+        right_rot = _rotation(cfg["right_pose"])
+    intr = (cfg["fx"], cfg["fy"], cfg["u0"], cfg["v0"], W, H)
+    left = render.View(*intr, vehicle + np.asarray(cfg["left_pose"]["position"]), left_rot)
+    right = render.View(*intr, vehicle + np.asarray(cfg["right_pose"]["position"]), right_rot)
+    return {"config": cfg, "frame_index": frame, "town": town, "left": left, "right": right,
+            "uv_candidates": pixels.projection_candidates(W, H, cfg["u0"], cfg["v0"]),
+            "margin": pixels.projection_margin(W), "release_uv": pixels.release_pixel(W, H),
+            "principal_point": (cfg["u0"], cfg["v0"]),
+            "white_balance": None if appearance is None else appearance["white_balance"]}
+
+
+def _rotation(pose):
+    return camera.rotation_matrix(pose["pitch"], pose["yaw"], pose["roll"])
+
+
 def render_pair(protocol, seed, pairs, image_size, index):
     """Left image, right image (uint8 (H, W, 3)) and the labels of pair ``index``."""
-    s = protocols.pair_setup(protocol, seed, pairs, image_size, index)
+    s = pair_setup(protocol, seed, pairs, image_size, index)
     town, cfg, right = s["town"], s["config"], s["right"]
     left_img, _ = render.render(town, s["left"])
     right_img, right_depth = render.render(town, right)
     if s["white_balance"] is not None:         # wild: one gain per channel, both images
         left_img = white_balance(left_img, s["white_balance"])
         right_img = white_balance(right_img, s["white_balance"])
-    (u, v), fallback = choose_projection_pixel(cfg, right_depth, s["uv_candidates"], s["margin"],
-                                               s["principal_point"])
+    (u, v), fallback = pixels.choose_projection_pixel(
+        cfg, right_depth, s["uv_candidates"], s["margin"], s["principal_point"])
     # the depth of exactly (u, v), cast on its own (also for non-integer pixels)
     xCam = float(render.depth_at(town, right, u, v)[0])
     # the release's fixed pixel: does it see the sky dome?
     u_rel, v_rel = s["release_uv"]
-    sky = _ray_distance(cfg, render.depth_at(town, right, u_rel, v_rel)[0], u_rel, v_rel) \
+    sky = pixels.ray_distance(cfg, render.depth_at(town, right, u_rel, v_rel)[0], u_rel, v_rel) \
         >= SKY_FRACTION * SKY_DISTANCE
     disparity = float(camera.disparity_from_depth(cfg["fx"], cfg["baseline"], xCam))
     X, Y, Z = camera.image_to_world(
@@ -162,35 +191,3 @@ def white_balance(image, gains):
     """A uint8 RGB image with each channel multiplied by its gain (rounded, clipped)."""
     out = image.astype(np.float32) * np.asarray(gains, np.float32)
     return np.clip(out + 0.5, 0, 255).astype(np.uint8)
-
-
-def _ray_distance(cfg, xCam, u, v):
-    """Distance from the camera centre of the point at depth xCam seen at (u, v):
-    xCam * |(1, yCam, zCam)| with the pixel's Eq. 6 ray."""
-    ray_y, ray_z = camera.camera_point(1.0, cfg["fx"], cfg["fy"], cfg["u0"], cfg["v0"], u, v)
-    return np.asarray(xCam) * np.sqrt(1.0 + np.square(ray_y) + np.square(ray_z))
-
-
-def choose_projection_pixel(cfg, depth, candidates, margin, principal_point=None):
-    """The projection pixel of a pair: ``((u, v), fallback)``.
-
-    The first candidate (integer pixels) whose point is nearer than
-    ``protocols.MAX_LABEL_DISTANCE`` along the ray (so never the sky) is taken,
-    ``fallback = 0``. If none is, the nearest pixel at least ``margin`` from
-    the border (and, given ``principal_point``, off its row and column,
-    ``protocols.off_principal``) is taken (first in row-major order among
-    equals), ``fallback = 1``.
-    """
-    cu = np.asarray(candidates)[:, 0].astype(np.intp)
-    cv = np.asarray(candidates)[:, 1].astype(np.intp)
-    distance = _ray_distance(cfg, depth[cv, cu], cu, cv)
-    near = np.flatnonzero(distance < protocols.MAX_LABEL_DISTANCE)
-    if len(near):
-        return (float(cu[near[0]]), float(cv[near[0]])), 0
-    H, W = depth.shape
-    v, u = np.mgrid[margin:H - margin, margin:W - margin]
-    inner = _ray_distance(cfg, depth[v, u], u, v)
-    if principal_point is not None:
-        inner = np.where(protocols.off_principal(u, v, *principal_point), inner, np.inf)
-    k = int(np.argmin(inner))
-    return (float(u.flat[k]), float(v.flat[k])), 1

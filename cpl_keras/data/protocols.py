@@ -23,21 +23,8 @@ frame (cvgl: tz_released is -0.4..1.6 m, our tz 1..44 m).
 
 Projection pixel
 ----------------
-Both protocols choose the projection pixel (u, v) on scene geometry, by a
-rule that depends on the image only, so that a network can tell from the
-pair which point its disparity and X, Y, Z labels describe: the pixel
-(W/2 + W/8, H/2 + H/16) when its point is nearer than ``MAX_LABEL_DISTANCE``
-along the ray, otherwise the first pixel below it in the same column that is
-(never the sky dome, whose 1000 m depth gave X, Y, Z labels of hundreds of
-metres), down to 1/8 of the image from the bottom. The start is off the image
-centre because the centre is the principal point of every cvgl rig, where
-yCam = zCam = 0 (``projection_candidates``); pixels on the principal row or
-column are skipped in both protocols. If no candidate is near enough, the
-nearest pixel at least 1/8 of the image from the border (and off the principal
-row and column) is taken and the pair is flagged (``projection_fallback``). (A pixel drawn at random per pair, as an
-earlier version did, makes those labels unpredictable from the images: the
-network is not told the pixel.) The release's fixed pixel is kept as such
-only for the as-released labels.
+Every protocol labels the point seen at a pixel chosen on scene geometry
+by one rule that depends on the image only: ``cpl_keras.data.pixels``.
 
 ``cvgl`` (the paper's protocol, CARLA conventions converted)
     Left camera on the vehicle at (x=2, y=0, z=1.4) m, looking down 15 deg
@@ -112,8 +99,7 @@ import math
 import numpy as np
 
 from cpl_keras import camera
-from cpl_keras.data import scenes
-from cpl_keras.data.render import View
+from cpl_keras.data import pixels, scenes
 
 PROTOCOLS = ("cvgl", "random", "cameras", "wild", "zoom")
 #: Protocols whose rigs are those of ``cameras`` (and whose appearance is
@@ -154,23 +140,6 @@ WILD_APPEARANCE = {
     # gain 1 + t, blue 1 - t), with a small green-magenta tint (green 1 + g)
     "white_balance_temperature": (-0.15, 0.15), "white_balance_tint": (-0.04, 0.04),
 }
-#: Projection pixels lie at least this fraction of the image from the border.
-PROJECTION_MARGIN_FRACTION = 0.125
-#: How the projection pixel is chosen (see the module docstring).
-PROJECTION_RULE = ("the pixel (W/2 + W/8, H/2 + H/16) when its point is nearer than "
-                   "max_label_distance_m, else the first pixel below it in its column that "
-                   "is; pixels within principal_clearance_px of the principal row or column "
-                   "are skipped")
-#: The projection column and first row, as offsets from the image centre in
-#: fractions of the image side (see ``projection_candidates``).
-PROJECTION_OFFSET = (1 / 8, 1 / 16)
-#: A candidate is at least this far (pixels) from the principal row v0 and
-#: column u0: on them zCam = 0 (v = v0) or yCam = 0 (u = u0), and the
-#: disentangled term of fy (or fx's Y part) gets no gradient from the point.
-PRINCIPAL_CLEARANCE = 1.0
-#: A candidate is taken only if its point is nearer than this along the ray
-#: (metres; the sky dome is at ``scenes.SKY_DISTANCE`` = 1000 m).
-MAX_LABEL_DISTANCE = 200.0
 DRIVE = {"step_m": (1.5, 4.0), "sway_m": 0.35}
 
 
@@ -186,11 +155,7 @@ def ranges(protocol):
         out["appearance"] = {k: list(v) for k, v in WILD_APPEARANCE.items()}
         out["appearance"]["haze_m_drawn"] = "log-uniform"
     out.update({f"drive_{k}": list(v) if isinstance(v, tuple) else v for k, v in DRIVE.items()})
-    out["projection_margin_fraction"] = PROJECTION_MARGIN_FRACTION
-    out["projection_rule"] = PROJECTION_RULE
-    out["projection_offset"] = list(PROJECTION_OFFSET)
-    out["principal_clearance_px"] = PRINCIPAL_CLEARANCE
-    out["max_label_distance_m"] = MAX_LABEL_DISTANCE
+    out.update(pixels.rule())
     if protocol == "cvgl":
         out["left_camera"] = dict(CVGL_LEFT)
         out["min_abs_tx_m"] = CVGL_MIN_BASELINE
@@ -356,7 +321,7 @@ def _rig_entries(c, town_id, fov, intrinsics, baseline, t, rotation):
 
 def _drive(rng, town_id):
     """A configuration's drive: where it starts along the town, its step per
-    frame and the phase of its sway (see ``pair_setup``)."""
+    frame and the phase of its sway (see ``vehicle_position``)."""
     return {"start_x": _u(rng, (0.0, scenes.make_town(town_id).period)),
             "step": _u(rng, DRIVE["step_m"]), "sway_phase": _u(rng, (0.0, 2 * math.pi))}
 
@@ -405,80 +370,15 @@ def config_of_pair(protocol, pairs, index):
     return c, index - first
 
 
-def _rotation(pose):
-    return camera.rotation_matrix(pose["pitch"], pose["yaw"], pose["roll"])
-
-
-def pair_setup(protocol, seed, pairs, image_size, index):
-    """Everything needed to render pair ``index``: config, poses, (u, v)."""
-    configs = _configurations(protocol, int(seed), int(pairs), int(image_size))
+def pair_config(protocol, seed, pairs, image_size, index):
+    """``(configuration, frame_index)`` of pair ``index`` (the configuration
+    is the cached record: read it, do not change it)."""
     c, frame = config_of_pair(protocol, pairs, index)
-    cfg = configs[c]
-    town = scenes.make_town(cfg["town_id"])
-    appearance = cfg.get("appearance")
-    if appearance is not None:
-        town = appearance_town(town, appearance)
-    vehicle = np.array([
-        math.fmod(cfg["start_x"] + frame * cfg["step"], town.period),
-        DRIVE["sway_m"] * math.sin(0.07 * frame + cfg["sway_phase"]),
-        0.0,
-    ])
-    W = H = int(image_size)
-    left_rot = _rotation(cfg["left_pose"])
-    if "right_rotation" in cfg:
-        right_rot = np.asarray(cfg["right_rotation"])
-    else:
-        right_rot = _rotation(cfg["right_pose"])
-    intr = (cfg["fx"], cfg["fy"], cfg["u0"], cfg["v0"], W, H)
-    left = View(*intr, vehicle + np.asarray(cfg["left_pose"]["position"]), left_rot)
-    right = View(*intr, vehicle + np.asarray(cfg["right_pose"]["position"]), right_rot)
-    # candidate pixels drawn for this pair (both protocols); the generator
-    # takes the first one whose point is nearer than MAX_LABEL_DISTANCE
-    # (never the sky)
-    margin = projection_margin(W)
-    candidates = projection_candidates(W, H, cfg["u0"], cfg["v0"])
-    return {"config": cfg, "frame_index": frame, "town": town, "left": left, "right": right,
-            "uv_candidates": candidates, "margin": margin, "release_uv": release_pixel(W, H),
-            "principal_point": (cfg["u0"], cfg["v0"]),
-            "white_balance": None if appearance is None else appearance["white_balance"]}
+    return _configurations(protocol, int(seed), int(pairs), int(image_size))[c], frame
 
 
-def projection_candidates(width, height, u0, v0):
-    """The candidate projection pixels (u, v) of an image, in the order they
-    are tried: the column ``W/2 + W/8`` from row ``H/2 + H/16`` down to the
-    margin, less any pixel on the principal row or column (``off_principal``).
-
-    The release projected the image centre, which is the principal point of
-    every cvgl rig: there yCam = zCam = 0 and the point says nothing of fx,
-    fy or pitch. This generator's former rule (the centre, then down its
-    column) still left v = v0 in 45 % of the cvgl labels and u = u0 in 92 %,
-    so the disentangled term of fy had no gradient from the point in half of
-    every batch. The rule depends on the image size only, so a network can
-    tell from the pair which point its disparity and X, Y, Z labels describe
-    (a pixel drawn at random per pair would make those labels unpredictable:
-    the network is not told the pixel).
-    """
-    margin = projection_margin(width)
-    u = int(round(width / 2 + PROJECTION_OFFSET[0] * width))
-    u = min(max(u, margin), width - margin - 1)
-    first = int(round(height / 2 + PROJECTION_OFFSET[1] * height))
-    rows = np.arange(min(first, height - margin - 1), height - margin)
-    keep = off_principal(u, rows, u0, v0)
-    return np.stack([np.full(int(keep.sum()), u), rows[keep]], axis=1).astype(float)
-
-
-def off_principal(u, v, u0, v0):
-    """True where pixel (u, v) is at least ``PRINCIPAL_CLEARANCE`` from the
-    principal row v0 and column u0."""
-    return (np.abs(np.asarray(u) - u0) >= PRINCIPAL_CLEARANCE) & \
-        (np.abs(np.asarray(v) - v0) >= PRINCIPAL_CLEARANCE)
-
-
-def projection_margin(size):
-    """Smallest distance (pixels) of a projection pixel from the border."""
-    return int(PROJECTION_MARGIN_FRACTION * size)
-
-
-def release_pixel(width, height):
-    """The release's fixed projection pixel (W/2, H/2) (56, 56 at 112 px)."""
-    return width / 2, height / 2
+def vehicle_position(cfg, frame, period):
+    """The vehicle's position (x, y, z) at ``frame`` of its drive along a town
+    of ``period`` metres: ``step`` on per frame, a slow lateral sway."""
+    return np.array([math.fmod(cfg["start_x"] + frame * cfg["step"], period),
+                     DRIVE["sway_m"] * math.sin(0.07 * frame + cfg["sway_phase"]), 0.0])
