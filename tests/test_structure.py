@@ -225,7 +225,6 @@ EXCEPTIONS = {
                               "inverse, with the op sets every caller runs them on"),
     "cpl_keras.data.render": (430, "one vectorised ray caster: splitting it splits its one "
                                    "loop's state"),
-    "cpl_keras.reproduce.presets": (415, "every named preset's record in one table"),
     "cpl_keras.datasets.make_split": (80, "the three splits' rules side by side"),
     "cpl_keras.evaluation.table1.table_rows": (75, "every row of Table 1 in the paper's order"),
     "cpl_keras.reproduce.page.write_report": (75, "REPORT.md's sections in the order a reader "

@@ -9,10 +9,8 @@ from cpl_keras import cli
 from cpl_keras.data.storage import DatasetError
 from cpl_keras.models.variants import BACKBONES
 from cpl_keras.reproduce.pipeline import rebuild, rebuild_command, reproduce
-from cpl_keras.reproduce.presets import (
-    GPU_SIZED_PAIRS, PRESETS, PROG, REAL_ROOTS, cpu_cost, default_folders, gpu_sized,
-    has_accelerator, settings,
-)
+from cpl_keras.reproduce.plan import GPU_SIZED_PAIRS, cpu_cost, gpu_sized, has_accelerator
+from cpl_keras.reproduce.presets import PRESETS, PROG, REAL_ROOTS, default_folders, settings
 
 # ---------------------------------------------------------------------------
 # Command line

@@ -40,7 +40,8 @@ from their last epoch):
    ``--from-predictions`` rebuilds the tables and REPORT.md without weights
    or datasets.
 
-The package: ``presets`` (the settings and the runs they make), ``jobs``
+The package: ``presets`` (the settings), ``plan`` (the runs they make, and
+their cost on a CPU), ``jobs``
 (training each run and publishing it; with ``--jobs`` in processes of their
 own, ``cpl_keras.training.parallel``), ``pipeline`` (the
 stages and the rebuild), ``page`` (REPORT.md); its command line is ``cpl_keras.commands.reproduce``.
@@ -54,10 +55,12 @@ from cpl_keras.reproduce.page import scale_text, write_report
 from cpl_keras.reproduce.pipeline import (
     SUMMARY, make_datasets, read_summary, rebuild, rebuild_command, reproduce,
 )
+from cpl_keras.reproduce.plan import (
+    GPU_SIZED_PAIRS, Job, cpu_cost, gpu_sized, has_accelerator, run_jobs, run_stems,
+)
 from cpl_keras.reproduce.presets import (
-    DEFAULT_TABLES, GPU_SIZED_PAIRS, MTL_VARIANTS, PAPER_SCALE, PRESETS, PROG, QUICK,
-    Job, Preset, REAL_ROOTS, REAL_SETS, RELEASED_RUN, TABLE1, Settings, cpu_cost,
-    default_folders, gpu_sized, has_accelerator, run_jobs, run_stems, settings,
+    DEFAULT_TABLES, MTL_VARIANTS, PAPER_SCALE, PRESETS, PROG, QUICK, Preset, REAL_ROOTS,
+    REAL_SETS, RELEASED_RUN, TABLE1, Settings, default_folders, settings,
 )
 
 __all__ = [

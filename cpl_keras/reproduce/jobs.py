@@ -7,7 +7,8 @@ from __future__ import annotations
 import os
 
 from cpl_keras import evaluation, published, runs, training
-from cpl_keras.reproduce.presets import PROG, log, run_jobs
+from cpl_keras.reproduce.plan import run_jobs
+from cpl_keras.reproduce.presets import PROG, log
 from cpl_keras.training import parallel, planning
 
 # ---------------------------------------------------------------------------

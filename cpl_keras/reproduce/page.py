@@ -8,9 +8,8 @@ import os
 from cpl_keras import files, report, runs
 from cpl_keras.models.variants import VARIANT_ROWS
 from cpl_keras.report.curves import plot_mae_curves
-from cpl_keras.reproduce.presets import (
-    DEFAULT_TABLES, RELEASED_RUN, TABLE1, TITLES, run_stems,
-)
+from cpl_keras.reproduce.plan import run_stems
+from cpl_keras.reproduce.presets import DEFAULT_TABLES, RELEASED_RUN, TABLE1, TITLES
 from cpl_keras.runs import RELEASED
 
 # ---------------------------------------------------------------------------

@@ -18,7 +18,8 @@ from cpl_keras.files import read_json, write_json
 from cpl_keras.real import build
 from cpl_keras.reproduce.jobs import train_all
 from cpl_keras.reproduce.page import write_report
-from cpl_keras.reproduce.presets import PROG, TABLE1, Settings, log, run_jobs
+from cpl_keras.reproduce.plan import run_jobs
+from cpl_keras.reproduce.presets import PROG, TABLE1, Settings, log
 
 # ---------------------------------------------------------------------------
 # Stage 1: data
