@@ -76,7 +76,8 @@ def comparison(a, b, epochs):
             cells = [f"{run[epoch][p]:.3f}" for p in PARAMETERS]
             lower = [p for p in PARAMETERS if run[epoch][p] < other[epoch][p]]
             lines.append(f"| {epoch} | {name} | {run[epoch]['val_nmae']:.3f} | "
-                         + " | ".join(cells) + f" | {len(lower)} ({', '.join(lower)}) |")
+                         + " | ".join(cells) + f" | {len(lower)}"
+                         + (f" ({', '.join(lower)}) |" if lower else " |"))
     return lines
 
 

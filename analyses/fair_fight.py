@@ -22,6 +22,12 @@ baseline``): each claims a run before training it
 (``<run dir>.claim``, its pid) and skips one the other has claimed. Each run's test predictions,
 log, curves, config and split go to ``--out/<towers>/runs/cvgl_<arm>-s<seed>``
 (``cpl_keras.reproduce.jobs.publish_run``); weights stay in ``--runs-dir``.
+
+``--verdicts`` trains nothing: from the published runs it writes
+``<out>/<towers>/verdicts.md`` and ``.json``: each pair of arms by the
+protocol's rules (over the seeds both arms have, two at least), its
+validation at equal epochs (``EQUAL_EPOCHS``; from one seed on) and each
+run's collapsed-head shares (``head_shares``).
 """
 
 from __future__ import annotations
@@ -98,6 +104,55 @@ def protocol_verdict(verdicts):
             (True, True): "mixed"}.get((a > 0, b > 0), "not decided")
 
 
+#: The epochs at which each pair of arms is compared on validation (every
+#: run trains the same ``EPOCHS``).
+EQUAL_EPOCHS = (10, 20, 30, 40, 50)
+
+
+def equal_epochs(logs_a, logs_b, epochs=EQUAL_EPOCHS):
+    """Validation at equal epochs of a pair of arms over the seeds both have
+    (``logs_x``: ``{seed: log.csv path}``): at each of ``epochs`` that every
+    run reached, the monitor and each column's validation NMAE, means over
+    the seeds; and per seed, at how many epochs both ran A's monitor is
+    lower."""
+    from cpl_keras.camera import PARAMETERS
+
+    sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+    import equal_epochs as curves  # (analyses/equal_epochs.py)
+
+    seeds = sorted(set(logs_a) & set(logs_b))
+    runs = {side: {s: curves.validation(logs[s]) for s in seeds}
+            for side, logs in (("a", logs_a), ("b", logs_b))}
+    reached = [e for e in epochs if all(e in run for side in runs.values()
+                                        for run in side.values())]
+    means = {side: {str(e): {k: sum(run[e][k] for run in side_runs.values()) / len(seeds)
+                             for k in ("val_nmae",) + PARAMETERS}
+                    for e in reached}
+             for side, side_runs in runs.items()}
+    ahead = {}
+    for seed in seeds:
+        a, b = runs["a"][seed], runs["b"][seed]
+        common = sorted(set(a) & set(b))
+        ahead[str(seed)] = {"epochs": len(common),
+                            "a_lower": sum(a[e]["val_nmae"] < b[e]["val_nmae"] for e in common)}
+    return {"seeds": seeds, "a": means["a"], "b": means["b"], "monitor_a_lower": ahead}
+
+
+def head_shares(log_path, kept_epoch):
+    """Per head, the share of the logged training pairs on which every
+    first-layer unit was at or below zero (``dead_<head>``, train.py's
+    ``--head-units``) at ``kept_epoch`` (the weights the predictions come
+    from) and at the last epoch; None where the log has no such column."""
+    from cpl_keras.camera import PARAMETERS
+    from cpl_keras.runs import read_log
+
+    rows = {int(row["epoch"]): row for row in read_log(log_path)}
+    last = rows[max(rows)]
+    kept = rows.get(kept_epoch, last)
+    return {"kept": {h: kept.get(f"dead_{h}") for h in PARAMETERS},
+            "last": {h: last.get(f"dead_{h}") for h in PARAMETERS}}
+
+
 def write_verdicts(towers, out, data, command, resamples=2000):
     """``<out>/<towers>/verdicts.md`` and ``.json``: each pair of arms over
     the seeds published for both, by the protocol's rules. Returns the md path."""
@@ -109,7 +164,7 @@ def write_verdicts(towers, out, data, command, resamples=2000):
     import verdicts as page  # (analyses/verdicts.py: the same tables as every folder's)
 
     folder = os.path.join(out, towers)
-    rows, configs = {}, {}
+    rows, configs, logs = {}, {}, {}
     for record in sorted(glob.glob(os.path.join(folder, "runs", "cvgl_*-s*"))):
         if not os.path.isdir(record):
             continue
@@ -117,9 +172,11 @@ def write_verdicts(towers, out, data, command, resamples=2000):
         raw, config = paired_outputs(record, data)
         rows.setdefault(arm, {})[int(seed)] = raw
         configs[(arm, int(seed))] = config
+        logs.setdefault(arm, {})[int(seed)] = os.path.join(record, "log.csv")
     result = {"command": command, "rules": page.RULES,
               "runs": [{"arm": arm, "seed": seed, "epochs_run": config.epochs_run,
-                        "best_epoch": config.best_epoch, "wall_time_s": config.wall_time_s}
+                        "best_epoch": config.best_epoch, "wall_time_s": config.wall_time_s,
+                        "dead_heads": head_shares(logs[arm][seed], config.best_epoch)}
                        for (arm, seed), config in sorted(configs.items())],
               "pairs": {}}
     for a, b in PAIRS:
@@ -127,13 +184,17 @@ def write_verdicts(towers, out, data, command, resamples=2000):
         title = f"{NAMES[a]} vs {NAMES[b]}"
         if len(seeds) < 2:
             result["pairs"][title] = {"a": NAMES[a], "b": NAMES[b], "seeds": seeds}
+            if seeds:
+                result["pairs"][title]["equal_epochs"] = equal_epochs(
+                    logs[a], logs[b])
             continue
         found = rules.compare({s: rows[a][s] for s in seeds}, {s: rows[b][s] for s in seeds},
                               resamples=resamples, bootstrap_seed=0)
         result["pairs"][title] = {"a": NAMES[a], "b": NAMES[b], "seeds": seeds,
                                   "verdict": protocol_verdict(found),
                                   "columns": page.summary(found),
-                                  "detail": [dataclasses.asdict(v) for v in found]}
+                                  "detail": [dataclasses.asdict(v) for v in found],
+                                  "equal_epochs": equal_epochs(logs[a], logs[b])}
     result = json.loads(json.dumps(result))
     path = os.path.join(folder, "verdicts.md")
     files.write_text(path, verdicts_markdown(towers, result))
@@ -163,11 +224,57 @@ def verdicts_markdown(towers, result):
         if "detail" not in pair:
             md += [f"### {title}", "", f"Not yet: seeds published for both: {pair['seeds']}.",
                    ""]
-            continue
-        md += page.pair_markdown(pair["a"], pair["b"], [page.verdict_from_json(c) for c in pair["detail"]])
-        md += [f"**The protocol's verdict: {pair['verdict']}** (A = {pair['a']}, seeds "
-               f"{', '.join(map(str, pair['seeds']))}).", ""]
+        else:
+            md += page.pair_markdown(pair["a"], pair["b"],
+                                     [page.verdict_from_json(c) for c in pair["detail"]])
+            md += [f"**The protocol's verdict: {pair['verdict']}** (A = {pair['a']}, seeds "
+                   f"{', '.join(map(str, pair['seeds']))}).", ""]
+        if "equal_epochs" in pair:
+            md += equal_epochs_markdown(pair["equal_epochs"])
+    md += heads_markdown(result["runs"])
     return "\n".join(md)
+
+
+def equal_epochs_markdown(found):
+    """Markdown lines: a pair's validation at equal epochs (``equal_epochs``)."""
+    import equal_epochs as curves  # (analyses/equal_epochs.py)
+
+    seeds = ", ".join(map(str, found["seeds"]))
+    table = curves.comparison({int(e): v for e, v in found["a"].items()},
+                              {int(e): v for e, v in found["b"].items()},
+                              sorted(int(e) for e in found["a"]))
+    ahead = "; ".join(f"seed {seed}: {n['a_lower']} of {n['epochs']}"
+                      for seed, n in found["monitor_a_lower"].items())
+    over = f"means over seeds {seeds}" if len(found["seeds"]) > 1 else f"seed {seeds}"
+    return [f"Validation at equal epochs ({over}; val_nmae is the monitor, the sum of the ten NMAEs; for context, "
+            "not a rule of the protocol):", ""] + table + [
+            "", f"Epochs at which A's monitor is lower than B's: {ahead}.", ""]
+
+
+def heads_markdown(runs):
+    """Markdown lines: each run's collapsed-head shares (``head_shares``)."""
+    from cpl_keras.camera import PARAMETERS
+
+    def cell(kept, last):
+        if kept is None:
+            return "-"
+        return f"{kept:.2f}" + ("" if last == kept else f" ({last:.2f})")
+
+    lines = ["## Collapsed heads", "",
+             "Per run and head, the share of train.py's 64 logged training pairs on which "
+             "every first-layer unit of the head is at or below zero (`dead_<head>`, "
+             "`--head-units`), at the kept epoch, whose weights made the predictions (in "
+             "brackets at the last epoch, where it differs). A ReLU head puts out one value "
+             "on such a pair; the recipe's leaky heads still pass their slope's share of the "
+             "gradient.", "",
+             "| run | seed | kept | " + " | ".join(PARAMETERS) + " |",
+             "|---|---|---|" + "---|" * len(PARAMETERS)]
+    for run in runs:
+        shares = run.get("dead_heads", {"kept": {}, "last": {}})
+        lines.append(f"| {NAMES[run['arm']]} | {run['seed']} | {run['best_epoch']} | "
+                     + " | ".join(cell(shares["kept"].get(h), shares["last"].get(h))
+                                  for h in PARAMETERS) + " |")
+    return lines + [""]
 
 
 def regenerate(page_path):

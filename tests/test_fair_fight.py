@@ -53,3 +53,51 @@ def test_two_commands_side_by_side_share_the_runs(tmp_path):
     assert script.claim(run_dir)  # (a stale claim is taken over)
     (tmp_path / "runs" / "baseline-s0.claim").write_text(str(os.getppid()))  # (alive)
     assert not script.claim(run_dir)
+
+
+def _log(path, monitor, dead_pitch=None, epochs=50):
+    """A log.csv of ``epochs`` epochs: every column's validation NMAE is
+    ``monitor(epoch, column)``, val_nmae their sum; ``dead_pitch(epoch)``."""
+    from cpl_keras.camera import PARAMETERS
+
+    header = ["epoch", "val_nmae"] + [f"val_nmae_{p}" for p in PARAMETERS]
+    header += ["dead_pitch"] if dead_pitch else []
+    lines = [",".join(header)]
+    for e in range(1, epochs + 1):
+        cols = [monitor(e, p) for p in PARAMETERS]
+        row = [str(e), repr(sum(cols))] + [repr(c) for c in cols]
+        lines.append(",".join(row + ([repr(dead_pitch(e))] if dead_pitch else [])))
+    path.write_text("\n".join(lines) + "\n")
+    return str(path)
+
+
+def test_validation_at_equal_epochs_and_collapsed_heads_of_a_pair(tmp_path):
+    script = _script()
+    # A: 1/e on every column but the disparity (2/e); B: 1.5/e everywhere; seed 1's B
+    # ran 40 epochs only, so the epoch 50 is left out of the means
+    a = {s: _log(tmp_path / f"a{s}.csv", lambda e, p: (2.0 if p == "disparity" else 1.0) / e)
+         for s in (0, 1)}
+    b = {0: _log(tmp_path / "b0.csv", lambda e, p: 1.5 / e),
+         1: _log(tmp_path / "b1.csv", lambda e, p: 1.5 / e, epochs=40),
+         2: _log(tmp_path / "b2.csv", lambda e, p: 0.0)}  # (a seed A lacks: not read)
+    found = script.equal_epochs(a, b)
+    assert found["seeds"] == [0, 1]
+    assert sorted(found["a"], key=int) == ["10", "20", "30", "40"]
+    assert found["a"]["10"]["fx"] == pytest.approx(0.1)
+    assert found["b"]["40"]["disparity"] == pytest.approx(1.5 / 40)
+    assert found["a"]["20"]["val_nmae"] == pytest.approx(11 / 20)
+    assert found["monitor_a_lower"] == {"0": {"epochs": 50, "a_lower": 50},
+                                        "1": {"epochs": 40, "a_lower": 40}}
+    text = "\n".join(script.equal_epochs_markdown(found))
+    assert "means over seeds 0, 1" in text
+    assert "| 9 (fx, fy, u0, v0, baseline, tx, ty, tz, pitch) |" in text
+    assert "| 1 (disparity) |" in text
+    assert "seed 0: 50 of 50; seed 1: 40 of 40" in text
+    # the heads: the share at the kept epoch, the last epoch's beside it where it differs
+    log = _log(tmp_path / "h.csv", lambda e, p: 1.0, dead_pitch=lambda e: 0.5 if e < 50 else 1.0)
+    shares = script.head_shares(log, kept_epoch=30)
+    assert shares["kept"]["pitch"] == 0.5 and shares["last"]["pitch"] == 1.0
+    assert shares["kept"]["fx"] is None  # (a log without that head's column)
+    runs = [{"arm": "cpl-a", "seed": 0, "best_epoch": 30, "dead_heads": shares}]
+    row = script.heads_markdown(runs)[-2]
+    assert row.startswith("| MTL-CPL-A | 0 | 30 | - |") and row.endswith("| 0.50 (1.00) |")
