@@ -17,10 +17,10 @@ method of the record (a crop or a resize gives a new record)::
     camera.to_labels(disparity=12.5)            # the datasets' label names
     camera.fov_deg                              # (horizontal, vertical)
 
-The arithmetic is ``cpl_keras.camera``'s, written once there:
-``crop_resize_coordinate`` (a resize of pixel coordinates),
-``opencv_pose_to_rig`` / ``rig_to_opencv_pose`` (OpenCV's axes and
-extrinsics), ``fov_from_focal``. The disparity belongs to a pair's scene,
+The arithmetic is written once elsewhere: ``cpl_keras.camera``'s equations
+and ``fov_from_focal``; ``cpl_keras.frames``'s ``crop_resize_coordinate``
+(a resize of pixel coordinates) and ``opencv_pose_to_rig`` /
+``rig_to_opencv_pose`` (OpenCV's axes and extrinsics). The disparity belongs to a pair's scene,
 not to the camera: ``to_labels`` takes it, ``from_labels`` leaves it out.
 """
 
@@ -31,9 +31,10 @@ from collections.abc import Mapping
 
 import numpy as np
 
-from cpl_keras.camera import (
-    PARAMETERS, TARGETS, crop_resize_coordinate, euler_from_rotation, fov_from_focal,
-    image_to_world, opencv_pose_to_rig, rig_to_opencv_pose, rotation_matrix,
+from cpl_keras.camera import PARAMETERS, TARGETS, fov_from_focal, image_to_world
+from cpl_keras.frames import (
+    crop_resize_coordinate, euler_from_rotation, opencv_pose_to_rig, rig_to_opencv_pose,
+    rotation_matrix,
 )
 
 #: The intrinsics' names.
@@ -95,7 +96,7 @@ class StereoCamera:
     def resize(self, width, height):
         """The camera of its images resized to ``width`` x ``height``: focal
         lengths and principal point scale per axis, pixel centres staying at
-        integers (``camera.crop_resize_coordinate``)."""
+        integers (``frames.crop_resize_coordinate``)."""
         sx, sy = self.resize_scales(width, height)
         return dataclasses.replace(
             self, fx=self.fx * sx, fy=self.fy * sy,

@@ -211,8 +211,8 @@ def test_warns_about_predictions_outside_the_training_labels(setup, tmp_path, ca
 
 
 def test_pose_conversion_to_opencv_inverts_the_rig_pose():
-    from cpl_keras.camera import rotation_matrix
-    from cpl_keras.camera import opencv_pose_to_rig, rig_to_opencv_pose
+    from cpl_keras.frames import rotation_matrix
+    from cpl_keras.frames import opencv_pose_to_rig, rig_to_opencv_pose
 
     R_lr, t = rotation_matrix(0.2, 0.05, -0.03), np.array([0.3, -0.12, 0.04])
     R, T = rig_to_opencv_pose(R_lr, t)

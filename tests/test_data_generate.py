@@ -9,7 +9,7 @@ import h5py
 import numpy as np
 import pytest
 
-from cpl_keras import camera
+from cpl_keras import camera, frames
 from cpl_keras.data import blocks, generate
 from cpl_keras.data.generate import generate_dataset, generate_file
 from cpl_keras.data.pair import released_disparity
@@ -191,7 +191,7 @@ def _released_by_hand(protocol, cfg):
                 "pitch": c["pitch_deg"] - (-15.0)}
     left = np.array(cfg["left_pose"]["position"])
     right = np.array(cfg["right_pose"]["position"])
-    right_pitch = camera.euler_from_rotation(np.array(cfg["right_rotation"]))[0]
+    right_pitch = frames.euler_from_rotation(np.array(cfg["right_rotation"]))[0]
     return {"baseline": cfg["baseline"], "tx": right[0] - left[0], "ty": left[1] - right[1],
             "tz": right[2] - left[2],
             "pitch": np.degrees(cfg["left_pose"]["pitch"] - right_pitch)}

@@ -5,7 +5,7 @@ import math
 import numpy as np
 import pytest
 
-from cpl_keras import camera
+from cpl_keras import camera, frames
 from cpl_keras.data import pixels, protocols, render, scenes
 from cpl_keras.data.pair import pair_setup, render_pair
 
@@ -15,7 +15,7 @@ SIZE = 48
 def _rectified_rig(baseline=0.6, fov_deg=80.0, x=230.0, town_id=0):
     """Left and right views of a rectified lateral rig (right camera to the right)."""
     fx = float(camera.focal_from_fov(math.radians(fov_deg), SIZE))
-    rot = camera.rotation_matrix(0.0)
+    rot = frames.rotation_matrix(0.0)
     left_pos = np.array([x, 1.0, 1.5])
     right_pos = left_pos + np.array([0.0, -baseline, 0.0])    # ty = -baseline
     left = render.View(fx, fx, SIZE / 2, SIZE / 2, SIZE, SIZE, left_pos, rot)
@@ -106,7 +106,7 @@ def test_labels_obey_camera_equations_and_describe_the_rendered_point(protocol):
         assert lab["yaw"] == 0.0 and lab["roll"] == 0.0
         np.testing.assert_allclose([X, Y, Z], in_left, rtol=1e-9, atol=1e-9)
         # relative pose labels: P_left = R(pitch, yaw, roll) P_right + t
-        R = camera.rotation_matrix(lab["pitch"], lab["yaw"], lab["roll"])
+        R = frames.rotation_matrix(lab["pitch"], lab["yaw"], lab["roll"])
         in_right = right.rotation.T @ (world - right.position)
         np.testing.assert_allclose(R @ in_right + [lab["tx"], lab["ty"], lab["tz"]], in_left,
                                    atol=1e-9 * max(1.0, abs(xCam)))
@@ -149,7 +149,7 @@ def test_random_rigs_have_no_relative_yaw_or_roll():
         s = pair_setup("random", 4, 80, 64, index)
         cfg = s["config"]
         relative = s["left"].rotation.T @ s["right"].rotation
-        np.testing.assert_allclose(relative, camera.rotation_matrix(cfg["pitch"]), atol=1e-12)
+        np.testing.assert_allclose(relative, frames.rotation_matrix(cfg["pitch"]), atol=1e-12)
         assert cfg["yaw"] == 0.0 and cfg["roll"] == 0.0
     assert len({round(c["pitch"], 6) for c in configs}) > 5          # pitch still varies
     # the left camera's own mounting yaw and roll stay
@@ -217,8 +217,8 @@ def test_cvgl_labels_convert_carla_conventions():
         assert released["baseline"] == released["tx"]
         # the generic vehicle-frame difference (used by the random protocol) agrees
         generic = protocols.released_extrinsics(
-            camera.rotation_matrix(p), (2.0, 0.0, 1.4),
-            camera.rotation_matrix(math.radians(-carla["pitch_deg"])),
+            frames.rotation_matrix(p), (2.0, 0.0, 1.4),
+            frames.rotation_matrix(math.radians(-carla["pitch_deg"])),
             (carla["x"], -carla["y"], carla["z"]))
         for key in released:
             assert generic[key] == pytest.approx(released[key], abs=1e-9)
@@ -240,7 +240,7 @@ def test_random_protocol_ranges():
         assert released["tx"] == pytest.approx(right[0] - left[0])
         assert released["ty"] == pytest.approx(-(right[1] - left[1]))
         assert released["tz"] == pytest.approx(right[2] - left[2])
-        right_pitch = camera.euler_from_rotation(np.array(cfg["right_rotation"]))[0]
+        right_pitch = frames.euler_from_rotation(np.array(cfg["right_rotation"]))[0]
         assert released["pitch"] == pytest.approx(
             math.degrees(cfg["left_pose"]["pitch"] - right_pitch))
         assert released["baseline"] == pytest.approx(cfg["baseline"])
@@ -255,7 +255,7 @@ def test_every_pixel_has_finite_positive_depth():
     town = scenes.make_town(1)
     fx = float(camera.focal_from_fov(math.radians(150.0), SIZE))
     view = render.View(fx, fx, SIZE / 2, SIZE / 2, SIZE, SIZE, np.array([50.0, 0.0, 2.0]),
-                       camera.rotation_matrix(math.radians(-30.0)))
+                       frames.rotation_matrix(math.radians(-30.0)))
     image, depth = render.render(town, view)
     assert np.all(np.isfinite(depth)) and depth.min() > 0
     assert depth.max() <= scenes.SKY_DISTANCE

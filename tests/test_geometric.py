@@ -6,7 +6,8 @@ import numpy as np
 import pytest
 
 from cpl_keras.baselines import geometric
-from cpl_keras.camera import TARGETS, rotation_matrix
+from cpl_keras.camera import TARGETS
+from cpl_keras.frames import rotation_matrix
 
 W = H = 112
 

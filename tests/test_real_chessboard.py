@@ -8,9 +8,10 @@ import shutil
 import numpy as np
 import pytest
 
-from cpl_keras.camera import image_to_world, rotation_matrix
+from cpl_keras.camera import image_to_world
+from cpl_keras.frames import rotation_matrix
 from cpl_keras.data.storage import StereoFile
-from cpl_keras.camera import CV_TO_PROJECT, opencv_pose_to_rig
+from cpl_keras.frames import CV_TO_PROJECT, opencv_pose_to_rig
 from cpl_keras.commands import chessboard as chessboard_command
 from cpl_keras.commands import real_build
 from cpl_keras.real import chessboard

@@ -9,7 +9,7 @@ import pytest
 
 from cpl_keras.camera import image_to_camera, image_to_world
 from cpl_keras.data.storage import StereoFile
-from cpl_keras.camera import crop_resize_coordinate
+from cpl_keras.frames import crop_resize_coordinate
 from cpl_keras.commands import real_build
 from cpl_keras.real import build
 from cpl_keras.real import middlebury, tsinghua_cityscapes

@@ -6,7 +6,7 @@ import math
 import numpy as np
 import pytest
 
-from cpl_keras import camera
+from cpl_keras import camera, frames
 from cpl_keras.stereo_camera import LABELS, Point, StereoCamera
 
 RIG = StereoCamera(fx=542.3, fy=541.6, u0=328.3, v0=246.9, width=640, height=480,
@@ -21,8 +21,8 @@ def _crop_resize_by_formula(fx, fy, u0, v0, x0, y0, crop_width, crop_height, out
     principal point through ``crop_resize_coordinate``."""
     sx = out_width / float(crop_width)
     sy = out_height / float(crop_height)
-    return (fx * sx, fy * sy, float(camera.crop_resize_coordinate(u0, x0, sx)),
-            float(camera.crop_resize_coordinate(v0, y0, sy)), sx, sy)
+    return (fx * sx, fy * sy, float(frames.crop_resize_coordinate(u0, x0, sx)),
+            float(frames.crop_resize_coordinate(v0, y0, sy)), sx, sy)
 
 
 def test_camera_matrix_by_hand():
@@ -79,8 +79,8 @@ def test_opencv_pose_round_trip_and_convention():
     R, T = RIG.to_opencv_pose()
     assert np.allclose(R @ R.T, np.eye(3)) and np.linalg.det(R) == pytest.approx(1.0)
     # the conversions of camera.py, once
-    R_expected, T_expected = camera.rig_to_opencv_pose(
-        camera.rotation_matrix(RIG.pitch, RIG.yaw, RIG.roll), [RIG.tx, RIG.ty, RIG.tz])
+    R_expected, T_expected = frames.rig_to_opencv_pose(
+        frames.rotation_matrix(RIG.pitch, RIG.yaw, RIG.roll), [RIG.tx, RIG.ty, RIG.tz])
     assert np.array_equal(R, R_expected) and np.array_equal(T, T_expected)
     back = StereoCamera.from_opencv_pose(R, T, RIG.K, RIG.width, RIG.height)
     for name in LABELS:

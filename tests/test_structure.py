@@ -221,8 +221,6 @@ MAX_OWN_FUNCTION_LEVEL_IMPORTS = 10
 #: of them is back under its limit (then it leaves this list) or grows past
 #: the size given here.
 EXCEPTIONS = {
-    "cpl_keras.camera": (430, "the camera equations written once, forward (Eqs. 4a-5c) and "
-                              "inverse, with the op sets every caller runs them on"),
     "cpl_keras.data.render": (430, "one vectorised ray caster: splitting it splits its one "
                                    "loop's state"),
     "cpl_keras.datasets.make_split": (80, "the three splits' rules side by side"),

@@ -18,7 +18,7 @@ pair (left, right) it does:
    convention (right camera pose in the left camera frame,
    ``P_left = R P_right + t``), so pitch has the sign of paper Eq. 5 (positive
    tilts the optical axis down): ``pitch = asin(-R[2, 0])`` for
-   ``R = Rz(yaw) Ry(pitch) Rx(roll)`` (``camera.rotation_matrix``).
+   ``R = Rz(yaw) Ry(pitch) Rx(roll)`` (``frames.rotation_matrix``).
 4. **Disparity** at the projection pixel ``(u, v)`` of the right image, from
    ``cv2.StereoSGBM`` run on the horizontally flipped, swapped pair (so the
    disparity map is the right image's: the point at right pixel ``u`` is at

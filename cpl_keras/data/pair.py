@@ -31,7 +31,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from cpl_keras import camera
+from cpl_keras import camera, frames
 from cpl_keras.data import pixels, protocols, render, scenes
 from cpl_keras.data.scenes import SKY_DISTANCE
 
@@ -150,7 +150,7 @@ def pair_setup(protocol, seed, pairs, image_size, index):
 
 
 def _rotation(pose):
-    return camera.rotation_matrix(pose["pitch"], pose["yaw"], pose["roll"])
+    return frames.rotation_matrix(pose["pitch"], pose["yaw"], pose["roll"])
 
 
 def render_pair(protocol, seed, pairs, image_size, index):

@@ -98,7 +98,7 @@ import math
 
 import numpy as np
 
-from cpl_keras import camera
+from cpl_keras import camera, frames
 from cpl_keras.data import pixels, scenes
 
 PROTOCOLS = ("cvgl", "random", "cameras", "wild", "zoom")
@@ -180,7 +180,7 @@ def _relative(rot_left, pos_left, rot_right, pos_right):
     """Right pose in the left camera's frame: R_rel = R_L^T R_R, t = R_L^T (c_R - c_L)."""
     rel = rot_left.T @ rot_right
     t = rot_left.T @ (np.asarray(pos_right) - np.asarray(pos_left))
-    pitch, yaw, roll = camera.euler_from_rotation(rel)
+    pitch, yaw, roll = frames.euler_from_rotation(rel)
     return pitch, yaw, roll, t
 
 
@@ -195,8 +195,8 @@ def released_extrinsics(rot_left, pos_left, rot_right, pos_right, baseline=None)
     ``baseline`` is given.
     """
     d = np.asarray(pos_right, np.float64) - np.asarray(pos_left, np.float64)
-    pitch_left = camera.euler_from_rotation(rot_left)[0]
-    pitch_right = camera.euler_from_rotation(rot_right)[0]
+    pitch_left = frames.euler_from_rotation(rot_left)[0]
+    pitch_right = frames.euler_from_rotation(rot_right)[0]
     out = {"tx": float(d[0]), "ty": float(-d[1]), "tz": float(d[2]),
            "pitch": math.degrees(pitch_left - pitch_right)}
     out["baseline"] = out["tx"] if baseline is None else float(baseline)
@@ -236,7 +236,7 @@ def _cvgl_rig(rng, c, image_size):
     town_id = 0 if c < CVGL_CONFIGS // 2 else 1
     pitch_left = math.radians(CVGL_LEFT["pitch_deg"])
     left = (CVGL_LEFT["x"], CVGL_LEFT["y"], CVGL_LEFT["z"])
-    rot_left = camera.rotation_matrix(pitch_left)
+    rot_left = frames.rotation_matrix(pitch_left)
     while True:
         fov = _u(rng, CVGL_RANGES["fov_deg"])
         x = _u(rng, CVGL_RANGES["x_m"])
@@ -244,7 +244,7 @@ def _cvgl_rig(rng, c, image_size):
         z = _u(rng, CVGL_RANGES["z_m"])
         pitch_carla = _u(rng, CVGL_RANGES["pitch_carla_deg"])
         right = (x, -y_carla, z)
-        rot_right = camera.rotation_matrix(math.radians(-pitch_carla))
+        rot_right = frames.rotation_matrix(math.radians(-pitch_carla))
         pitch, yaw, roll, t = _relative(rot_left, left, rot_right, right)
         if abs(t[0]) >= CVGL_MIN_BASELINE:
             break
@@ -284,12 +284,12 @@ def _random_rig(rng, c, protocol, image_size):
     left = (_u(rng, R["left_x_m"]), _u(rng, R["left_y_m"]), _u(rng, R["left_z_m"]))
     lp, ly, lr = (math.radians(_u(rng, R[k])) for k in
                   ("left_pitch_deg", "left_yaw_deg", "left_roll_deg"))
-    rot_left = camera.rotation_matrix(lp, ly, lr)
+    rot_left = frames.rotation_matrix(lp, ly, lr)
     lateral = _u(rng, R["baseline_m"])
     t = np.array([_u(rng, R["tx_m"]), -lateral, _u(rng, R["tz_m"])])
     # relative rotation: pitch only (R_rel = Ry(pitch)), so Eq. 5 is exact
     rp = math.radians(_u(rng, R["pitch_deg"]))
-    rot_right = rot_left @ camera.rotation_matrix(rp)
+    rot_right = rot_left @ frames.rotation_matrix(rp)
     right = tuple(np.asarray(left) + rot_left @ t)
     _, _, _, t = _relative(rot_left, left, rot_right, right)
     baseline = float(np.linalg.norm(t))

@@ -3,7 +3,7 @@
 Every pixel's viewing ray is the paper's Eq. 6: pixel (u, v) at depth
 ``xCam = 1`` gives the camera point ``(1, yCam, zCam)`` of Eqs. 4b-4c
 (``camera.camera_point``), turned into the world by the camera-to-world
-rotation ``camera.rotation_matrix(pitch, yaw, roll)``. Because the ray's
+rotation ``frames.rotation_matrix(pitch, yaw, roll)``. Because the ray's
 camera-frame x component is 1, the ray parameter ``t`` of a hit IS the
 point's depth ``xCam`` along the optical axis: the depth map the renderer
 returns is exactly the ``xCam`` of Eq. 4a.
@@ -27,7 +27,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from cpl_keras import camera
+from cpl_keras import camera, frames
 from cpl_keras.data import scenes
 from cpl_keras.data.scenes import BACK, FACADE, GROUND, OBJECT, SIDEWALL, SKY
 from cpl_keras.data.scenes import BOX, CYLINDER, SPHERE
@@ -40,7 +40,7 @@ _TINY = 1e-12
 class View:
     """One camera: pinhole intrinsics and its pose in the world.
 
-    ``rotation`` is camera-to-world (``camera.rotation_matrix``), ``position``
+    ``rotation`` is camera-to-world (``frames.rotation_matrix``), ``position``
     the camera centre in world coordinates (x fwd, y left, z up).
     """
 

@@ -27,7 +27,7 @@ from __future__ import annotations
 import numpy as np
 
 from cpl_keras import cli
-from cpl_keras.camera import crop_resize_coordinate
+from cpl_keras.frames import crop_resize_coordinate
 from cpl_keras.data.pair import released_disparity  # noqa: F401  (the builders' label)
 from cpl_keras.data.storage import min_bytes_per_pair
 from cpl_keras.data.writer import StereoWriter

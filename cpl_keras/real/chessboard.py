@@ -17,7 +17,7 @@ is derived from the images themselves:
    (``StereoCamera.from_opencv_pose``, through ``opencv_pose_to_rig``):
    the right camera's pose in the left camera frame, x forward, y left, z up,
    ``P_left = R_lr P_right + t``; ``tx, ty, tz = t``, ``baseline = |t|``,
-   ``pitch, yaw, roll = camera.euler_from_rotation(R_lr)`` (Eq. 5's pitch,
+   ``pitch, yaw, roll = frames.euler_from_rotation(R_lr)`` (Eq. 5's pitch,
    positive tilts the right camera down relative to the left one).
 4. Each corner is triangulated (``cv2.triangulatePoints`` on the undistorted
    corners of both images): ``X, Y, Z`` is that point in the left camera
@@ -57,10 +57,8 @@ import os
 
 import numpy as np
 
-from cpl_keras.camera import (
-    CV_TO_PROJECT, PARAMETERS, UNITS, crop_resize_coordinate, disparity_from_depth,
-    opencv_pose_to_rig,
-)
+from cpl_keras.camera import PARAMETERS, UNITS, disparity_from_depth
+from cpl_keras.frames import CV_TO_PROJECT, crop_resize_coordinate, opencv_pose_to_rig
 from cpl_keras.images import read_gray, resize_image
 from cpl_keras.real import (
     RealDataError, check_crop_settings, check_sample_room, released_disparity, write_samples,

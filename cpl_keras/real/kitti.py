@@ -51,7 +51,7 @@ import re
 
 import numpy as np
 
-from cpl_keras.camera import CV_TO_PROJECT, crop_resize_coordinate
+from cpl_keras.frames import CV_TO_PROJECT, crop_resize_coordinate
 from cpl_keras.data.writer import StereoWriter
 from cpl_keras.images import read_rgb, resize_image
 from cpl_keras.real import RealDataError, released_disparity

@@ -28,7 +28,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from cpl_keras.camera import crop_resize_coordinate
+from cpl_keras.frames import crop_resize_coordinate
 from cpl_keras.real import (
     RECTIFIED_LABEL_DESCRIPTIONS, check_crop_settings, check_sample_room, rectified_camera,
     rectified_crop, write_samples,

@@ -50,7 +50,7 @@ import os
 
 import numpy as np
 
-from cpl_keras.camera import crop_resize_coordinate
+from cpl_keras.frames import crop_resize_coordinate
 from cpl_keras.data.writer import StereoWriter
 from cpl_keras.images import read_rgb, resize_image
 from cpl_keras.real import (  # noqa: F401  (RealDataError is re-exported)
