@@ -237,6 +237,7 @@ def verdicts_markdown(towers, result):
 
 def equal_epochs_markdown(found):
     """Markdown lines: a pair's validation at equal epochs (``equal_epochs``)."""
+    sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
     import equal_epochs as curves  # (analyses/equal_epochs.py)
 
     seeds = ", ".join(map(str, found["seeds"]))
@@ -246,8 +247,8 @@ def equal_epochs_markdown(found):
     ahead = "; ".join(f"seed {seed}: {n['a_lower']} of {n['epochs']}"
                       for seed, n in found["monitor_a_lower"].items())
     over = f"means over seeds {seeds}" if len(found["seeds"]) > 1 else f"seed {seeds}"
-    return [f"Validation at equal epochs ({over}; val_nmae is the monitor, the sum of the ten NMAEs; for context, "
-            "not a rule of the protocol):", ""] + table + [
+    return [f"Validation at equal epochs ({over}; val_nmae is the monitor, the sum of the "
+            "ten NMAEs; for context, not a rule of the protocol):", ""] + table + [
             "", f"Epochs at which A's monitor is lower than B's: {ahead}.", ""]
 
 
