@@ -35,6 +35,7 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import glob
+import importlib
 import json
 import os
 import shlex
@@ -104,6 +105,14 @@ def protocol_verdict(verdicts):
             (True, True): "mixed"}.get((a > 0, b > 0), "not decided")
 
 
+def _sibling(name):
+    """The script ``analyses/<name>.py`` as a module (imported once)."""
+    folder = os.path.dirname(os.path.abspath(__file__))
+    if folder not in sys.path:
+        sys.path.insert(0, folder)
+    return importlib.import_module(name)
+
+
 #: The epochs at which each pair of arms is compared on validation (every
 #: run trains the same ``EPOCHS``).
 EQUAL_EPOCHS = (10, 20, 30, 40, 50)
@@ -117,8 +126,7 @@ def equal_epochs(logs_a, logs_b, epochs=EQUAL_EPOCHS):
     lower."""
     from cpl_keras.camera import PARAMETERS
 
-    sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
-    import equal_epochs as curves  # (analyses/equal_epochs.py)
+    curves = _sibling("equal_epochs")  # (analyses/equal_epochs.py)
 
     seeds = sorted(set(logs_a) & set(logs_b))
     runs = {side: {s: curves.validation(logs[s]) for s in seeds}
@@ -160,8 +168,7 @@ def write_verdicts(towers, out, data, command, resamples=2000):
     from cpl_keras.evaluation import verdicts as rules
     from cpl_keras.evaluation.predict import paired_outputs
 
-    sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
-    import verdicts as page  # (analyses/verdicts.py: the same tables as every folder's)
+    page = _sibling("verdicts")  # (analyses/verdicts.py: the same tables as every folder's)
 
     folder = os.path.join(out, towers)
     rows, configs, logs = {}, {}, {}
@@ -206,8 +213,7 @@ def verdicts_markdown(towers, result):
     """verdicts.md from verdicts.json's content ``result``."""
     from cpl_keras import files
 
-    sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
-    import verdicts as page  # (analyses/verdicts.py: the same tables as every folder's)
+    page = _sibling("verdicts")  # (analyses/verdicts.py: the same tables as every folder's)
 
     md = [files.generated_line(result["command"]),
           f"# Fair fight, {towers} towers: verdicts", "",
@@ -237,8 +243,7 @@ def verdicts_markdown(towers, result):
 
 def equal_epochs_markdown(found):
     """Markdown lines: a pair's validation at equal epochs (``equal_epochs``)."""
-    sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
-    import equal_epochs as curves  # (analyses/equal_epochs.py)
+    curves = _sibling("equal_epochs")  # (analyses/equal_epochs.py)
 
     seeds = ", ".join(map(str, found["seeds"]))
     table = curves.comparison({int(e): v for e, v in found["a"].items()},
