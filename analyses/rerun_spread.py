@@ -76,6 +76,7 @@ COMPARISONS = (
     ("compact, 2,000 pairs", "compact", "compact-2000-ema/verdicts.json"),
     ("InceptionV3, 2,000 pairs", "InceptionV3", "inception-2000-ema/verdicts.json"),
     ("fair fight, compact", "compact", "fair-fight/compact/verdicts.json"),
+    ("fair fight, InceptionV3", "InceptionV3", "fair-fight/inception/verdicts.json"),
     ("InceptionV3, 8,000 pairs, seed 0, 12 epochs", "InceptionV3",
      "inception-8000/gaps.json#InceptionV3, 8,000 pairs, averaged weights, 12 epochs"),
     ("InceptionV3, 2,000 pairs, seed 0, both patience 20 (ablation (d))", "InceptionV3",
@@ -152,7 +153,11 @@ def compute():
     for label, towers, page in COMPARISONS:
         page, _, setting = page.partition("#")
         with open(os.path.join(RESULTS, page)) as f:
-            rows = _pair_columns(json.load(f), setting or None)
+            verdicts = json.load(f)
+        rows = _pair_columns(verdicts, setting or None)
+        seeds = verdicts["pairs"][PAIR]["seeds"] if "pairs" in verdicts else [0, 1, 2]
+        if len(seeds) < 3:  # (a fair fight still in progress: the seeds so far)
+            label = f"{label}, seeds {', '.join(map(str, seeds))} so far"
         decided = {}
         for column, mean_a, mean_b, verdict in rows:
             if verdict == "undecided":
@@ -166,7 +171,7 @@ def compute():
                   for side in ("A lower", "B lower")}
         comparisons.append({"setting": label, "towers": towers, "verdicts": page,
                             "rule": "the paired bootstrap of one seed" if setting else
-                                    "the seed spread and the paired bootstrap, 3 seeds",
+                                    f"the seed spread and the paired bootstrap, {len(seeds)} seeds",
                             "counts": counts, "columns": decided})
     return {"command": COMMAND, "what": "|NMAE(rerun) - NMAE(published)| of one seed, and the "
             "decided columns of MTL-CPL-A against MTL-Baseline beyond twice it",

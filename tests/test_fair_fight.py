@@ -1,10 +1,11 @@
 """``analyses/fair_fight.py``: the protocol's runs and its verdict rule."""
 
 import dataclasses
+import json
 import os
 
 import pytest
-from helpers import load_script
+from helpers import REPO, load_script
 
 from cpl_keras.evaluation import verdicts as v
 
@@ -43,6 +44,17 @@ def test_the_protocol_verdict_of_a_pair():
     assert script.protocol_verdict(columns(v.B_LOWER, v.B_LOWER)) == "B lower"
     assert script.protocol_verdict(columns(v.A_LOWER, v.B_LOWER)) == "mixed"
     assert script.protocol_verdict(columns(v.UNDECIDED)) == "not decided"
+
+    # (the page: the protocol's verdict once every seed is in; "so far" before)
+    with open(os.path.join(REPO, "paper_results/fair-fight/compact/verdicts.json")) as f:
+        result = json.load(f)
+    pair = result["pairs"]["MTL-CPL-A vs MTL-Baseline"]
+    assert pair["seeds"] == script.PROTOCOL_SEEDS
+    assert "**The protocol's verdict: " in script.verdicts_markdown("compact", result)
+    pair["seeds"] = [0, 1]
+    text = script.verdicts_markdown("compact", result)
+    line = next(x for x in text.splitlines() if "(A = MTL-CPL-A, seeds 0, 1" in x)
+    assert line.startswith("**So far: ") and "not the protocol's verdict" in line
 
 
 def test_two_commands_side_by_side_share_the_runs(tmp_path):
