@@ -182,7 +182,7 @@ def write_verdicts(towers, out, data, command, resamples=2000):
         rows.setdefault(arm, {})[int(seed)] = raw
         configs[(arm, int(seed))] = config
         logs.setdefault(arm, {})[int(seed)] = os.path.join(record, "log.csv")
-    result = {"command": command, "rules": page.RULES,
+    result = {"command": command, "rules": page.RULES, "protocol_seeds": PROTOCOL_SEEDS,
               "runs": [{"arm": arm, "seed": seed, "epochs_run": config.epochs_run,
                         "best_epoch": config.best_epoch, "wall_time_s": config.wall_time_s,
                         "dead_heads": head_shares(logs[arm][seed], config.best_epoch)}
@@ -236,12 +236,13 @@ def verdicts_markdown(towers, result):
             md += page.pair_markdown(pair["a"], pair["b"],
                                      [page.verdict_from_json(c) for c in pair["detail"]])
             seeds = ", ".join(map(str, pair["seeds"]))
-            if pair["seeds"] == PROTOCOL_SEEDS:
+            protocol = result["protocol_seeds"]
+            if pair["seeds"] == protocol:
                 md += [f"**The protocol's verdict: {pair['verdict']}** (A = {pair['a']}, "
                        f"seeds {seeds}).", ""]
             else:  # (the rules are the protocol's, the seeds not all in yet)
                 md += [f"**So far: {pair['verdict']}** (A = {pair['a']}, seeds {seeds} of "
-                       f"the protocol's {', '.join(map(str, PROTOCOL_SEEDS))}: not the "
+                       f"the protocol's {', '.join(map(str, protocol))}: not the "
                        "protocol's verdict until every seed is published).", ""]
         if "equal_epochs" in pair:
             md += equal_epochs_markdown(pair["equal_epochs"])

@@ -156,7 +156,8 @@ def compute():
             verdicts = json.load(f)
         rows = _pair_columns(verdicts, setting or None)
         seeds = verdicts["pairs"][PAIR]["seeds"] if "pairs" in verdicts else [0, 1, 2]
-        if len(seeds) < 3:  # (a fair fight still in progress: the seeds so far)
+        # (a fair fight still in progress: its page names the protocol's seeds)
+        if seeds != verdicts.get("protocol_seeds", seeds):
             label = f"{label}, seeds {', '.join(map(str, seeds))} so far"
         decided = {}
         for column, mean_a, mean_b, verdict in rows:

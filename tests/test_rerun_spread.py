@@ -2,6 +2,7 @@
 and the "lower on N" counts beyond twice it, from the committed files."""
 
 import json
+import os
 
 from helpers import load_script
 
@@ -19,6 +20,14 @@ def test_the_counts_follow_the_rule_and_the_check_can_fail(tmp_path, monkeypatch
         for column, entry in comparison["columns"].items():
             assert entry["beyond_twice_spread"] == (entry["gap"] > 2 * spread[column]) or \
                 abs(entry["gap"] - 2 * spread[column]) < 1e-4, (comparison["setting"], column)
+    # a fair fight's row says "so far" exactly while its page lacks some of the
+    # protocol's seeds (the page names them: ``protocol_seeds``)
+    for comparison in result["comparisons"]:
+        with open(os.path.join(script.RESULTS, comparison["verdicts"])) as f:
+            page = json.load(f)
+        if "protocol_seeds" in page:
+            seeds = page["pairs"][script.PAIR]["seeds"]
+            assert ("so far" in comparison["setting"]) == (seeds != page["protocol_seeds"])
     # a spread that was not measured is not used: every setting borrows a measured one
     assert {c["towers"] for c in result["comparisons"]} <= set(result["spread"])
     # a tampered JSON fails the check
