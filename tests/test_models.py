@@ -31,8 +31,8 @@ def test_baseline_has_the_release_parameter_count_and_runs_inceptionv3():
     assert model.get_layer("left_inception_v3").count_params() == 21_802_784
     rng = np.random.default_rng(0)
     x = {k: rng.uniform(0, 255, (1, 112, 112, 3)).astype("float32") for k in ("left_image", "right_image")}
-    out = model(x, training=False)
-    assert all(np.isfinite(ops.convert_to_numpy(o)).all() for o in out)
+    out = model.predict(x, verbose=0)  # (one compiled program: half the CPU of an eager call)
+    assert len(out) == len(TARGETS) and all(np.isfinite(o).all() for o in out)
 
 
 def test_cpl_variants_have_the_lambda_camera_graph():
