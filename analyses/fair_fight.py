@@ -26,7 +26,8 @@ log, curves, config and split go to ``--out/<towers>/runs/cvgl_<arm>-s<seed>``
 ``--verdicts`` trains nothing: from the published runs it writes
 ``<out>/<towers>/verdicts.md`` and ``.json``: each pair of arms by the
 protocol's rules (over the seeds both arms have, two at least), its
-validation at equal epochs (``EQUAL_EPOCHS``; from one seed on) and each
+validation at equal epochs (``EQUAL_EPOCHS``; from one seed on), each
+arm's test NMAE beside the Average row's (``beside_average``) and each
 run's collapsed-head shares (``head_shares``).
 """
 
@@ -166,20 +167,22 @@ def head_shares(log_path, kept_epoch):
 def write_verdicts(towers, out, data, command, resamples=2000):
     """``<out>/<towers>/verdicts.md`` and ``.json``: each pair of arms over
     the seeds published for both, by the protocol's rules. Returns the md path."""
-    from cpl_keras import files
+    from cpl_keras import files, runs
+    from cpl_keras.baselines.average import load_statistics
     from cpl_keras.evaluation import verdicts as rules
     from cpl_keras.evaluation.predict import paired_outputs
 
     page = _sibling("verdicts")  # (analyses/verdicts.py: the same tables as every folder's)
 
     folder = os.path.join(out, towers)
-    rows, configs, logs = {}, {}, {}
+    rows, configs, logs, statistics = {}, {}, {}, {}
     for record in sorted(glob.glob(os.path.join(folder, "runs", "cvgl_*-s*"))):
         if not os.path.isdir(record):
             continue
         arm, seed = os.path.basename(record)[len("cvgl_"):].rsplit("-s", 1)
         raw, config = paired_outputs(record, data)
         rows.setdefault(arm, {})[int(seed)] = raw
+        statistics[(arm, int(seed))] = load_statistics(os.path.join(record, runs.STATS))
         configs[(arm, int(seed))] = config
         logs.setdefault(arm, {})[int(seed)] = os.path.join(record, "log.csv")
     result = {"command": command, "rules": page.RULES, "protocol_seeds": PROTOCOL_SEEDS,
@@ -204,11 +207,91 @@ def write_verdicts(towers, out, data, command, resamples=2000):
                                   "columns": page.summary(found),
                                   "detail": [dataclasses.asdict(v) for v in found],
                                   "equal_epochs": equal_epochs(logs[a], logs[b])}
+    result["beside_average"] = beside_average(rows, statistics)
     result = json.loads(json.dumps(result))
     path = os.path.join(folder, "verdicts.md")
     files.write_text(path, verdicts_markdown(towers, result))
     files.write_json(os.path.join(folder, "verdicts.json"), result)
     return path
+
+
+def beside_average(rows, statistics):
+    """Each arm's test NMAE per column, the mean over its seeds, beside the
+    Average row's over the seeds published and over the arm's seeds (each
+    parameter predicted as
+    its training split's mean: the seed's ``train_stats.json``, scored on the
+    same test pairs). ``rows``: ``{arm: {seed: raw}}`` (``paired_outputs``);
+    ``statistics``: ``{(arm, seed): train_stats}``; the arms of one seed
+    share a split, so their training means must agree."""
+    import numpy as np
+
+    from cpl_keras import metrics
+    from cpl_keras.camera import PARAMETERS
+
+    means, truths = {}, {}
+    for (arm, seed), stats in sorted(statistics.items()):
+        found = means.setdefault(seed, stats["mean"])
+        if any(abs(found[p] - stats["mean"][p]) > 1e-9 * max(1.0, abs(found[p]))
+               for p in PARAMETERS):
+            raise ValueError(f"seed {seed}: the training means of {arm} differ from another "
+                             "arm's (the arms of a seed must share one split)")
+        truths.setdefault(seed, rows[arm][seed]["truth"])
+
+    def level(nmaes):
+        columns = {p: float(np.mean([n[p] for n in nmaes])) for p in PARAMETERS}
+        return {"sum": sum(columns.values()), **columns}
+
+    def nmaes(pred_of, seeds):
+        return [{p: metrics.nmae(truths[s][p], pred_of(s, p)) for p in PARAMETERS}
+                for s in seeds]
+
+    def average(seeds):
+        return level(nmaes(lambda s, p: np.full(len(truths[s][p]), means[s][p]), seeds))
+
+    arms = {arm: {"seeds": sorted(rows[arm]),
+                  "nmae": level(nmaes(lambda s, p, arm=arm: rows[arm][s]["pred"][p],
+                                      sorted(rows[arm]))),
+                  "average_nmae": average(sorted(rows[arm]))}  # (over the arm's seeds)
+            for arm in ARMS if arm in rows}
+    return {"arms": arms, "average": {"seeds": sorted(truths), "nmae": average(sorted(truths))}}
+
+
+def average_markdown(found):
+    """Markdown lines: ``beside_average``'s table, each arm's row and its
+    ratio to the Average row's."""
+    from cpl_keras.camera import PARAMETERS
+
+    keys = ("sum",) + PARAMETERS
+    average = found["average"]["nmae"]
+    exact = [p for p in PARAMETERS if average[p] <= 1e-12]
+
+    def seeds(x):
+        return ", ".join(map(str, x["seeds"]))
+
+    def ratio(row, p):  # (against the Average row over the arm's own seeds)
+        below = row["average_nmae"][p]
+        return "-" if below <= 1e-12 else f"{row['nmae'][p] / below:.2f}"
+
+    lines = ["## Test NMAE beside the Average row", "",
+             "For context, not a rule of the protocol: each arm's test NMAE, the mean over "
+             "its seeds, and the Average row's: each parameter predicted as the training "
+             "split's mean (each seed's `train_stats.json`), scored on the same test pairs. "
+             "The rows \"/ Average\" divide an arm's NMAE by the Average row's over the arm's "
+             "seeds"
+             + (f" (\"-\" where the Average row is exact: {', '.join(exact)}, constant "
+                "in the labels)" if exact else "") + ".", "",
+             "| row | seeds | " + " | ".join(keys) + " |",
+             "|---|---|" + "---|" * len(keys)]
+    arms = found["arms"]
+    for arm, row in arms.items():
+        lines.append(f"| {NAMES[arm]} | {seeds(row)} | "
+                     + " | ".join(f"{row['nmae'][k]:.3f}" for k in keys) + " |")
+    lines.append(f"| Average (training mean) | {seeds(found['average'])} | "
+                 + " | ".join(f"{average[k]:.3f}" for k in keys) + " |")
+    for arm, row in arms.items():
+        lines.append(f"| {NAMES[arm]} / Average | | "
+                     + " | ".join(ratio(row, k) for k in keys) + " |")
+    return lines + [""]
 
 
 def verdicts_markdown(towers, result):
@@ -246,6 +329,8 @@ def verdicts_markdown(towers, result):
                        "protocol's verdict until every seed is published).", ""]
         if "equal_epochs" in pair:
             md += equal_epochs_markdown(pair["equal_epochs"])
+    if "beside_average" in result:
+        md += average_markdown(result["beside_average"])
     md += heads_markdown(result["runs"])
     return "\n".join(md)
 

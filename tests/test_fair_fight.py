@@ -113,3 +113,46 @@ def test_validation_at_equal_epochs_and_collapsed_heads_of_a_pair(tmp_path):
     runs = [{"arm": "cpl-a", "seed": 0, "best_epoch": 30, "dead_heads": shares}]
     row = script.heads_markdown(runs)[-2]
     assert row.startswith("| MTL-CPL-A | 0 | 30 | - |") and row.endswith("| 0.50 (1.00) |")
+
+
+def test_each_arm_beside_the_average_row(tmp_path):
+    import numpy as np
+
+    from cpl_keras.camera import PARAMETERS
+
+    script = _script()
+    # two seeds of 4 test pairs; u0 is constant (the Average row is exact there)
+    truth = {s: {p: np.array([1.0, 2.0, 3.0, 4.0]) + s for p in PARAMETERS} for s in (0, 1)}
+    for s in (0, 1):
+        truth[s]["u0"] = np.full(4, 56.0)
+    mean = {s: {p: float(truth[s][p].mean()) for p in PARAMETERS} for s in (0, 1)}
+    # A is off by 0.1 everywhere; B (seed 0 only) predicts the training mean
+    rows = {"cpl-a": {s: {"truth": truth[s], "pred": {p: truth[s][p] + 0.1 for p in PARAMETERS}}
+                      for s in (0, 1)},
+            "baseline": {0: {"truth": truth[0],
+                             "pred": {p: np.full(4, mean[0][p]) for p in PARAMETERS}}}}
+    statistics = {(arm, s): {"mean": mean[s]} for arm in rows for s in rows[arm]}
+    found = script.beside_average(rows, statistics)
+    # the Average row: MAE 1.0 on a column 1..4 (mean |y| 2.5), 1.0 on 2..5 (mean 3.5)
+    assert found["average"]["seeds"] == [0, 1]
+    assert found["average"]["nmae"]["fx"] == pytest.approx((1 / 2.5 + 1 / 3.5) / 2)
+    assert found["average"]["nmae"]["u0"] == 0.0
+    a = found["arms"]["cpl-a"]
+    assert a["seeds"] == [0, 1]
+    assert a["nmae"]["fx"] == pytest.approx((0.1 / 2.5 + 0.1 / 3.5) / 2)
+    assert a["nmae"]["sum"] == pytest.approx(sum(a["nmae"][p] for p in PARAMETERS))
+    b = found["arms"]["baseline"]  # (its ratio: against the Average over seed 0 alone)
+    assert b["seeds"] == [0] and b["average_nmae"]["fx"] == pytest.approx(1 / 2.5)
+    lines = script.average_markdown(found)
+
+    def cells(start):
+        return [c.strip() for c in next(x for x in lines if x.startswith(start)).split("|")]
+
+    header, row = cells("| row |"), cells("| MTL-Baseline / Average |")
+    assert row[header.index("fx")] == "1.00" and row[header.index("u0")] == "-"
+    assert "exact: u0, constant in the labels" in "\n".join(lines)
+    assert cells("| MTL-CPL-A / Average |")[header.index("fy")] == "0.10"
+    # the arms of a seed share a split: training means that disagree are refused
+    statistics[("baseline", 0)] = {"mean": {**mean[0], "fx": mean[0]["fx"] + 1.0}}
+    with pytest.raises(ValueError, match="seed 0: the training means"):
+        script.beside_average(rows, statistics)
