@@ -4,7 +4,8 @@ test files need, made once per session.
 
 The suite runs on two pytest-xdist workers by itself (pyproject.toml's
 ``addopts``: ``-n 2 --dist loadfile``, each test file on one worker;
-``-n 0`` runs it in one process). What the workers share lives in the
+``-n 0`` runs it in one process) and ends with its 20 slowest tests
+(``--durations=20``: where the suite's time goes, in every CI log). What the workers share lives in the
 session's folder (``shared_folder``), each thing made by the first worker
 that needs it, behind a file lock, and read by the other:
 
