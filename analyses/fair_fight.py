@@ -218,9 +218,8 @@ def write_verdicts(towers, out, data, command, resamples=2000):
 def beside_average(rows, statistics):
     """Each arm's test NMAE per column, the mean over its seeds, beside the
     Average row's over the seeds published and over the arm's seeds (each
-    parameter predicted as
-    its training split's mean: the seed's ``train_stats.json``, scored on the
-    same test pairs). ``rows``: ``{arm: {seed: raw}}`` (``paired_outputs``);
+    parameter predicted as its training split's mean: the seed's
+    ``train_stats.json``, scored on the same test pairs). ``rows``: ``{arm: {seed: raw}}`` (``paired_outputs``);
     ``statistics``: ``{(arm, seed): train_stats}``; the arms of one seed
     share a split, so their training means must agree."""
     import numpy as np
