@@ -225,11 +225,12 @@ def beside_average(rows, statistics):
     import numpy as np
 
     from cpl_keras import metrics
+    from cpl_keras.baselines.average import average_predictions
     from cpl_keras.camera import PARAMETERS
 
-    means, truths = {}, {}
+    seed_stats, truths = {}, {}
     for (arm, seed), stats in sorted(statistics.items()):
-        found = means.setdefault(seed, stats["mean"])
+        found = seed_stats.setdefault(seed, stats)["mean"]
         if any(abs(found[p] - stats["mean"][p]) > 1e-9 * max(1.0, abs(found[p]))
                for p in PARAMETERS):
             raise ValueError(f"seed {seed}: the training means of {arm} differ from another "
@@ -245,7 +246,9 @@ def beside_average(rows, statistics):
                 for s in seeds]
 
     def average(seeds):
-        return level(nmaes(lambda s, p: np.full(len(truths[s][p]), means[s][p]), seeds))
+        predictions = {s: average_predictions(seed_stats[s], len(truths[s]["fx"]))
+                       for s in seeds}
+        return level(nmaes(lambda s, p: predictions[s][p], seeds))
 
     arms = {arm: {"seeds": sorted(rows[arm]),
                   "nmae": level(nmaes(lambda s, p, arm=arm: rows[arm][s]["pred"][p],
@@ -255,6 +258,10 @@ def beside_average(rows, statistics):
     return {"arms": arms, "average": {"seeds": sorted(truths), "nmae": average(sorted(truths))}}
 
 
+#: An NMAE at or below this is the Average row being exact (a constant column).
+EXACT = 1e-12
+
+
 def average_markdown(found):
     """Markdown lines: ``beside_average``'s table, each arm's row and its
     ratio to the Average row's."""
@@ -262,14 +269,14 @@ def average_markdown(found):
 
     keys = ("sum",) + PARAMETERS
     average = found["average"]["nmae"]
-    exact = [p for p in PARAMETERS if average[p] <= 1e-12]
+    exact = [p for p in PARAMETERS if average[p] <= EXACT]
 
     def seeds(x):
         return ", ".join(map(str, x["seeds"]))
 
     def ratio(row, p):  # (against the Average row over the arm's own seeds)
         below = row["average_nmae"][p]
-        return "-" if below <= 1e-12 else f"{row['nmae'][p] / below:.2f}"
+        return "-" if below <= EXACT else f"{row['nmae'][p] / below:.2f}"
 
     lines = ["## Test NMAE beside the Average row", "",
              "For context, not a rule of the protocol: each arm's test NMAE, the mean over "

@@ -126,12 +126,13 @@ def test_each_arm_beside_the_average_row(tmp_path):
     for s in (0, 1):
         truth[s]["u0"] = np.full(4, 56.0)
     mean = {s: {p: float(truth[s][p].mean()) for p in PARAMETERS} for s in (0, 1)}
+    points = {"X": 1.0, "Y": 1.0, "Z": 1.0}  # (train_stats.json has every target)
     # A is off by 0.1 everywhere; B (seed 0 only) predicts the training mean
     rows = {"cpl-a": {s: {"truth": truth[s], "pred": {p: truth[s][p] + 0.1 for p in PARAMETERS}}
                       for s in (0, 1)},
             "baseline": {0: {"truth": truth[0],
                              "pred": {p: np.full(4, mean[0][p]) for p in PARAMETERS}}}}
-    statistics = {(arm, s): {"mean": mean[s]} for arm in rows for s in rows[arm]}
+    statistics = {(arm, s): {"mean": {**mean[s], **points}} for arm in rows for s in rows[arm]}
     found = script.beside_average(rows, statistics)
     # the Average row: MAE 1.0 on a column 1..4 (mean |y| 2.5), 1.0 on 2..5 (mean 3.5)
     assert found["average"]["seeds"] == [0, 1]
@@ -153,6 +154,6 @@ def test_each_arm_beside_the_average_row(tmp_path):
     assert "exact: u0, constant in the labels" in "\n".join(lines)
     assert cells("| MTL-CPL-A / Average |")[header.index("fy")] == "0.10"
     # the arms of a seed share a split: training means that disagree are refused
-    statistics[("baseline", 0)] = {"mean": {**mean[0], "fx": mean[0]["fx"] + 1.0}}
+    statistics[("baseline", 0)] = {"mean": {**mean[0], **points, "fx": mean[0]["fx"] + 1.0}}
     with pytest.raises(ValueError, match="seed 0: the training means"):
         script.beside_average(rows, statistics)
