@@ -13,6 +13,7 @@
   an output's path checked before the work, writing nothing (missing folders
   can be made, its device has space left; ``OutputError`` otherwise), then
   its folders created just before it is written;
+* ``ProgressBar``: pairs done, their rate and the time left, on stderr;
 * ``check_room(what, path, disk, memory)``: a command's estimate of the disk
   space and memory it needs, checked against what this machine has before
   any work (one line naming both, ``size_text`` for the sizes);
@@ -28,6 +29,7 @@ import os
 import shlex
 import shutil
 import sys
+import time
 
 from cpl_keras.errors import Error, fail, one_line  # noqa: F401  (one_line: also here)
 from cpl_keras.interrupts import (  # noqa: F401  (the commands reach them as cli.*)
@@ -244,3 +246,39 @@ def check_room(what, path, disk=0, memory=0):
     if available is not None and memory > available:
         raise ValueError(f"{what} need about {size_text(memory)} of memory; "
                          f"{size_text(available)} is available")
+
+
+class ProgressBar:
+    """A command's progress bar on stderr (generation, import): pairs done
+    of ``total`` (``done`` of them before this run, by the run it resumes),
+    and the rate and time left measured on this run's own pairs."""
+
+    def __init__(self, total, label, enabled, done=0):
+        self.total, self.label, self.enabled = total, label, enabled
+        self.start = time.perf_counter()
+        self.done = self.initial = done
+        self.open_line = False  # (a bar line not yet ended by a newline)
+
+    def update(self, n):
+        self.done += n
+        if not self.enabled:
+            return
+        elapsed = time.perf_counter() - self.start
+        rate = (self.done - self.initial) / max(elapsed, 1e-9)
+        width = 30
+        filled = int(width * self.done / self.total)
+        eta = (self.total - self.done) / max(rate, 1e-9)
+        # (the line's state first: a Ctrl-C lands just after the text as well)
+        self.open_line = self.done < self.total
+        sys.stderr.write(f"\r{self.label} [{'#' * filled}{'.' * (width - filled)}] "
+                         f"{self.done}/{self.total} pairs {rate:6.1f} pairs/s ETA {eta:5.0f}s "
+                         + ("" if self.open_line else "\n"))
+        sys.stderr.flush()
+
+    def close(self):
+        """End the bar's line (an interruption's or error's line then starts
+        on its own)."""
+        if self.open_line:
+            sys.stderr.write("\n")
+            sys.stderr.flush()
+            self.open_line = False

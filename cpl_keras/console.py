@@ -13,6 +13,7 @@ is in place at once; the module's imports take a moment):
     cpl-real-build   python -m cpl_keras.real.build        (cpl_keras.commands.real_build)
     cpl-chessboard   python -m cpl_keras.real.chessboard   (cpl_keras.commands.chessboard)
     cpl-mix          python -m cpl_keras.data.mix          (cpl_keras.commands.mix)
+    cpl-import-cvgl  python -m cpl_keras.data.import_cvgl  (cpl_keras.commands.import_cvgl)
     cpl-learning-curves  python -m cpl_keras.learning_curves  (cpl_keras.commands.learning_curves)
 
 ``cpl-train`` and ``cpl-evaluate`` go by those names in their lines and in
@@ -64,4 +65,5 @@ generate = _command("generate", "python -m cpl_keras.data.generate")
 real_build = _command("real_build", "python -m cpl_keras.real.build")
 chessboard = _command("chessboard", "python -m cpl_keras.real.chessboard")
 mix = _command("mix", "python -m cpl_keras.data.mix")
+import_cvgl = _command("import_cvgl", "python -m cpl_keras.data.import_cvgl")
 learning_curves = _command("learning_curves", "python -m cpl_keras.learning_curves")

@@ -23,7 +23,7 @@ from cpl_keras import camera
 from cpl_keras.camera import TARGETS
 from cpl_keras.data.storage import DatasetError, StereoFile
 
-SPLITS = ("paper", "drive", "held-out-config")
+SPLITS = ("paper", "drive", "held-out-config", "released")
 #: Labels of the extrinsics in the release's frame and its projection pixel
 #: (written by ``cpl_keras.data.generate``; pitch_released in degrees).
 RELEASED_EXTRINSICS = ("baseline_released", "tx_released", "ty_released", "tz_released",
@@ -51,30 +51,17 @@ def targets_from_labels(labels, as_released=False):
 
     Labels without the release-frame names (``RELEASED_EXTRINSICS``: files
     that have one frame only, such as the real-data sets) use the stored
-    extrinsics with pitch converted to degrees, and the stored (u, v).
+    extrinsics with pitch converted to degrees, and the stored (u, v). A
+    file imported from the authors' release (``cpl_keras.data.import_cvgl``)
+    stores all 13 targets as ``<name>_released``: they are taken as they are,
+    and paper mode is refused (the release cannot give the project's
+    disparity, X, Y, Z).
     """
     present = [name for name in RELEASED_EXTRINSICS if name in labels]
     if as_released and present and len(present) < len(RELEASED_EXTRINSICS):
         missing = [name for name in RELEASED_EXTRINSICS if name not in labels]
         raise DatasetError(f"missing label(s) {', '.join(missing)}")
-    required = TARGETS + (("u", "v", "disparity_released") if as_released else ())
-    missing = [name for name in required if name not in labels]
-    if missing:
-        raise DatasetError(f"missing label(s) {', '.join(missing)}")
-    out = {name: np.asarray(labels[name], dtype=np.float64) for name in TARGETS}
-    if as_released:
-        out["disparity"] = np.asarray(labels["disparity_released"], dtype=np.float64)
-        if present:
-            for name in ("baseline", "tx", "ty", "tz", "pitch"):
-                out[name] = np.asarray(labels[f"{name}_released"], dtype=np.float64)
-            u, v = labels["u_released"], labels["v_released"]
-        else:
-            out["pitch"] = np.degrees(out["pitch"])
-            u, v = labels["u"], labels["v"]
-        params = {name: out[name] for name in camera.PARAMETERS}
-        u = np.asarray(u, dtype=np.float64)
-        v = np.asarray(v, dtype=np.float64)
-        out["X"], out["Y"], out["Z"] = camera.image_to_world(**params, u=u, v=v)
+    out = _released_targets(labels, present) if as_released else _paper_targets(labels)
     result = {name: out[name].astype(np.float32) for name in TARGETS}
     for name, values in result.items():
         if not np.all(np.isfinite(values)):
@@ -93,6 +80,44 @@ def targets_from_labels(labels, as_released=False):
                                f"{result[name].size} pairs, which no camera has; fix or drop "
                                f"those pairs")
     return result
+
+
+def _paper_targets(labels):
+    """The stored targets (DatasetError naming those missing; those a file
+    imported from the authors' release holds as released only, said so)."""
+    missing = [name for name in TARGETS if name not in labels]
+    if missing and all(f"{name}_released" in labels for name in missing):
+        raise DatasetError(
+            f"the labels {', '.join(missing)} are the release's only (a file imported from "
+            "the authors' release, which cannot give them): train and evaluate it as released "
+            "(--as-released)")
+    if missing:
+        raise DatasetError(f"missing label(s) {', '.join(missing)}")
+    return {name: np.asarray(labels[name], dtype=np.float64) for name in TARGETS}
+
+
+def _released_targets(labels, present):
+    """The release's targets (``targets_from_labels(..., as_released=True)``):
+    each target's ``<name>_released`` label where the file has one (an
+    imported release has all 13), the release's disparity, and X, Y, Z of
+    the camera equations at the release's pixel where not stored."""
+    def label(name):
+        found = labels.get(f"{name}_released", labels.get(name))
+        if found is None:
+            raise DatasetError(f"missing label(s) {name}")
+        return np.asarray(found, dtype=np.float64)
+
+    out = {name: label(name) for name in camera.PARAMETERS if name != "disparity"}
+    out["disparity"] = label("disparity_released")
+    if not present:   # (one frame only, pitch in radians: the release's degrees)
+        out["pitch"] = np.degrees(out["pitch"])
+    if all(f"{name}_released" in labels for name in ("X", "Y", "Z")):
+        out.update({name: label(f"{name}_released") for name in ("X", "Y", "Z")})
+        return out
+    u, v = (label("u_released"), label("v_released")) if present else (label("u"), label("v"))
+    params = {name: out[name] for name in camera.PARAMETERS}
+    out["X"], out["Y"], out["Z"] = camera.image_to_world(**params, u=u, v=v)
+    return out
 
 
 #: The targets no camera has at or below zero: focal lengths (px) and the
@@ -145,6 +170,11 @@ def make_split(stereo_file_or_labels, kind="paper", seed=0, test_fraction=0.3,
     ``as_released=True`` the validation set *is* the test set, as in the
     released code (which early-stopped on its test data).
 
+    ``kind="released"``: the split as the authors' release made it, on rows
+    it had shuffled once before saving them: the first ``int(0.7 N)`` rows
+    (``1 - test_fraction``) train, the rest is the validation *and* the
+    test set; never reshuffled (``seed`` does not enter).
+
     ``stereo_file_or_labels`` is a ``StereoFile``, a path or a label dict.
     """
     if kind not in SPLITS:
@@ -152,39 +182,9 @@ def make_split(stereo_file_or_labels, kind="paper", seed=0, test_fraction=0.3,
     labels = _labels_of(stereo_file_or_labels)
     n = len(next(iter(labels.values())))
     rng = np.random.default_rng(seed)
-    if kind == "paper":
-        n_test = _fraction_count(test_fraction, n, "test_fraction")
-        order = rng.permutation(n)
-        train, test = order[: n - n_test], order[n - n_test:]
-        n_val = _fraction_count(val_fraction, len(train), "val_fraction")
-        if as_released:
-            val = test
-        else:
-            val, train = train[len(train) - n_val:], train[: len(train) - n_val]
-    elif kind == "drive":
-        train, val, test = _drive_split(labels, test_fraction, val_fraction, as_released)
-    else:
-        if "config_id" not in labels:
-            raise DatasetError("held-out-config split needs the label 'config_id'")
-        config_id = np.asarray(labels["config_id"])
-        configs = rng.permutation(np.unique(config_id))
-        needed = 2 if as_released else 3
-        if len(configs) < needed:
-            raise DatasetError(
-                f"held-out-config split needs at least {needed} configurations, "
-                f"the dataset has {len(configs)}"
-            )
-        counts = np.array([(config_id == c).sum() for c in configs])
-        test_configs = _take_configs(counts, _fraction_count(test_fraction, n, "test_fraction"))
-        rest = np.arange(len(configs))[len(test_configs):]
-        if as_released:
-            val_configs = test_configs
-        else:
-            n_val = _fraction_count(val_fraction, counts[rest].sum(), "val_fraction")
-            val_configs = rest[: len(_take_configs(counts[rest], n_val, keep=1))]
-        train_configs = np.setdiff1d(rest, val_configs)
-        pick = lambda idx: np.flatnonzero(np.isin(config_id, configs[idx]))  # noqa: E731
-        train, val, test = pick(train_configs), pick(val_configs), pick(test_configs)
+    split_of = {"released": _released_split, "paper": _paper_split, "drive": _drive_split,
+                "held-out-config": _config_split}[kind]
+    train, val, test = split_of(labels, n, rng, test_fraction, val_fraction, as_released)
     split = {"train": np.sort(train), "val": np.sort(val), "test": np.sort(test)}
     for name, indices in split.items():
         if len(indices) == 0:
@@ -195,7 +195,53 @@ def make_split(stereo_file_or_labels, kind="paper", seed=0, test_fraction=0.3,
     return split
 
 
-def _drive_split(labels, test_fraction, val_fraction, as_released):
+def _released_split(labels, n, rng, test_fraction, val_fraction, as_released):
+    """The ``released`` split: the first ``int((1 - test_fraction) N)`` rows
+    train, the rest is validation and test (``rng`` unused: no shuffle)."""
+    _fraction_count(test_fraction, n, "test_fraction")
+    cut = int((1 - test_fraction) * n)
+    return np.arange(cut), np.arange(cut, n), np.arange(cut, n)
+
+
+def _paper_split(labels, n, rng, test_fraction, val_fraction, as_released):
+    """The ``paper`` split: frames shuffled, the last ``test_fraction`` test,
+    the end of the rest validation (the test set itself as released)."""
+    n_test = _fraction_count(test_fraction, n, "test_fraction")
+    order = rng.permutation(n)
+    train, test = order[: n - n_test], order[n - n_test:]
+    n_val = _fraction_count(val_fraction, len(train), "val_fraction")
+    if as_released:
+        return train, test, test
+    return train[: len(train) - n_val], train[len(train) - n_val:], test
+
+
+def _config_split(labels, n, rng, test_fraction, val_fraction, as_released):
+    """The ``held-out-config`` split: whole rig configurations to test, then
+    to validation (the test set itself as released), the rest to training."""
+    if "config_id" not in labels:
+        raise DatasetError("held-out-config split needs the label 'config_id'")
+    config_id = np.asarray(labels["config_id"])
+    configs = rng.permutation(np.unique(config_id))
+    needed = 2 if as_released else 3
+    if len(configs) < needed:
+        raise DatasetError(
+            f"held-out-config split needs at least {needed} configurations, "
+            f"the dataset has {len(configs)}"
+        )
+    counts = np.array([(config_id == c).sum() for c in configs])
+    test_configs = _take_configs(counts, _fraction_count(test_fraction, n, "test_fraction"))
+    rest = np.arange(len(configs))[len(test_configs):]
+    if as_released:
+        val_configs = test_configs
+    else:
+        n_val = _fraction_count(val_fraction, counts[rest].sum(), "val_fraction")
+        val_configs = rest[: len(_take_configs(counts[rest], n_val, keep=1))]
+    train_configs = np.setdiff1d(rest, val_configs)
+    pick = lambda idx: np.flatnonzero(np.isin(config_id, configs[idx]))  # noqa: E731
+    return pick(train_configs), pick(val_configs), pick(test_configs)
+
+
+def _drive_split(labels, n, rng, test_fraction, val_fraction, as_released):
     """The ``drive`` split: per rig, the end of its drive is test, the stretch
     before it validation, the beginning training."""
     for key in ("config_id", "frame_index"):

@@ -119,10 +119,12 @@ def main_functions():
     """``{command: its main function}`` for the package's commands and the
     repository's train.py and evaluate.py."""
     from cpl_keras.commands import (
-        calibrate, chessboard, generate, graph, learning_curves, mix, real_build, reproduce,
+        calibrate, chessboard, generate, graph, import_cvgl, learning_curves, mix, real_build,
+        reproduce,
     )
 
     mains = {"reproduce": reproduce.main, "data.generate": generate.main, "data.mix": mix.main,
+             "data.import_cvgl": import_cvgl.main,
              "calibrate": calibrate.main, "graph": graph.main, "real.build": real_build.main,
              "learning_curves": learning_curves.main, "real.chessboard": chessboard.main}
     for script in ("train.py", "evaluate.py"):
@@ -170,6 +172,103 @@ def kitti_stereo_root(root, calib="cam_to_cam", disparity=12.5):
     else:
         shutil.copy(KITTI_OBJECT, base / "calib" / "000000.txt")
     return root
+
+
+# ---------------------------------------------------------------------------
+# The authors' release, in its exact formats, from the project's own renderer
+# ---------------------------------------------------------------------------
+#: The row order of ``release_flat``: the release shuffled its rows once
+#: before saving them (here a fixed permutation, so a test can follow rows).
+def release_order(n):
+    return np.random.default_rng(7).permutation(n)
+
+
+def release_flat(rendered, directory, suffix=""):
+    """The pairs of the rendered cvgl file ``rendered`` in the release's flat
+    layout (``cpl_keras.data.release_files.write_flat``: BGR images, the
+    release's labels, pitch in degrees, StereoBM's mean disparity, the
+    vehicle-frame differences, X, Y, Z of its formula at (56, 56)), rows in
+    ``release_order``. ``suffix`` "r" writes them as the real sets' files
+    (RGB, pitch in radians, X, Y, Z at (5, 5), intrinsics 10x as at full
+    resolution), as data only. Returns ``directory``."""
+    from cpl_keras import camera
+    from cpl_keras.data.release_files import release_labels, write_flat
+    from cpl_keras.data.storage import StereoFile
+    from cpl_keras.datasets import targets_from_labels
+
+    with StereoFile(rendered) as f:
+        order = release_order(f.num_pairs)
+        left, right = f.read_pairs(order)
+        labels = {k: np.asarray(v)[order] for k, v in f.labels.items()}
+    released = release_labels(targets_from_labels(labels, as_released=True))
+    if suffix:
+        for name in ("fx", "fy", "u0", "v0"):
+            released[name] = released[name] * 10
+        released["p"] = np.radians(released["p"])
+        params = {camera.TARGETS[i]: released[k] for i, k in enumerate(("fx", "fy", "u0", "v0",
+                  "b", "d", "tx", "ty", "tz", "p"))}
+        released["x"], released["y"], released["z"] = camera.image_to_world(**params, u=5.0,
+                                                                            v=5.0)
+    return write_flat(directory, left, right, released, suffix)
+
+
+def release_episodes(rendered, root):
+    """The pairs of the rendered cvgl file ``rendered`` as the release's raw
+    episodes: ``Town<k>/episode_<c>/LeftRGB_<i>.png``, ``RightRGB_<i>.png``
+    (written by OpenCV, so BGR on disk as CARLA's) and ``params.txt`` with
+    the right camera's CARLA fov, x, y, z, pitch. Returns ``root``."""
+    import cv2
+
+    from cpl_keras.data.storage import StereoFile
+
+    with StereoFile(rendered) as f:
+        configs = f.metadata["configurations"]
+        config_id, frame = f.labels["config_id"], f.labels["frame_index"]
+        for i in range(f.num_pairs):
+            cfg = configs[int(config_id[i])]
+            folder = os.path.join(root, f"Town{cfg['town_id'] + 1}",
+                                  f"episode_{int(config_id[i]):04d}")
+            if not os.path.isdir(folder):
+                os.makedirs(folder)
+                carla = cfg["carla"]
+                with open(os.path.join(folder, "params.txt"), "w") as out:
+                    out.write("".join(f"{name}: {carla[key]!r}\n" for name, key in (
+                        ("fov", "fov_deg"), ("x", "x"), ("y", "y"), ("z", "z"),
+                        ("pitch", "pitch_deg"))) + "yaw: 0.0\n")
+            left, right = f.read_pairs([i])
+            cv2.imwrite(os.path.join(folder, f"LeftRGB_{int(frame[i])}.png"), left[0][..., ::-1])
+            cv2.imwrite(os.path.join(folder, f"RightRGB_{int(frame[i])}.png"),
+                        right[0][..., ::-1])
+    return root
+
+
+def tsinghua_root(root, names=("a_000001", "a_000002"), shape=(48, 96), d=8.0,
+                  camera=None, split="test", city="tsinghuaDaimlerDataset"):
+    """A Tsinghua-Daimler Cyclist Benchmark folder under ``root`` (a
+    ``pathlib.Path``) in that dataset's layout (``leftImg8bit``,
+    ``disparity``, ``camera`` JSON), random images, a disparity of ``d``
+    with an invalid strip. Returns the camera dict."""
+    import json
+
+    import cv2
+
+    rng = np.random.default_rng(0)
+    camera = camera or {
+        "extrinsic": {"baseline": 0.3, "pitch": 0.04, "roll": 0.01, "x": 1.7, "y": 0.1,
+                      "yaw": -0.02, "z": 1.2},
+        "intrinsic": {"fx": 120.0, "fy": 125.0, "u0": 47.0, "v0": 23.0},
+    }
+    for name in names:
+        for folder in ("leftImg8bit", "disparity", "camera"):
+            os.makedirs(root / folder / split / city, exist_ok=True)
+        image = (rng.random(shape + (3,)) * 255).astype(np.uint8)
+        cv2.imwrite(str(root / "leftImg8bit" / split / city / f"{name}_leftImg8bit.png"), image)
+        raw = np.full(shape, int(d * 256 + 1), np.uint16)
+        raw[:, :4] = 0                                    # invalid strip
+        cv2.imwrite(str(root / "disparity" / split / city / f"{name}_disparity.png"), raw)
+        with open(root / "camera" / split / city / f"{name}_camera.json", "w") as f:
+            json.dump(camera, f)
+    return camera
 
 
 # ---------------------------------------------------------------------------

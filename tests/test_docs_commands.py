@@ -28,7 +28,7 @@ EXAMPLES = {"RUN_DIR": "runs/x", "RUN_A": "runs/a", "RUN_B": "runs/b", "DATA": "
 #: The command lines the docs use, by how they are invoked.
 ENTRY = {"train.py": "train.py", "evaluate.py": "evaluate.py",
          "cpl_keras.reproduce": "reproduce", "cpl_keras.data.generate": "data.generate",
-         "cpl_keras.data.mix": "data.mix",
+         "cpl_keras.data.mix": "data.mix", "cpl_keras.data.import_cvgl": "data.import_cvgl",
          "cpl_keras.calibrate": "calibrate", "cpl_keras.graph": "graph",
          "cpl_keras.real.build": "real.build", "cpl_keras.real.chessboard": "real.chessboard",
          "cpl_keras.learning_curves": "learning_curves"}

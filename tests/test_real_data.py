@@ -1,6 +1,5 @@
 """Real data: Middlebury crops, Tsinghua-Daimler / Cityscapes layout, the CLI."""
 
-import json
 import os
 
 import cv2
@@ -14,6 +13,7 @@ from cpl_keras.commands import real_build
 from cpl_keras.real import build
 from cpl_keras.real import middlebury, tsinghua_cityscapes
 from cpl_keras.stereo_camera import StereoCamera
+from helpers import tsinghua_root
 
 SIZE = 32
 
@@ -83,29 +83,10 @@ def test_middlebury_uses_true_right_image(middlebury_file):
     assert not np.array_equal(l_img[0], r_img[0])
 
 
-def _write_fixture(root, names=("a_000001", "a_000002"), shape=(48, 96), d=8.0,
-                   camera=None, split="test", city="tsinghuaDaimlerDataset"):
-    rng = np.random.default_rng(0)
-    camera = camera or {
-        "extrinsic": {"baseline": 0.3, "pitch": 0.04, "roll": 0.01, "x": 1.7, "y": 0.1,
-                      "yaw": -0.02, "z": 1.2},
-        "intrinsic": {"fx": 120.0, "fy": 125.0, "u0": 47.0, "v0": 23.0},
-    }
-    for name in names:
-        for folder in ("leftImg8bit", "disparity", "camera"):
-            os.makedirs(root / folder / split / city, exist_ok=True)
-        image = (rng.random(shape + (3,)) * 255).astype(np.uint8)
-        cv2.imwrite(str(root / "leftImg8bit" / split / city / f"{name}_leftImg8bit.png"), image)
-        raw = np.full(shape, int(d * 256 + 1), np.uint16)
-        raw[:, :4] = 0                                    # invalid strip
-        cv2.imwrite(str(root / "disparity" / split / city / f"{name}_disparity.png"), raw)
-        with open(root / "camera" / split / city / f"{name}_camera.json", "w") as f:
-            json.dump(camera, f)
-    return camera
 
 
 def test_tsinghua_layout_rig_labels(tmp_path):
-    camera = _write_fixture(tmp_path)
+    camera = tsinghua_root(tmp_path)
     out = tsinghua_cityscapes.build_stereo_dataset(tmp_path, tmp_path / "t.h5", image_size=SIZE, seed=1)
     with StereoFile(out) as data:
         labels = data.labels
@@ -124,7 +105,7 @@ def test_tsinghua_layout_rig_labels(tmp_path):
 
 
 def test_tsinghua_vehicle_labels_match_dataset_camera_model(tmp_path):
-    camera = _write_fixture(tmp_path)
+    camera = tsinghua_root(tmp_path)
     out = tsinghua_cityscapes.build_stereo_dataset(tmp_path, tmp_path / "v.h5", image_size=SIZE,
                                         labels="vehicle", right="released")
     with StereoFile(out) as data:
@@ -162,7 +143,7 @@ def test_warp_moves_pixels_by_disparity():
 
 
 def test_bad_inputs_one_line_errors(tmp_path, capsys):
-    _write_fixture(tmp_path, names=("x_1",))
+    tsinghua_root(tmp_path, names=("x_1",))
     os.remove(tmp_path / "camera" / "test" / "tsinghuaDaimlerDataset" / "x_1_camera.json")
     out = tmp_path / "bad.h5"
     assert real_build.main(["tsinghua", "--root", str(tmp_path), "--out", str(out)]) == 2
@@ -171,7 +152,7 @@ def test_bad_inputs_one_line_errors(tmp_path, capsys):
     assert not out.exists() and not os.path.exists(str(out) + ".partial")
 
     broken = tmp_path / "broken"
-    _write_fixture(broken, camera={"intrinsic": {"fx": 1.0}, "extrinsic": {}})
+    tsinghua_root(broken, camera={"intrinsic": {"fx": 1.0}, "extrinsic": {}})
     assert real_build.main(["cityscapes", "--root", str(broken), "--out", str(out)]) == 2
     assert "intrinsic" in capsys.readouterr().err and not out.exists()
 

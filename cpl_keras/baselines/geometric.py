@@ -363,12 +363,14 @@ def predict_pairs(left_images, right_images, u=None, v=None, priors=None, **kwar
 
 def predict_file(stereo_file, indices=None, priors=None, block=64, **kwargs):
     """Geometric predictions for pairs ``indices`` of an open ``StereoFile``
-    (all by default), at each pair's stored projection pixel (u, v)."""
+    (all by default), at each pair's stored projection pixel (u, v), or the
+    release's (``u_released``, ``v_released``) in a file imported from it."""
     if indices is None:
         indices = np.arange(stereo_file.num_pairs)
     indices = np.asarray(indices, dtype=np.int64)
-    u_all = stereo_file.labels["u"][indices]
-    v_all = stereo_file.labels["v"][indices]
+    labels = stereo_file.labels
+    u_all = (labels["u"] if "u" in labels else labels["u_released"])[indices]
+    v_all = (labels["v"] if "v" in labels else labels["v_released"])[indices]
     parts, statuses = [], []
     for start in range(0, len(indices), block):
         chunk = indices[start:start + block]

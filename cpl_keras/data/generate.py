@@ -99,42 +99,6 @@ def metadata(protocol, pairs, seed, image_size, command_line=None):
     }
 
 
-class _Progress:
-    """The progress bar on stderr: pairs done of ``total`` (``done`` of them
-    before this run, by the run it resumes), and the rate and time left
-    measured on this run's own pairs."""
-
-    def __init__(self, total, label, enabled, done=0):
-        self.total, self.label, self.enabled = total, label, enabled
-        self.start = time.perf_counter()
-        self.done = self.initial = done
-        self.open_line = False  # (a bar line not yet ended by a newline)
-
-    def update(self, n):
-        self.done += n
-        if not self.enabled:
-            return
-        elapsed = time.perf_counter() - self.start
-        rate = (self.done - self.initial) / max(elapsed, 1e-9)
-        width = 30
-        filled = int(width * self.done / self.total)
-        eta = (self.total - self.done) / max(rate, 1e-9)
-        # (the line's state first: a Ctrl-C lands just after the text as well)
-        self.open_line = self.done < self.total
-        sys.stderr.write(f"\r{self.label} [{'#' * filled}{'.' * (width - filled)}] "
-                         f"{self.done}/{self.total} pairs {rate:6.1f} pairs/s ETA {eta:5.0f}s "
-                         + ("" if self.open_line else "\n"))
-        sys.stderr.flush()
-
-    def close(self):
-        """End the bar's line (an interruption's or error's line then starts
-        on its own)."""
-        if self.open_line:
-            sys.stderr.write("\n")
-            sys.stderr.flush()
-            self.open_line = False
-
-
 @contextlib.contextmanager
 def _exits_uninterrupted():
     """An ``ExitStack`` whose exits (the worker pool's end, the file's close)
@@ -233,7 +197,7 @@ def generate_file(out, protocol, pairs, seed, image_size, workers, progress, com
         first = writer.resumed_at
         if first:
             log(f"resuming {writer.tmp_path} at pair {first} of {pairs}")
-        bar = _Progress(pairs, f"{protocol}", progress, done=first)
+        bar = cli.ProgressBar(pairs, f"{protocol}", progress, done=first)
         # (closing: a failed write ends the worker pool at once, not at exit)
         blocks = stack.enter_context(contextlib.closing(
             iter_blocks(protocol, seed, pairs, image_size, workers, first)))

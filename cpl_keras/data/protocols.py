@@ -234,36 +234,52 @@ def _cvgl_rig(rng, c, image_size):
     one fixed."""
     W = H = image_size
     town_id = 0 if c < CVGL_CONFIGS // 2 else 1
-    pitch_left = math.radians(CVGL_LEFT["pitch_deg"])
-    left = (CVGL_LEFT["x"], CVGL_LEFT["y"], CVGL_LEFT["z"])
-    rot_left = frames.rotation_matrix(pitch_left)
     while True:
         fov = _u(rng, CVGL_RANGES["fov_deg"])
         x = _u(rng, CVGL_RANGES["x_m"])
         y_carla = _u(rng, CVGL_RANGES["y_carla_m"])
         z = _u(rng, CVGL_RANGES["z_m"])
         pitch_carla = _u(rng, CVGL_RANGES["pitch_carla_deg"])
-        right = (x, -y_carla, z)
-        rot_right = frames.rotation_matrix(math.radians(-pitch_carla))
-        pitch, yaw, roll, t = _relative(rot_left, left, rot_right, right)
+        pitch, yaw, roll, t = cvgl_relative_pose(x, y_carla, z, pitch_carla)
         if abs(t[0]) >= CVGL_MIN_BASELINE:
             break
     fx = fy = float(camera.focal_from_fov(math.radians(fov), W))
-    # as released: CARLA's right-camera values minus the fixed left
-    # camera's (x=2, y=0, z=1.4, pitch=-15 deg); baseline = tx
-    released = {"tx": x - CVGL_LEFT["x"], "ty": y_carla - CVGL_LEFT["y"],
-                "tz": z - CVGL_LEFT["z"], "pitch": pitch_carla - (-CVGL_LEFT["pitch_deg"])}
-    released["baseline"] = released["tx"]
     cfg = {
         "carla": {"fov_deg": fov, "x": x, "y": y_carla, "z": z, "pitch_deg": pitch_carla},
-        "left_pose": {"position": list(left), "pitch": pitch_left, "yaw": 0.0, "roll": 0.0},
-        "right_pose": {"position": list(right), "pitch": -math.radians(pitch_carla),
+        "left_pose": {"position": [CVGL_LEFT["x"], CVGL_LEFT["y"], CVGL_LEFT["z"]],
+                      "pitch": math.radians(CVGL_LEFT["pitch_deg"]), "yaw": 0.0, "roll": 0.0},
+        "right_pose": {"position": [x, -y_carla, z], "pitch": -math.radians(pitch_carla),
                        "yaw": 0.0, "roll": 0.0},
-        "released": released,
+        "released": cvgl_released(x, y_carla, z, pitch_carla),
     }
     cfg.update(_rig_entries(c, town_id, fov, (fx, fy, W / 2, H / 2), float(t[0]), t,
                             (pitch, yaw, roll)))
     return cfg
+
+
+def cvgl_relative_pose(x, y_carla, z, pitch_carla):
+    """``(pitch, yaw, roll, t)`` of the cvgl right camera mounted at CARLA's
+    ``x, y_carla, z`` (m), ``pitch_carla`` (deg, up) as the labels see it: its
+    pose in the fixed left camera's frame (``CVGL_LEFT``). The generator and
+    ``cpl_keras.data.import_cvgl`` (the release's labels read back) use it."""
+    left = (CVGL_LEFT["x"], CVGL_LEFT["y"], CVGL_LEFT["z"])
+    rot_left = frames.rotation_matrix(math.radians(CVGL_LEFT["pitch_deg"]))
+    rot_right = frames.rotation_matrix(math.radians(-pitch_carla))
+    return _relative(rot_left, left, rot_right, (x, -y_carla, z))
+
+
+def cvgl_released(x, y_carla, z, pitch_carla):
+    """The release's labels of it: CARLA's values minus the left camera's, b = tx."""
+    released = {"tx": x - CVGL_LEFT["x"], "ty": y_carla - CVGL_LEFT["y"],
+                "tz": z - CVGL_LEFT["z"], "pitch": pitch_carla - (-CVGL_LEFT["pitch_deg"])}
+    released["baseline"] = released["tx"]
+    return released
+
+
+def cvgl_carla_from_released(tx, ty, tz, pitch):
+    """CARLA's ``(x, y_carla, z, pitch_carla)``: ``cvgl_released`` inverted."""
+    return (tx + CVGL_LEFT["x"], ty + CVGL_LEFT["y"], tz + CVGL_LEFT["z"],
+            pitch - CVGL_LEFT["pitch_deg"])
 
 
 def _random_rig(rng, c, protocol, image_size):

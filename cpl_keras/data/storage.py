@@ -186,7 +186,10 @@ class StereoFile:
                 bad = int((~np.isfinite(values)).sum())
                 raise DatasetError(f"{self.path}: label '{name}' has {bad} non-finite values")
             self.labels[name] = values
-        missing = [name for name in required_labels if name not in self.labels]
+        # (a file imported from the authors' release stores some of them as
+        # released only: <name>_released, cpl_keras.data.import_cvgl)
+        missing = [name for name in required_labels
+                   if name not in self.labels and f"{name}_released" not in self.labels]
         if missing:
             raise DatasetError(f"{self.path}: missing label(s) {', '.join(missing)}")
         try:
@@ -196,6 +199,9 @@ class StereoFile:
         if not isinstance(self.metadata, dict):
             raise DatasetError(f"{self.path}: metadata is not a JSON object")
         check_generator_version(self.path, self.metadata)
+        #: Whether the file holds the release's labels only where the project's
+        #: are not derivable (``cpl_keras.data.import_cvgl``): as released only.
+        self.as_released_only = bool(self.metadata.get("as_released_only", False))
 
     def _check_finished(self, f):
         """``DatasetError`` for the ``.partial`` file of a generation that has

@@ -32,7 +32,8 @@ class StereoWriter:
 
     Use as a context manager; ``write(start, left, right, labels)`` stores a
     block of pairs at ``start``. Labels are float32 except ``INDEX_LABELS`` and
-    the names in ``int_labels`` (int32); ``label_units`` adds units to
+    the names in ``int_labels`` (int32) and in ``wide_labels`` (float64: an
+    imported release's labels, kept unchanged); ``label_units`` adds units to
     ``camera.UNITS``. On a clean exit the file is renamed into
     place; on an exception the partial file is deleted.
 
@@ -48,7 +49,7 @@ class StereoWriter:
 
     def __init__(self, path, num_pairs, image_size, metadata=None, label_descriptions=None,
                  compression="gzip", compression_opts=1, label_units=None, int_labels=(),
-                 resumable=False, restart=False):
+                 resumable=False, restart=False, wide_labels=()):
         num_pairs = int(num_pairs)
         if num_pairs <= 0:
             raise DatasetError(f"number of pairs must be positive, got {num_pairs}")
@@ -61,6 +62,7 @@ class StereoWriter:
         self.descriptions = dict(label_descriptions or {})
         self.units = {**UNITS, **dict(label_units or {})}
         self.int_labels = set(INDEX_LABELS) | set(int_labels)
+        self.wide_labels = set(wide_labels)
         self.resumable, self.restart = bool(resumable), bool(restart)
         self.resumed_at, self.note = 0, None
         self._compression = compression
@@ -194,7 +196,8 @@ class StereoWriter:
             for name, values in labels.items():
                 values = np.asarray(values)
                 if name not in self._sets:
-                    dtype = "int32" if name in self.int_labels else "float32"
+                    dtype = ("int32" if name in self.int_labels else
+                             "float64" if name in self.wide_labels else "float32")
                     ds = self._labels.create_dataset(name, shape=(self.num_pairs,), dtype=dtype)
                     if name in self.units:
                         ds.attrs["unit"] = self.units[name]

@@ -175,7 +175,10 @@ def table_rows(number, run_dirs, data_path=None, geometric=True, geometric_max=N
                 "source": run.run_dir, "as_released": run.as_released, "indices": indices,
                 "truth": truth_targets(labels, indices, run.as_released),
                 "pred": published(pred)}
-        if geometric:
+        if geometric and data.as_released_only and progress:
+            progress("no Geometric row: it predicts the project's quantities, and this file "
+                     "has the release's labels only")
+        if geometric and not data.as_released_only:
             subset = indices if geometric_max is None else indices[: int(geometric_max)]
             if progress:
                 progress(f"geometric baseline on {len(subset)} pairs")

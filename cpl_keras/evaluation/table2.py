@@ -146,7 +146,10 @@ def _rig_rows(loaded, data_path, geometric, geometric_max, progress):
                     labels, indices, run.as_released),
                 "pred": published(run_predictions(run, data, indices)),
                 "defined": defined}
-        if geometric:
+        if geometric and data.as_released_only and progress:
+            progress(f"no Geometric row on {rig_name(metadata, data_path)}: it predicts the "
+                     "project's quantities, and this file has the release's labels only")
+        if geometric and not data.as_released_only:
             subset = indices if geometric_max is None else indices[: int(geometric_max)]
             if progress:
                 progress(f"geometric baseline on {len(subset)} pairs of {rig_name(metadata, data_path)}")
