@@ -66,9 +66,9 @@ def build_parser(prog=PROG):
 
 
 def _add_run_arguments(parser):
-    """The run (--variant .. --data-parallel): the network and its towers, the
-    dataset and its split, the schedule, the run directory, the seed, data
-    parallelism."""
+    """The run (--variant .. --data-parallel): the network and its towers
+    (--backbone, --backbone-weights), the dataset and its split, the
+    schedule, the run directory, the seed, data parallelism."""
     parser.add_argument("--variant", required=True, choices=VARIANTS,
                         help="the network: baseline (MTL-Baseline, 13 heads, MAE), cpl-u "
                         "(camera projection loss, uniform), cpl-a (CPL with adaptive weights, "
@@ -84,6 +84,11 @@ def _add_run_arguments(parser):
                         help="expected image side; must match the dataset (default: the dataset's)")
     parser.add_argument("--backbone", choices=BACKBONES,
                         help="tower backbone (default inception_v3, the paper's)")
+    parser.add_argument("--backbone-weights", type=cli.path, metavar="imagenet|FILE",
+                        help="both towers start from InceptionV3's ImageNet weights: imagenet "
+                        "(Keras's file, from its cache or downloaded) or FILE, that file in "
+                        "Keras's legacy .h5 or Keras 3 .weights.h5 layout (default: random "
+                        "initialisation; inception_v3 only)")
     parser.add_argument("--split", choices=SPLITS, default="paper",
                         help="paper: the paper's frame-level 70/30 split (default); drive: "
                         "whole contiguous drives held out; held-out-config: whole rigs held out "
@@ -339,8 +344,8 @@ def model_fields(args, backbone):
 
 def _train(args, demo, seed, epochs, backbone, run_dir, command, prog):
     try:
+        model = ModelOptions(**model_fields(args, backbone))  # (checked before a dataset is made)
         data = demo_dataset() if demo else args.data
-        model = ModelOptions(**model_fields(args, backbone))
         summary = train(
             data, variant=args.variant, run_dir=run_dir, model=model, epochs=epochs,
             batch_size=args.batch_size, learning_rate=args.lr, image_size=args.image_size,

@@ -7,7 +7,9 @@ two concatenated (16384 features).
 Deviations, documented in the README:
 
 * ``weights=None``: the paper starts from ImageNet weights, which cannot be
-  downloaded here; the towers start from random initialisation.
+  downloaded here; the towers start from random initialisation unless a
+  weights file is given (``ModelOptions.backbone_weights``,
+  ``cpl_keras.models.pretrained``: both towers start from it).
 * ``backbone="small"``: four strided 3x3 convolutions (16, 32, 64, 64
   filters) instead of InceptionV3, for quick runs and tests. Not the paper's.
 * ``backbone="small_resnet"``: a small ResNet (a strided stem and four
@@ -42,6 +44,7 @@ import random
 import keras
 import numpy as np
 
+from cpl_keras.models import pretrained
 from cpl_keras.models.fast_layers import PatchConv2D, ViewMaxPooling2D
 from cpl_keras.models.variants import BACKBONES, MIN_IMAGE_SIZE  # noqa: E402,F401
 
@@ -147,12 +150,20 @@ def _random_state_kept():
         global_seed_generator().state.assign(keras_state)
 
 
-def stereo_features(left, right, backbone):
-    """Two towers (one per image), flattened and concatenated."""
+def stereo_features(left, right, backbone, weights=None):
+    """Two towers (one per image, no weight sharing), flattened and
+    concatenated; with ``weights``, the path of a weights file
+    (``pretrained.load_into``), each tower starts from its weights."""
     height, width = left.shape[1], left.shape[2]
     make_tower = TOWERS[backbone]
-    left_features = with_faster_layers(make_tower(height, width, f"left_{backbone}"))(left)
-    right_features = with_faster_layers(make_tower(height, width, f"right_{backbone}"))(right)
-    left_features = keras.layers.Flatten(name="left_flatten")(left_features)
-    right_features = keras.layers.Flatten(name="right_flatten")(right_features)
-    return keras.layers.Concatenate(name="stereo_features")([left_features, right_features])
+    features, values = {}, None
+    for side, image in (("left", left), ("right", right)):
+        tower = make_tower(height, width, f"{side}_{backbone}")
+        if weights is not None and values is None:
+            values = pretrained.load_into(tower, weights)
+        elif values is not None:
+            tower.set_weights(values)
+        features[side] = with_faster_layers(tower)(image)
+    return keras.layers.Concatenate(name="stereo_features")(
+        [keras.layers.Flatten(name=f"{side}_flatten")(features[side])
+         for side in ("left", "right")])

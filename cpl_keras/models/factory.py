@@ -58,7 +58,7 @@ from cpl_keras.layers import (
     MAX_OUTPUT, LambdaOps, PositiveDisparity, SoftplusDisparity, bounded_pitch, multiply,
     placeholder_arithmetic_quiet, positive_focal, regression_head, stop_gradient,
 )
-from cpl_keras.models import backbones, deep_homo, variants
+from cpl_keras.models import backbones, deep_homo, pretrained, variants
 from cpl_keras.models.calibration_model import CalibrationModel
 from cpl_keras.models.options import ALWAYS_WRITTEN, ModelOptions, OptionsError, check_momentum
 from cpl_keras.models.variants import (  # noqa: F401
@@ -83,9 +83,31 @@ def build_model(variant, options=None, *, image_size=112, seed=None, name=None, 
         **fields: ``ModelOptions`` fields that replace those of ``options``
             (``build_model("cpl-a", backbone="small")``).
 
-    Raises ``ValueError`` (``OptionsError``, one line) for a bad option.
+    With ``backbone_weights`` (``models.pretrained``) both towers start
+    from that file's weights, checked against ``backbone_weights_sha256``
+    when it is given.
+
+    Raises ``ValueError`` (``OptionsError``, one line) for a bad option or
+    weights file.
     """
-    options = (options or ModelOptions()).replace(**fields).for_variant(variant)
+    options = (options or ModelOptions()).replace(**fields)
+    return _build_model(variant, options, image_size, seed, name, read_backbone_weights=True)
+
+
+def build_from_config(variant, build, read_backbone_weights=True):
+    """The model of config.json's ``variant`` and ``build`` (its options with
+    ``image_size`` and ``seed`` beside them). ``read_backbone_weights``
+    False leaves the towers randomly initialised whatever
+    ``backbone_weights`` says (the file is not read): for a model whose
+    weights are loaded next, as a resumed run's from its checkpoint; its
+    settings are the same."""
+    return _build_model(variant, ModelOptions.from_config(build), build["image_size"],
+                        build.get("seed"), None, read_backbone_weights)
+
+
+def _build_model(variant, options, image_size, seed, name, read_backbone_weights):
+    """``build_model``'s work, the towers' weights file read or not."""
+    options = options.for_variant(variant)
     if options.range_scales == "auto":
         raise OptionsError("range weights' scales are read off the training labels "
                            "(training sets them); give range_scales")
@@ -96,15 +118,20 @@ def build_model(variant, options=None, *, image_size=112, seed=None, name=None, 
     spec = variants.get(variant)
     minimum = spec.min_image_size or backbones.MIN_IMAGE_SIZE[options.backbone]
     height, width = _image_shape(image_size, minimum, options.backbone)
+    weights = _backbone_weights_file(options) if read_backbone_weights else None
     with _seeded(seed), placeholder_arithmetic_quiet():
-        return _build(spec, options, height, width, name)
+        return _build(spec, options, height, width, name, weights)
 
 
-def build_from_config(variant, build):
-    """The model of config.json's ``variant`` and ``build`` (its options with
-    ``image_size`` and ``seed`` beside them)."""
-    return build_model(variant, ModelOptions.from_config(build),
-                       image_size=build["image_size"], seed=build.get("seed"))
+def _backbone_weights_file(options):
+    """The path of ``options``' backbone weights file (checked against its
+    checksum when the options hold one), or None."""
+    if options.backbone_weights is None:
+        return None
+    path = pretrained.weights_file(options.backbone_weights)
+    if options.backbone_weights_sha256 is not None:
+        pretrained.check_checksum(path, options.backbone_weights_sha256)
+    return path
 
 
 @contextlib.contextmanager
@@ -123,12 +150,12 @@ def _seeded(seed):
         np.random.set_state(numpy_state)
 
 
-def _build(spec, options, height, width, name):
+def _build(spec, options, height, width, name, weights=None):
     left = keras.Input((height, width, 3), name="left_image")
     right = keras.Input((height, width, 3), name="right_image")
     scaled_left, scaled_right = _scale_inputs(left, right, options.as_released)
     loss = spec.training_loss(options.as_released)
-    outputs = BUILDERS[spec.builder](spec, scaled_left, scaled_right, options,
+    outputs = BUILDERS[spec.builder](spec, scaled_left, scaled_right, options, weights=weights,
                                      detach=loss.projection and options.disentangle == "exact")
     positive_disparity = options.positive_disparity_head(spec.name)
     ceiling = MAX_OUTPUT if options.disparity_ceiling is None else options.disparity_ceiling
@@ -166,22 +193,23 @@ def _disparity_activation(spec, options):
     return PositiveDisparity(ceiling=ceiling), None
 
 
-def _features(left, right, options):
-    """The two towers' features, LayerNorm-ed with ``options.head_norm``."""
-    features = backbones.stereo_features(left, right, options.backbone)
+def _features(left, right, options, weights=None):
+    """The two towers' features (starting from the weights file ``weights``
+    when given), LayerNorm-ed with ``options.head_norm``."""
+    features = backbones.stereo_features(left, right, options.backbone, weights)
     if options.head_norm:
         features = keras.layers.LayerNormalization(name="head_norm")(features)
     return features
 
 
-def _deep_homo_outputs(spec, left, right, options, detach=False):
+def _deep_homo_outputs(spec, left, right, options, detach=False, weights=None):
     return deep_homo.deep_homo_outputs(left, right, options.as_released)
 
 
-def _direct_outputs(spec, left, right, options, detach=False):
+def _direct_outputs(spec, left, right, options, detach=False, weights=None):
     """Two towers and one regression head per target (X, Y, Z regressed too);
     the disparity's is linear unless ``options`` give it a positive one."""
-    features = _features(left, right, options)
+    features = _features(left, right, options, weights)
     disparity, bias = _disparity_activation(spec, options)
     activations = {"pitch": bounded_pitch if options.bounded_pitch_head else None,
                    "disparity": disparity}
@@ -191,8 +219,8 @@ def _direct_outputs(spec, left, right, options, detach=False):
             for target in camera.TARGETS]
 
 
-def _camera_graph_outputs(spec, left, right, options, detach=False):
-    features = _features(left, right, options)
+def _camera_graph_outputs(spec, left, right, options, detach=False, weights=None):
+    features = _features(left, right, options, weights)
     return camera_projection_outputs(features, spec, options, detach=detach)
 
 

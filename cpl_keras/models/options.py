@@ -24,6 +24,7 @@ from __future__ import annotations
 import dataclasses
 import math
 import numbers
+import re
 
 import numpy as np
 
@@ -56,6 +57,9 @@ RECIPES = {
 #: runs); every other field is written only where it is not its default.
 ALWAYS_WRITTEN = ("backbone", "as_released", "floors", "bounded_pitch_head",
                   "positive_focal_head", "disentangle", "disparity_ceiling")
+#: The backbones whose towers can start from ImageNet weights
+#: (``backbone_weights``): InceptionV3's, the paper's.
+PRETRAINED_BACKBONES = ("inception_v3",)
 
 
 class OptionsError(Error):
@@ -92,6 +96,13 @@ class ModelOptions:
     weight_decay: decoupled weight decay of the optimiser (AdamW; 0 is off,
         the paper's Adam). clip_norm: the global gradient-norm clip (None:
         off, the paper's).
+    backbone_weights: the towers' initial weights: None, random
+        initialisation (this project's default, by necessity: the paper's
+        are ImageNet's); "imagenet", Keras's InceptionV3 ImageNet file
+        (cached or downloaded); or the path of such a file
+        (``models.pretrained``). backbone_weights_sha256: that file's
+        checksum (set by planning, recorded in config.json; a build from
+        the file checks it).
     """
 
     backbone: str = "inception_v3"
@@ -112,6 +123,8 @@ class ModelOptions:
     range_scales: dict | str | None = "auto"
     weight_decay: float = 0.0
     clip_norm: float | None = None
+    backbone_weights: str | None = None
+    backbone_weights_sha256: str | None = None
 
     def __post_init__(self):
         _check(self)
@@ -160,6 +173,9 @@ class ModelOptions:
             if on and deep_homo:
                 raise OptionsError(f"{name} applies to the regression heads; {variant} has "
                                    f"its own")
+        if self.backbone_weights is not None and deep_homo:
+            raise OptionsError(f"backbone weights start the two towers; {variant} has no "
+                               f"towers")
         if self.point_errors != "metres" and not loss.projection:
             raise OptionsError(f"point errors {self.point_errors!r} apply to the camera "
                                f"projection loss, which {variant} does not train with")
@@ -271,11 +287,30 @@ def _check(options):
             and all(_number(v, 0) and v > 0 for v in scales.values())):
         raise OptionsError("range scales must be 'auto', None or a positive number for each "
                            f"of {', '.join(camera.TARGETS)}")
+    _check_backbone_weights(options)
     if not _number(options.weight_decay, 0):
         raise OptionsError(f"weight decay must be a number >= 0, got {options.weight_decay!r}")
     if options.clip_norm is not None and not (_number(options.clip_norm, 0)
                                               and options.clip_norm > 0):
         raise OptionsError(f"clip norm must be a positive number, got {options.clip_norm!r}")
+
+
+def _check_backbone_weights(options):
+    """The rules of ``backbone_weights`` and its checksum (OptionsError)."""
+    weights, checksum = options.backbone_weights, options.backbone_weights_sha256
+    if weights is not None:
+        if not (isinstance(weights, str) and weights.strip()):
+            raise OptionsError(f"backbone weights must be 'imagenet' or a weights file's path, "
+                               f"got {weights!r}")
+        if options.backbone not in PRETRAINED_BACKBONES:
+            raise OptionsError(f"backbone weights are ImageNet's InceptionV3 weights; backbone "
+                               f"{options.backbone!r} has none (use backbone "
+                               f"{PRETRAINED_BACKBONES[0]})")
+    if checksum is not None and not (
+            weights is not None and isinstance(checksum, str)
+            and re.fullmatch("[0-9a-f]{64}", checksum)):
+        raise OptionsError(f"backbone weights' sha256 must be 64 lowercase hex digits, beside "
+                           f"backbone weights; got {checksum!r}")
 
 
 def _choice(what, value, choices):

@@ -20,7 +20,7 @@ from cpl_keras.backend import keras_backend
 from cpl_keras.data.mix import training_rigs
 from cpl_keras.data.storage import DatasetError, StereoFile
 from cpl_keras.datasets import make_split, targets_from_labels
-from cpl_keras.models import variants
+from cpl_keras.models import pretrained, variants
 from cpl_keras.models.options import ModelOptions, OptionsError
 from cpl_keras.training.options import (  # noqa: F401
     BN_STATISTICS, MONITORS, TARGET_SCALINGS, TrainingError, TrainingOptions, split_fields,
@@ -111,6 +111,8 @@ def _check_variant(variant, model, training):
         options = model.for_variant(variant)
     except ValueError as error:  # (an unknown variant, OptionsError)
         raise TrainingError(str(error)) from None
+    if options.backbone_weights is not None:  # (a file by its absolute path, as the data)
+        options = options.replace(backbone_weights=pretrained.named(options.backbone_weights))
     if training.target_scaling != "none" and not spec.training_loss(
             model.as_released).per_output:
         raise TrainingError(
@@ -217,7 +219,8 @@ def plan_run(data, *, variant, run_dir, model=None, training=None, command=None,
         device_batch_size=-(-training.batch_size // devices) * devices, command=command,
         run_dir=os.path.abspath(os.fspath(run_dir)), keras_backend=keras_backend())
     automatic = tuple(name for name in AUTOMATIC if getattr(model, name) == "auto")
-    config = _check_run_dir(config, keep_build=automatic, keep=defaulted)
+    config = _check_run_dir(config, keep_build=automatic + WEIGHTS_CHECKSUM, keep=defaulted)
+    config = _with_weights_checksum(config)
     return RunPlan(config=config, targets=dataset["targets"], split=dataset["split"],
                    workers=int(training.workers))
 
@@ -226,6 +229,26 @@ def plan_run(data, *, variant, run_dir, model=None, training=None, command=None,
 #: directory resumes with its own values of these (runs of before one of
 #: them: their own, or none).
 AUTOMATIC = ("disparity_ceiling", "disparity_start", "range_scales")
+#: The towers' weights file's checksum, read off the file when a run begins
+#: (``_with_weights_checksum``): a run resumed with the same file keeps its
+#: own, and the file is not read again.
+WEIGHTS_CHECKSUM = ("backbone_weights_sha256",)
+
+
+def _with_weights_checksum(config):
+    """``config`` with the sha256 of its towers' weights file in ``build``
+    (with ``backbone_weights``): a new run's read off the file ("imagenet":
+    Keras's, downloaded into its cache when not there), a resumed run's its
+    own. TrainingError (one line naming the file) when it cannot be read."""
+    build = config.build
+    if build.get("backbone_weights") is None or build.get("backbone_weights_sha256"):
+        return config
+    try:
+        path = pretrained.weights_file(build["backbone_weights"])
+        digest = pretrained.checksum(path)
+    except (OSError, pretrained.WeightsError) as error:
+        raise TrainingError(str(error)) from None
+    return dataclasses.replace(config, build=dict(build, backbone_weights_sha256=digest))
 
 
 def _devices(data_parallel, processes):
@@ -249,7 +272,8 @@ def _check_run_dir(config, keep_build=(), keep=()):
     """``config`` (a ``RunConfig``) for its run directory, which must be new,
     empty, or hold the same run (to resume). A run is resumed with its own
     value of each build field of ``keep_build`` (those read off the training
-    labels, given as "auto"; a run of before the disparity ceiling: None),
+    labels, given as "auto", and the towers' weights file's checksum where
+    the file is the same; a run of before the disparity ceiling: None),
     and with its own value of each config key of ``keep`` (settings left at
     their defaults, whose defaults have changed since: the BatchNorm
     statistics, the monitor and the weights' moving average)."""
@@ -275,8 +299,9 @@ def _check_run_dir(config, keep_build=(), keep=()):
         return config  # (replaced by the next run: ``_replace_failed_run``)
     if keep_build:
         build = dict(config.build)
+        same_weights = old.build.get("backbone_weights") == build.get("backbone_weights")
         for name in keep_build:
-            if name in old.build:
+            if name in old.build and (same_weights or name not in WEIGHTS_CHECKSUM):
                 build[name] = old.build[name]
             elif name == "disparity_ceiling":
                 build[name] = None

@@ -161,8 +161,12 @@ def _run(plan, processes, steps_per_execution, verbose, probes=()):
     import keras
 
     config = plan.config
+    # (a resumed run's weights come from its checkpoint: the towers' initial
+    # weights file, ``backbone_weights``, is not read again)
+    resumed = read_state(config.run_dir).checkpoint is not None
     try:
-        model = models.build_from_config(config.variant, config.build)
+        model = models.build_from_config(config.variant, config.build,
+                                         read_backbone_weights=not resumed)
         models.compile_model(model, learning_rate=config.learning_rate,
                              steps_per_execution=steps_per_execution,
                              target_scale=_target_scale(plan) if config.target_scaling == "std" else None,
