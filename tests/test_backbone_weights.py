@@ -18,7 +18,7 @@ import pytest
 
 from cpl_keras.models import pretrained
 from cpl_keras.models.options import ModelOptions, OptionsError
-from helpers import interrupt_after_epoch, load_script, write_stereo_fixture
+from helpers import interrupt_after_epoch, load_script, release_flat, write_stereo_fixture
 
 #: The smallest image InceptionV3 takes (``variants.MIN_IMAGE_SIZE``).
 SIZE = 75
@@ -197,9 +197,9 @@ def test_imagenet_offline_fails_in_one_line_naming_the_url(small_files, tmp_path
 # ---------------------------------------------------------------------------
 # train.py: refusals, the run's record, resuming
 # ---------------------------------------------------------------------------
-def _train(weight_files, weights, run_dir, *extra, variant="cpl-a"):
+def _train(weight_files, weights, run_dir, *extra, variant="cpl-a", data=None):
     """train.py's exit status with ``--backbone-weights weights`` (None: none)."""
-    argv = ["--variant", variant, "--data", weight_files["data"], "--epochs", "1",
+    argv = ["--variant", variant, "--data", data or weight_files["data"], "--epochs", "1",
             "--batch-size", "4", "--bn-recompute-batches", "0", "--weight-ema", "0",
             "--run-dir", str(run_dir), "--quiet", *extra]
     if weights is not None:
@@ -241,16 +241,39 @@ def test_a_wrong_weights_file_is_refused(small_files, tmp_path, capsys):
 
 
 @pytest.fixture(scope="module")
-def half_run(weight_files, tmp_path_factory):
-    """train.py with --backbone-weights, 2 epochs, stopped after the first
-    (as a kill would): ``(run_dir, its weights file)``."""
+def release_data(tmp_path_factory):
+    """24 rendered cvgl pairs written in the authors' release format and
+    imported (``cpl_keras.data.import_cvgl``): the paper's own inputs, as a
+    user who has them would train on them."""
+    from cpl_keras.commands import import_cvgl
+    from cpl_keras.data.generate import generate_dataset
+
+    folder = tmp_path_factory.mktemp("release")
+    rendered = generate_dataset(str(folder / "rendered.h5"), protocol="cvgl", pairs=24, seed=0,
+                                image_size=112, workers=1, progress=False)
+    release_flat(rendered, str(folder / "flat"))
+    out = str(folder / "cvgl_release.h5")
+    assert import_cvgl.main([str(folder / "flat"), "--out", out, "--no-progress"]) == 0
+    return out
+
+
+#: The paper's experiment on the imported release: its split, as released.
+RELEASE_ARGS = ("--split", "released", "--as-released")
+
+
+@pytest.fixture(scope="module")
+def half_run(weight_files, release_data, tmp_path_factory):
+    """train.py with --backbone-weights on the imported release (its split,
+    as released), 2 epochs, stopped after the first (as a kill would):
+    ``(run_dir, its weights file)``."""
     folder = tmp_path_factory.mktemp("half_run")
     weights = str(folder / pretrained.IMAGENET_FILE)
     shutil.copy(weight_files["notop"], weights)
     run_dir = folder / "run"
     with pytest.MonkeyPatch.context() as monkeypatch:
         interrupt_after_epoch(monkeypatch, 1)
-        assert _train(weight_files, weights, run_dir, "--epochs", "2") == 130
+        assert _train(weight_files, weights, run_dir, "--epochs", "2", *RELEASE_ARGS,
+                      data=release_data) == 130
     return run_dir, weights
 
 
@@ -261,7 +284,9 @@ def test_the_run_records_the_file_and_its_checksum(half_run):
         build = json.load(f)["build"]
     assert build["backbone_weights"] == weights  # (its absolute path)
     assert build["backbone_weights_sha256"] == sha256(weights)
-    assert build["backbone"] == "inception_v3"
+    assert build["backbone"] == "inception_v3" and build["as_released"] is True
+    with open(run_dir / "config.json") as f:
+        assert json.load(f)["split"] == "released"
 
 
 @pytest.mark.slow
@@ -271,7 +296,8 @@ def test_a_resume_with_other_weights_is_refused(weight_files, half_run, capsys):
         before = f.read()
     for other in (weight_files["legacy"], None):
         capsys.readouterr()
-        assert _train(weight_files, other, run_dir, "--epochs", "2") == 2
+        assert _train(weight_files, other, run_dir, "--epochs", "2", *RELEASE_ARGS,
+                      data=half_run_data(run_dir)) == 2
         err = capsys.readouterr().err
         assert err.count("\n") == 1 and "holds a different run (build:" in err
     with open(run_dir / "config.json") as f:
@@ -284,8 +310,15 @@ def resumed_run(weight_files, half_run, tmp_path_factory):
     ``(run_dir, weights, train.py's exit status)``."""
     run_dir, weights = half_run
     with _moved_away(weights, tmp_path_factory.mktemp("away")):
-        status = _train(weight_files, weights, run_dir, "--epochs", "2")
+        status = _train(weight_files, weights, run_dir, "--epochs", "2", *RELEASE_ARGS,
+                        data=half_run_data(run_dir))
     return run_dir, weights, status
+
+
+def half_run_data(run_dir):
+    """The dataset ``half_run`` trained on (its config.json's)."""
+    with open(os.path.join(run_dir, "config.json")) as f:
+        return json.load(f)["data"]
 
 
 @contextlib.contextmanager

@@ -297,3 +297,58 @@ def test_train_as_released_then_tables_1_and_2_from_every_real_layout(release, t
     assert evaluate(["--table", "2", "--runs", str(run), "--data", str(tmp_path / "tdcb.h5"),
                      "--out", str(tmp_path / "t3")]) == 0
     assert (tmp_path / "t3" / "table2.md").exists()
+
+
+def test_the_paper_release_preset_trains_the_paper_s_four_networks_as_released():
+    """``--preset paper-release``: the four networks of Table 1, each as
+    released on the split as released, the MTL towers from ImageNet
+    weights (Deep-Homo has none), with the paper's settings."""
+    from cpl_keras.reproduce.jobs import training_arguments
+    from cpl_keras.reproduce.plan import run_jobs
+    from cpl_keras.reproduce.presets import settings
+
+    config = settings(preset="paper-release")
+    assert (config.epochs, config.batch_size, config.patience, config.backbone) == (
+        200, 16, 5, "inception_v3")
+    jobs = run_jobs(config, 0)
+    assert [job.variant for job in jobs] == ["baseline", "cpl-u", "cpl-a", "deep-homo"]
+    assert all(job.released and job.split == "released" for job in jobs)
+    weights = {job.variant: training_arguments(config, "r", job)["backbone_weights"]
+               for job in jobs}
+    assert weights == {"baseline": "imagenet", "cpl-u": "imagenet", "cpl-a": "imagenet",
+                       "deep-homo": None}
+    assert settings(preset="paper-release", split="paper").split == "paper"
+    assert settings(preset="paper-release", backbone="small",
+                    backbone_weights="none").backbone_weights is None
+
+
+@pytest.mark.slow
+def test_the_paper_release_preset_runs_end_to_end_on_the_release_formats(release, tmp_path,
+                                                                         capsys):
+    """Its dry run at tiny size: the flat files with the real set's r files
+    beside them, and a Tsinghua-Daimler folder, to REPORT.md with Table 1
+    on the release's data and Table 2 on both real layouts."""
+    from cpl_keras.commands import reproduce
+
+    folder = _flat_copy(release, tmp_path)
+    for name in os.listdir(release["real"]):
+        shutil.copy(os.path.join(release["real"], name), folder)
+    tsinghua_root(tmp_path / "tdcb")
+    out = tmp_path / "out"
+    argv = ["--preset", "paper-release", "--release-dir", str(folder), "--tsinghua",
+            str(tmp_path / "tdcb"), "--backbone", "small", "--backbone-weights", "none",
+            "--epochs", "1", "--allow-cpu", "--out", str(out), "--data-dir",
+            str(tmp_path / "data"), "--runs-dir", str(tmp_path / "runs")]
+    with pytest.raises(SystemExit) as refused:                # no --release-dir for others
+        reproduce.main(["--preset", "cpu"] + argv[2:])
+    assert refused.value.code == 2
+    assert "--release-dir is read by --preset paper-release only" in capsys.readouterr().err
+    assert reproduce.main(argv) == 0
+    summary = json.loads((out / "reproduce.json").read_text())
+    assert [r["name"] for r in summary["runs"]] == ["cvgl_baseline", "cvgl_cpl-u", "cvgl_cpl-a",
+                                                   "cvgl_deep-homo"]
+    assert all(r["as_released"] and r["split"] == "released" for r in summary["runs"])
+    table2 = json.loads((out / "table2.json").read_text())
+    assert set(table2["rigs"]) == {"tsinghua-release", "tsinghua"}
+    report = (out / "REPORT.md").read_text()
+    assert "the authors' released CVGL data" in report and "`released`" in report

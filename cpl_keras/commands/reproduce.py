@@ -7,6 +7,7 @@ import os
 
 from cpl_keras import cli
 from cpl_keras.data.storage import DatasetError
+from cpl_keras.datasets import SPLITS
 from cpl_keras.models.variants import BACKBONES
 from cpl_keras.reproduce.pipeline import rebuild, rebuild_command, reproduce
 from cpl_keras.reproduce.plan import GPU_SIZED_PAIRS, cpu_cost, gpu_sized, has_accelerator
@@ -19,7 +20,7 @@ from cpl_keras.reproduce.presets import PRESETS, PROG, REAL_ROOTS, default_folde
 SCALE_OPTIONS = ("quick", "preset", "pairs", "random_pairs", "epochs", "patience", "backbone",
                  "image_size", "crops", "chessboard_crops", "seeds", "random_seeds", "workers",
                  "data_dir", "runs_dir", "geometric_max", "jobs", "run_budget",
-                 "allow_cpu", "partial") + REAL_ROOTS
+                 "allow_cpu", "partial", "release_dir", "split", "backbone_weights") + REAL_ROOTS
 
 
 def add_arguments(parser):
@@ -42,8 +43,9 @@ def _add_scale_arguments(group):
                        "towers on 20,000 pairs, sized for ten minutes of one GPU), cpu (compact "
                        "towers, 3 seeds, ~1.5 h on 2 cores with --jobs 2), cpu-8000 (MTL "
                        "variants on 8,000 cvgl pairs, 3 seeds, paper and drive splits; many "
-                       "hours, resumable run by run), quick (= --quick); the flags below "
-                       "override its values")
+                       "hours, resumable run by run), paper-release (the paper's experiment on the "
+                       "authors' released files, --release-dir; for a GPU), quick (= --quick); "
+                       "the flags below override its values")
     group.add_argument("--quick", action="store_true", help="tiny settings (minutes)")
     group.add_argument("--pairs", type=positive, help="cvgl-protocol pairs (paper: 123017)")
     group.add_argument("--random-pairs", type=positive, help="random-protocol pairs")
@@ -59,6 +61,11 @@ def _add_scale_arguments(group):
     group.add_argument("--seeds", type=positive, help="cvgl runs per variant, seeds "
                        "SEED, SEED+1, ... (each its own split and initial weights)")
     group.add_argument("--random-seeds", type=positive, help="random-protocol runs per variant")
+    group.add_argument("--split", choices=SPLITS, help="the cvgl runs' split (default: the "
+                       "preset's; paper-release: released, the release's own)")
+    group.add_argument("--backbone-weights", metavar="imagenet|FILE|none",
+                       help="the towers' initial weights (train.py --backbone-weights; "
+                       "paper-release: imagenet; none: random, every other preset's)")
 
 
 def _add_run_arguments(group):
@@ -88,6 +95,9 @@ def _add_folder_arguments(group):
     """Where things are: the real sets' roots (Table 2), the datasets' and
     runs' folders, the discussion, and a reproduction to rebuild
     (--from-predictions)."""
+    group.add_argument("--release-dir", help="the authors' released files (--preset "
+                       "paper-release): the flat .npy folder or the raw episodes' root, its r "
+                       "and r_cs files imported too when there (docs/data.md)")
     group.add_argument("--kitti", help="Table 2: KITTI stereo 2015 root")
     group.add_argument("--kitti-raw", help="Table 2: KITTI raw root")
     group.add_argument("--tsinghua", help="Table 2: Tsinghua-Daimler Cyclist root")
@@ -128,9 +138,11 @@ def resolve_args(parser, args):
             epochs=args.epochs, patience=args.patience, backbone=args.backbone,
             image_size=args.image_size, crops=args.crops, chessboard_crops=args.chessboard_crops,
             geometric_max=args.geometric_max, seeds=args.seeds, random_seeds=args.random_seeds,
-            workers=args.workers, run_budget_s=args.run_budget)
+            workers=args.workers, run_budget_s=args.run_budget, split=args.split,
+            backbone_weights=args.backbone_weights)
     except ValueError as error:
         parser.error(str(error))
+    _check_release_dir(parser, args)
     if gpu_sized(args.config) and not args.allow_cpu and not has_accelerator():
         parser.error(cpu_cost(args.config, args.seed))
     out, data_dir, runs_dir = default_folders(args.config.preset)
@@ -146,6 +158,18 @@ def resolve_args(parser, args):
     return args
 
 
+def _check_release_dir(parser, args):
+    """``--release-dir`` given exactly where the settings read the release's files."""
+    wanted = args.config.data == "release"
+    if wanted and args.release_dir is None:
+        parser.error(f"--preset {args.config.preset} trains on the authors' released files: "
+                     "give their folder with --release-dir DIR (docs/data.md)")
+    if args.release_dir is not None and not wanted:
+        parser.error("--release-dir is read by --preset paper-release only")
+    if args.release_dir is not None and not os.path.isdir(args.release_dir):
+        parser.error(f"--release-dir: folder not found: {args.release_dir}")
+
+
 def run(args, command, prog=PROG):
     """Run the reproduction (or the rebuild) for resolved ``args``; the exit status."""
     try:
@@ -158,7 +182,8 @@ def run(args, command, prog=PROG):
                     config=args.config, seed=args.seed, command=command,
                     discussion_file=args.discussion,
                     real_roots={name: getattr(args, name) for name in REAL_ROOTS},
-                    jobs=args.jobs or 1, partial=args.partial)
+                    jobs=args.jobs or 1, partial=args.partial,
+                    release_dir=getattr(args, "release_dir", None))
     except KeyboardInterrupt:  # every stage is resumable: the same command goes on
         return cli.interrupted(prog, resume=command)
     except (ValueError, DatasetError, OSError) as error:  # EvaluationError is a ValueError

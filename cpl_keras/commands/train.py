@@ -92,7 +92,8 @@ def _add_run_arguments(parser):
     parser.add_argument("--split", choices=SPLITS, default="paper",
                         help="paper: the paper's frame-level 70/30 split (default); drive: "
                         "whole contiguous drives held out; held-out-config: whole rigs held out "
-                        "(random protocol)")
+                        "(random protocol); released: the authors' release's own, the first 70 %% "
+                        "of an imported release's rows train, the rest validation and test")
     parser.add_argument("--as-released", action="store_true",
                         help="reproduce the released code (labels, loss, val = test)")
     parser.add_argument("--run-dir", type=cli.path, help="run directory (default runs/<variant>-<split>-s<seed>)")

@@ -29,7 +29,7 @@ full-resolution intrinsics for 112-pixel images, so none of their labels
 is the project's: they are scored as released only too. The file's
 metadata says all this (``labels_note``).
 
-Images are memory-mapped and written in blocks: memory does not grow with
+Images are read and written in blocks: memory does not grow with
 the data (``bench/bench_import.py`` measures it). An interrupted import
 keeps ``OUT.partial`` and the same command continues it; an ``--out``
 that holds this import is left as it is, any other file there refused.

@@ -19,7 +19,7 @@ Two layouts (``detect_layout``; ../docs/data.md "The paper's own data"):
 
 Every problem is a one-line ``ReleaseError`` naming the file; the release's
 own quirks (negative disparities, pitch in degrees) are data, not errors.
-Images are memory-mapped, never read whole.
+Images are read a block at a time (``NpyRows``), never whole.
 """
 
 from __future__ import annotations
@@ -80,12 +80,45 @@ def detect_layout(directory, suffix=""):
 # ---------------------------------------------------------------------------
 # The flat layout
 # ---------------------------------------------------------------------------
-def _load(directory, name):
+class NpyRows:
+    """The rows of a ``.npy`` file, read a block at a time (``rows[start:stop]``)
+    without mapping or loading the file: its images never sit in memory,
+    nor in the process's resident pages, beyond the block asked for."""
+
+    def __init__(self, path):
+        self.path = path
+        with open(path, "rb") as f:
+            version = np.lib.format.read_magic(f)
+            header = (np.lib.format.read_array_header_1_0 if version == (1, 0) else
+                      np.lib.format.read_array_header_2_0)
+            self.shape, fortran, self.dtype = header(f)
+            self.offset = f.tell()
+        if fortran or self.dtype.hasobject:
+            raise ValueError("not a C-ordered array of numbers")
+        self.ndim = len(self.shape)
+        self.row_items = int(np.prod(self.shape[1:], dtype=np.int64))
+        if os.path.getsize(path) < self.offset + len(self) * self.row_items * self.dtype.itemsize:
+            raise ValueError("the file is shorter than its header says")
+
+    def __len__(self):
+        return int(self.shape[0]) if self.shape else 0
+
+    def __getitem__(self, rows):
+        start, stop, _ = rows.indices(len(self))
+        with open(self.path, "rb") as f:
+            f.seek(self.offset + start * self.row_items * self.dtype.itemsize)
+            block = np.fromfile(f, self.dtype, max(stop - start, 0) * self.row_items)
+        return block.reshape((max(stop - start, 0),) + tuple(self.shape[1:]))
+
+
+def _load(directory, name, rows=False):
+    """The release's file ``name`` in ``directory``: whole (a label), or as
+    ``NpyRows`` (``rows``: the images); ReleaseError naming it otherwise."""
     path = os.path.join(directory, name)
     if not os.path.isfile(path):
         raise ReleaseError(f"{directory}: missing {name}")
     try:
-        return np.load(path, mmap_mode="r", allow_pickle=False)
+        return NpyRows(path) if rows else np.load(path, allow_pickle=False)
     except (OSError, ValueError, EOFError) as error:
         first = (str(error).strip().splitlines() or [type(error).__name__])[0]
         raise ReleaseError(f"cannot read {path} ({first})") from None
@@ -103,12 +136,13 @@ def _check_extra(directory, suffix):
 
 def read_flat(directory, suffix=""):
     """``(left, right, labels)`` of the flat layout: the two image arrays
-    memory-mapped (uint8 ``(N, 112, 112, 3)``, as stored: BGR or RGB) and
+    read a block at a time (``NpyRows``; uint8 ``(N, 112, 112, 3)``, as
+    stored: BGR or RGB) and
     the 13 label files as float64 arrays keyed by file name, every one
     checked (ReleaseError naming the file)."""
     directory = os.fspath(directory)
     _check_extra(directory, suffix)
-    left, right = (_load(directory, f"{name}{suffix}.npy") for name in IMAGE_FILES)
+    left, right = (_load(directory, f"{name}{suffix}.npy", rows=True) for name in IMAGE_FILES)
     for name, images in zip(IMAGE_FILES, (left, right)):
         if images.dtype != np.uint8 or images.ndim != 4 or images.shape[1:] != (
                 IMAGE_SIZE, IMAGE_SIZE, 3):

@@ -8,7 +8,7 @@ import os
 
 from cpl_keras import evaluation, published, runs, training
 from cpl_keras.reproduce.plan import run_jobs
-from cpl_keras.reproduce.presets import PROG, log
+from cpl_keras.reproduce.presets import PROG, log, towers_weights
 from cpl_keras.training import parallel, planning
 
 # ---------------------------------------------------------------------------
@@ -23,7 +23,7 @@ def training_arguments(config, run_dir, job):
         as_released=job.released, seed=job.seed, patience=config.patience,
         time_budget_s=config.run_budget_s, disparity_ceiling=config.disparity_ceiling,
         bn_statistics=config.bn_statistics, monitor=config.monitor,
-        weight_ema=config.weight_ema,
+        weight_ema=config.weight_ema, backbone_weights=towers_weights(config, job.variant),
     )
 
 

@@ -59,9 +59,20 @@ def scale_text(config):
             f"{config.image_size} images, batch {config.batch_size}, Adam (lr 1e-3, "
             f"Deep-Homo 1.5e-3), up to {config.epochs} epochs with early stopping "
             f"(patience {config.patience}, best weights restored){_budget_text(config)}."
-            f"{seeds} The paper trained "
-            f"up to 200 epochs on 123,017 pairs from ImageNet weights; here the towers start "
-            f"from random weights (none can be downloaded).")
+            f"{seeds} {_inputs_text(config)}")
+
+
+def _inputs_text(config):
+    """What the runs trained on and from, against the paper's inputs."""
+    towers = (f"the towers start from `{config.backbone_weights}` weights, as the paper's "
+              f"from ImageNet's" if config.backbone_weights else
+              "here the towers start from random weights (none can be downloaded)")
+    if config.data == "release":
+        return (f"Data: the authors' released files, imported, every run trained and scored "
+                f"as released (the only labels the release gives for the disparity and X, Y, "
+                f"Z; docs/data.md); the split `{config.split or 'paper'}`; {towers}.")
+    return (f"The paper trained up to 200 epochs on 123,017 pairs from ImageNet weights; "
+            f"{towers}.")
 
 
 #: The parameters of the learning-curve figures (validation MAE per epoch).
@@ -164,7 +175,9 @@ def write_report(out_dir, summary, tables, rebuilt_by=None):
     for stem, table in tables.items():
         body = report.markdown(table).split("\n")[1:]
         body = ["#" + line if line.startswith("#") else line for line in body]
-        lines += [f"## {TITLES.get(stem, stem)}", ""] + body
+        title = ("Table 1, the authors' released CVGL data (trained and scored as released)"
+                 if stem == "table1_cvgl" and config.data == "release" else TITLES.get(stem, stem))
+        lines += [f"## {title}", ""] + body
         plots = [f"![FOV-threshold curves, {stem}]({stem}_fov.png)"]
         if report.is_table2(table):
             plots.append(f"![Predicted against true field of view per rig, {stem}]"

@@ -13,6 +13,7 @@ import time
 from cpl_keras import cli, evaluation, prediction_files, predictions, published, report, runs
 from cpl_keras.cache import enable_compile_cache
 from cpl_keras.data.generate import cached_dataset
+from cpl_keras.data.import_cvgl import import_release
 from cpl_keras.data.storage import StereoFile
 from cpl_keras.files import read_json, write_json
 from cpl_keras.real import build
@@ -30,23 +31,41 @@ def real_set_folder(config, data_dir, seed):
                                   f"cb{config.chessboard_crops}_s{seed}")
 
 
-def make_datasets(config, data_dir, seed, real_roots=None):
-    """Stage 1: the synthetic datasets and every real set (reused when
+def release_datasets(release_dir, data_dir):
+    """The authors' released files in ``release_dir`` imported once into
+    ``data_dir`` (``cpl_keras.data.import_cvgl``; an import already there is
+    reused): ``{"cvgl": path, "real": [paths]}``, the real sets those of its
+    ``r`` and ``r_cs`` files that are there."""
+    paths = {"cvgl": import_release(release_dir, os.path.join(data_dir, "cvgl_release.h5"),
+                                    progress=False, log=log), "real": []}
+    for suffix, name in (("r", "tsinghua_release"), ("r_cs", "cityscapes_release")):
+        if os.path.exists(os.path.join(release_dir, f"li{suffix}.npy")):
+            paths["real"].append(import_release(
+                release_dir, os.path.join(data_dir, f"{name}.h5"), suffix, progress=False,
+                log=log))
+    return paths
+
+
+def make_datasets(config, data_dir, seed, real_roots=None, release_dir=None):
+    """Stage 1: the synthetic datasets (or the release's, imported from
+    ``release_dir``: ``release_datasets``) and every real set (reused when
     present); ``{"cvgl": path, "random": path, "real": [paths]}``. Settings
     with no ``real_sets`` and no ``real_roots`` have none (and no Table 2)."""
     size = config.image_size
-    paths = {}
+    paths = {"real": []}
     needed = {TABLE1[t][0] for t in config.tables}
+    if config.data == "release":
+        paths = release_datasets(release_dir, data_dir)
+        needed = needed - {"cvgl"}
     for protocol, pairs in (("cvgl", config.pairs), ("random", config.random_pairs)):
         if protocol not in needed:
             continue
         paths[protocol] = cached_dataset(data_dir, protocol=protocol, pairs=pairs, seed=seed,
                                          image_size=size, workers=config.workers, log=log)
-    paths["real"] = []
     if not (config.real_sets or any((real_roots or {}).values())):
-        return paths                                    # no Table 2
+        return paths                                    # no Table 2 beyond the release's
     # every real rig, through the one builder of ``python -m cpl_keras.real.build all``
-    paths["real"] = build.build_all(
+    paths["real"] = paths["real"] + build.build_all(
         real_set_folder(config, data_dir, seed), roots=real_roots, stems=config.real_sets,
         crops_per_source={"middlebury": config.crops, "chessboard": config.chessboard_crops,
                           "oakd": config.chessboard_crops},
@@ -71,10 +90,14 @@ def _group_predictions(number, stem, prefix, run_dirs, data, config, out_dir, su
                       "data": [runs.relative(p, out_dir) for p in data] if data else None,
                       "geometric_max": config.geometric_max,
                       "format": predictions.FORMAT_VERSION}, sort_keys=True)
-    rows = ["Average", "Average (release bug)"] + list(run_dirs) + ["Geometric"]
-    stems = [None] if number == 1 else [os.path.splitext(os.path.basename(p))[0] for p in data]
+    def rows(released_only):   # (no Geometric row on a file of the release's labels only)
+        return ["Average", "Average (release bug)"] + list(run_dirs) + (
+            [] if released_only else ["Geometric"])
+
+    rigs = [(None, rows(config.data == "release"))] if number == 1 else [
+        (os.path.splitext(os.path.basename(p))[0], rows(_released_only(p))) for p in data]
     names = [predictions.file_name(prefix, predictions.row_slug(r, {"source": r}, suffix), s)
-             for s in stems for r in rows]
+             for s, rig_rows in rigs for r in rig_rows]
     expected = [os.path.join(folder, name) for name in names]
     models = [os.path.join(r, runs.MODEL) for r in run_dirs]
     restored = not any(os.path.exists(m) for m in models)
@@ -110,6 +133,11 @@ def _group_predictions(number, stem, prefix, run_dirs, data, config, out_dir, su
     if reused is not None:
         reused[-1] = not changed  # (computed again, but nothing to write: as reused)
     return paths
+
+
+def _released_only(path):
+    with StereoFile(path) as f:
+        return f.as_released_only
 
 
 def make_predictions(config, paths, trained, out_dir, reused=None):
@@ -215,9 +243,10 @@ def complete_seeds(config, trained, seed):
 
 
 def reproduce(*, out_dir, data_dir, runs_dir, config, seed=0, command="", discussion_file=None,
-              real_roots=None, jobs=1, partial=False):
+              real_roots=None, jobs=1, partial=False, release_dir=None):
     """Run the whole pipeline of ``config`` (the ``Settings``); returns the
-    path of REPORT.md. ``jobs``: training runs at a time (``train_all``).
+    path of REPORT.md. ``jobs``: training runs at a time (``train_all``);
+    ``release_dir``: the authors' released files (``config.data`` "release").
 
     ``partial``: train nothing; write the tables and REPORT.md of the seeds
     whose runs have all finished (published or in ``runs_dir``) into
@@ -228,7 +257,7 @@ def reproduce(*, out_dir, data_dir, runs_dir, config, seed=0, command="", discus
     start = time.time()
 
     enable_compile_cache()
-    paths = make_datasets(config, data_dir, seed, real_roots)
+    paths = make_datasets(config, data_dir, seed, real_roots, release_dir)
     records = _published_records(out_dir)
     trained = train_all(config, paths, runs_dir, seed, jobs, out_dir=out_dir, train=not partial)
     published_before = not partial and os.path.exists(os.path.join(out_dir, SUMMARY))

@@ -45,6 +45,7 @@ def run_jobs(config, seed):
     jobs = []
     for key in config.tables:
         protocol, split, seeds_key = TABLE1[key]
+        split = config.split or split
         count = getattr(config, seeds_key)
         stems = run_stems(config, protocol)
         groups = [[s for s in stems if s in first], [s for s in stems if s not in first]]
@@ -53,8 +54,8 @@ def run_jobs(config, seed):
                 for stem in group:
                     if run_seed != seed and seeded is not None and stem not in seeded:
                         continue
-                    released = stem == RELEASED_RUN
-                    variant = "cpl-a" if released else stem
+                    released = stem == RELEASED_RUN or config.data == "release"
+                    variant = "cpl-a" if stem == RELEASED_RUN else stem
                     name = stem + (f"-s{run_seed}" if count > 1 else "")
                     jobs.append(Job(key, protocol, split, run_seed, variant, released, name))
     return jobs

@@ -34,6 +34,8 @@ DEFAULT_TABLES = ("cvgl", "random")
 #: patience are checked by the training's rules, ``training_rules``).
 POSITIVE = ("pairs", "random_pairs", "image_size", "crops", "chessboard_crops",
             "geometric_max", "seeds", "random_seeds", "workers")
+#: Where a preset's cvgl pairs come from (``Preset.data``).
+DATA_SOURCES = ("render", "release")
 #: Smallest image side of the real sets (StereoBM's block of 15 and 16 disparities).
 MIN_REAL_IMAGE_SIZE = 32
 
@@ -74,6 +76,12 @@ class Preset:
     validation and what early stopping follows; ``weight_ema``: the
     momentum of the averaged weights validated, kept and saved, 0 off
     (``training.train``'s arguments; None: its defaults).
+    ``data``: ``"render"`` (the project's rendered pairs) or ``"release"``
+    (the authors' released files, imported from ``--release-dir``: every
+    run then trains and is scored as released, the only labels the release
+    gives for the disparity and X, Y, Z); ``split``: the cvgl table's split
+    (None: ``TABLE1``'s); ``backbone_weights``: the towers' initial weights
+    ("imagenet" or a file; None: random), for the variants with towers.
     """
 
     pairs: int
@@ -100,10 +108,15 @@ class Preset:
     bn_statistics: str | None = None
     monitor: str | None = None
     weight_ema: float | None = None
+    data: str = "render"
+    split: str | None = None
+    backbone_weights: str | None = None
 
     def __post_init__(self):
         for key in ("variants", "tables", "real_sets", "first_variants"):
             object.__setattr__(self, key, tuple(getattr(self, key)))
+        if self.backbone_weights == "none":   # (--backbone-weights none: random towers)
+            object.__setattr__(self, "backbone_weights", None)
         if self.seeded_variants is not None:
             object.__setattr__(self, "seeded_variants", tuple(self.seeded_variants))
         unknown = [s for s in self.real_sets if s not in REAL_SETS]
@@ -117,6 +130,9 @@ class Preset:
             if isinstance(value, bool) or not isinstance(value, int) or value < 1:
                 raise ValueError(f"{key.replace('_', '-')} must be positive, got {value}")
         training_rules(self)
+        if self.data not in DATA_SOURCES:
+            raise ValueError(f"unknown data {self.data!r}; choose one of "
+                             f"{', '.join(DATA_SOURCES)}")
         unknown = [t for t in self.tables if t not in TABLE1]
         if unknown or not self.tables:
             raise ValueError(f"unknown table {unknown[0] if unknown else '(none)'!r}; choose "
@@ -145,10 +161,17 @@ def training_rules(preset):
     TrainingOptions(epochs=preset.epochs, batch_size=preset.batch_size,
                     patience=preset.patience, time_budget_s=preset.run_budget_s,
                     bn_statistics=preset.bn_statistics, monitor=preset.monitor,
-                    weight_ema=preset.weight_ema)
-    options = ModelOptions(backbone=preset.backbone, disparity_ceiling=preset.disparity_ceiling)
+                    weight_ema=preset.weight_ema, split=preset.split or "paper")
     for variant in preset.variants:
+        options = ModelOptions(backbone=preset.backbone, disparity_ceiling=preset.disparity_ceiling,
+                               backbone_weights=towers_weights(preset, variant))
         options.for_variant(variant)
+
+
+def towers_weights(preset, variant):
+    """The initial weights of ``variant``'s towers under ``preset``: its
+    ``backbone_weights``, or None for a variant without towers (Deep-Homo)."""
+    return None if registry.get(variant).builder == "deep_homo" else preset.backbone_weights
 
 
 #: The named scales (``--preset``), each a ``Preset``.
@@ -238,6 +261,20 @@ PRESETS = {
                            tables=("cvgl",), real_sets=("chessboard", "middlebury"),
                            first_variants=("cpl-a", "baseline"), weight_ema=0.0),
 }
+# The paper's experiment on the paper's own inputs, for whoever has them and
+# a GPU (docs/evaluation.md#the-papers-own-data): the authors' released CVGL
+# files imported (--release-dir; their r and r_cs files too when there),
+# the four networks of Table 1 trained as the paper did (InceptionV3 towers
+# from ImageNet weights, batch 16, Adam 1e-3, up to 200 epochs, patience 5)
+# on the split as released, and as released (the release's labels are the
+# only ones it gives for the disparity and X, Y, Z); Table 2 from the
+# release's real files and --tsinghua's folder. About 43 ms a step on one
+# H200 (369 samples/s measured, paper_results/notes/gpu-h200.md): about
+# 4 min an epoch of 86,111 training pairs.
+PRESETS["paper-release"] = dataclasses.replace(
+    PRESETS["paper"], variants=("baseline", "cpl-u", "cpl-a", "deep-homo"), released=False,
+    tables=("cvgl",), real_sets=(), data="release", split="released",
+    backbone_weights="imagenet")
 # The same runs with every default of training, the averaged weights
 # (weight_ema 0.99) included: paper_results/weight-ema measured them helping
 # InceptionV3 MTL-CPL-A on every column. Runs stop later with them (an
