@@ -19,6 +19,7 @@ import sys
 import threading
 import traceback
 import types
+from multiprocessing import resource_tracker
 
 import numpy as np
 
@@ -46,16 +47,21 @@ def _sigint_deferred():
     and delivered to the handler in place when the block ends, so none is
     lost; and the processes started in the block begin with SIGINT blocked
     (a process keeps its signal mask across exec), so a Ctrl-C while a
-    worker imports cannot print its traceback. In the main thread; elsewhere
-    (or where Python did not set SIGINT's handler) a no-op."""
+    worker starts Python or imports cannot print its traceback. The
+    resource tracker is started first: starting it unblocks SIGINT in the
+    thread that starts it (multiprocessing's own ``ensure_running``), which
+    had let the workers start with Ctrl-C live. In the main thread;
+    elsewhere (or where Python did not set SIGINT's handler) a no-op."""
     if threading.current_thread() is not threading.main_thread() or \
             signal.getsignal(signal.SIGINT) is None:
         yield
         return
+    masks = hasattr(signal, "pthread_sigmask")
+    if masks:
+        resource_tracker.ensure_running()
     came = []
     # (one that another thread receives runs this in the main thread)
     previous = signal.signal(signal.SIGINT, lambda signum, frame: came.append(signum))
-    masks = hasattr(signal, "pthread_sigmask")
     if masks:
         signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT})
     try:
@@ -70,8 +76,11 @@ def _sigint_deferred():
 
 def _ignore_sigint():
     """Workers leave Ctrl-C to the parent, which stops the pool (one line, no
-    traceback per worker)."""
+    traceback per worker): ignored from here on (a Ctrl-C held back by the
+    mask they started with is dropped), and the mask lifted."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)
+    if hasattr(signal, "pthread_sigmask"):
+        signal.pthread_sigmask(signal.SIG_UNBLOCK, {signal.SIGINT})
 
 
 def _render_block_task(args):
