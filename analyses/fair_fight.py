@@ -23,6 +23,18 @@ baseline``): each claims a run before training it
 log, curves, config and split go to ``--out/<towers>/runs/cvgl_<arm>-s<seed>``
 (``cpl_keras.reproduce.jobs.publish_run``); weights stay in ``--runs-dir``.
 
+``--plateau`` makes the amendment's runs (``protocol-plateau.md``):
+InceptionV3 MTL-Baseline and MTL-CPL-A, seeds 0-2, each trained until its
+monitor has not improved for 20 epochs, at most 200; they train in
+``--home`` (default ``~/cpl-runs``, outside the work tree: the dataset at
+``<home>/data/``, the run directories at ``<home>/fair-fight-plateau/``, the
+commands run from there so that their records name no machine's path) and
+are published into ``--out/<towers>-plateau/runs/``; each start is added to
+the run's ledger beside its record (``run_starts.py``), which is copied into
+the record when it is published:
+
+    python analyses/fair_fight.py --plateau --towers inception --dry-run
+
 ``--verdicts`` trains nothing: from the published runs it writes
 ``<out>/<towers>/verdicts.md`` and ``.json``: each pair of arms by the
 protocol's rules (over the seeds both arms have, two at least), its
@@ -54,14 +66,22 @@ DATA = "data/reproduce-inception-2000-ema/cvgl_2000_112px_s0_v3.0.h5"
 EPOCHS = 50
 #: The protocol's seeds: a verdict over fewer is marked as not yet the protocol's.
 PROTOCOL_SEEDS = [0, 1, 2]
+#: The plateau amendment (protocol-plateau.md): its arms, epoch cap and
+#: patience, where it trains (``~/cpl-runs``: the dataset and run
+#: directories, relative to it) and the epochs of its validation at equal epochs.
+PLATEAU = {"towers": "inception", "arms": ["baseline", "cpl-a"], "epochs": 200,
+           "patience": 20, "home": os.path.join("~", "cpl-runs"),
+           "data": os.path.join("data", os.path.basename(DATA)),
+           "runs_dir": "fair-fight-plateau", "equal_epochs": tuple(range(10, 201, 10))}
 
 
-def train_command(towers, arm, seed, data, epochs, recipe, run_dir):
-    """``train.py``'s arguments for one run of the protocol."""
+def train_command(towers, arm, seed, data, epochs, recipe, run_dir, patience=None):
+    """``train.py``'s arguments for one run of the protocol (patience =
+    epochs: no early stopping) or of its plateau amendment (``patience``)."""
     variant, extra = ARMS[arm]
     return (["train.py", "--variant", variant, "--backbone", TOWERS[towers], "--data", data,
              "--split", "paper", "--seed", str(seed), "--epochs", str(epochs),
-             "--patience", str(epochs), "--recipe", recipe, "--run-dir", run_dir,
+             "--patience", str(patience or epochs), "--recipe", recipe, "--run-dir", run_dir,
              "--head-units", "--quiet"] + extra)
 
 
@@ -164,9 +184,11 @@ def head_shares(log_path, kept_epoch):
             "last": {h: last.get(f"dead_{h}") for h in PARAMETERS}}
 
 
-def write_verdicts(towers, out, data, command, resamples=2000):
-    """``<out>/<towers>/verdicts.md`` and ``.json``: each pair of arms over
-    the seeds published for both, by the protocol's rules. Returns the md path."""
+def write_verdicts(towers, out, data, command, resamples=2000, epochs=EQUAL_EPOCHS):
+    """``<out>/<towers>/verdicts.md`` and ``.json`` (``towers``: the folder,
+    ``inception-plateau`` for the amendment's runs): each pair of arms over
+    the seeds published for both, by the protocol's rules, validation at
+    equal ``epochs``. Returns the md path."""
     from cpl_keras import files, runs
     from cpl_keras.baselines.average import load_statistics
     from cpl_keras.evaluation import verdicts as rules
@@ -198,7 +220,7 @@ def write_verdicts(towers, out, data, command, resamples=2000):
             result["pairs"][title] = {"a": NAMES[a], "b": NAMES[b], "seeds": seeds}
             if seeds:
                 result["pairs"][title]["equal_epochs"] = equal_epochs(
-                    logs[a], logs[b])
+                    logs[a], logs[b], epochs)
             continue
         found = rules.compare({s: rows[a][s] for s in seeds}, {s: rows[b][s] for s in seeds},
                               resamples=resamples, bootstrap_seed=0)
@@ -206,7 +228,7 @@ def write_verdicts(towers, out, data, command, resamples=2000):
                                   "verdict": protocol_verdict(found),
                                   "columns": page.summary(found),
                                   "detail": [dataclasses.asdict(v) for v in found],
-                                  "equal_epochs": equal_epochs(logs[a], logs[b])}
+                                  "equal_epochs": equal_epochs(logs[a], logs[b], epochs)}
     result["beside_average"] = beside_average(rows, statistics)
     result = json.loads(json.dumps(result))
     path = os.path.join(folder, "verdicts.md")
@@ -392,56 +414,99 @@ def regenerate(page_path):
                              files.read_json(os.path.join(folder, "verdicts.json")))
 
 
-def main(argv=None):
+def parse(argv):
+    """The command line's arguments, the plateau amendment's defaults filled
+    in (``--plateau``: its paths relative to ``--home``, which runs the
+    commands); exit 2 in one line when they do not hold."""
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--towers", choices=tuple(TOWERS), required=True)
     parser.add_argument("--seeds", type=int, nargs="+", default=PROTOCOL_SEEDS)
-    parser.add_argument("--arms", nargs="+", choices=tuple(ARMS), default=list(ARMS))
-    parser.add_argument("--data", default=DATA)
-    parser.add_argument("--epochs", type=int, default=EPOCHS)
+    parser.add_argument("--arms", nargs="+", choices=tuple(ARMS))
+    parser.add_argument("--data")
+    parser.add_argument("--epochs", type=int)
     parser.add_argument("--recipe", default="sound")
-    parser.add_argument("--runs-dir", default="runs/fair-fight")
+    parser.add_argument("--runs-dir")
     parser.add_argument("--out", default="paper_results/fair-fight")
+    parser.add_argument("--plateau", action="store_true",
+                        help="the amendment's runs (protocol-plateau.md): InceptionV3 "
+                        "MTL-Baseline and MTL-CPL-A, patience 20, at most 200 epochs, trained "
+                        "in --home, published into <out>/<towers>-plateau/")
+    parser.add_argument("--home", help="with --plateau: where the dataset and run directories "
+                        "are (--data and --runs-dir relative to it) and the commands run "
+                        f"(default {PLATEAU['home']})")
     parser.add_argument("--dry-run", action="store_true", help="print the commands only")
     parser.add_argument("--verdicts", action="store_true",
                         help="train nothing: write <out>/<towers>/verdicts.md and .json from "
                         "the published runs")
     args = parser.parse_args(argv)
-    if not os.path.isfile(args.data):
-        parser.exit(2, f"fair_fight: dataset not found: {args.data} (python -m "
+    if args.plateau and args.towers != PLATEAU["towers"]:
+        parser.exit(2, f"fair_fight: the plateau amendment trains the {PLATEAU['towers']} "
+                       f"towers only, not {args.towers}\n")
+    if args.home and not args.plateau:
+        parser.exit(2, "fair_fight: --home is the plateau runs' (--plateau)\n")
+    plateau = PLATEAU if args.plateau else {}
+    args.home = os.path.expanduser(args.home or plateau.get("home", "."))
+    args.arms = args.arms or list(plateau.get("arms", ARMS))
+    args.data = args.data or plateau.get("data", DATA)
+    args.epochs = args.epochs or plateau.get("epochs", EPOCHS)
+    args.patience = plateau.get("patience")
+    args.runs_dir = args.runs_dir or plateau.get("runs_dir", "runs/fair-fight")
+    args.folder = args.towers + ("-plateau" if args.plateau else "")
+    if not os.path.isfile(os.path.join(args.home, args.data)):
+        where = os.path.join(args.home, args.data)
+        parser.exit(2, f"fair_fight: dataset not found: {where} (python -m "
                        "cpl_keras.data.generate --protocol cvgl --pairs 2000 --seed 0 "
-                       f"--image-size 112 --out {args.data})\n")
+                       f"--image-size 112 --out {where})\n")
+    return args
+
+
+def main(argv=None):
+    args = parse(argv)
     if args.verdicts:
         from cpl_keras import cli
 
         command = cli.command_line("analyses/fair_fight.py", argv)
-        print(write_verdicts(args.towers, args.out, args.data, command))
+        print(write_verdicts(args.folder, args.out, os.path.join(args.home, args.data), command,
+                             epochs=PLATEAU["equal_epochs"] if args.patience else EQUAL_EPOCHS))
         return 0
+    starts = _sibling("run_starts")  # (analyses/run_starts.py: each start's ledger)
+    here = "" if args.home == "." else f"cd {shlex.quote(args.home)} && "
+    train = os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))),
+                         "train.py") if here else "train.py"
     for seed in args.seeds:
         for arm in args.arms:
             name = f"cvgl_{arm}-s{seed}"
             run_dir = os.path.join(args.runs_dir, args.towers, f"{arm}-s{seed}")
-            record = os.path.join(args.out, args.towers, "runs", name)
+            record = os.path.join(args.out, args.folder, "runs", name)
             command = train_command(args.towers, arm, seed, args.data, args.epochs,
-                                    args.recipe, run_dir)
+                                    args.recipe, run_dir, args.patience)
             if args.dry_run:
-                print(shlex.join(["python"] + command))
+                print(here + shlex.join(["python", train] + command[1:]))
                 continue
             if os.path.isdir(record):
                 print(f"fair_fight: {record} published, skipped", flush=True)
                 continue
+            run_dir = os.path.join(args.home, run_dir) if here else run_dir
             if not claim(run_dir):
                 print(f"fair_fight: {name} is being trained by another process, skipped",
                       flush=True)
                 continue
-            print(f"fair_fight: training {name} ({args.towers}): {shlex.join(command)}",
+            if args.patience:  # (the amendment's ledger of starts, before training)
+                try:
+                    starts.record_start(record, run_dir)
+                except starts.LostTwice as lost:
+                    print(f"fair_fight: {lost}", file=sys.stderr)
+                    return 2
+            print(f"fair_fight: training {name} ({args.folder}): {shlex.join(command)}",
                   flush=True)
-            status = subprocess.call([sys.executable] + command)
+            status = subprocess.call([sys.executable, train] + command[1:], cwd=args.home)
             if status:
                 return status
             from cpl_keras.reproduce.jobs import publish_run
 
             publish_run(run_dir, record, [])
+            if args.patience:
+                starts.copy_into(record)
     return 0
 
 

@@ -157,3 +157,68 @@ def test_each_arm_beside_the_average_row(tmp_path):
     statistics[("baseline", 0)] = {"mean": {**mean[0], **points, "fx": mean[0]["fx"] + 1.0}}
     with pytest.raises(ValueError, match="seed 0: the training means"):
         script.beside_average(rows, statistics)
+
+
+def test_the_plateau_amendment_prints_its_six_runs_and_writes_nothing(capsys, tmp_path):
+    """``--plateau --dry-run``: InceptionV3 MTL-Baseline and MTL-CPL-A, seeds
+    0-2, patience 20 and at most 200 epochs, under the same recipe, run
+    from ``--home`` with the dataset and run directories relative to it, so
+    that a published record names no machine's path."""
+    script = _script()
+    home = tmp_path / "cpl-runs"
+    (home / "data").mkdir(parents=True)
+    (home / "data" / "cvgl_2000_112px_s0_v3.0.h5").write_bytes(b"")
+    out = tmp_path / "results"
+    assert script.main(["--plateau", "--towers", "inception", "--home", str(home),
+                        "--out", str(out), "--dry-run"]) == 0
+    lines = capsys.readouterr().out.strip().splitlines()
+    assert len(lines) == 6
+    for line, (seed, arm) in zip(lines, [(s, a) for s in (0, 1, 2)
+                                         for a in ("baseline", "cpl-a")]):
+        assert line.startswith(f"cd {home} && python ")
+        words = line.split(" && ", 1)[1].split()
+        assert words[1].endswith("train.py")
+        value = {w: words[i + 1] for i, w in enumerate(words[:-1]) if w.startswith("--")}
+        assert value["--epochs"] == "200" and value["--patience"] == "20"
+        assert value["--recipe"] == "sound" and value["--backbone"] == "inception_v3"
+        assert value["--variant"] == arm and value["--seed"] == str(seed)
+        assert value["--split"] == "paper" and "--adaptive-weights" not in words
+        assert value["--data"] == "data/cvgl_2000_112px_s0_v3.0.h5"
+        assert value["--run-dir"] == f"fair-fight-plateau/inception/{arm}-s{seed}"
+    assert not out.exists() and sorted(p.name for p in home.iterdir()) == ["data"]
+    # the amendment is InceptionV3's, and its dataset must be in its home
+    for argv in (["--towers", "compact", "--home", str(home)],
+                 ["--towers", "inception", "--home", str(tmp_path)]):
+        with pytest.raises(SystemExit) as stop:
+            script.main(["--plateau", "--dry-run"] + argv)
+        assert stop.value.code == 2
+
+
+def test_the_plateau_ledger_counts_resumes_machines_and_a_run_lost_twice(tmp_path):
+    """Each start of a plateau run is recorded beside its record: the epoch
+    it went on from, the machine; a run directory missing after a start is
+    a loss, started again once, never a third time."""
+    from cpl_keras.training.state import TrainingState, write_state
+
+    starts = load_script("analyses/run_starts.py")
+    record, run_dir = str(tmp_path / "runs" / "cvgl_cpl-a-s0"), str(tmp_path / "home" / "r")
+    cpu, gpu = {"cpu": "AMD EPYC", "cpu_count": 2}, {"cpu": "Xeon", "cpu_count": 16}
+    starts.record_start(record, run_dir, machine=cpu, gpu_names=[])
+    os.makedirs(os.path.join(run_dir, "backup"))
+    write_state(run_dir, TrainingState(epoch=37))
+    ledger = starts.record_start(record, run_dir, machine=cpu, gpu_names=[])
+    assert [s["from_epoch"] for s in ledger["starts"]] == [0, 37]
+    assert (ledger["resumed"], ledger["lost"], len(ledger["machines"])) == (1, 0, 1)
+    import shutil
+
+    shutil.rmtree(run_dir)  # (its machine gone): started again once, from epoch 0
+    ledger = starts.record_start(record, run_dir, machine=gpu, gpu_names=["NVIDIA H100"])
+    assert ledger["starts"][-1]["lost_before"] and ledger["lost"] == 1
+    assert ledger["machines"][-1] == dict(gpu, gpus=["NVIDIA H100"])
+    with pytest.raises(starts.LostTwice, match="lost twice"):
+        starts.record_start(record, run_dir, machine=gpu, gpu_names=[])
+    assert len(starts.read(record)["starts"]) == 3  # (the refused start is not recorded)
+    os.makedirs(record)
+    starts.copy_into(record)
+    with open(os.path.join(record, "starts.json")) as f:
+        assert json.load(f)["resumed"] == 1
