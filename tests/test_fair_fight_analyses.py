@@ -1,11 +1,45 @@
-"""The fair fight's analyses of its committed record: the loss split term by term."""
+"""The fair fight's analyses of its committed record: the records joined to
+their test pairs' truths, the loss split term by term."""
 
+import json
 import math
+import os
 
+import numpy as np
 import pytest
-from helpers import load_script
+from helpers import REPO, load_script
 
 from cpl_keras import camera
+
+FIGHT = os.path.join(REPO, "paper_results", "fair-fight")
+
+
+def test_the_records_joined_to_their_truths_score_as_the_verdicts_did(tmp_path):
+    """The truths taken from inception-2000-ema's files give each seed's NMAE
+    that the verdicts computed from the dataset itself; a record whose test
+    pairs differ is refused."""
+    rows = load_script("analyses/fair_fight_rows.py")
+    with open(os.path.join(FIGHT, "inception", "verdicts.json")) as f:
+        pair = json.load(f)["pairs"]["MTL-CPL-A vs MTL-Baseline"]
+    found = rows.rows(os.path.join(FIGHT, "inception", "runs"), "baseline")
+    assert sorted(found) == [0, 1, 2]
+    for column in pair["detail"]:
+        p = column["parameter"]
+        for interval in column["per_seed"]:
+            raw = found[interval["seed"]]
+            truth = np.asarray(raw["truth"][p], np.float64)
+            nmae = np.mean(np.abs(raw["pred"][p] - truth)) / np.mean(np.abs(truth))
+            assert nmae == pytest.approx(interval["nmae_b"], rel=1e-9), (p, interval["seed"])
+    # a record of other test pairs: refused in one line
+    record = tmp_path / "runs" / "cvgl_baseline-s0" / "predictions"
+    record.mkdir(parents=True)
+    with np.load(os.path.join(FIGHT, "inception", "runs", "cvgl_baseline-s0", "predictions",
+                              "cvgl_2000_112px_s0_v3.0.npz")) as stored:
+        arrays = {k: stored[k] for k in stored.files}
+    arrays["indices"] = arrays["indices"][::-1]
+    np.savez(record / "cvgl_2000_112px_s0_v3.0.npz", **arrays)
+    with pytest.raises(ValueError, match="not those of"):
+        rows.rows(str(tmp_path / "runs"), "baseline")
 
 
 def test_the_loss_split_adds_up_and_lists_the_jumps():
