@@ -1,5 +1,6 @@
 """The fair fight's analyses of its committed record: the records joined to
-their test pairs' truths, the loss split term by term."""
+their test pairs' truths, the loss split term by term, the range weights'
+first-order sensitivities."""
 
 import json
 import math
@@ -62,3 +63,25 @@ def test_the_loss_split_adds_up_and_lists_the_jumps():
     run = next(r for r in jumps.compute() if r["run"] == "MTL-CPL-A" and r["seed"] == 1)
     worst = max(run["jumps"], key=lambda j: j["rises"]["loss"])
     assert worst["epoch"] == 21 and worst["rises"]["points"] > 0.75 * worst["rises"]["loss"]
+
+
+def test_the_range_terms_sensitivities_on_the_optical_axis():
+    """On the optical axis with no pitch (u = u0, v = v0): the point is
+    (xCam, 0, 0) + t with xCam = fx b / d, so dP/dpitch is xCam (in Z),
+    dP/dd is xCam / d, dP/dfx and dP/du0 are b / d, dP/db is fx / d,
+    dP/dfy is 0 and each translation moves it by 1."""
+    script = load_script("analyses/range_sensitivity.py")
+    params = {"fx": 50.0, "fy": 40.0, "u0": 56.0, "v0": 56.0, "baseline": 20.0,
+              "disparity": 100.0, "tx": 3.0, "ty": -1.0, "tz": 2.0, "pitch": 0.0}
+    found = script.point_sensitivities(params, u=56.0, v=56.0)
+    xcam = 50.0 * 20.0 / 100.0
+    expected = {"fx": 20 / 100, "fy": 0.0, "u0": 20 / 100, "v0": xcam / 40, "baseline": 0.5,
+                "disparity": xcam / 100, "tx": 1.0, "ty": 1.0, "tz": 1.0, "pitch": xcam}
+    for p, value in expected.items():
+        assert found[p] == pytest.approx(value, abs=1e-5), p
+    # the reference pair projects the mean point: its implied disparity puts it there
+    mean = dict(params, X=13.0, Y=-1.0, Z=2.0)  # (xCam 10 m: d = 50 * 20 / 10)
+    pairs = script.reference_pairs(mean)
+    (implied, u, v), (at_mean, _, _) = pairs.values()
+    assert np.allclose(camera.image_to_world(**implied, u=u, v=v), (13.0, -1.0, 2.0))
+    assert implied["disparity"] == pytest.approx(100.0) and at_mean == params
