@@ -1,7 +1,8 @@
 """What every command line of the package shares.
 
 * ``Parser``: argparse with one error format, ``<prog>: error: <one line>``
-  on stderr and exit status 2 (no usage block);
+  on stderr and exit status 2 (no usage block), and a ``--help`` at most
+  ``HELP_WIDTH`` characters wide whose usage line is short (``HelpFormatter``);
 * ``one_line(error)``: the first line of an exception's message (its type's
   name when it has none);
 * ``fail(prog, error)``: print that error line, return 2 (for ``main``);
@@ -29,6 +30,7 @@ import os
 import shlex
 import shutil
 import sys
+import textwrap
 import time
 
 from cpl_keras.errors import Error, fail, one_line  # noqa: F401  (one_line: also here)
@@ -38,9 +40,49 @@ from cpl_keras.interrupts import (  # noqa: F401  (the commands reach them as cl
 )
 
 
+#: The widest line of a command's ``--help``, however wide the terminal.
+HELP_WIDTH = 100
+
+
+class HelpFormatter(argparse.HelpFormatter):
+    """``--help`` as wide as the terminal up to ``HELP_WIDTH`` characters,
+    with a usage line of the required arguments and ``[options]`` (each
+    option is listed below it; the whole list made usage blocks of up to 17
+    lines), its text wrapped between words only (``--time-budget`` was cut
+    after ``--time-``)."""
+
+    def __init__(self, prog, indent_increment=2, max_help_position=24, width=None):
+        if width is None:
+            width = min(shutil.get_terminal_size().columns - 2, HELP_WIDTH)
+        super().__init__(prog, indent_increment, max_help_position, width)
+
+    def add_usage(self, usage, actions, groups, prefix=None):
+        if usage is None:  # (a flag and its value on one line: a no-break space between)
+            words = [f"{action.option_strings[0]}\xa0"
+                     f"{self._format_args(action, action.dest.upper())}"
+                     if action.option_strings else self._format_args(action, action.dest)
+                     for action in actions if action.required or not action.option_strings]
+            indent = " " * len(f"usage: {self._prog} ")
+            usage = "%(prog)s " + textwrap.fill(
+                " ".join(words + ["[options]"]), self._width, initial_indent=indent,
+                subsequent_indent=indent, break_on_hyphens=False)[len(indent):].replace("\xa0", " ")
+        super().add_usage(usage, actions, groups, prefix)
+
+    def _split_lines(self, text, width):  # (a flag is never cut at its hyphens)
+        return textwrap.wrap(" ".join(text.split()), width, break_on_hyphens=False)
+
+    def _fill_text(self, text, width, indent):
+        return textwrap.fill(" ".join(text.split()), width, initial_indent=indent,
+                             subsequent_indent=indent, break_on_hyphens=False)
+
 
 class Parser(argparse.ArgumentParser):
-    """An ArgumentParser whose errors are one line: ``<prog>: error: <message>``, exit 2."""
+    """An ArgumentParser whose errors are one line: ``<prog>: error: <message>``,
+    exit 2; its help formatted by ``HelpFormatter``."""
+
+    def __init__(self, *args, **kwargs):
+        kwargs.setdefault("formatter_class", HelpFormatter)
+        super().__init__(*args, **kwargs)
 
     def error(self, message):
         self.exit(2, f"{self.prog}: error: {one_line(message)}\n")

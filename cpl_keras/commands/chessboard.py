@@ -12,7 +12,7 @@ from cpl_keras.real.chessboard import DATA_DIR, calibrate, calibration_report
 
 def main(argv=None):
     prog = "python -m cpl_keras.real.chessboard"
-    parser = cli.Parser(prog=prog, description="print a chessboard rig's calibration")
+    parser = cli.Parser(prog=prog, description="Print a chessboard rig's calibration.")
     parser.add_argument("--root", default=DATA_DIR, help="folder of left*/right* pairs")
     parser.add_argument("--pair", help="also the point and disparity of this pair (e.g. 01)")
     args = parser.parse_args(argv)

@@ -10,12 +10,15 @@ from cpl_keras.real import LABEL_MODES
 from cpl_keras.real.build import OPTIONS, PROG, SOURCES, build_all, build_one
 from cpl_keras.real.build import __doc__ as LIBRARY_DOC
 
+#: The sources that are one rig (all the others: ``all``).
+RIGS = tuple(source for source in SOURCES if source != "all")
+
 
 def parse_args(argv=None):
     parser = cli.Parser(prog=PROG, description=LIBRARY_DOC.split("\n")[0])
-    parser.add_argument("source", choices=SOURCES,
-                        help="the real rig to build, or all (every shipped rig and every root "
-                        "given) into --out-dir")
+    parser.add_argument("source", choices=SOURCES, metavar="SOURCE",
+                        help=f"the real rig to build ({', '.join(RIGS)}), or all (every "
+                        "shipped rig and every root given) into --out-dir")
     parser.add_argument("--out", type=cli.path, help="output HDF5 file (every source but all)")
     parser.add_argument("--out-dir", type=cli.path, help="output folder (all)")
     parser.add_argument("--root", help="dataset root (kitti, tsinghua, cityscapes; "

@@ -16,6 +16,9 @@ from cpl_keras.reproduce.presets import PRESETS, PROG, REAL_ROOTS, default_folde
 # ---------------------------------------------------------------------------
 # Command line
 # ---------------------------------------------------------------------------
+#: What ``--help`` says the command does.
+DESCRIPTION = ("Reproduce the paper's tables: generate the datasets, train every run, and write "
+               "Tables 1 and 2 with REPORT.md (docs/evaluation.md).")
 #: Options that set the scale (not allowed with --from-predictions).
 SCALE_OPTIONS = ("quick", "preset", "pairs", "random_pairs", "epochs", "patience", "backbone",
                  "image_size", "crops", "chessboard_crops", "seeds", "random_seeds", "workers",
@@ -37,82 +40,73 @@ def _add_scale_arguments(group):
     """The scale: a named one (--preset, --quick) and the values that override
     it (pairs, epochs, patience, towers, image size, crops, seeds)."""
     positive, non_negative = cli.positive_int, cli.non_negative_int
-    group.add_argument("--preset", choices=tuple(PRESETS), help="a named scale: paper (the "
-                       "paper's: 123,017 pairs, InceptionV3, every row; the default, into "
-                       "paper_results/), paper-gpu (MTL-CPL-A and MTL-Baseline with InceptionV3 "
-                       "towers on 20,000 pairs, sized for ten minutes of one GPU), cpu (compact "
-                       "towers, 3 seeds, ~1.5 h on 2 cores with --jobs 2), cpu-8000 (MTL "
-                       "variants on 8,000 cvgl pairs, 3 seeds, paper and drive splits; many "
-                       "hours, resumable run by run), paper-release (the paper's experiment on the "
-                       "authors' released files, --release-dir; for a GPU), quick (= --quick); "
-                       "the flags below override its values")
+    group.add_argument("--preset", choices=tuple(PRESETS), metavar="NAME",
+                       help=f"a named scale: {', '.join(PRESETS)} (docs/evaluation.md, "
+                       "Presets; default: the paper's); the flags below override its values")
     group.add_argument("--quick", action="store_true", help="tiny settings (minutes)")
-    group.add_argument("--pairs", type=positive, help="cvgl-protocol pairs (paper: 123017)")
-    group.add_argument("--random-pairs", type=positive, help="random-protocol pairs")
-    group.add_argument("--epochs", type=positive, help="maximum epochs per run (paper: 200)")
-    group.add_argument("--patience", type=non_negative, help="early stopping patience (paper: 5)")
-    group.add_argument("--backbone", choices=BACKBONES,
-                       help="the towers (paper: inception_v3; cpu presets: small_resnet)")
-    group.add_argument("--image-size", type=positive,
+    group.add_argument("--pairs", type=positive, metavar="N",
+                       help="cvgl-protocol pairs (paper: 123017)")
+    group.add_argument("--random-pairs", type=positive, metavar="N", help="random-protocol pairs")
+    group.add_argument("--epochs", type=positive, metavar="N",
+                       help="maximum epochs per run (paper: 200)")
+    group.add_argument("--patience", type=non_negative, metavar="N",
+                       help="early stopping patience (paper: 5)")
+    group.add_argument("--backbone", choices=BACKBONES, metavar="NAME",
+                       help=f"the towers: {', '.join(BACKBONES)} (paper: inception_v3)")
+    group.add_argument("--image-size", type=positive, metavar="PX",
                        help="square image side of every dataset (paper: 112)")
-    group.add_argument("--crops", type=positive, help="Middlebury crops for Table 2")
-    group.add_argument("--chessboard-crops", type=positive,
+    group.add_argument("--crops", type=positive, metavar="N", help="Middlebury crops for Table 2")
+    group.add_argument("--chessboard-crops", type=positive, metavar="N",
                        help="crops per OpenCV chessboard pair for Table 2")
-    group.add_argument("--seeds", type=positive, help="cvgl runs per variant, seeds "
-                       "SEED, SEED+1, ... (each its own split and initial weights)")
-    group.add_argument("--random-seeds", type=positive, help="random-protocol runs per variant")
-    group.add_argument("--split", choices=SPLITS, help="the cvgl runs' split (default: the "
-                       "preset's; paper-release: released, the release's own)")
-    group.add_argument("--backbone-weights", metavar="imagenet|FILE|none",
-                       help="the towers' initial weights (train.py --backbone-weights; "
-                       "paper-release: imagenet; none: random, every other preset's)")
+    group.add_argument("--seeds", type=positive, metavar="N",
+                       help="cvgl runs per variant, seeds SEED, SEED+1, ...")
+    group.add_argument("--random-seeds", type=positive, metavar="N",
+                       help="random-protocol runs per variant")
+    group.add_argument("--split", choices=SPLITS, metavar="NAME",
+                       help=f"the cvgl runs' split: {', '.join(SPLITS)} (default: the preset's)")
+    group.add_argument("--backbone-weights", metavar="W",
+                       help="the towers' initial weights: imagenet, FILE or none (random; "
+                       "train.py --backbone-weights)")
 
 
 def _add_run_arguments(group):
     """How the runs are made: --workers, --run-budget, --allow-cpu, --jobs,
     --partial, and the first --seed."""
-    group.add_argument("--workers", type=cli.worker_count, help="data generation processes "
-                       "(default and most: every core)")
+    group.add_argument("--workers", type=cli.worker_count, metavar="N",
+                       help="data generation processes (default: every core)")
     group.add_argument("--run-budget", type=cli.positive_float, metavar="SECONDS",
-                       help="seconds of training each run may take (train.py --time-budget; "
-                       "paper-gpu: 150; default: no limit)")
+                       help="training seconds per run (train.py --time-budget)")
     group.add_argument("--allow-cpu", action="store_true",
                        help="run settings sized for a GPU (InceptionV3 towers on "
                        f"{GPU_SIZED_PAIRS:,}+ pairs) on a machine without one")
-    group.add_argument("--jobs", type=cli.positive_int,
-                       help="training runs at a time, each in its own process (default 1; 2 "
-                       "did about 1.4x the work per unit time on a 2-core CPU); the runs and "
-                       "the tables are the same")
+    group.add_argument("--jobs", type=cli.positive_int, metavar="N",
+                       help="training runs at once, each its own process (default 1)")
     group.add_argument("--partial", action="store_true",
-                       help="train nothing: write the tables and REPORT.md of the seeds whose "
-                       "runs have all finished so far into OUT/partial/ (a reproduction still "
-                       "under way)")
-    group.add_argument("--seed", type=cli.non_negative_int, default=0,
-                       help="seed of the datasets and the first run seed")
+                       help="train nothing: the tables and REPORT.md of the seeds finished so "
+                       "far, into OUT/partial/")
+    group.add_argument("--seed", type=cli.non_negative_int, default=0, metavar="SEED",
+                       help="seed of the datasets and of the first run (default 0)")
 
 
 def _add_folder_arguments(group):
     """Where things are: the real sets' roots (Table 2), the datasets' and
     runs' folders, the discussion, and a reproduction to rebuild
     (--from-predictions)."""
-    group.add_argument("--release-dir", help="the authors' released files (--preset "
-                       "paper-release): the flat .npy folder or the raw episodes' root, its r "
-                       "and r_cs files imported too when there (docs/data.md)")
-    group.add_argument("--kitti", help="Table 2: KITTI stereo 2015 root")
-    group.add_argument("--kitti-raw", help="Table 2: KITTI raw root")
-    group.add_argument("--tsinghua", help="Table 2: Tsinghua-Daimler Cyclist root")
-    group.add_argument("--cityscapes", help="Table 2: Cityscapes root")
-    group.add_argument("--data-dir", help="where the datasets go (default data/reproduce, "
-                       "data/quick with --quick, data/reproduce-<preset> with --preset)")
-    group.add_argument("--runs-dir", help="where the runs go (default runs/reproduce, "
-                       "runs/quick, runs/reproduce-<preset>)")
-    group.add_argument("--discussion", help="Markdown file appended to REPORT.md as the "
-                       "comparison with the paper (default: discussion.md in the output "
-                       "folder, if there is one); with --from-predictions it replaces the "
-                       "stored one")
+    group.add_argument("--release-dir", metavar="DIR",
+                       help="the authors' released files (--preset paper-release)")
+    for flag, name in (("--kitti", "KITTI stereo 2015"), ("--kitti-raw", "KITTI raw"),
+                       ("--tsinghua", "Tsinghua-Daimler Cyclist"), ("--cityscapes", "Cityscapes")):
+        group.add_argument(flag, metavar="DIR", help=f"Table 2: the {name} root")
+    group.add_argument("--data-dir", metavar="DIR", help="where the datasets go (default "
+                       "data/reproduce[-PRESET]; --quick: data/quick)")
+    group.add_argument("--runs-dir", metavar="DIR", help="where the runs go (default "
+                       "runs/reproduce[-PRESET]; --quick: runs/quick)")
+    group.add_argument("--discussion", metavar="FILE",
+                       help="Markdown appended to REPORT.md as the comparison with the paper "
+                       "(default: OUT/discussion.md, if there)")
     group.add_argument("--from-predictions", metavar="DIR",
-                       help="rebuild every table and REPORT.md in DIR (a reproduction's output "
-                       "folder) from its published predictions alone: no weights, no datasets")
+                       help="rebuild the tables and REPORT.md in DIR from its published "
+                       "predictions alone")
 
 
 def resolve_args(parser, args):
@@ -195,12 +189,11 @@ def run(args, command, prog=PROG):
 def parse_args(argv=None):
     """The command line, checked and resolved (``resolve_args``); a bad one
     ends the process with one line and exit status 2."""
-    parser = cli.Parser(prog=PROG, description=__doc__.split("\n")[0])
-    parser.add_argument("--out", type=cli.path, help="output directory (default: paper_results/; with "
-                        "--quick: runs/quick/paper_results; with --preset P: "
-                        "paper_results/P)")
-    parser.add_argument("--geometric-max", type=cli.positive_int,
-                        help="run the Geometric baseline on the first N evaluation pairs only")
+    parser = cli.Parser(prog=PROG, description=DESCRIPTION)
+    parser.add_argument("--out", type=cli.path, metavar="OUT",
+                        help="output folder (default paper_results/, or the preset's own)")
+    parser.add_argument("--geometric-max", type=cli.positive_int, metavar="N",
+                        help="the Geometric baseline on the first N evaluation pairs only")
     add_arguments(parser)
     return resolve_args(parser, parser.parse_args(argv))
 

@@ -10,6 +10,7 @@ and in the command it records (``train.py`` from the repository,
 
 from __future__ import annotations
 
+import argparse
 import dataclasses
 import os
 import sys
@@ -49,11 +50,32 @@ def disparity_ceiling(text):
     return cli.positive_float(text)
 
 
+#: The options ``--help`` leaves out, by what they are about: docs/training.md's
+#: options table has every option (``--help``'s epilog says so and names these).
+MORE_OPTIONS = {
+    "the heads and losses": ("--disentangle", "--point-errors",
+                             "--exp-disparity-head", "--head-activation", "--head-norm",
+                             "--disparity-head", "--linear-pitch-head", "--linear-focal-head",
+                             "--alpha-rate", "--adaptive-weights", "--disparity-ceiling",
+                             "--weight-decay", "--clip-norm", "--target-scaling"),
+    "validation": ("--monitor", "--bn-statistics", "--bn-recompute-batches"),
+    "diagnostics": ("--term-gradients", "--head-units"),
+    "a process group": ("--coordinator", "--num-processes", "--process-id"),
+    "speed": ("--steps-per-execution",),
+}
+HIDDEN = argparse.SUPPRESS
+
+
 def build_parser(prog=PROG):
-    """The command's parser; its options in the order ``--help`` lists them."""
+    """The command's parser; its options in the order ``--help`` lists them,
+    the ones it leaves out (``MORE_OPTIONS``) named in its epilog."""
+    more = "; ".join(f"{topic}: {', '.join(flags)}" for topic, flags in MORE_OPTIONS.items())
     parser = cli.Parser(
         prog=prog,
-        description="Train a camera calibration network (Butt & Taj) on a stereo dataset.",
+        description="Train a camera calibration network (Butt & Taj) on a stereo dataset; "
+        "without --data, a short demonstration.",
+        epilog="Every option, with its default and meaning: docs/training.md, section "
+        f"Options; not listed above, {more}.",
     )
     _add_run_arguments(parser)
     _add_group_arguments(parser)
@@ -69,48 +91,41 @@ def _add_run_arguments(parser):
     """The run (--variant .. --data-parallel): the network and its towers
     (--backbone, --backbone-weights), the dataset and its split, the
     schedule, the run directory, the seed, data parallelism."""
-    parser.add_argument("--variant", required=True, choices=VARIANTS,
-                        help="the network: baseline (MTL-Baseline, 13 heads, MAE), cpl-u "
-                        "(camera projection loss, uniform), cpl-a (CPL with adaptive weights, "
-                        "the paper's), deep-homo (the Deep-Homo comparison)")
-    parser.add_argument("--data", help="dataset file (.h5) from the data generator; "
-                        "default: a small demonstration dataset")
-    parser.add_argument("--epochs", type=cli.positive_int, help="maximum epochs (default 200)")
-    parser.add_argument("--batch-size", type=cli.positive_int, default=16,
-                        help="pairs per training step (default 16, the paper's); at most the "
-                        "training split")
-    parser.add_argument("--lr", type=cli.positive_float, help="learning rate (default 1e-3, Deep-Homo 1.5e-3)")
-    parser.add_argument("--image-size", type=cli.positive_int,
-                        help="expected image side; must match the dataset (default: the dataset's)")
-    parser.add_argument("--backbone", choices=BACKBONES,
-                        help="tower backbone (default inception_v3, the paper's)")
-    parser.add_argument("--backbone-weights", type=cli.path, metavar="imagenet|FILE",
-                        help="both towers start from InceptionV3's ImageNet weights: imagenet "
-                        "(Keras's file, from its cache or downloaded) or FILE, that file in "
-                        "Keras's legacy .h5 or Keras 3 .weights.h5 layout (default: random "
-                        "initialisation; inception_v3 only)")
-    parser.add_argument("--split", choices=SPLITS, default="paper",
-                        help="paper: the paper's frame-level 70/30 split (default); drive: "
-                        "whole contiguous drives held out; held-out-config: whole rigs held out "
-                        "(random protocol); released: the authors' release's own, the first 70 %% "
-                        "of an imported release's rows train, the rest validation and test")
+    parser.add_argument("--variant", required=True, choices=VARIANTS, metavar="V",
+                        help=f"the network: {', '.join(VARIANTS)} (cpl-a: the paper's)")
+    parser.add_argument("--data", metavar="FILE",
+                        help="dataset (.h5) of the data generator (default: a demonstration)")
+    parser.add_argument("--epochs", type=cli.positive_int, metavar="N",
+                        help="maximum epochs (default 200; the demonstration 8)")
+    parser.add_argument("--batch-size", type=cli.positive_int, default=16, metavar="N",
+                        help="pairs per training step (default 16, the paper's)")
+    parser.add_argument("--lr", type=cli.positive_float, metavar="LR",
+                        help="learning rate (default 1e-3; deep-homo 1.5e-3)")
+    parser.add_argument("--image-size", type=cli.positive_int, metavar="PX",
+                        help="the dataset's image side, checked (default: its own)")
+    parser.add_argument("--backbone", choices=BACKBONES, metavar="NAME",
+                        help=f"the towers: {', '.join(BACKBONES)} (default inception_v3)")
+    parser.add_argument("--backbone-weights", type=cli.path, metavar="W",
+                        help="imagenet or FILE: InceptionV3's ImageNet weights (default: random)")
+    parser.add_argument("--split", choices=SPLITS, default="paper", metavar="NAME",
+                        help=f"{', '.join(SPLITS)} (default paper)")
     parser.add_argument("--as-released", action="store_true",
                         help="reproduce the released code (labels, loss, val = test)")
-    parser.add_argument("--run-dir", type=cli.path, help="run directory (default runs/<variant>-<split>-s<seed>)")
-    parser.add_argument("--seed", type=cli.non_negative_int, help="seed of split, shuffling and weights (default 0)")
+    parser.add_argument("--run-dir", type=cli.path, metavar="DIR",
+                        help="default runs/<variant>-<split>-s<seed>")
+    parser.add_argument("--seed", type=cli.non_negative_int, metavar="N",
+                        help="seed of split, shuffling and weights (default 0)")
     parser.add_argument("--data-parallel", action="store_true",
-                        help="data parallelism over all local devices, or over every "
-                        "process's devices in a process group (docs/training.md)")
+                        help="data parallelism over every device, or a process group's")
 
 
 def _add_loop_arguments(parser):
     """The training loop: --patience, --workers, --steps-per-execution."""
-    parser.add_argument("--patience", type=cli.non_negative_int, default=5, help="early stopping patience")
-    parser.add_argument("--workers", type=cli.worker_count, default=1,
-                        help="data reading threads (at most the CPUs)")
-    parser.add_argument("--steps-per-execution", type=cli.positive_int, default=1,
-                        help="training steps per compiled call (Keras's steps_per_execution; "
-                        "default 1)")
+    parser.add_argument("--patience", type=cli.non_negative_int, default=5, metavar="N",
+                        help="early stopping patience (default 5)")
+    parser.add_argument("--workers", type=cli.worker_count, default=1, metavar="N",
+                        help="data reading threads (default 1)")
+    parser.add_argument("--steps-per-execution", type=cli.positive_int, default=1, help=HIDDEN)
 
 
 def _add_head_arguments(parser):
@@ -119,115 +134,62 @@ def _add_head_arguments(parser):
     --exp-disparity-head, --head-activation, --head-norm, --disparity-head,
     --linear-pitch-head, --linear-focal-head, --alpha-rate, --adaptive-weights,
     --disparity-ceiling, --weight-decay, --clip-norm."""
-    parser.add_argument("--recipe", choices=tuple(RECIPES),
-                        help="a named set of the options below: paper (default, changes "
-                        "nothing) or sound (leaky heads of slope 0.01, --head-norm, the softplus "
-                        "disparity head, --clip-norm 1; paper_results/fair-fight); an option "
-                        "given as well overrides the recipe's")
-    parser.add_argument("--disentangle", choices=DISENTANGLE,
-                        help="CPL: the X, Y, Z terms of Eq. 7 train only the pixel heads "
-                        "(exact, default) or every head the camera graph reads (partial)")
-    parser.add_argument("--point-errors", choices=POINT_ERRORS,
-                        help="CPL: Eq. 7's point errors in metres (default, the paper's) or "
-                        "divided by each pair's true depth (relative; an ablation)")
-    parser.add_argument("--exp-disparity-head", action="store_true", default=None,
-                        help="MTL-Baseline: the CPL variants' disparity head, d = exp(z) up to "
-                        "--disparity-ceiling, instead of a linear one (an ablation)")
-    parser.add_argument("--head-activation", choices=HEAD_ACTIVATIONS,
-                        help="the regression heads' hidden activation: relu (default, the "
-                        "release's) or a leaky ReLU of slope 0.2 or 0.01 (ablations)")
-    parser.add_argument("--head-norm", action="store_true", default=None,
-                        help="a LayerNorm of the towers' features before the heads (not the "
-                        "paper's)")
-    parser.add_argument("--disparity-head", choices=DISPARITY_HEADS,
-                        help="default: each variant's own (CPL exp, MTL-Baseline linear); "
-                        "softplus: d = floor + softplus(z) starting at the training mean, for "
-                        "every variant alike (not the paper's)")
+    parser.add_argument("--recipe", choices=tuple(RECIPES), metavar="NAME",
+                        help="paper (default) or sound: a named set of the model's options")
+    parser.add_argument("--disentangle", choices=DISENTANGLE, help=HIDDEN)
+    parser.add_argument("--point-errors", choices=POINT_ERRORS, help=HIDDEN)
+    parser.add_argument("--exp-disparity-head", action="store_true", default=None, help=HIDDEN)
+    parser.add_argument("--head-activation", choices=HEAD_ACTIVATIONS, help=HIDDEN)
+    parser.add_argument("--head-norm", action="store_true", default=None, help=HIDDEN)
+    parser.add_argument("--disparity-head", choices=DISPARITY_HEADS, help=HIDDEN)
     parser.add_argument("--linear-pitch-head", action="store_false", default=None,
-                        dest="bounded_pitch_head",
-                        help="an unbounded pitch head (the release's; default: clipped to +-pi/2)")
+                        dest="bounded_pitch_head", help=HIDDEN)
     parser.add_argument("--linear-focal-head", action="store_false", default=None,
-                        dest="positive_focal_head",
-                        help="CPL: linear fx, fy heads (the release's; default clipped at 1 px, "
-                        "straight-through, since the camera graph divides by them)")
-    parser.add_argument("--alpha-rate", type=cli.non_negative_float, help="MTL-CPL-A: how "
-                        "many times an ordinary weight's pace the adaptive weights move (default "
-                        "10; 1 = Eq. 9 as the paper trains it; 0 = frozen at the first batch's)")
-    parser.add_argument("--adaptive-weights", choices=ADAPTIVE_WEIGHTS,
-                        help="MTL-CPL-A: Eq. 9's weights learned (default, the paper's) or fixed "
-                        "at 1 / mean|y_i| of the training split (range)")
-    parser.add_argument("--disparity-ceiling", type=disparity_ceiling, metavar="auto|none|PX",
-                        help="the positive disparity head's largest output (auto, default: "
-                        "twice the largest training label; none: 1e5 px, the bound before; or "
-                        "pixels)")
-    parser.add_argument("--weight-decay", type=cli.non_negative_float,
-                        help="decoupled weight decay (AdamW; default 0, the paper's Adam)")
-    parser.add_argument("--clip-norm", type=cli.positive_float,
-                        help="clip the gradient's global norm at this value (default: off, the "
-                        "paper's)")
+                        dest="positive_focal_head", help=HIDDEN)
+    parser.add_argument("--alpha-rate", type=cli.non_negative_float, help=HIDDEN)
+    parser.add_argument("--adaptive-weights", choices=ADAPTIVE_WEIGHTS, help=HIDDEN)
+    parser.add_argument("--disparity-ceiling", type=disparity_ceiling, help=HIDDEN)
+    parser.add_argument("--weight-decay", type=cli.non_negative_float, help=HIDDEN)
+    parser.add_argument("--clip-norm", type=cli.positive_float, help=HIDDEN)
 
 
 def _add_validation_arguments(parser):
     """Each epoch's validation and the weights it keeps: --bn-statistics,
     --bn-recompute-batches, --monitor, --weight-ema."""
-    parser.add_argument("--bn-statistics", choices=("fixed", "epoch"),
-                        help="BatchNorm statistics before each validation: fixed (default), the "
-                        "same training pairs every epoch, population variance; epoch, the first "
-                        "batches of each epoch's order (this project's default before)")
-    parser.add_argument("--bn-recompute-batches", type=cli.non_negative_int,
-                        help="training batches of that recompute (default 64 fixed, 16 epoch; "
-                        "0 = Keras's moving averages, as released)")
-    parser.add_argument("--monitor", choices=("nmae", "loss"),
-                        help="what early stopping and the kept epoch follow: nmae (default), the "
-                        "sum of the ten parameters' validation NMAEs; loss, the validation loss "
-                        "(the paper's; as released)")
+    parser.add_argument("--bn-statistics", choices=("fixed", "epoch"), help=HIDDEN)
+    parser.add_argument("--bn-recompute-batches", type=cli.non_negative_int, help=HIDDEN)
+    parser.add_argument("--monitor", choices=("nmae", "loss"), help=HIDDEN)
     parser.add_argument("--weight-ema", type=cli.momentum, metavar="M",
-                        help="validate, keep and save a moving average of the weights, momentum "
-                        "M (default 0.99, not the paper's; 0: the weights as trained, the "
-                        "paper's; as released: 0)")
+                        help="validate and keep a moving average of the weights (default 0.99, "
+                        "the demonstration 0.9; 0: the paper's, the weights as trained)")
 
 
 def _add_extra_arguments(parser):
     """Additions to the paper's training, off by default: --target-scaling,
     --time-budget, --augment."""
-    parser.add_argument("--target-scaling", choices=("none", "std"), default="none",
-                        help="MTL-Baseline: divide each output's MAE by the target's training "
-                        "standard deviation (std; not the paper's) or not (none, default)")
+    parser.add_argument("--target-scaling", choices=("none", "std"), default="none", help=HIDDEN)
     parser.add_argument("--time-budget", type=cli.positive_float, metavar="SECONDS",
-                        help="seconds of training the run may take: no epoch is started that "
-                        "would overrun them (judged by the last epoch's length); the run "
-                        "then ends as finished with its best epoch (default: no limit)")
+                        help="seconds of training: no epoch starts that would overrun them")
     parser.add_argument("--augment", choices=("none",) + AUGMENTATIONS, default="none",
-                        help="photometric augmentation of the training batches (exposure, grey, "
-                             "blur, noise, JPEG; labels unchanged; not the paper's, default none)")
+                        metavar="NAME", help=f"none (default) or {', '.join(AUGMENTATIONS)}: "
+                        "augmented training pixels, exact labels")
 
 
 def _add_output_arguments(parser):
     """What a run prints and logs beyond its results: --term-gradients,
     --head-units, --quiet."""
-    parser.add_argument("--term-gradients", action="store_true",
-                        help="log, every epoch, the gradient that each loss term sends into the "
-                        "towers' shared features (grad_<target> in log.csv; a diagnostic, "
-                        "training is unchanged; not with --data-parallel)")
-    parser.add_argument("--head-units", action="store_true",
-                        help="log, every epoch, each regression head's live first-layer units on "
-                        "the same 64 training pairs (dead_<head>: share of pairs with every unit "
-                        "at or below zero; units_<head>: units above zero for some pair; a "
-                        "diagnostic, training is unchanged; not with --data-parallel)")
+    parser.add_argument("--term-gradients", action="store_true", help=HIDDEN)
+    parser.add_argument("--head-units", action="store_true", help=HIDDEN)
     parser.add_argument("--quiet", action="store_true",
                         help="no per-epoch lines or progress bar (the summary line stays)")
 
 
 def _add_group_arguments(parser):
-    """--coordinator, --num-processes, --process-id (``_check_group_arguments``)."""
-    group = parser.add_argument_group(
-        "process group (with --data-parallel; or Keras's KERAS_DISTRIBUTION_JOB_ADDRESSES, "
-        "KERAS_DISTRIBUTION_NUM_PROCESSES, KERAS_DISTRIBUTION_PROCESS_ID)")
-    group.add_argument("--coordinator", metavar="HOST:PORT",
-                       help="process 0's address, the same on every process")
-    group.add_argument("--num-processes", type=cli.positive_int, help="processes in the group")
-    group.add_argument("--process-id", type=cli.non_negative_int,
-                       help="this process's index, 0 .. N-1 (0 writes the run directory)")
+    """--coordinator, --num-processes, --process-id (``_check_group_arguments``;
+    or Keras's KERAS_DISTRIBUTION_* variables, which they set)."""
+    parser.add_argument("--coordinator", metavar="HOST:PORT", help=HIDDEN)
+    parser.add_argument("--num-processes", type=cli.positive_int, help=HIDDEN)
+    parser.add_argument("--process-id", type=cli.non_negative_int, help=HIDDEN)
 
 
 def demo_dataset():
