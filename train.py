@@ -1,7 +1,7 @@
 """Train one of the paper's networks.
 
     python train.py --variant cpl-a                      # demonstration run
-    python train.py --variant cpl-a --data data/cvgl.h5  # full-scale training
+    python train.py --variant cpl-a --data data/cvgl-123017.h5  # full-scale training
 
 Without ``--data`` a small dataset is generated on first use into the cache
 directory (``$CPL_KERAS_CACHE``, default ``~/.cache/cpl_keras``) and a short

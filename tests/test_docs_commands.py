@@ -257,3 +257,45 @@ def test_no_script_writes_gits_own_files():
             assert ".git/" not in f.read(), path
     with open(os.path.join(REPO, ".gitignore")) as f:
         assert "/.whl/" in f.read().split()
+
+
+def _generated(argv):
+    """``(out, settings)`` of a generator command line (its parsed arguments)."""
+    original = argparse.ArgumentParser.parse_args
+
+    def parse_then_stop(self, args=None, namespace=None):
+        raise _Parsed(original(self, args, namespace))
+
+    argparse.ArgumentParser.parse_args = parse_then_stop
+    try:
+        main_functions()["data.generate"](argv)
+    except _Parsed as parsed:
+        args = parsed.args[0]
+    finally:
+        argparse.ArgumentParser.parse_args = original
+    return args.out, (args.protocol, args.pairs, args.seed, args.image_size)
+
+
+def test_no_two_documented_datasets_of_other_settings_share_a_name(monkeypatch):
+    """docs/training.md's `generate --pairs 123017 --out data/cvgl.h5` was
+    refused (rightly) after docs/data.md had made a 10,000-pair
+    data/cvgl.h5: two generator commands of README.md and docs/ (and the
+    full-scale one the demonstration prints) with other settings never
+    write the same --out."""
+    from cpl_keras.commands import train
+
+    lines = [(document, command) for document, command in COMMANDS
+             if _argv(command)[0] == "cpl_keras.data.generate" and _fill(command) == command]
+    monkeypatch.setattr(train, "estimate_cost", lambda *a, **k: (_ for _ in ()).throw(OSError))
+    demo = [line.strip() for line in train.next_step("cpl-a", "demo.h5").splitlines()
+            if "cpl_keras.data.generate" in line]
+    assert len(demo) == 1
+    lines.append(("the demonstration's next step", demo[0]))
+    made = {}
+    for document, command in lines:
+        out, settings = _generated(_argv(command)[1])
+        if out is not None:
+            made.setdefault(os.path.normpath(out), {}).setdefault(settings, document)
+    assert len(made) >= 6
+    shared = {out: found for out, found in made.items() if len(found) > 1}
+    assert not shared, shared

@@ -205,6 +205,10 @@ def demo_dataset():
 
 #: The paper's number of cvgl pairs.
 FULL_PAIRS = 123017
+#: Where the demonstration's full-scale command puts them: a name of its own
+#: (docs/data.md's data/cvgl.h5 has 10,000 pairs, and the generator refuses
+#: to put other settings over it).
+FULL_DATA = f"data/cvgl-{FULL_PAIRS}.h5"
 
 
 def next_step(variant, demo_file, prog=PROG):
@@ -215,8 +219,8 @@ def next_step(variant, demo_file, prog=PROG):
         f"{DEMO['epochs']} epochs). Full-scale training (InceptionV3 towers, up to 200 "
         "epochs with early stopping):\n"
         f"  python -m cpl_keras.data.generate --protocol cvgl --pairs {FULL_PAIRS} "
-        "--out data/cvgl.h5\n"
-        f"  {cli.command_line(prog, ['--variant', variant, '--data', 'data/cvgl.h5'])}"
+        f"--out {FULL_DATA}\n"
+        f"  {cli.command_line(prog, ['--variant', variant, '--data', FULL_DATA])}"
     )
     try:
         cost = estimate_cost(FULL_PAIRS, demo_file)
