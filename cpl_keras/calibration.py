@@ -40,7 +40,9 @@ from cpl_keras.calibration_records import (
 )
 from cpl_keras.camera import FLOORS, PARAMETERS
 from cpl_keras.data.storage import StereoFile
-from cpl_keras.image_pairs import CalibrationError, find_pairs, is_grey, read_pair
+from cpl_keras.image_pairs import (
+    CalibrationError, find_pairs, is_grey, pair_doubts, read_pair,
+)
 from cpl_keras.images import resize_image
 from cpl_keras.models.inference import model_image_shape, predict_images
 from cpl_keras.stereo_camera import Point, StereoCamera
@@ -307,7 +309,7 @@ def _training(run, ranges, size_w, size_h):
 
 def _read_pair(left, right, size_w, size_h, warn):
     """The pair's images, checked against the model's input size; a grey
-    image is warned about."""
+    image, and one turned against the other or a swapped pair, warned about."""
     left_image, right_image = read_pair(left, right)
     height, width = left_image.shape[:2]
     if height < size_h or width < size_w:
@@ -317,6 +319,8 @@ def _read_pair(left, right, size_w, size_h, warn):
         if is_grey(image):
             warn(f"warning: the {side} image {path} is grey; the model was trained on "
                  "colour images")
+    for line in pair_doubts(left_image, right_image, left, right):
+        warn(f"warning: {line}")
     return left_image, right_image
 
 

@@ -195,6 +195,38 @@ def test_warns_about_grey_images_and_says_what_the_run_was_trained_on(setup, tmp
     assert training["label_ranges"]["fx"] == [stats["min"]["fx"], stats["max"]["fx"]]
 
 
+def test_warns_about_a_pair_turned_by_exif_or_given_swapped(calibrator, tmp_path):
+    """The shipped OAK-D desk pair as given: no doubt; its left file saved
+    with EXIF orientation 3 (the reader turns it upside down, as a viewer
+    shows it): the turn named with both files' orientations; the two files
+    given the other way round: "looks swapped". (Both were calibrated
+    without a word.)"""
+    from PIL import Image
+
+    from cpl_keras.real import oakd
+
+    left, right = (os.path.join(oakd.DATA_DIR, f"desk_{side}.png") for side in ("left", "right"))
+    exif = Image.Exif()
+    exif[0x0112] = 3
+    turned = tmp_path / "desk_left.png"
+    Image.open(left).save(turned, exif=exif.tobytes())
+    said = {}
+    for case, pair in (("given", (left, right)), ("turned", (str(turned), right)),
+                       ("swapped", (right, left))):
+        said[case] = []
+        calibrator.calibrate(*pair, warn=said[case].append)
+        said[case] = [line for line in said[case]
+                      if "is turned by" in line or "looks swapped" in line]
+    assert said["given"] == []
+    assert len(said["turned"]) == 1 and said["turned"][0].startswith(
+        "warning: the left image is turned by about 180 degrees against the right one (their "
+        "EXIF orientations applied: the left file's 3, turned 180 degrees, the right file's 1, "
+        "upright)"), said
+    assert len(said["swapped"]) == 1 and said["swapped"][0].startswith(
+        "warning: the pair looks swapped: in "), said
+    assert said["swapped"][0].endswith("give the left camera's image first")
+
+
 def test_warns_about_predictions_outside_the_training_labels(setup, tmp_path, capsys):
     run = tmp_path / "run"
     writable_copy(setup["run"], run)
