@@ -68,7 +68,8 @@ def targets_from_labels(labels, as_released=False):
             count = int(np.sum(~np.isfinite(values)))
             raise DatasetError(f"target '{name}' has non-finite values on {count} of "
                                f"{values.size} pairs")
-    # (as released, the disparity is StereoBM's mean, often negative)
+    # (as released, the disparity is StereoBM's mean, often negative, and
+    # the baseline tx, a signed difference)
     positive = ("fx", "fy") if as_released else POSITIVE_TARGETS
     # (a real set marks a pair without a measured disparity: disparity_valid 0)
     valid = np.asarray(labels["disparity_valid"]) != 0 if "disparity_valid" in labels else True
@@ -120,9 +121,12 @@ def _released_targets(labels, present):
     return out
 
 
-#: The targets no camera has at or below zero: focal lengths (px) and the
-#: disparity (px; the camera graph divides by it, Eq. 4a).
-POSITIVE_TARGETS = ("fx", "fy", "disparity")
+#: The targets no camera has at or below zero: focal lengths (px), the
+#: baseline (m: the distance between the cameras; a negative one puts the
+#: point of Eq. 4a behind them) and the disparity (px; the camera graph
+#: divides by it, Eq. 4a). Paper mode only: as released, the baseline is
+#: tx, a signed difference, and the disparity StereoBM's mean.
+POSITIVE_TARGETS = ("fx", "fy", "baseline", "disparity")
 
 
 # ---------------------------------------------------------------------------

@@ -456,7 +456,7 @@ def test_labels_no_camera_has_are_refused_naming_the_label_and_count(tmp_path):
     from helpers import fixture_labels, write_stereo_fixture
 
     labels = fixture_labels(40, 32)
-    for name, value in (("fx", -100.0), ("disparity", 0.0), ("fy", 0.0)):
+    for name, value in (("fx", -100.0), ("disparity", 0.0), ("fy", 0.0), ("baseline", -1.0)):
         bad = dict(labels, **{name: labels[name].copy()})
         bad[name][[3, 7]] = value
         with pytest.raises(DatasetError, match=f"label '{name}' is not positive on 2 of 40 "
@@ -466,8 +466,11 @@ def test_labels_no_camera_has_are_refused_naming_the_label_and_count(tmp_path):
     nan["tz"][0] = np.nan
     with pytest.raises(DatasetError, match="target 'tz' has non-finite values on 1 of 40"):
         targets_from_labels(nan)
-    # as released, the disparity is StereoBM's mean: negative is what it is
+    # as released, the disparity is StereoBM's mean: negative is what it is;
+    # and the baseline is tx, a signed difference
     assert (targets_from_labels(labels, as_released=True)["disparity"] < 0).any()
+    backwards = dict(labels, baseline=-labels["baseline"])
+    assert (targets_from_labels(backwards, as_released=True)["baseline"] < 0).all()
     # a real set's pair without a measured disparity says so (disparity_valid 0)
     unmeasured = dict(labels, disparity=labels["disparity"].copy(),
                       disparity_valid=np.ones(40, np.int32))
