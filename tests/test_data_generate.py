@@ -252,6 +252,32 @@ def test_old_format_files_are_refused_with_a_one_line_hint(tmp_path):
     assert "python -m cpl_keras.data.generate --protocol cvgl --pairs 2" in message
 
 
+def test_an_unknown_schema_version_is_refused_in_one_line_and_none_is_version_1(tmp_path):
+    """A file whose ``schema_version`` is 99 (or not a number) is refused in
+    one line that names it (it was read as if it were version 1); one
+    without the attribute (older writers, files made by hand) still reads."""
+    from cpl_keras.data.storage import SCHEMA_VERSION, DatasetError
+    from helpers import write_stereo_fixture
+
+    path = write_stereo_fixture(tmp_path / "data.h5", n=4, image_size=8)
+    for version, said in ((99, "99 is not this reader's 1; a newer cpl-keras wrote it: "
+                               "update cpl-keras to read it"),
+                          ("two", "two is not this reader's 1 (not a layout it knows)")):
+        with h5py.File(path, "r+") as f:
+            f.attrs["schema_version"] = version
+        with pytest.raises(DatasetError) as error:
+            StereoFile(path)
+        assert str(error.value) == f"{path}: dataset schema version {said}"
+    with h5py.File(path, "r+") as f:
+        del f.attrs["schema_version"]
+    with StereoFile(path) as data:
+        assert data.num_pairs == 4
+    with h5py.File(path, "r+") as f:
+        f.attrs["schema_version"] = SCHEMA_VERSION
+    with StereoFile(path) as data:
+        assert data.num_pairs == 4
+
+
 def test_released_disparity_is_the_raw_stereobm_mean():
     import cv2
 

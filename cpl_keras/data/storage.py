@@ -14,8 +14,10 @@ Layout (``SCHEMA_VERSION`` 1)::
                          and the generator's metadata (``metadata_json``);
                          a resumable writer's files also ``pairs_complete``
 
-Files made by ``cpl_keras.data.generate`` carry its ``generator_version`` in
-the metadata; ``StereoFile`` refuses one whose major version differs from the
+A file whose ``schema_version`` is not ``SCHEMA_VERSION`` (another layout)
+is refused in one line; one without the attribute (written before it, or
+by hand) is read as version 1. Files made by ``cpl_keras.data.generate``
+carry its ``generator_version`` in the metadata; ``StereoFile`` refuses one whose major version differs from the
 installed generator's (the labels changed meaning), saying how to regenerate it.
 
 Files are written by ``cpl_keras.data.writer.StereoWriter`` (atomically,
@@ -146,9 +148,26 @@ class StereoFile:
             self._file.close()
             raise
 
+    def _check_schema(self, f):
+        """``DatasetError`` unless the file's ``schema_version`` is this
+        reader's (a file without one is taken as version 1)."""
+        version = f.attrs.get("schema_version", SCHEMA_VERSION)
+        try:
+            known = int(version) == SCHEMA_VERSION and float(version) == int(version)
+        except (TypeError, ValueError):
+            known = False
+        if not known:
+            said = version.decode(errors="replace") if isinstance(version, bytes) else version
+            newer = isinstance(said, (int, np.integer)) and said > SCHEMA_VERSION
+            raise DatasetError(
+                f"{self.path}: dataset schema version {said!s:.40} is not this reader's "
+                f"{SCHEMA_VERSION}" + ("; a newer cpl-keras wrote it: update cpl-keras to "
+                                       "read it" if newer else " (not a layout it knows)"))
+
     def _validate(self, required_labels):
         h5py = _h5py()
         f = self._file
+        self._check_schema(f)
         for side in ("left", "right"):
             if side not in f:
                 raise DatasetError(f"{self.path}: missing image array '/{side}'")
