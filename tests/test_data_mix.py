@@ -115,6 +115,29 @@ def test_sources_that_do_not_fit_together_are_one_line_exit_2_and_no_file(source
         mix.mix_datasets(sources[0], sources)
 
 
+def test_a_file_mixed_with_itself_is_refused_by_any_path_to_it(sources, tmp_path, monkeypatch):
+    """The same file twice, by the same path, another spelling of it, or a
+    link to it: one line, no file (every pair was copied twice, and a split
+    put copies of one pair on both sides); the output as a source by a link."""
+    rendered = sources[0]
+    os.symlink(rendered, tmp_path / "link.h5")
+    monkeypatch.chdir(tmp_path)
+    said = " given twice: its pairs would be in the mix twice, and copies of one pair on both " \
+           "sides of a split"
+    cases = {"same path": ([rendered, sources[1], rendered], f"{rendered} is" + said),
+             "spelled otherwise": ([rendered, "./rendered.h5"],
+                                   f"{rendered} and ./rendered.h5 are one file," + said),
+             "a link": ([rendered, "link.h5"], f"{rendered} and link.h5 are one file," + said)}
+    for name, (args, message) in cases.items():
+        out = tmp_path / "mix.h5"
+        with pytest.raises(DatasetError) as error:
+            mix.mix_datasets(out, args)
+        assert str(error.value) == message, name
+        assert not os.path.exists(out) and not os.path.exists(f"{out}.partial"), name
+    with pytest.raises(DatasetError, match="the output link.h5 is also a source"):
+        mix.mix_datasets("link.h5", sources)
+
+
 def test_the_command_prints_the_file_and_a_summary(sources, tmp_path):
     out = tmp_path / "new" / "mix.h5"
     process = subprocess.run([sys.executable, "-m", "cpl_keras.data.mix", *sources, "--out",

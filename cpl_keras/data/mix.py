@@ -22,8 +22,11 @@ rendered rigs and real rigs together. The mixed file:
   rig, source) and the real rigs among them (``rigs``), so that Table 2 can
   refuse to score a model on a rig it was trained on (leave one rig out).
 
-Every source must have the same image size. The output appears only when
-complete; bad input prints one line and exits with status 2.
+Every source must have the same image size, and no file may be given
+twice (by one path or another: a link, another spelling): its pairs would
+be in the mix twice, and a split would put copies of one pair on both
+sides. The output appears only when complete; bad input prints one line and
+exits with status 2.
 """
 
 from __future__ import annotations
@@ -87,6 +90,26 @@ def _mixed_labels(files, names):
     return {name: np.concatenate(parts) for name, parts in labels.items()}
 
 
+def _same_file(a, b):
+    """Whether the paths ``a`` and ``b`` name one existing file."""
+    try:
+        return os.path.samefile(a, b)
+    except OSError:  # (one is missing: StereoFile says so)
+        return False
+
+
+def _check_distinct(out, sources):
+    """DatasetError when a file is among the sources twice, or is the output."""
+    for i, path in enumerate(sources):
+        if os.path.abspath(out) == os.path.abspath(path) or _same_file(out, path):
+            raise DatasetError(f"the output {out} is also a source")
+        for other in sources[:i]:
+            if os.path.abspath(other) == os.path.abspath(path) or _same_file(other, path):
+                named = f"{path} is" if path == other else f"{other} and {path} are one file,"
+                raise DatasetError(f"{named} given twice: its pairs would be in the mix twice, "
+                                   "and copies of one pair on both sides of a split")
+
+
 def mix_datasets(out, sources, *, command=None):
     """Write the pairs of the dataset files ``sources`` (two or more) into
     ``out`` as one dataset; returns ``out``. DatasetError (one line) when a
@@ -94,8 +117,7 @@ def mix_datasets(out, sources, *, command=None):
     sources = [os.fspath(s) for s in sources]
     if len(sources) < 2:
         raise DatasetError(f"give at least two dataset files to mix, got {len(sources)}")
-    if os.path.abspath(os.fspath(out)) in {os.path.abspath(s) for s in sources}:
-        raise DatasetError(f"the output {out} is also a source")
+    _check_distinct(os.fspath(out), sources)
     files = []
     try:
         for path in sources:
