@@ -4,6 +4,7 @@ import os
 import subprocess
 import sys
 
+import numpy as np
 import pytest
 from PIL import Image
 
@@ -127,20 +128,28 @@ def test_summary_reports_sky_at_the_release_pixel(tmp_path):
     assert summary["beyond_max_distance"] == 0
 
 
-def test_demonstration_next_step_states_disk_and_time(tmp_path):
+def test_demonstration_next_step_states_disk_and_time(tmp_path, monkeypatch):
     """The full-scale command the demonstration proposes comes with its cost,
-    measured on a generated file (bytes per pair) and by rendering (time)."""
+    measured on a generated file (bytes per pair) and by rendering a sample
+    now with the generator's worker processes (time), and says that the
+    time is an estimate from so many sampled pairs at the machine's load."""
+    import functools
     import importlib.util
     import re
 
-    from cpl_keras.data.generate import estimate_cost
+    from cpl_keras.commands import train
+    from cpl_keras.data.estimate import estimate_cost
 
     sample = generate_dataset(tmp_path / "s.h5", pairs=8, image_size=32, workers=1,
                               progress=False)
-    cost = estimate_cost(1000, sample, workers=2, sample=2)
+    cost = estimate_cost(1000, sample, workers=2, seconds=0.5)
     assert cost["bytes_per_pair"] == pytest.approx(os.path.getsize(sample) / 8)
     assert cost["bytes"] == pytest.approx(1000 * cost["bytes_per_pair"])
-    assert cost["seconds"] == pytest.approx(1000 * cost["seconds_per_pair"] / 2)
+    assert cost["seconds"] == pytest.approx(1000 / cost["pairs_per_second"])
+    assert cost["workers"] == 2 and cost["sampled_pairs"] > 0
+    assert cost["sample_seconds"] >= 0.5 or cost["sampled_pairs"] + 2 * 32 >= 1000
+    monkeypatch.setattr(train, "estimate_cost",
+                        functools.partial(estimate_cost, workers=1, seconds=0.3))
     spec = importlib.util.spec_from_file_location(
         "train_script", os.path.join(os.path.dirname(os.path.dirname(__file__)), "train.py"))
     script = importlib.util.module_from_spec(spec)
@@ -148,7 +157,9 @@ def test_demonstration_next_step_states_disk_and_time(tmp_path):
     text = script.next_step("cpl-a", sample)
     assert "--pairs 123017" in text
     assert re.search(r"about [\d.]+ GB of disk \([\d.]+ KB a pair at 32 px, measured on the "
-                     r"demonstration file\) and about [\d.]+ (s|min|h) to generate", text), text
+                     r"demonstration file\) and about [\d.]+ (s|min|h) to generate with \d+ "
+                     r"worker process(es)?: an estimate from \d+ pairs sampled just now \(\d+ "
+                     r"pairs/s over [\d.]+ s\) at this machine's present load", text), text
 
 
 @pytest.mark.parametrize("flags, momentum", [
@@ -179,23 +190,42 @@ def test_the_demonstration_validates_a_short_average_of_the_weights(
     assert seen["data"] == ("X.h5" if "--data" in flags else "demo.h5")
 
 
-def test_the_generation_estimate_leaves_the_set_up_out(tmp_path, monkeypatch):
-    """The first pair rendered in a process builds the towns and their
-    materials (about ten pairs' time), which made the demonstration's
-    estimate 3.8 times too long; it is rendered before the timing starts."""
-    from cpl_keras.data import generate
+@pytest.mark.parametrize("workers, pace", [(2, 1.0), (2, 0.5), (1, 1.0)])
+def test_the_generation_estimate_times_the_workers_at_once_long_enough(
+        tmp_path, monkeypatch, workers, pace):
+    """The demonstration's estimate rendered 16 pairs on one core (0.15 s)
+    and divided by the cores: 9-11 minutes for a dataset that took about 18
+    on a machine shared with other jobs. The sample is now rendered by the
+    generator's workers all at once, at whatever pace the machine's load
+    leaves them (``pace``: a share of a core), for at least
+    ``SAMPLE_SECONDS``, and timed from the arrival of every worker's first
+    block (its set-up, about ten pairs' time, left out)."""
+    from cpl_keras.data import estimate
 
-    sample = generate.generate_dataset(str(tmp_path / "s.h5"), pairs=4, image_size=32,
-                                       workers=1, progress=False)
-    clock = {"now": 0.0, "built": False}
+    sample = generate_dataset(str(tmp_path / "s.h5"), pairs=4, image_size=32, workers=1,
+                              progress=False)
+    clock, seen = {"now": 0.0}, {}
+    pair_seconds, block = 0.01, 8   # (one pair on a whole core; pairs a block)
 
-    def render_block(protocol, seed, pairs, image_size, start, stop):
-        for _ in range(start, stop):
-            clock["now"] += 0.01 if clock["built"] else 1.0  # (the set-up: the first pair)
-            clock["built"] = True
+    def iter_blocks(protocol, seed, pairs, image_size, workers_given, first):
+        seen.update(workers=workers_given, first=first, pairs=pairs)
+        try:
+            for number, start in enumerate(range(first, pairs, block)):
+                if number < workers_given:   # every worker's first block: its set-up
+                    clock["now"] = 1.0
+                else:                        # the workers' blocks, side by side
+                    clock["now"] += block * pair_seconds / pace / workers_given
+                yield start, (np.zeros((block, 1)), None, None)
+        finally:
+            seen["closed"] = True
 
-    monkeypatch.setattr(generate, "render_block", render_block)
-    monkeypatch.setattr(generate.time, "perf_counter", lambda: clock["now"])
-    cost = generate.estimate_cost(1000, sample, workers=2, sample=4)
-    assert cost["seconds_per_pair"] == pytest.approx(0.01)
-    assert cost["seconds"] == pytest.approx(5.0)
+    monkeypatch.setattr(estimate, "iter_blocks", iter_blocks)
+    monkeypatch.setattr(estimate.time, "perf_counter", lambda: clock["now"])
+    cost = estimate.estimate_cost(123017, sample, workers=workers)
+    assert seen == {"workers": workers, "first": 123017 - estimate.MAX_SAMPLE_PAIRS,
+                    "pairs": 123017, "closed": True}
+    rate = workers * pace / pair_seconds
+    assert cost["pairs_per_second"] == pytest.approx(rate)
+    assert cost["seconds"] == pytest.approx(123017 / rate)
+    assert estimate.SAMPLE_SECONDS <= cost["sample_seconds"] < estimate.SAMPLE_SECONDS + 0.1
+    assert cost["sampled_pairs"] == pytest.approx(rate * cost["sample_seconds"])

@@ -18,7 +18,8 @@ import sys
 from cpl_keras import cli, distributed
 from cpl_keras.training.augment import AUGMENTATIONS
 from cpl_keras.cache import cache_dir, enable_compile_cache
-from cpl_keras.data.generate import cached_dataset, estimate_cost
+from cpl_keras.data.estimate import estimate_cost
+from cpl_keras.data.generate import cached_dataset
 from cpl_keras.data.storage import DatasetError
 from cpl_keras.datasets import SPLITS
 from cpl_keras.errors import Error
@@ -213,7 +214,8 @@ FULL_DATA = f"data/cvgl-{FULL_PAIRS}.h5"
 
 def next_step(variant, demo_file, prog=PROG):
     """What to run after the demonstration, with what the dataset will cost
-    (measured on ``demo_file`` and by rendering a few pairs now)."""
+    (measured on ``demo_file``, and by rendering a sample of pairs now with
+    the generator's workers: ``cpl_keras.data.estimate``)."""
     text = (
         f"This was a demonstration ({DEMO['pairs']} pairs, the 'small' backbone, "
         f"{DEMO['epochs']} epochs). Full-scale training (InceptionV3 towers, up to 200 "
@@ -226,12 +228,16 @@ def next_step(variant, demo_file, prog=PROG):
         cost = estimate_cost(FULL_PAIRS, demo_file)
     except (OSError, ValueError):
         return text
+    workers = cost["workers"]
+    load = "" if cost["load"] is None else f" (load {cost['load']:.1f} on {cost['cpus']} cores)"
     return text + (
         f"\nThe dataset takes about {cost['bytes'] / 1e9:.1f} GB of disk "
         f"({cost['bytes_per_pair'] / 1e3:.1f} KB a pair at {cost['image_size']} px, measured "
-        f"on the demonstration file) and about {_duration(cost['seconds'])} to generate on "
-        f"{cost['workers']} core{'s' if cost['workers'] > 1 else ''} "
-        f"({cost['seconds_per_pair']:.3f} s a pair on one core, measured just now)."
+        f"on the demonstration file) and about {_duration(cost['seconds'])} to generate with "
+        f"{workers} worker process{'es' if workers > 1 else ''}: an estimate from "
+        f"{cost['sampled_pairs']} pairs sampled just now ({cost['pairs_per_second']:.0f} pairs/s "
+        f"over {cost['sample_seconds']:.1f} s) at this machine's present load{load}; more "
+        "load, more time."
     )
 
 

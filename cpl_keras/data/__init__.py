@@ -14,6 +14,7 @@ Modules (numpy only, no deep-learning backend is imported):
 * ``generate``  ``generate_dataset`` and the CLI
   (``python -m cpl_keras.data.generate --pairs N --out data/cvgl.h5``)
 * ``preview``   the generator's ``--preview``: a contact sheet of a few pairs
+* ``estimate``  what generating a dataset takes on this machine now (disk, time)
 
 See docs/data.md for the conventions and how the data differs from CVGL.
 """

@@ -26,7 +26,6 @@ import os
 import signal
 import sys
 import threading
-import time
 
 import numpy as np
 from filelock import FileLock, Timeout
@@ -34,7 +33,7 @@ from filelock import FileLock, Timeout
 from cpl_keras import camera, cli
 from cpl_keras.cli import check_interrupt, check_output_file, make_parent
 from cpl_keras.data import pixels, protocols, scenes
-from cpl_keras.data.blocks import iter_blocks, render_block
+from cpl_keras.data.blocks import iter_blocks
 from cpl_keras.data.pair import EXTRA_UNITS, FLOAT_LABELS, INT_LABELS, LABEL_DESCRIPTIONS
 from cpl_keras.data.storage import GENERATOR_VERSION  # noqa: F401  (the generator's own)
 from cpl_keras.data.storage import DatasetError, StereoFile, min_bytes_per_pair
@@ -280,33 +279,6 @@ def cached_dataset(folder, *, protocol, pairs, seed, image_size, prefix="", work
         with contextlib.suppress(OSError):
             os.remove(lock.lock_file)
     return path
-
-
-# ---------------------------------------------------------------------------
-# Cost of a dataset
-# ---------------------------------------------------------------------------
-def estimate_cost(pairs, sample_file, protocol="cvgl", workers=None, sample=16):
-    """What generating ``pairs`` pairs will take, measured here: disk from the
-    bytes per pair of ``sample_file`` (a generated file of the same image size;
-    the images are gzip-compressed, so this varies a little with the scenes),
-    time from rendering ``sample`` pairs on one core now, after one pair
-    that builds what every later one reuses (the towns and their materials:
-    about ten pairs' time, which once made the estimate 3.8 times too long),
-    shared by ``workers`` processes (default: every core). Returns a dict:
-    ``bytes_per_pair``, ``seconds_per_pair`` (one core), ``workers``,
-    ``bytes``, ``seconds``."""
-    with StereoFile(sample_file) as data:
-        sample_pairs = data.num_pairs
-        image_size = data.image_shape[0]
-    bytes_per_pair = os.path.getsize(sample_file) / sample_pairs
-    render_block(protocol, 0, pairs, image_size, 0, 1)  # (the set-up, not timed)
-    start = time.perf_counter()
-    render_block(protocol, 0, pairs, image_size, 1, 1 + sample)
-    seconds_per_pair = (time.perf_counter() - start) / sample
-    workers = workers or os.cpu_count() or 1
-    return {"bytes_per_pair": bytes_per_pair, "seconds_per_pair": seconds_per_pair,
-            "workers": workers, "bytes": bytes_per_pair * pairs,
-            "seconds": seconds_per_pair * pairs / workers, "image_size": image_size}
 
 
 # ---------------------------------------------------------------------------
