@@ -11,6 +11,7 @@ from __future__ import annotations
 import os
 import sys
 
+from cpl_keras import files
 from cpl_keras.backend import keras_backend
 from cpl_keras.errors import Error
 
@@ -22,14 +23,20 @@ class CacheError(Error):
 def cache_dir():
     """The project's cache directory: ``$CPL_KERAS_CACHE`` or
     ``~/.cache/cpl_keras``; CacheError when that names something that is
-    not a folder."""
+    not a folder, or one where no file can be made (``/proc/self``: the
+    demonstration run waited there "for another process" for ever, its lock
+    file never made)."""
     path = os.environ.get("CPL_KERAS_CACHE") or os.path.join(
         os.path.expanduser("~"), ".cache", "cpl_keras"
     )
+    where = "CPL_KERAS_CACHE" if os.environ.get("CPL_KERAS_CACHE") else "the cache directory"
     if os.path.exists(path) and not os.path.isdir(path):
-        where = "CPL_KERAS_CACHE" if os.environ.get("CPL_KERAS_CACHE") else "the cache directory"
         raise CacheError(f"{where} names a file, not a folder: {path}; point CPL_KERAS_CACHE "
                          f"at a folder")
+    problem = files.cannot_write(path)
+    if problem:
+        raise CacheError(f"{where} cannot hold files: {path} ({problem}); point "
+                         "CPL_KERAS_CACHE at a folder you can write")
     return path
 
 
@@ -59,7 +66,12 @@ def enable_compile_cache():
     """
     if keras_backend() != "jax":
         return None
-    path = os.environ.get("JAX_COMPILATION_CACHE_DIR") or os.path.join(cache_dir(), "xla")
+    path = os.environ.get("JAX_COMPILATION_CACHE_DIR")
+    if not path:
+        try:
+            path = os.path.join(cache_dir(), "xla")
+        except CacheError:  # (no cache to keep programs in: compiling goes on)
+            return None
     if not _writable(path):
         # (a read-only cache: compiling goes on without it, and without
         # JAX's warning of every program it could not write)

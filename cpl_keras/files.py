@@ -18,6 +18,7 @@ import errno
 import json
 import os
 import sys
+import tempfile
 
 
 def _partial(path):
@@ -209,6 +210,24 @@ def _failed_write(tmps, paths, error):
     failure = OSError(write_failed(path, error))
     failure.errno = error.errno  # (its text stays the line: no strerror)
     return failure
+
+
+def cannot_write(folder):
+    """Why no file can be made in ``folder`` (while it is missing, in the
+    nearest folder above it, where it would be made), in the OSError's
+    words, or None when one can: a nameless file made there and gone at
+    once, since ``os.access`` says yes to root on /proc. Nothing is left."""
+    folder = os.path.abspath(os.fspath(folder))
+    while not os.path.isdir(folder):
+        if os.path.lexists(folder):
+            return f"{folder} is not a folder"
+        folder = os.path.dirname(folder)
+    try:
+        with tempfile.TemporaryFile(dir=folder):
+            pass
+    except OSError as error:
+        return error.strerror or " ".join(str(error).split())
+    return None
 
 
 @contextlib.contextmanager

@@ -22,6 +22,37 @@ def test_a_cache_directory_that_is_a_file_is_one_line(tmp_path, monkeypatch):
     assert cache.cache_dir() == str(tmp_path / "new")
 
 
+@pytest.mark.skipif(not os.path.isdir("/proc/self"), reason="needs Linux's /proc")
+def test_a_cache_directory_where_no_file_can_be_made_is_one_line_and_no_wait(
+        tmp_path, monkeypatch, capsys):
+    """CPL_KERAS_CACHE=/proc/self (a folder, but no file can be made in it,
+    root or not): the demonstration run waited "for another process" for
+    ever (the lock of its dataset never made); now one line, exit 2, nothing
+    made, and the compile cache is left off rather than refused."""
+    from cpl_keras.commands import train
+    from cpl_keras.data.generate import cached_dataset
+
+    for folder in ("/proc/self", "/proc/self/cache"):
+        monkeypatch.setenv("CPL_KERAS_CACHE", folder)
+        with pytest.raises(cache.CacheError) as error:
+            cache.cache_dir()
+        assert str(error.value) == (f"CPL_KERAS_CACHE cannot hold files: {folder} (No such "
+                                    "file or directory); point CPL_KERAS_CACHE at a folder "
+                                    "you can write")
+    monkeypatch.setenv("KERAS_BACKEND", "jax")
+    monkeypatch.delenv("JAX_COMPILATION_CACHE_DIR", raising=False)
+    assert cache.enable_compile_cache() is None
+    run_dir = tmp_path / "demo"
+    assert train.main(["--variant", "cpl-a", "--run-dir", str(run_dir)]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "CPL_KERAS_CACHE cannot hold files: /proc/self/cache" in err
+    assert os.listdir(tmp_path) == []
+    # (a folder given to the project's datasets directly: one line, no wait)
+    with pytest.raises(OSError, match=r"cannot make /proc/self/cvgl_8_16px_s0_v\S+\.h5: no "
+                       r"file can be made in /proc/self \(No such file or directory\)"):
+        cached_dataset("/proc/self", protocol="cvgl", pairs=8, seed=0, image_size=16)
+
+
 def test_a_compile_cache_that_cannot_be_written_is_left_off(tmp_path, monkeypatch):
     """A compile cache that cannot be written (here under a file) is not
     handed to JAX, whose warning for every program it could not write

@@ -30,7 +30,7 @@ import threading
 import numpy as np
 from filelock import FileLock, Timeout
 
-from cpl_keras import camera, cli
+from cpl_keras import camera, cli, files
 from cpl_keras.cli import check_interrupt, check_output_file, make_parent
 from cpl_keras.data import pixels, protocols, scenes
 from cpl_keras.data.blocks import iter_blocks
@@ -258,6 +258,9 @@ def cached_dataset(folder, *, protocol, pairs, seed, image_size, prefix="", work
     path = os.path.join(folder, dataset_name(protocol, pairs, seed, image_size, prefix))
     if os.path.exists(path):
         return path
+    problem = files.cannot_write(folder)
+    if problem:  # (the lock below cannot be made there: its wait never ended)
+        raise OSError(f"cannot make {path}: no file can be made in {folder} ({problem})")
     os.makedirs(folder, exist_ok=True)
     lock = FileLock(path + ".lock")
     try:
