@@ -262,7 +262,9 @@ def test_exports_opencv_and_ros_yaml_that_opencv_reads_back(setup, calibrator, t
                                                             capsys):
     """--opencv-yaml and --ros-yaml: cv2.FileStorage reads both back; K holds
     the printed intrinsics, R is the pitch's rotation in OpenCV's axes, T the
-    translation, and the ROS right projection matrix is K [R | T]."""
+    translation at the baseline's length; the tiny cvgl run's rig is not
+    side by side, so ROS's files hold each camera alone, [K | 0] (the
+    agreement of a side-by-side pair's exports: tests/test_exports.py)."""
     root = setup["root"]
     opencv, ros = tmp_path / "stereo.yml", tmp_path / "ros"
     assert calibrate_command.main([str(root / "left.png"), str(root / "right.png"), "--run",
@@ -290,9 +292,11 @@ def test_exports_opencv_and_ros_yaml_that_opencv_reads_back(setup, calibrator, t
     # to right coordinates, so R^T (0, 0, 1), R's third row, is that axis: a
     # rotation about x, R = [[1, 0, 0], [0, c, -s], [0, s, c]].
     np.testing.assert_allclose(R, [[1, 0, 0], [0, c, -s], [0, s, c]], atol=1e-12)
-    # T = -R * (right camera centre in OpenCV axes: x = -ty, y = -tz, z = tx)
+    # T = -R * (right camera centre in OpenCV axes: x = -ty, y = -tz, z = tx),
+    # at the length of the baseline
     centre = np.array([-p["ty"], -p["tz"], p["tx"]])
-    np.testing.assert_allclose(T, -R @ centre, atol=1e-12)
+    np.testing.assert_allclose(T, -R @ centre * p["baseline"] / np.linalg.norm(centre),
+                               atol=1e-12)
     for side in ("left", "right"):
         fs = cv2.FileStorage(str(ros / f"{side}.yaml"), cv2.FILE_STORAGE_READ)
         node = fs.getNode("projection_matrix").getNode("data")
@@ -302,9 +306,7 @@ def test_exports_opencv_and_ros_yaml_that_opencv_reads_back(setup, calibrator, t
             np.array([node.at(i).real() for i in range(node.size())]).reshape(3, 3), K)
         assert fs.getNode("distortion_model").string() == "plumb_bob"
         assert fs.getNode("camera_name").string() == side
-        expected = np.hstack([K, np.zeros((3, 1))]) if side == "left" else \
-            K @ np.hstack([R, T.reshape(3, 1)])
-        np.testing.assert_allclose(P, expected, rtol=1e-9, atol=1e-9)
+        np.testing.assert_allclose(P, np.hstack([K, np.zeros((3, 1))]), rtol=1e-9, atol=1e-9)
         fs.release()
 
 
@@ -431,7 +433,8 @@ def test_a_folder_of_pairs_is_one_rig_of_medians_with_their_spread(setup, calibr
     assert from_pairs and list(record.impossible[-len(from_pairs):]) == from_pairs
     assert rig["impossible"] == list(record.impossible)
     fs = cv2.FileStorage(str(opencv), cv2.FILE_STORAGE_READ)
-    assert fs.getNode("impossible").string() == "; ".join(record.impossible)
+    node = fs.getNode("impossible")
+    assert [node.at(i).string() for i in range(node.size())] == list(record.impossible)
     fs.release()
     with pytest.warns(calibration.CalibrationWarning, match="impossible for any pair"):
         calibrator.calibrate(str(folder / "1_left.png"), str(folder / "1_right.png"))
@@ -707,7 +710,7 @@ def test_exports_are_all_or_nothing(setup, tmp_path, capsys):
     capsys.readouterr()
     assert sorted(os.listdir(tmp_path / "out")) == ["calib.json", "stereo.yml"]
     assert sorted(os.listdir(tmp_path / "ros")) == ["left.yaml", "right.yaml"]
-    assert os.listdir(tmp_path / "colmap") == ["cameras.txt"]
+    assert sorted(os.listdir(tmp_path / "colmap")) == ["cameras.txt", "rig_config.json"]
 
 
 def test_a_truncated_image_is_refused_in_one_line(setup, tmp_path, capsys):

@@ -49,6 +49,14 @@ def check_outputs(args):
             cli.check_output_dir(folder)
 
 
+def notices(calibration):
+    """What is said on stderr of a calibration once it is made: the run's
+    record on real cameras, and a rig that is not a side-by-side pair (as
+    its exports say it)."""
+    layout = exports.exported_rig(calibration).note
+    return [calibration.real_camera_record["line"]] + ([f"warning: {layout}"] if layout else [])
+
+
 def main(argv=None):
     parser = cli.Parser(prog=PROG, description=CALIBRATE_DOC.split("\n")[0])
     parser.add_argument("left", nargs="?", help="left image file (PNG, JPEG, ...)")
@@ -77,7 +85,7 @@ def main(argv=None):
                         help="also write ROS camera_info files DIR/left.yaml and DIR/right.yaml")
     parser.add_argument("--colmap", type=cli.path, metavar="DIR",
                         help="also write COLMAP's DIR/cameras.txt (PINHOLE, the left and right "
-                        "cameras)")
+                        "cameras) and DIR/rig_config.json (the pair's pose)")
     args = parser.parse_args(argv)
     if args.folder and (args.left or args.right):
         parser.error("give LEFT RIGHT or --folder DIR, not both")
@@ -98,7 +106,8 @@ def main(argv=None):
         else:
             calibration = calibrator.calibrate(args.left, args.right, aspect=args.aspect,
                                                priors=priors, warn=warn)
-        warn(calibration.real_camera_record["line"])
+        for line in notices(calibration):
+            warn(line)
         text = calibration.to_json()
         exports.write_all(calibration, json_text=text, json_out=args.json_out,
                           opencv_yaml=args.opencv_yaml, ros_yaml=args.ros_yaml,
