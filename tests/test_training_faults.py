@@ -218,6 +218,68 @@ def test_second_process_waits_for_the_first_and_ends_like_it(
                uninterrupted)
 
 
+def test_a_different_run_begun_meanwhile_is_refused_not_called_finished(
+        stereo40, tmp_path, monkeypatch, capsys):
+    """Two train.py started at once on one run directory with other learning
+    rates: the one that planned while the directory was empty finds the
+    other's run there later (before its finished-run check, or once it has
+    built its model and takes the lock, free or held by the other). Each
+    time: refused in one line naming the other's learning rate, exit 2,
+    without waiting for the lock, the other's run left as it is; never
+    "already finished" about the other's run."""
+    import fcntl
+    import shutil
+    import threading
+
+    from cpl_keras import runs
+    from cpl_keras.training import planning, trainer
+
+    run_dir = tmp_path / "run"
+    args = ["--variant", "baseline", "--backbone", "small", "--epochs", "1", "--batch-size", "5",
+            "--lr", "0.002", "--quiet", "--data", stereo40, "--run-dir", str(run_dir)]
+    other = planning.plan_run(stereo40, variant="baseline", run_dir=str(run_dir),
+                              backbone="small", epochs=1, batch_size=5, learning_rate=5e-4)
+    originals = {name: getattr(trainer, name) for name in ("plan_run", "finished_run")}
+
+    def other_begins_after(name):  # (the other's config.json, right after ``name``)
+        def step(*a, **k):
+            result = originals[name](*a, **k)
+            if not (run_dir / "config.json").exists():
+                runs.write_config(str(run_dir), dataclasses.replace(other.config, status=status))
+            return result
+        return step
+
+    for when, status, held in (("plan_run", "finished", False),
+                               ("finished_run", "finished", False),
+                               ("finished_run", "running", True)):
+        monkeypatch.setattr(trainer, when, other_begins_after(when))
+        if run_dir.exists():
+            shutil.rmtree(run_dir)
+        (run_dir / "backup").mkdir(parents=True)
+        handle = open(run_dir / "backup" / "lock", "a+")
+        if held:  # the other process holds the lock while it trains
+            fcntl.flock(handle, fcntl.LOCK_EX)
+        release = threading.Timer(60, handle.close)  # (a waiter would never end without it)
+        release.start()
+        start = time.time()
+        try:
+            code = load_script("train.py").main(args)
+        finally:
+            release.cancel()
+            handle.close()
+            monkeypatch.undo()
+        captured = capsys.readouterr()
+        assert FINISHED not in captured.out, (when, status, captured.out)
+        err = captured.err.strip()
+        assert code == 2 and "\n" not in err, (when, status, err)
+        assert err.startswith("train.py: error: ") and "holds a different run" in err
+        assert "learning_rate: 0.0005 there, 0.002 now" in err, err
+        assert time.time() - start < 50, status  # refused, not after a wait for the lock
+        kept = runs.read_run_config(str(run_dir))
+        assert (kept.learning_rate, kept.status) == (5e-4, status)
+        assert sorted(os.listdir(run_dir)) == ["backup", "config.json"]
+
+
 def test_nan_loss_stops_and_keeps_the_best_weights(stereo40, tmp_path, monkeypatch):
     """A loss that turns non-finite in epoch 2 (NaN targets from then on)
     stops the run there, marked failed, and model.keras holds epoch 1's

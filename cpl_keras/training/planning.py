@@ -308,12 +308,38 @@ def _check_run_dir(config, keep_build=(), keep=()):
         config = dataclasses.replace(config, build=build)
     config = dataclasses.replace(config, **{key: getattr(old, key) for key in keep
                                             if getattr(old, key) is not None})
+    _check_same_run(old, config)
+    return config
+
+
+def _check_same_run(old, config, begun=""):
+    """TrainingError (one line, naming the first setting that differs, its
+    value there first) unless ``old``, the run in ``config``'s run
+    directory, is the run ``config`` plans."""
     for key in RESUME_KEYS:
         if getattr(old, key) != getattr(config, key):
             raise TrainingError(
-                f"run directory {run_dir} holds a different run ({key}: "
+                f"run directory {config.run_dir} holds a different run{begun} ({key}: "
                 f"{getattr(old, key)!r} there, {getattr(config, key)!r} now); use another "
                 f"--run-dir"
             )
-    return config
+
+
+def check_run_dir_again(config):
+    """The run directory of ``config`` (a ``RunPlan``'s) read again: another
+    process may have begun a run there since it was planned (two commands
+    started at once on one directory). The trainer asks before it reports a
+    run finished, while it waits for the directory's lock and under it, so
+    the check and the run's first write are one step. TrainingError (one
+    line, naming the other run's setting that differs) unless that run is
+    this one; returns whether a run is there (its config.json written; a
+    failed run counts, replaced as ``plan_run`` says)."""
+    try:
+        old = runs.read_run_config(config.run_dir) if os.path.isdir(config.run_dir) else None
+    except runs.RunError as error:
+        raise TrainingError(f"run directory {config.run_dir} holds a different run or an "
+                            f"unreadable one ({error}); use another --run-dir") from None
+    if old is not None and old.status != "failed":
+        _check_same_run(old, config, ", begun by another process since this one planned")
+    return old is not None
 

@@ -17,7 +17,8 @@ its last completed epoch; the epoch order of the data depends only on
 (seed, epoch), so it ends with the same epoch count as an uninterrupted run.
 A second process training into the same run directory (say, the same
 command run again after a kill that missed) waits until the first one ends,
-then resumes from where it left off (or finds the run finished).
+then resumes from where it left off (or finds the run finished); one on
+another run there (two commands started at once) is refused in one line.
 The callback that checkpoints is ``cpl_keras.training.checkpointing.RunState``;
 the final model and config.json, and a finished run read back, are
 ``cpl_keras.training.result``'s.
@@ -33,6 +34,7 @@ import hashlib
 import os
 import shutil
 import sys
+import time
 
 import numpy as np
 
@@ -44,7 +46,9 @@ from cpl_keras.models import variants
 from cpl_keras.datasets import load_split, save_split, targets_from_labels
 from cpl_keras.training.gradients import TermGradients
 from cpl_keras.training.head_units import HeadUnits
-from cpl_keras.training.planning import RESUME_KEYS, TrainingError, plan_run
+from cpl_keras.training.planning import (
+    RESUME_KEYS, TrainingError, check_run_dir_again, plan_run,
+)
 from cpl_keras.training.processes import join_processes
 from cpl_keras.training.result import finish_run, finished_run
 from cpl_keras.training.state import read_state
@@ -61,8 +65,7 @@ def train(data, *, steps_per_execution=1, verbose=1, return_model=True, term_gra
     any of their fields by name: ``epochs``, ``batch_size``, ``backbone``,
     ``split``, ``seed``, ``as_released``, ``head_norm``, ... with the
     paper's defaults): everything is validated before the run directory is
-    created.
-    An existing run directory holding the same run is resumed.
+    created. An existing run directory holding the same run is resumed.
     The result holds the run's final ``config`` (``best_epoch``, 1-based,
     ``best_val_loss``, ``epochs_run``, ``run_dir``, ``status``, ``stopped``:
     why training ended early, or None) and ``model`` (the trained model,
@@ -93,6 +96,7 @@ def train(data, *, steps_per_execution=1, verbose=1, return_model=True, term_gra
         options.get("training"), "data_parallel", False)))
     plan = plan_run(data, processes=processes.count, **options)
     _check_probes(plan.config.variant, term_gradients, head_units)
+    check_run_dir_again(plan.config)  # (a finished run begun there since: this one's?)
     finished = finished_run(plan.config.run_dir, return_model)
     processes.agree("the run", group_fingerprint, plan, finished)
     if finished is not None:
@@ -180,7 +184,7 @@ def _run(plan, processes, steps_per_execution, verbose, probes=()):
     # Nothing has been written so far; from here on the run directory exists
     # (written by process 0 alone when several train together). The lock is
     # released however training ends (a Ctrl-C in a notebook, then train() again).
-    with _lock_run_dir(config.run_dir) if processes.writes else contextlib.nullcontext():
+    with _lock_run_dir(config) if processes.writes else contextlib.nullcontext():
         return _run_locked(plan, model, config, processes, verbose, probes)
 
 
@@ -317,21 +321,34 @@ def _write_run_files(plan, config, run_dir):
     return config
 
 
-def _lock_run_dir(run_dir):
-    """An exclusive lock on ``run_dir/backup/lock``, so that one process at a
-    time trains into a run directory. A second process (say, the same command
-    run again after a kill that missed the first) waits until the first ends
-    and then carries on from the state it left: the run ends as an
-    uninterrupted one would. The lock ends with the run, however it ends (the
-    caller closes the handle), or with the process."""
-    os.makedirs(os.path.join(run_dir, runs.BACKUP), exist_ok=True)
-    handle = open(os.path.join(run_dir, runs.LOCK), "a+")
+def _lock_run_dir(config):
+    """An exclusive lock on the run directory's ``backup/lock``: one process
+    at a time trains into it, and the check of its settings
+    (``check_run_dir_again``) and its first write are one step. A second
+    process on the same run (the same command run again after a kill that
+    missed the first) waits until the first ends, then carries on from the
+    state it left, ending as an uninterrupted run would; one on another run
+    (two commands started at once) is refused in one line once the holder's
+    config.json is there (written just after it locks), without waiting.
+    The lock ends with the run (the caller closes the handle) or the process."""
+    os.makedirs(os.path.join(config.run_dir, runs.BACKUP), exist_ok=True)
+    handle = open(os.path.join(config.run_dir, runs.LOCK), "a+")
     try:
-        fcntl.flock(handle, fcntl.LOCK_EX | fcntl.LOCK_NB)
-    except OSError:
-        print(f"Waiting for the training process that is using {run_dir}", file=sys.stderr,
-              flush=True)
-        fcntl.flock(handle, fcntl.LOCK_EX)
+        while True:
+            try:
+                fcntl.flock(handle, fcntl.LOCK_EX | fcntl.LOCK_NB)
+                break
+            except BlockingIOError:
+                if check_run_dir_again(config):  # (the holder's run is this one)
+                    print(f"Waiting for the training process that is using {config.run_dir}",
+                          file=sys.stderr, flush=True)
+                    fcntl.flock(handle, fcntl.LOCK_EX)
+                    break
+            time.sleep(0.05)
+        check_run_dir_again(config)
+    except BaseException:
+        handle.close()
+        raise
     return handle
 
 
