@@ -56,6 +56,7 @@ Geometric only         ``failure_flags`` (k,) str and ``failures`` (n, k) bool
 
 from __future__ import annotations
 
+import hashlib
 import json
 import os
 import sys
@@ -139,19 +140,38 @@ def write_files(folder, files):
 
 
 def _write(folder, files):
-    """``write_files``, and whether it wrote any file."""
+    """``write_files``, and the paths of the files it wrote."""
     os.makedirs(folder, exist_ok=True)
     paths = [os.path.join(folder, name) for name in files]
     changed = [(path, arrays) for path, arrays in zip(paths, files.values())
                if not same_arrays(path, arrays)]
     if not changed:
-        return paths, False
+        return paths, []
     with atomic_path(*[path for path, _ in changed]) as tmps:
         tmps = tmps if isinstance(tmps, list) else [tmps]
         for tmp, (_, arrays) in zip(tmps, changed):
             with open(tmp, "wb") as f:
                 np.savez(f, **arrays)
-    return paths, True
+    return paths, [path for path, _ in changed]
+
+
+def checksum(path):
+    """The sha256 (hex) of what the .npz file ``path`` holds: each array's
+    name, dtype, shape and values, in name order; not the zip's bytes, which
+    carry the time it was written. None when it is missing or cannot be
+    read. A published record keeps its files' (``reproduce.json``), so
+    that a file changed since (by hand) is told from the one it was made
+    from."""
+    digest = hashlib.sha256()
+    try:
+        with np.load(path, allow_pickle=False) as f:
+            for name in sorted(f.files):
+                value = np.ascontiguousarray(f[name])
+                digest.update(json.dumps([name, value.dtype.str, value.shape]).encode())
+                digest.update(value.tobytes())
+    except Exception:  # (a missing or damaged file is no file of the record)
+        return None
+    return digest.hexdigest()
 
 
 #: The arrays of a predictions file that say where it was made (paths
@@ -185,7 +205,7 @@ def same_arrays(path, arrays, ignore=()):
 RERUN = "rerun"
 
 
-def write_group(folder, files, published=False, log=None):
+def write_group(folder, files, published=False, log=None, beside=None):
     """Write one group's predictions files (``{name: arrays}``) into
     ``folder`` (``write_files``: unchanged ones are left as
     they are). In a ``published`` record a file whose arrays differ from the
@@ -193,41 +213,47 @@ def write_group(folder, files, published=False, log=None):
     with one line saying how many values differ and by how much; the
     published file is left as it is (``log(line)``, default stderr); so is
     one that differs only by where it was made (``LOCATION_KEYS``). Returns
-    the paths the tables read (the published ones) and whether any file was
-    written or put beside."""
+    the paths the tables read (the published ones) and those of the files
+    written into ``folder``; ``beside`` (a list) gets the paths of those
+    written beside it."""
     if not published:
         return _write(folder, files)
     log = log or (lambda line: print(line, file=sys.stderr, flush=True))
-    paths, new, beside = [], {}, {}
+    paths, new, differ = [], {}, {}
     for name, arrays in files.items():
         path = os.path.join(folder, name)
         paths.append(path)
         if not os.path.exists(path):
             new[name] = arrays
         elif not same_arrays(path, arrays, ignore=LOCATION_KEYS):
-            beside[name] = arrays
-    write_files(folder, new)
-    if beside:
+            differ[name] = arrays
+    written = _write(folder, new)[1]
+    if differ:
         rerun = os.path.join(os.path.dirname(folder), RERUN, os.path.basename(folder))
-        write_files(rerun, beside)
-        for name, arrays in beside.items():
+        put = write_files(rerun, differ)
+        if beside is not None:
+            beside.extend(put)
+        for name, arrays in differ.items():
             log(f"{name}: {_difference(os.path.join(folder, name), arrays)} from the "
                 f"published file; written beside it in {rerun}, the published file left as "
                 f"it is")
-    return paths, bool(new or beside)
+    return paths, written
 
 
 def _difference(path, arrays):
     """How the predictions ``arrays`` differ from the file ``path``'s, in words."""
-    with np.load(path, allow_pickle=False) as old:
-        if "pred" in arrays and "pred" in old.files and old["pred"].shape == np.shape(
-                arrays["pred"]):
-            new, was = np.asarray(arrays["pred"], np.float64), old["pred"].astype(np.float64)
-            differ = ~((new == was) | (np.isnan(new) & np.isnan(was)))
-            if differ.any():
-                largest = float(np.nanmax(np.abs(new - was)[differ]))
-                return (f"{int(differ.sum())} of {differ.size} predicted values differ (by up "
-                        f"to {largest:.4g})")
+    try:
+        with np.load(path, allow_pickle=False) as old:
+            was = old["pred"].astype(np.float64) if "pred" in old.files else None
+    except Exception:  # (a damaged published file)
+        return "its arrays differ (the published file cannot be read)"
+    if "pred" in arrays and was is not None and was.shape == np.shape(arrays["pred"]):
+        new = np.asarray(arrays["pred"], np.float64)
+        differ = ~((new == was) | (np.isnan(new) & np.isnan(was)))
+        if differ.any():
+            largest = float(np.nanmax(np.abs(new - was)[differ]))
+            return (f"{int(differ.sum())} of {differ.size} predicted values differ (by up "
+                    f"to {largest:.4g})")
     return "its arrays differ"
 
 

@@ -51,6 +51,20 @@ def test_committed_tables_are_what_their_predictions_give(folder, tmp_path):
         note.sub("", committed["REPORT.md"].decode())
 
 
+@pytest.mark.parametrize("folder", REPRODUCTIONS, ids=lambda p: str(p.relative_to(RESULTS)))
+def test_committed_predictions_are_those_their_records_were_made_from(folder):
+    """Each committed predictions file holds the arrays whose checksum its
+    reproduce.json recorded (a file edited by hand is named here, as a rerun
+    of the preset names it), and the record lists every one of them."""
+    from cpl_keras.reproduce.record import CHECKSUMS, checksums
+
+    summary = json.loads((folder / "reproduce.json").read_text())
+    recorded = summary[CHECKSUMS]
+    assert list(recorded) == summary["predictions"]
+    now = checksums([folder / name for name in recorded], folder)
+    assert [name for name in recorded if now[name] != recorded[name]] == []
+
+
 def _same_numbers(a, b, rel=1e-12):
     """Whether two parsed JSON values are equal, floats within ``rel``, keys
     in the same order (a rebuild in place changes no byte but the last bits

@@ -4,6 +4,7 @@ and the checks of its arguments."""
 
 import contextlib
 import dataclasses
+import io
 import json
 import os
 import shutil
@@ -166,6 +167,56 @@ def test_published_runs_are_restored_not_trained_again(quick, tmp_path):
     run_dir = tmp_path / "runs" / "cvgl" / "cpl-a"
     with pytest.raises(runs.RunError, match="no weights"):
         evaluation.load_model(evaluation.load_run(run_dir))
+
+
+@pytest.mark.slow
+def test_a_published_prediction_changed_by_hand_is_named_and_the_record_kept(
+        quick, tmp_path, capsys):
+    """A record rebuilt from its predictions (REPORT.md says so), then one
+    predictions file edited by hand and another deleted: the same command
+    names the edited file in one line (its arrays' sha256 is not the one in
+    reproduce.json), computes its group again, writes the deleted file again
+    as recorded and the edited one's arrays as computed beside the record
+    (rerun/runs/); REPORT.md (its "rebuilt" paragraph kept), reproduce.json,
+    the tables and the edited file are left byte for byte."""
+    from cpl_keras import prediction_files
+    from cpl_keras.reproduce import pipeline
+
+    out = tmp_path / "out"
+    writable_copy(quick["out"], out)
+    data = writable_copy(quick["data"], tmp_path / "data")  # (where real sets are made)
+    recorded = json.loads((out / "reproduce.json").read_text())["predictions_sha256"]
+    assert sorted(recorded) == sorted(json.loads((out / "reproduce.json").read_text())[
+        "predictions"]) and all(len(digest) == 64 for digest in recorded.values())
+    pipeline.rebuild(str(out), pipeline.rebuild_command(str(out)))
+    assert "rebuilt from the published predictions" in (out / "REPORT.md").read_text()
+    edited = out / "runs" / "cvgl_cpl-a_predictions.npz"
+    with np.load(edited, allow_pickle=False) as f:
+        arrays = {k: f[k] for k in f.files}
+    arrays["pred"][0, 0] += 1.0
+    np.savez(edited, **arrays)
+    deleted = out / "runs" / "cvgl_average_predictions.npz"
+    deleted.unlink()
+    before = _contents(out)
+    capsys.readouterr()
+    assert reproduce_command.main(["--quick", "--out", str(out), "--data-dir", data,
+                                   "--runs-dir", str(tmp_path / "runs")]) == 0
+    err = capsys.readouterr().err
+    named = [line for line in err.splitlines() if "changed since reproduce.json" in line]
+    assert named == ["[reproduce] runs/cvgl_cpl-a_predictions.npz: changed since "
+                     "reproduce.json recorded it (its arrays' sha256 differs from the recorded "
+                     "one); table1_cvgl computed again"], err[-3000:]
+    assert "cvgl_cpl-a_predictions.npz: 1 of " in err and "(by up to 1) from the published" in err
+    assert "the published record left as it is; 1 predictions file it lacked written again " \
+        "as recorded; 1 computed again differs from it: beside it in" in err, err[-3000:]
+    after = _contents(out)
+    after.pop("runs/cvgl_average_predictions.npz")
+    assert prediction_files.checksum(deleted) == recorded["runs/cvgl_average_predictions.npz"]
+    beside = after.pop("rerun/runs/cvgl_cpl-a_predictions.npz")
+    assert after == before   # REPORT.md, reproduce.json, tables, the edited file: as they were
+    with np.load(io.BytesIO(beside), allow_pickle=False) as f, \
+            np.load(quick["out"] / "runs" / "cvgl_cpl-a_predictions.npz") as published:
+        assert np.array_equal(f["pred"], published["pred"])
 
 
 @pytest.mark.slow
@@ -611,7 +662,7 @@ def test_parallel_training_makes_the_same_runs(tiny_run, tmp_path):
 def test_settings_without_real_sets_make_table_1_alone(tmp_path, monkeypatch):
     """inception-2000-ema has no real sets: stage 1 builds none and stage 3
     makes Table 1 only (a Table 2 group would need the runs' weights)."""
-    from cpl_keras.reproduce import pipeline
+    from cpl_keras.reproduce import pipeline, record
     config = reproduce.settings(preset="inception-2000-ema")
     assert config.real_sets == () and config.tables == ("cvgl",)
     tiny = dataclasses.replace(config, pairs=4, workers=1)
@@ -619,7 +670,7 @@ def test_settings_without_real_sets_make_table_1_alone(tmp_path, monkeypatch):
     assert paths["real"] == [] and os.path.exists(paths["cvgl"])
     assert sorted(os.listdir(tmp_path)) == [os.path.basename(paths["cvgl"])]
     groups = []
-    monkeypatch.setattr(pipeline, "_group_predictions",
+    monkeypatch.setattr(record, "_group_predictions",
                         lambda number, stem, *rest: groups.append((number, stem)) or [])
     trained = {"cvgl": {0: ["cpl-a-s0", "baseline-s0"], 1: ["cpl-a-s1", "baseline-s1"]}}
     pipeline.make_predictions(config, paths, trained, str(tmp_path))

@@ -11,8 +11,8 @@
 (``cpl-reproduce ...`` is the same command, installed.)
 
 The pipeline, every stage resumable (datasets, finished runs and published
-predictions newer than their runs are reused; killed training runs resume
-from their last epoch):
+predictions newer than their runs, holding what the record was made from,
+are reused; killed training runs resume from their last epoch):
 
 1. data: a ``cvgl``-protocol dataset (the paper's 50 rigs), a ``random``-
    protocol dataset (realistic rigs) and every real rig
@@ -43,8 +43,10 @@ from their last epoch):
 The package: ``presets`` (the settings), ``plan`` (the runs they make, and
 their cost on a CPU), ``jobs``
 (training each run and publishing it; with ``--jobs`` in processes of their
-own, ``cpl_keras.training.parallel``), ``pipeline`` (the
-stages and the rebuild), ``page`` (REPORT.md); its command line is ``cpl_keras.commands.reproduce``.
+own, ``cpl_keras.training.parallel``), ``record`` (stage 3: the
+published predictions, reused or computed again, and their checksums in
+``reproduce.json``), ``pipeline`` (the stages and the rebuild), ``page``
+(REPORT.md); its command line is ``cpl_keras.commands.reproduce``.
 """
 
 from __future__ import annotations

@@ -5,7 +5,6 @@ and REPORT.md from the published predictions alone."""
 from __future__ import annotations
 
 import glob
-import json
 import os
 import platform
 import time
@@ -21,6 +20,9 @@ from cpl_keras.reproduce.jobs import train_all
 from cpl_keras.reproduce.page import write_report
 from cpl_keras.reproduce.plan import run_jobs
 from cpl_keras.reproduce.presets import PROG, TABLE1, Settings, log
+from cpl_keras.reproduce.record import (
+    CHECKSUMS, SUMMARY, checksums, make_predictions, record_changed, recorded_checksums,
+)
 
 # ---------------------------------------------------------------------------
 # Stage 1: data
@@ -71,93 +73,6 @@ def make_datasets(config, data_dir, seed, real_roots=None, release_dir=None):
                           "oakd": config.chessboard_crops},
         report=log, image_size=size, seed=seed)
     return paths
-
-
-# ---------------------------------------------------------------------------
-# Stage 3: published predictions
-# ---------------------------------------------------------------------------
-def _group_predictions(number, stem, prefix, run_dirs, data, config, out_dir, suffix,
-                       reused=None):
-    """The predictions files of one table of one seed: reused when they were
-    made from the same runs, data and settings after the runs' models were
-    written, or when the runs were restored from their published records
-    (no weights: their outputs are the stored ones, and the published files
-    are the record), else computed and written (all files or none; a file
-    whose arrays are unchanged is left as it is). ``reused`` (a list) gets
-    True or False."""
-    folder = os.path.join(out_dir, "runs")
-    key = json.dumps({"table": stem, "runs": [runs.relative(r, out_dir) for r in run_dirs],
-                      "data": [runs.relative(p, out_dir) for p in data] if data else None,
-                      "geometric_max": config.geometric_max,
-                      "format": predictions.FORMAT_VERSION}, sort_keys=True)
-    def rows(released_only):   # (no Geometric row on a file of the release's labels only)
-        return ["Average", "Average (release bug)"] + list(run_dirs) + (
-            [] if released_only else ["Geometric"])
-
-    rigs = [(None, rows(config.data == "release"))] if number == 1 else [
-        (os.path.splitext(os.path.basename(p))[0], rows(_released_only(p))) for p in data]
-    names = [predictions.file_name(prefix, predictions.row_slug(r, {"source": r}, suffix), s)
-             for s, rig_rows in rigs for r in rig_rows]
-    expected = [os.path.join(folder, name) for name in names]
-    models = [os.path.join(r, runs.MODEL) for r in run_dirs]
-    restored = not any(os.path.exists(m) for m in models)
-    if all(os.path.exists(p) for p in expected) and \
-            all(prediction_files.read_key(p) == key for p in expected) and (restored or (
-                all(os.path.exists(m) for m in models) and
-                min(os.path.getmtime(p) for p in expected)
-                >= max(os.path.getmtime(m) for m in models))):
-        log(f"{stem} ({', '.join(os.path.basename(r) for r in run_dirs)}): published "
-             f"predictions up to date with their runs, reused")
-        if reused is not None:
-            reused.append(True)
-        return expected
-    if reused is not None:
-        reused.append(False)
-    log(f"evaluating {stem}: {', '.join(os.path.basename(r) for r in run_dirs)}")
-    if number == 1:
-        context, raw = evaluation.table_rows(1, run_dirs, geometric=True,
-                                             geometric_max=config.geometric_max, progress=log)
-        files = predictions.table1_files(context, raw, out_dir=out_dir, prefix=prefix, stem=stem,
-                                         key=key, suffix=suffix)
-    else:
-        run_list, rigs = evaluation.table2_rigs(run_dirs, data, geometric=True,
-                                                geometric_max=config.geometric_max, progress=log)
-        files = predictions.table2_files(run_list, rigs, out_dir=out_dir, prefix=prefix,
-                                         stem=stem, key=key, suffix=suffix)
-    if sorted(files) != sorted(names):
-        raise evaluation.EvaluationError(f"{stem}: predictions files {sorted(files)} are not "
-                                         f"the expected {sorted(names)}")
-    paths, changed = prediction_files.write_group(
-        folder, {name: files[name] for name in names},
-        published=os.path.exists(os.path.join(out_dir, SUMMARY)), log=log)
-    if reused is not None:
-        reused[-1] = not changed  # (computed again, but nothing to write: as reused)
-    return paths
-
-
-def _released_only(path):
-    with StereoFile(path) as f:
-        return f.as_released_only
-
-
-def make_predictions(config, paths, trained, out_dir, reused=None):
-    """Stage 3: the predictions of every row of every table, for every seed;
-    returns their paths (Table 1 per table key, then Table 2). ``reused``
-    (a list) gets, per group, whether its published files were reused."""
-    groups = []
-    for key, by_seed in trained.items():
-        for run_seed, run_dirs in by_seed.items():
-            groups.append((1, f"table1_{key}", key, run_dirs, None,
-                           f"-s{run_seed}" if len(by_seed) > 1 else ""))
-    cvgl = trained.get("cvgl", {}) if paths["real"] else {}     # no real sets: no Table 2
-    for run_seed, run_dirs in cvgl.items():
-        groups.append((2, "table2", "cvgl", run_dirs, paths["real"],
-                       f"-s{run_seed}" if len(cvgl) > 1 else ""))
-    files = []
-    for number, stem, prefix, run_dirs, data, suffix in groups:
-        files += _group_predictions(number, stem, prefix, run_dirs, data, config, out_dir, suffix,
-                                    reused)
-    return files
 
 
 # ---------------------------------------------------------------------------
@@ -271,13 +186,13 @@ def reproduce(*, out_dir, data_dir, runs_dir, config, seed=0, command="", discus
         os.makedirs(out_dir, exist_ok=True)
         partial_info = {"seeds": {key: sorted(by_seed) for key, by_seed in trained.items()},
                         "left_out": left_out}
-    reused = []
-    files = make_predictions(config, paths, trained, out_dir, reused)
-    if published_before and all(reused) and _published_records(out_dir) == records:
+    recorded, written, beside = recorded_checksums(out_dir), [], []
+    files = make_predictions(config, paths, trained, out_dir, written, recorded, beside)
+    if published_before and not record_changed(files, written, out_dir, recorded) and \
+            _published_records(out_dir) == records:
         # nothing new: the record stays as published, byte for byte (its
         # summary would change only by this machine and this wall time)
-        log(f"{out_dir}: the published record is up to date with its runs and data; "
-            f"nothing written")
+        _left_as_published(out_dir, written, beside)
         return os.path.join(out_dir, "REPORT.md")
     tables = make_tables(files, out_dir, command)
     summaries = collect_run_files(trained, out_dir)
@@ -294,11 +209,30 @@ def reproduce(*, out_dir, data_dir, runs_dir, config, seed=0, command="", discus
                       if k in paths},
                      real=[runs.relative(p, out_dir) for p in paths["real"]]),
         "datasets": dataset_lines(paths), "runs": summaries, "machine": info,
-        "predictions": [runs.relative(p, out_dir) for p in files], "tables": list(tables),
+        "predictions": [runs.relative(p, out_dir) for p in files],
+        CHECKSUMS: checksums(files, out_dir), "tables": list(tables),
         "discussion": discussion, "partial": partial_info}
     write_json(os.path.join(out_dir, SUMMARY), summary)
     write_report(out_dir, dict(summary, settings=config), tables)
     return os.path.join(out_dir, "REPORT.md")
+
+
+def _left_as_published(out_dir, written, beside):
+    """Say that the published record in ``out_dir`` is left as it is: the
+    predictions files it lacked and ``written`` again as recorded, and where
+    those computed again that differ from it went (``beside``)."""
+    def files(paths):
+        return f"{len(paths)} predictions file{'s' if len(paths) > 1 else ''}"
+
+    said = [f"{out_dir}: the published record " + (
+        "left as it is" if beside else "is up to date with its runs and data")]
+    if written:
+        said.append(f"{files(written)} it lacked written again as recorded")
+    if beside:
+        said.append(f"{len(beside)} computed again differ{'' if len(beside) > 1 else 's'} "
+                    f"from it: beside it in {os.path.dirname(beside[0])}")
+    log("; ".join(said) + ("; nothing else written" if written or beside else
+                           "; nothing written"))
 
 
 def _published_records(out_dir):
@@ -314,8 +248,6 @@ def _published_records(out_dir):
 # ---------------------------------------------------------------------------
 # Rebuilding the tables and REPORT.md from the published predictions
 # ---------------------------------------------------------------------------
-#: The reproduction's summary, beside REPORT.md.
-SUMMARY = "reproduce.json"
 #: The keys of the summary a rebuild needs.
 SUMMARY_KEYS = ("command", "settings", "datasets", "runs", "machine", "predictions", "tables")
 
