@@ -38,6 +38,7 @@ from cpl_keras import priors as known, real_record, runs
 from cpl_keras.calibration_records import (
     RIG_PARAMETERS, TTA_CROPS, TTA_FRACTION, Calibration, RigCalibration,
 )
+from cpl_keras.calibration_warnings import OUTSIDE_RANGE, WarningGroups
 from cpl_keras.camera import FLOORS, PARAMETERS
 from cpl_keras.data.storage import StereoFile
 from cpl_keras.image_pairs import (
@@ -151,8 +152,7 @@ def _check_ranges(raw, ranges, warn):
                for name, (lo, hi) in (ranges or {}).items()
                if name in raw and not lo <= raw[name] <= hi]
     if outside:
-        warn("warning: predictions outside the training labels' range, in the model's "
-             f"input units: {', '.join(outside)}")
+        warn(f"warning: {OUTSIDE_RANGE}: {', '.join(outside)}")
 
 
 def impossible_geometry(camera, disparity):
@@ -276,27 +276,34 @@ class Calibrator:
             baseline_factor=priors.baseline_m / network_baseline if priors.baseline_m else None,
             impossible=tuple(impossible))
 
-    def calibrate_folder(self, folder, *, aspect="square", priors=None, warn=None):
+    def calibrate_folder(self, folder, *, aspect="square", priors=None, warn=None,
+                         progress=None):
         """The ``RigCalibration`` of every pair of ``folder`` (``find_pairs``):
         each pair calibrated as by ``calibrate``, the rig's parameters (all
         but the disparity, which is the scene's) the medians over the pairs,
-        with their spread over the pairs. Warnings name their pair; each is
-        given once."""
+        with their spread over the pairs. The pairs' warnings are given once
+        they are all calibrated, one line for each kind of warning with the
+        pairs it concerns (``calibration_warnings``). ``progress``, when
+        given, makes a bar from the number of pairs (``update(n)`` after
+        each, ``close()``: ``cli.ProgressBar``)."""
         _check_arguments(aspect, priors)
         warn = warn or python_warning
-        said, results = set(), []
-
-        def warn_once(line):
-            if line not in said:
-                said.add(line)
-                warn(line)
-
-        for left, right in find_pairs(folder):
-            name = os.path.basename(left)
-            results.append(self.calibrate(
-                left, right, aspect=aspect, priors=priors,
-                warn=lambda line, name=name: warn_once(
-                    line if "demonstration model" in line else f"{name}: {line}")))
+        pairs, said, results = find_pairs(folder), WarningGroups(), []
+        bar = progress(len(pairs)) if progress is not None else None
+        try:
+            for left, right in pairs:
+                name = os.path.basename(left)
+                results.append(self.calibrate(
+                    left, right, aspect=aspect, priors=priors,
+                    warn=lambda line, name=name, paths=(left, right): said.add(
+                        None if "demonstration model" in line else name, line, paths)))
+                if bar is not None:
+                    bar.update(1)
+        finally:
+            if bar is not None:
+                bar.close()
+        for line in said.lines(len(pairs)):
+            warn(line)
         return _rig(folder, results, aspect, warn)
 
 

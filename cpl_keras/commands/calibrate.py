@@ -29,6 +29,18 @@ def focal_argument(text):
     return value, "--focal"
 
 
+def calibrate(calibrator, args, priors, warn):
+    """The calibration ``args`` ask for: of a pair, or of a folder's pairs
+    with a progress bar on a terminal (none with --no-progress)."""
+    if not args.folder:
+        return calibrator.calibrate(args.left, args.right, aspect=args.aspect, priors=priors,
+                                    warn=warn)
+    shown = not args.no_progress and sys.stderr.isatty()
+    return calibrator.calibrate_folder(
+        args.folder, aspect=args.aspect, priors=priors, warn=warn,
+        progress=lambda total: cli.ProgressBar(total, "calibrating", shown))
+
+
 def check_outputs(args):
     """The output files and folders that ``args`` asks for, checked before
     the work (``CalibrationError`` or ``cli.OutputError``, one line): the
@@ -66,6 +78,8 @@ def main(argv=None):
                         "right/ folders) as one rig: each parameter the median over the pairs, "
                         "with its spread over them (instead of LEFT RIGHT)")
     parser.add_argument("--run", required=True, help="run directory of a trained model")
+    parser.add_argument("--no-progress", action="store_true",
+                        help="no progress bar for --folder (shown on a terminal)")
     parser.add_argument("--aspect", choices=ASPECTS, default="square",
                         help="square: fy = fx, as on real cameras' square pixels (default); "
                         "model: the network's fy")
@@ -99,13 +113,7 @@ def main(argv=None):
             print(f"{PROG}: {line}", file=sys.stderr)
 
         enable_compile_cache()  # (the next pair of the same model loads its programs)
-        calibrator = Calibrator.from_run(args.run)
-        if args.folder:
-            calibration = calibrator.calibrate_folder(args.folder, aspect=args.aspect,
-                                                      priors=priors, warn=warn)
-        else:
-            calibration = calibrator.calibrate(args.left, args.right, aspect=args.aspect,
-                                               priors=priors, warn=warn)
+        calibration = calibrate(Calibrator.from_run(args.run), args, priors, warn)
         for line in notices(calibration):
             warn(line)
         text = calibration.to_json()
