@@ -71,13 +71,17 @@ if not os.environ.get("KERAS_BACKEND"):
 
 class _KerasImport:
     """A finder on ``sys.meta_path`` that checks Keras's backend when
-    ``keras`` is first imported (``backend.check_backend``), then leaves the
-    import to Python's own finders: wherever the package (or its caller)
-    first imports Keras, a backend that is not installed is one line."""
+    ``keras`` is first imported (``backend.check_backend``), and JAX's
+    environment when ``jax`` is (``backend.check_jax_environment``), then
+    leaves the import to Python's own finders: wherever the package (or its
+    caller) first imports Keras, a backend that is not installed, or an
+    XLA_FLAGS or JAX_PLATFORMS that would stop JAX, is one line."""
 
     def find_spec(self, fullname, path=None, target=None):
         if fullname == "keras":
             _backend.check_backend()
+        elif fullname == "jax":  # (XLA_FLAGS, JAX_PLATFORMS: before JAX starts)
+            _backend.check_jax_environment()
         return None
 
 

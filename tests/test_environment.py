@@ -1,0 +1,97 @@
+"""The environment's mistakes named in one line: an XLA_FLAGS or a
+JAX_PLATFORMS that would stop JAX (cpl_keras.backend.check_jax_environment),
+never XLA's own fatal log line or a model blamed for it."""
+
+import importlib.util
+import json
+import os
+import subprocess
+import sys
+
+import pytest
+
+from cpl_keras import backend
+from helpers import REPO
+
+
+@pytest.fixture
+def fresh_check(monkeypatch, tmp_path):
+    """``check_jax_environment`` as in a process that has not imported JAX
+    yet (this one has: it is hidden, not unloaded), with its own cache
+    directory and neither variable set."""
+    monkeypatch.delitem(sys.modules, "jax", raising=False)
+    monkeypatch.setattr(backend, "_jax_environment_checked", [])
+    monkeypatch.setenv("CPL_KERAS_CACHE", str(tmp_path / "cache"))
+    for name in backend.JAX_ENVIRONMENT:
+        monkeypatch.delenv(name, raising=False)
+    return tmp_path / "cache" / "jax-environment.json"
+
+
+def test_an_xla_flags_xla_refuses_is_one_line_naming_it(fresh_check, monkeypatch):
+    """XLA_FLAGS=garbage (a file name to XLA, and no such file) ended the
+    process in XLA's fatal log line ("F1207 ... parse_flags_from_env.cc:171]
+    Could not open file ...") with exit 1: now a BackendError that names the
+    variable and quotes XLA's reason; nothing is kept of it."""
+    monkeypatch.setenv("XLA_FLAGS", "garbage")
+    with pytest.raises(backend.BackendError) as error:
+        backend.check_jax_environment()
+    message = str(error.value)
+    assert message.startswith("XLA cannot start with XLA_FLAGS='garbage': Could not open file "
+                              '"garbage" to read flags'), message
+    assert message.endswith("; fix XLA_FLAGS (--name=value ..., or a file of them) or unset it")
+    assert "\n" not in message and not fresh_check.exists()
+
+
+@pytest.mark.skipif(importlib.util.find_spec("jax_plugins") is not None,
+                    reason="a JAX platform plugin is installed (CUDA may start here)")
+def test_a_jax_platform_this_machine_lacks_is_one_line_never_the_model(fresh_check, monkeypatch):
+    """JAX_PLATFORMS=cuda on a machine without CUDA: "cannot load
+    model.keras: AssertionError" came from deep in the model's loading; now
+    a BackendError naming JAX_PLATFORMS and what to do."""
+    monkeypatch.setenv("JAX_PLATFORMS", "cuda")
+    with pytest.raises(backend.BackendError) as error:
+        backend.check_jax_environment()
+    assert str(error.value) == (
+        "JAX cannot start with JAX_PLATFORMS='cuda': it found no device of those platforms; "
+        "unset JAX_PLATFORMS to let JAX choose, or name a platform this machine has (cpu)")
+
+
+def test_a_setting_that_works_is_tried_once(fresh_check, monkeypatch):
+    """A working setting passes, is kept in the cache directory, and is not
+    tried again (a trial takes a process of its own, seconds); unset,
+    nothing is tried at all."""
+    backend.check_jax_environment()        # (neither set: nothing tried, nothing kept)
+    assert not fresh_check.exists()
+    monkeypatch.setattr(backend, "_jax_environment_checked", [])
+    monkeypatch.setenv("XLA_FLAGS", "--xla_cpu_multi_thread_eigen=false")
+    monkeypatch.setenv("JAX_PLATFORMS", "cpu")
+    backend.check_jax_environment()
+    kept = json.loads(fresh_check.read_text())
+    assert list(kept.values()) == [{"XLA_FLAGS": "--xla_cpu_multi_thread_eigen=false",
+                                    "JAX_PLATFORMS": "cpu"}]
+
+    def tried(setting):
+        raise AssertionError("tried again")
+
+    monkeypatch.setattr(backend, "_jax_trial_problem", tried)
+    monkeypatch.setattr(backend, "_jax_environment_checked", [])
+    backend.check_jax_environment()
+    monkeypatch.setattr(backend, "_jax_environment_checked", [])
+    monkeypatch.setenv("XLA_FLAGS", "--xla_cpu_multi_thread_eigen=true")  # (another setting)
+    with pytest.raises(AssertionError, match="tried again"):
+        backend.check_jax_environment()
+
+
+def test_a_command_under_a_bad_xla_flags_ends_in_one_line_and_exit_2(tiny_run, tmp_path):
+    """The whole way: calibrate, loading a run's model (its first import of
+    Keras), under XLA_FLAGS=garbage ends with its one line and exit 2, not
+    XLA's fatal log line and exit 1."""
+    env = dict(os.environ, XLA_FLAGS="garbage", CPL_KERAS_CACHE=str(tmp_path / "cache"))
+    left = os.path.join(REPO, "cpl_keras", "real", "opencv_chessboard", "left01.jpg")
+    done = subprocess.run([sys.executable, "-m", "cpl_keras.calibrate", left,
+                           left.replace("left01", "right01"), "--run", tiny_run["run"]],
+                          cwd=REPO, env=env, capture_output=True, text=True, timeout=300)
+    assert (done.returncode, done.stdout) == (2, ""), done.stderr
+    assert done.stderr.startswith("python -m cpl_keras.calibrate: error: XLA cannot start with "
+                                  "XLA_FLAGS='garbage': Could not open file"), done.stderr
+    assert done.stderr.count("\n") == 1, done.stderr
