@@ -4,9 +4,15 @@ Importing this module registers every custom function and layer of the
 package with Keras (it imports ``cpl_keras.models.factory``), so after
 ``import cpl_keras.saving`` Keras's own loader works too::
 
-    import keras
     import cpl_keras.saving
+    import keras
     model = keras.saving.load_model("runs/cpl-a-paper-s0/model.keras", safe_mode=True)
+
+in that order: importing the package first sets ``KERAS_BACKEND=jax``,
+while Keras on its own starts on the backend of ``~/.keras/keras.json``
+(TensorFlow, as Keras writes that file on its first import), and a bare
+``import keras`` ends in a 41-line ``No module named 'tensorflow'`` where
+TensorFlow is not installed (or set ``KERAS_BACKEND=jax`` yourself).
 
 ``cpl_keras.load_model(path)`` (this module's ``load_model``, reached
 without importing Keras until it is called) does the same in one step. The

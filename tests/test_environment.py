@@ -95,3 +95,29 @@ def test_a_command_under_a_bad_xla_flags_ends_in_one_line_and_exit_2(tiny_run, t
     assert done.stderr.startswith("python -m cpl_keras.calibrate: error: XLA cannot start with "
                                   "XLA_FLAGS='garbage': Could not open file"), done.stderr
     assert done.stderr.count("\n") == 1, done.stderr
+
+
+@pytest.mark.skipif(importlib.util.find_spec("tensorflow") is not None,
+                    reason="TensorFlow is installed: a bare import of Keras works here")
+def test_the_documented_keras_loader_snippet_runs_as_printed(tiny_run, tmp_path):
+    """cpl_keras/saving.py's snippet (Keras's own loader after ``import
+    cpl_keras.saving``) as printed, in a fresh process without
+    KERAS_BACKEND and with the keras.json Keras writes on its first import
+    (backend TensorFlow, not installed here): it loads the run's model. It
+    showed ``import keras`` first, which ended in a 41-line traceback."""
+    import ast
+
+    import cpl_keras.saving
+
+    doc = ast.get_docstring(ast.parse(open(cpl_keras.saving.__file__).read()))
+    snippet = doc.split("::\n\n", 1)[1].split("\n\n", 1)[0]
+    code = "\n".join(line[4:] for line in snippet.splitlines())
+    code = code.replace('"runs/cpl-a-paper-s0/model.keras"',
+                        repr(os.path.join(tiny_run["run"], "model.keras")))
+    (tmp_path / "keras.json").write_text(json.dumps({"backend": "tensorflow"}))
+    env = {k: v for k, v in os.environ.items() if k != "KERAS_BACKEND"}
+    env["KERAS_HOME"] = str(tmp_path)
+    done = subprocess.run([sys.executable, "-c", code + "\nprint(type(model).__name__)"],
+                          cwd=tmp_path, env=env, capture_output=True, text=True, timeout=300)
+    assert (done.returncode, done.stdout) == (0, "CalibrationModel\n"), done.stderr[-2000:]
+    assert code.startswith("import cpl_keras.saving\nimport keras\n"), code
