@@ -19,6 +19,7 @@ import json
 import os
 import sys
 import tempfile
+import warnings
 
 
 def _partial(path):
@@ -309,12 +310,28 @@ def write_page(path, text, payload):
     return json_path
 
 
+#: matplotlib's warning for a character no font of its has (a file name in
+#: Japanese in a figure's title): one line per character, and the box drawn
+#: in its place says as much.
+MISSING_GLYPH = r"Glyph \d+ .*missing from font"
+
+
+@contextlib.contextmanager
+def glyphs_quiet():
+    """matplotlib's missing-glyph warnings off within the block (a figure's
+    layout and its saving: where text is drawn)."""
+    with warnings.catch_warnings():
+        warnings.filterwarnings("ignore", message=MISSING_GLYPH, category=UserWarning)
+        yield
+
+
 def save_figure(fig, path, **savefig_args):
-    """Save the matplotlib figure ``fig`` to ``path`` atomically, then close it."""
+    """Save the matplotlib figure ``fig`` to ``path`` atomically, then close
+    it (``glyphs_quiet``)."""
     import matplotlib.pyplot as plt
 
     try:
-        with atomic_path(path) as tmp:
+        with atomic_path(path) as tmp, glyphs_quiet():
             fig.savefig(tmp, **savefig_args)
     finally:
         plt.close(fig)

@@ -121,3 +121,20 @@ def test_the_documented_keras_loader_snippet_runs_as_printed(tiny_run, tmp_path)
                           cwd=tmp_path, env=env, capture_output=True, text=True, timeout=300)
     assert (done.returncode, done.stdout) == (0, "CalibrationModel\n"), done.stderr[-2000:]
     assert code.startswith("import cpl_keras.saving\nimport keras\n"), code
+
+
+def test_a_figure_title_in_characters_no_font_has_draws_without_a_warning(tmp_path):
+    """A training run's curves.png titled with a data file named in Japanese:
+    matplotlib warned once per character ("UserWarning: Glyph 12487
+    (\\N{KATAKANA LETTER DE}) missing from font(s) DejaVu Sans.", two lines
+    each); the figure is drawn all the same, its boxes saying as much."""
+    import warnings
+
+    from cpl_keras.report.curves import plot_curves
+
+    rows = [{"epoch": 0, "loss": 1.0, "val_loss": 1.2}, {"epoch": 1, "loss": 0.8, "val_loss": 1.0}]
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        plot_curves(tmp_path / "curves.png", rows, 2, title="baseline on データ.h5 (paper split)")
+    assert [str(w.message) for w in caught] == []
+    assert (tmp_path / "curves.png").stat().st_size > 1000

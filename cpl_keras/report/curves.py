@@ -14,6 +14,7 @@ import textwrap
 
 import numpy as np
 
+from cpl_keras import files
 from cpl_keras.camera import PARAMETERS
 from cpl_keras.files import save_figure
 
@@ -71,7 +72,8 @@ def plot_curves(path, rows, best_epoch=None, title=None):
         columns = 120 if alpha_keys else 64  # (characters that fit the figure's width)
         lines = [wrapped for line in title.split("\n") for wrapped in textwrap.wrap(line, columns)]
         fig.suptitle("\n".join(lines), fontsize=9)
-    fig.tight_layout()
+    with files.glyphs_quiet():  # (a file name's characters no font has)
+        fig.tight_layout()
     save_figure(fig, path, dpi=100)
 
 
@@ -106,7 +108,8 @@ def plot_nmae_curves(curve, path, title):
         ax.set_ylabel("validation NMAE")
     axes[0, 0].legend(fontsize=7)
     fig.suptitle(title, fontsize=10)
-    fig.tight_layout()
+    with files.glyphs_quiet():  # (a file name's characters no font has)
+        fig.tight_layout()
     save_figure(fig, path, dpi=90)
 
 
@@ -137,5 +140,6 @@ def plot_mae_curves(path, series, parameters, title):
         ax.grid(True, alpha=0.3)
     axes[0].legend(fontsize=6.5)
     fig.suptitle(title, fontsize=10)
-    fig.tight_layout()
+    with files.glyphs_quiet():  # (a file name's characters no font has)
+        fig.tight_layout()
     save_figure(fig, path, dpi=80)

@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import math
 
-from cpl_keras import metrics
+from cpl_keras import files, metrics
 from cpl_keras.report.text import row_label
 
 
@@ -33,8 +33,9 @@ def fov_plot(table, path):
     ax.set_ylim(-2, 102)
     ax.grid(alpha=0.3)
     ax.legend(fontsize=8)
-    fig.tight_layout()
-    fig.savefig(path, dpi=100, format="png")
+    with files.glyphs_quiet():  # (a run's name in characters no font has)
+        fig.tight_layout()
+        fig.savefig(path, dpi=100, format="png")
     plt.close(fig)
 
 
@@ -63,7 +64,8 @@ def fov_scatter_plot(table, path):
         ax.set_ylabel("predicted horizontal FOV (deg)")
         ax.grid(alpha=0.3)
     axes[0][0].legend(fontsize=7)
-    fig.tight_layout()
-    fig.savefig(path, dpi=100, format="png")
+    with files.glyphs_quiet():  # (a run's name in characters no font has)
+        fig.tight_layout()
+        fig.savefig(path, dpi=100, format="png")
     plt.close(fig)
 
