@@ -67,6 +67,10 @@ if not os.environ.get("KERAS_BACKEND"):
     # (JAX, or Keras's backend when Keras was imported first; an empty value
     # would leave Keras to ~/.keras/keras.json's backend)
     os.environ["KERAS_BACKEND"] = _backend.keras_backend() if "keras" in sys.modules else "jax"
+if os.environ["KERAS_BACKEND"] == "tensorflow":
+    # (TensorFlow's start-up lines, "I tensorflow/core/util/port.cc:153] oneDNN
+    # custom operations are on ...", are its INFO log: off unless asked for)
+    os.environ.setdefault("TF_CPP_MIN_LOG_LEVEL", "1")
 
 
 class _KerasImport:

@@ -138,3 +138,21 @@ def test_a_figure_title_in_characters_no_font_has_draws_without_a_warning(tmp_pa
         plot_curves(tmp_path / "curves.png", rows, 2, title="baseline on データ.h5 (paper split)")
     assert [str(w.message) for w in caught] == []
     assert (tmp_path / "curves.png").stat().st_size > 1000
+
+
+@pytest.mark.parametrize("backend_name, given, level", [
+    ("tensorflow", None, "1"), ("tensorflow", "0", "0"), ("jax", None, None)])
+def test_tensorflows_start_up_lines_are_off_unless_asked_for(backend_name, given, level):
+    """Under TensorFlow, its INFO log at start-up ("I tensorflow/core/util/
+    port.cc:153] oneDNN custom operations are on ...", the CPU instructions
+    it was not built for) came before every command's output: importing the
+    package sets TF_CPP_MIN_LOG_LEVEL=1 unless it is set; other backends
+    are left alone."""
+    env = {k: v for k, v in os.environ.items() if k != "TF_CPP_MIN_LOG_LEVEL"}
+    env["KERAS_BACKEND"] = backend_name
+    if given is not None:
+        env["TF_CPP_MIN_LOG_LEVEL"] = given
+    done = subprocess.run([sys.executable, "-c", "import os, cpl_keras; "
+                           "print(os.environ.get('TF_CPP_MIN_LOG_LEVEL'))"],
+                          cwd=REPO, env=env, capture_output=True, text=True, timeout=60)
+    assert done.stdout == f"{level}\n", done.stderr
