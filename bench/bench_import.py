@@ -87,13 +87,14 @@ def main(argv=None):
                               timeout=3600)
         elapsed = time.perf_counter() - start
         if done.returncode != 0:
-            sys.exit(f"import failed: {done.stderr.strip()}")
+            return cli.fail("bench/bench_import.py", f"import failed: {done.stderr.strip()}")
         peak = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss / 1024
         size = os.path.getsize(out)
     print(f"import of {args.pairs} pairs: {elapsed:.1f} s wall, {args.pairs / elapsed:.0f} "
           f"pairs/s, peak memory {peak:.0f} MB (the child's maximum resident set), file "
           f"{size / 1e9:.2f} GB; load average {os.getloadavg()[0]:.1f}")
+    return 0
 
 
 if __name__ == "__main__":
-    main()
+    cli.run(main, "bench/bench_import.py")
