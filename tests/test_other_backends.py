@@ -3,14 +3,21 @@ and the one line that a backend which is not installed gets.
 
 The package's model code is ``keras.ops`` only. These tests run the model,
 camera, backbone and training test files in a subprocess with
-``KERAS_BACKEND`` set to another backend. requirements.txt installs neither
-TensorFlow nor PyTorch, so without them the tests are skipped; the
-benchmark environment of docs/performance.md has both:
+``KERAS_BACKEND`` set to another backend (a test session of its own), and
+the other backends' own faults: BatchNorm's statistics, steps per
+execution, a run begun under JAX resumed. requirements.txt installs neither
+TensorFlow nor PyTorch, so without them those tests are skipped; each runs
+in an environment of its own (docs/performance.md, "Backends"):
 
-    bench-venv/bin/python -m pytest -q tests/test_other_backends.py
+    ~/cpl-runs/venv-tf/bin/python -m pytest -q -n 0 -rA tests/test_other_backends.py
+    ~/cpl-runs/venv-torch/bin/python -m pytest -q -n 0 -rA tests/test_other_backends.py
+
+A run met under another backend than the one it trained under, and
+PyTorch's steps per execution, have tests in the JAX suite here too.
 """
 
 import importlib.util
+import json
 import os
 import subprocess
 import sys
@@ -30,12 +37,16 @@ CORE_TESTS = ("tests/test_models.py", "tests/test_camera.py", "tests/test_backbo
 def test_core_model_tests_pass_under_another_backend(backend):
     if importlib.util.find_spec(backend) is None:
         pytest.skip(f"{backend} is not installed (docs/performance.md: the benchmark environment)")
+    # (a test session of its own: the runs that this session's tests share,
+    # trained under JAX, are not the other backend's, nor its runs this one's)
+    env = {k: v for k, v in os.environ.items() if k != "CPL_KERAS_TEST_SESSION"}
     done = subprocess.run(
         [sys.executable, "-m", "pytest", "-q", "-x", "-p", "no:cacheprovider",
          "-m", "not slow", *CORE_TESTS],
-        cwd=REPO, env=dict(os.environ, KERAS_BACKEND=backend, TF_CPP_MIN_LOG_LEVEL="3"),
+        cwd=REPO, env=dict(env, KERAS_BACKEND=backend, TF_CPP_MIN_LOG_LEVEL="3"),
         capture_output=True, text=True, timeout=1800)
     assert done.returncode == 0, f"{backend}:\n{done.stdout[-4000:]}\n{done.stderr[-2000:]}"
+    print(f"{backend}: {done.stdout.strip().splitlines()[-1]}")  # (-s shows the counts)
 
 
 #: Builds the faithful model (InceptionV3 towers) and takes one training step.
@@ -170,3 +181,183 @@ def test_configured_backend_reads_keras_json_when_the_variable_is_empty(tmp_path
     assert backend.configured_backend() == ("torch", str(tmp_path / "keras.json"))
     monkeypatch.setenv("KERAS_BACKEND", "jax")
     assert backend.configured_backend() == ("jax", "KERAS_BACKEND=jax")
+
+
+# ---------------------------------------------------------------------------
+# A run made under one backend, met under another: named in its line
+# ---------------------------------------------------------------------------
+def _as_if_trained_under(run_dir, name):
+    """Edit the run's config.json as if it had been trained under ``name``."""
+    path = os.path.join(run_dir, "config.json")
+    with open(path) as f:
+        config = json.load(f)
+    config["keras_backend"] = name
+    for machine in config.get("machines") or []:
+        machine["keras_backend"] = name
+    with open(path, "w") as f:
+        json.dump(config, f)
+
+
+def test_a_finished_run_of_another_backend_names_it_in_its_line(tiny_run, tmp_path, capsys):
+    """``KERAS_BACKEND=torch python train.py --variant cpl-a`` on the
+    demonstration run trained under JAX said "already finished" and no more;
+    the line says which backend trained it (here the other way round: a run
+    recorded as PyTorch's, met under JAX), and a run of this backend says nothing."""
+    from helpers import load_script, writable_copy
+
+    ours, theirs = str(tmp_path / "ours"), str(tmp_path / "theirs")
+    for run_dir in (ours, theirs):
+        writable_copy(tiny_run["run"], run_dir)
+    _as_if_trained_under(theirs, "torch")
+    lines = {}
+    for run_dir in (ours, theirs):
+        assert load_script("train.py").main([
+            "--variant", "baseline", "--backbone", "small", "--epochs", "1", "--batch-size", "8",
+            "--data", tiny_run["data"], "--run-dir", run_dir]) == 0
+        (lines[run_dir],) = capsys.readouterr().out.splitlines()
+    assert lines[theirs].startswith("already finished, left as it is: best epoch 1 of 1, ")
+    assert lines[theirs].endswith(f", trained under torch, not jax, run directory: {theirs}")
+    assert lines[ours] == lines[theirs].replace(", trained under torch, not jax", "").replace(
+        theirs, ours)
+
+
+def test_a_resume_of_a_run_begun_under_another_backend_says_so(stereo40, tmp_path, monkeypatch,
+                                                                capsys):
+    """A run begun under PyTorch (its config.json says so), resumed under
+    JAX: its weights load (Keras's weights files are the same under every
+    backend), the resume's line names the backend it trained under until
+    now, and config.json lists both, in order."""
+    from cpl_keras.training import summary_line, train
+    from helpers import interrupt_after_epoch
+
+    run_dir = str(tmp_path / "run")
+    settings = dict(variant="baseline", run_dir=run_dir, backbone="small", epochs=2,
+                    batch_size=5, verbose=0, return_model=False)
+    interrupt_after_epoch(monkeypatch, 1)
+    with pytest.raises(KeyboardInterrupt):
+        train(stereo40, **settings)
+    monkeypatch.undo()
+    _as_if_trained_under(run_dir, "torch")
+    capsys.readouterr()
+    result = train(stereo40, **settings)
+    assert f"Resuming {run_dir} after epoch 1 (trained under torch until now)\n" in \
+        capsys.readouterr().err
+    assert result.config.status == "finished" and result.config.epochs_run == 2
+    with open(os.path.join(run_dir, "config.json")) as f:
+        config = json.load(f)
+    assert [m["keras_backend"] for m in config["machines"]] == ["torch", "jax"]
+    assert config["keras_backend"] == "jax"
+    assert ", trained under torch and jax, run directory: " in summary_line(result)
+
+
+# ---------------------------------------------------------------------------
+# --steps-per-execution above 1 under PyTorch: one line, before any file
+# ---------------------------------------------------------------------------
+def test_steps_per_execution_above_one_is_refused_under_pytorch(tiny_run, tmp_path,
+                                                                 monkeypatch, capsys):
+    """Keras's PyTorch trainer runs one step per call: ``--steps-per-execution
+    2`` there ended in Keras's traceback at the first step, exit 1, with the
+    run directory made. Refused in one line, exit 2, nothing written (the
+    backend in use is read as PyTorch here; the real one is
+    test_pytorch_refuses_steps_per_execution_before_any_file)."""
+    from cpl_keras import backend
+    from cpl_keras.training import TrainingError, train
+    from helpers import load_script
+
+    monkeypatch.setattr(backend, "keras_backend", lambda: "torch")
+    run_dir = tmp_path / "run"
+    assert load_script("train.py").main([
+        "--variant", "baseline", "--backbone", "small", "--epochs", "1", "--batch-size", "8",
+        "--data", tiny_run["data"], "--run-dir", str(run_dir), "--steps-per-execution", "2"]) == 2
+    assert capsys.readouterr().err.splitlines() == [STEPS_REFUSED]
+    assert not run_dir.exists()
+    with pytest.raises(TrainingError, match=r"must be 1 under PyTorch .*, got 3"):
+        train(tiny_run["data"], variant="baseline", run_dir=str(run_dir), steps_per_execution=3)
+    assert not run_dir.exists()
+
+
+STEPS_REFUSED = ("train.py: error: steps per execution must be 1 under PyTorch "
+                 "(KERAS_BACKEND=torch), got 2: Keras runs one step per call there")
+
+
+# ---------------------------------------------------------------------------
+# Under PyTorch and TensorFlow themselves (slow; where installed)
+# ---------------------------------------------------------------------------
+def _installed(backend):
+    if importlib.util.find_spec(backend) is None:
+        pytest.skip(f"{backend} is not installed (docs/performance.md: the benchmark environment)")
+
+
+#: BatchNorm's statistics recomputed (training's step before every
+#: validation), checked against the batches' own averages.
+BATCHNORM = """
+import keras, numpy as np
+from cpl_keras.models.batchnorm import recompute_batchnorm_statistics
+inputs = keras.Input((3,))
+hidden = keras.layers.Dense(4)(inputs)
+model = keras.Model(inputs, keras.layers.BatchNormalization(name="bn")(hidden))
+batches = [np.random.default_rng(i).normal(5, 2, (8, 3)).astype("float32") for i in range(3)]
+assert recompute_batchnorm_statistics(model, batches) == 3
+dense = keras.Model(inputs, hidden)
+means = np.mean([keras.ops.convert_to_numpy(dense(b)).mean(0) for b in batches], 0)
+got = keras.ops.convert_to_numpy(model.get_layer("bn").moving_mean)
+np.testing.assert_allclose(got, means, rtol=1e-4, atol=1e-5)
+print("statistics", keras.backend.backend())
+"""
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("backend", ["tensorflow", "torch"])
+def test_batchnorm_statistics_are_recomputed_under_another_backend(backend):
+    """Under PyTorch every validation of a run with BatchNorm failed:
+    ``np.asarray`` called ``numpy()`` on a tensor that requires a gradient."""
+    _installed(backend)
+    done = subprocess.run([sys.executable, "-c", BATCHNORM], cwd=REPO, capture_output=True,
+                          text=True, timeout=300,
+                          env=dict(os.environ, KERAS_BACKEND=backend, TF_CPP_MIN_LOG_LEVEL="3"))
+    assert done.returncode == 0 and done.stdout == f"statistics {backend}\n", done.stderr[-3000:]
+
+
+@pytest.mark.slow
+def test_pytorch_refuses_steps_per_execution_before_any_file(tiny_run, tmp_path):
+    """``KERAS_BACKEND=torch python train.py --steps-per-execution 2``: one
+    line, exit 2, no run directory (Keras's traceback at the first step,
+    exit 1, and a run directory left, before)."""
+    _installed("torch")
+    run_dir = tmp_path / "run"
+    done = _python(["train.py", "--variant", "baseline", "--backbone", "small", "--epochs", "1",
+                    "--batch-size", "8", "--data", tiny_run["data"], "--run-dir", str(run_dir),
+                    "--steps-per-execution", "2"], tmp_path, KERAS_BACKEND="torch")
+    assert (done.returncode, done.stderr.splitlines()) == (2, [STEPS_REFUSED]), done.stderr
+    assert not run_dir.exists()
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("backend", ["tensorflow", "torch"])
+def test_a_run_begun_under_jax_resumes_and_finishes_under_another_backend(
+        backend, stereo40, tmp_path, monkeypatch):
+    """Resumed under another backend, a run begun under JAX loads its
+    checkpoint whole (weights and optimizer: no variable skipped), says in
+    its lines which backend trained it until now, and finishes; config.json
+    lists both backends, in order."""
+    from cpl_keras.training import train
+    from helpers import interrupt_after_epoch
+
+    _installed(backend)
+    run_dir = str(tmp_path / "run")
+    interrupt_after_epoch(monkeypatch, 1)
+    with pytest.raises(KeyboardInterrupt):
+        train(stereo40, variant="cpl-a", run_dir=run_dir, backbone="small", epochs=2,
+              batch_size=5, verbose=0, return_model=False)
+    monkeypatch.undo()
+    done = _python(["train.py", "--variant", "cpl-a", "--backbone", "small", "--epochs", "2",
+                    "--batch-size", "5", "--quiet", "--data", stereo40, "--run-dir", run_dir],
+                   tmp_path, KERAS_BACKEND=backend, TF_CPP_MIN_LOG_LEVEL="3")
+    assert done.returncode == 0, done.stderr[-3000:]
+    assert f"Resuming {run_dir} after epoch 1 (trained under jax until now)\n" in done.stderr
+    assert "Skipping variable loading" not in done.stderr, done.stderr[-3000:]
+    assert f", trained under jax and {backend}, run directory: {run_dir}" in done.stdout
+    with open(os.path.join(run_dir, "config.json")) as f:
+        config = json.load(f)
+    assert [m["keras_backend"] for m in config["machines"]] == ["jax", backend]
+    assert config["status"] == "finished" and config["epochs_run"] == 2

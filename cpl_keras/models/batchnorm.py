@@ -22,7 +22,6 @@ import keras
 import numpy as np
 
 
-
 def batchnorm_layers(model):
     """Every ``BatchNormalization`` layer of ``model``, nested models included."""
     return [layer for layer in model._flatten_layers(include_self=False, recursive=True)
@@ -56,11 +55,13 @@ def _batch_statistics_function(model, layers):
 
 
 def _to_numpy(value):
-    """A tensor as a NumPy array; a global array that spans other processes'
-    devices is replicated, and its local copy is read."""
+    """A tensor as a NumPy array, through Keras (a PyTorch tensor that
+    requires a gradient is detached first: ``np.asarray`` called its
+    ``numpy()``, which refuses one); a global array that spans other
+    processes' devices is replicated, and its local copy is read."""
     if getattr(value, "is_fully_addressable", True) is False:
         value = value.addressable_data(0)
-    return np.asarray(value)
+    return keras.ops.convert_to_numpy(value)
 
 
 def recompute_batchnorm_statistics(model, batches, population=False, global_batch=None):

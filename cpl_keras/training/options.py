@@ -16,6 +16,7 @@ import dataclasses
 import math
 import numbers
 
+from cpl_keras import backend
 from cpl_keras.datasets import SPLITS
 from cpl_keras.errors import Error
 from cpl_keras.models.options import ModelOptions, check_momentum
@@ -103,6 +104,18 @@ def split_fields(fields):
         raise TrainingError(f"unknown training option {unknown[0]!r}")
     return ({k: v for k, v in fields.items() if k in model_names},
             {k: v for k, v in fields.items() if k in training_names})
+
+
+def check_steps_per_execution(steps):
+    """TrainingError (one line) unless ``steps``, the training steps per
+    compiled call (Keras's ``steps_per_execution``), is a positive integer
+    that Keras's backend runs: 1 under PyTorch, where Keras refuses more only
+    at the first ``fit``, with the run directory made."""
+    if not (_integer(steps) and steps >= 1):
+        raise TrainingError(f"steps per execution must be a positive integer, got {steps!r}")
+    if steps > 1 and backend.keras_backend() == "torch":
+        raise TrainingError(f"steps per execution must be 1 under PyTorch (KERAS_BACKEND=torch), "
+                            f"got {steps}: Keras runs one step per call there")
 
 
 def _choice(what, value, choices):

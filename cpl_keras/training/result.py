@@ -13,7 +13,7 @@ import dataclasses
 import os
 import zipfile
 
-from cpl_keras import files, runs
+from cpl_keras import backend, files, runs
 from cpl_keras.training.options import TrainingError
 
 
@@ -136,9 +136,33 @@ def summary_line(result):
     score = ""
     if config.monitor == "nmae" and config.best_score is not None:
         score = f"val_nmae {config.best_score:.4g}, "
+    under = backend_note(config)
     line = (f"best epoch {config.best_epoch} of {config.epochs_run}, "
             f"best val_loss {config.best_val_loss:.6g}, {score}"
-            f"run directory: {config.run_dir}")
+            f"{under + ', ' if under else ''}run directory: {config.run_dir}")
     if config.status == "failed":
         line = f"stopped: {config.stopped}; kept the best weights: " + line
     return line
+
+
+def run_backends(config):
+    """The Keras backends the run of ``config`` trained under, in order: its
+    machines' (``RunConfig.machines``, one more for a resume elsewhere), else
+    its ``keras_backend``; empty where neither is recorded."""
+    names = [m.get("keras_backend") for m in config.machines or () if isinstance(m, dict)]
+    return list(dict.fromkeys(name for name in names or [config.keras_backend] if name))
+
+
+def backend_note(config, resuming=False):
+    """Where the run of ``config`` trained (in part) under a Keras backend
+    other than this process's (read without importing Keras), the words
+    that say so: "trained under jax, not torch" (a summary), or with
+    ``resuming`` " (trained under jax until now)" (its resume's line, this
+    process's backend added to its machines already); else ''."""
+    names, current = run_backends(config), backend.keras_backend()
+    others = [name for name in names if name != current]
+    if not others:
+        return ""
+    if resuming:
+        return f" (trained under {' and '.join(others)} until now)"
+    return f"trained under {' and '.join(names)}" + ("" if current in names else f", not {current}")

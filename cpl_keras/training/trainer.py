@@ -49,8 +49,9 @@ from cpl_keras.training.head_units import HeadUnits
 from cpl_keras.training.planning import (
     RESUME_KEYS, TrainingError, check_run_dir_again, plan_run,
 )
+from cpl_keras.training.options import check_steps_per_execution
 from cpl_keras.training.processes import join_processes
-from cpl_keras.training.result import finish_run, finished_run
+from cpl_keras.training.result import backend_note, finish_run, finished_run
 from cpl_keras.training.state import read_state
 
 # ---------------------------------------------------------------------------
@@ -86,11 +87,7 @@ def train(data, *, steps_per_execution=1, verbose=1, return_model=True, term_gra
     is in log.csv) and a progress bar when stdout is a terminal, 2 the
     epoch lines only.
     """
-    if isinstance(steps_per_execution, bool) or not (
-        isinstance(steps_per_execution, (int, np.integer)) and steps_per_execution >= 1
-    ):
-        raise TrainingError(
-            f"steps per execution must be a positive integer, got {steps_per_execution!r}")
+    check_steps_per_execution(steps_per_execution)  # (before any file: 1 under PyTorch)
     # (the group is joined before any device is counted)
     processes = join_processes(options.get("data_parallel", getattr(
         options.get("training"), "data_parallel", False)))
@@ -224,7 +221,8 @@ def _run_locked(plan, model, config, processes, verbose, probes=()):
         if not done:
             initial_epoch = run_state.restore(model)
             if initial_epoch:
-                print(f"Resuming {run_dir} after epoch {initial_epoch}", file=sys.stderr)
+                print(f"Resuming {run_dir} after epoch {initial_epoch}"
+                      f"{backend_note(config, resuming=True)}", file=sys.stderr)
             train_seq.set_epoch(initial_epoch)
             # shuffle=False: the sequence shuffles itself, seeded per epoch; Keras's
             # own shuffle of the batch order uses Python's unseeded global RNG.
