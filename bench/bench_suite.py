@@ -26,6 +26,8 @@ import sys
 import tempfile
 import time
 
+from cpl_keras import cli
+
 REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 #: A ``--durations`` line: seconds, phase, node id.
 DURATION = re.compile(r"^\s*([\d.]+)s (call|setup|teardown)\s+(.+?)\s*$")
@@ -97,7 +99,4 @@ def main(argv=None):
 
 
 if __name__ == "__main__":
-    sys.path.insert(0, REPO)
-    from cpl_keras import cli
-
     cli.run(main, "bench/bench_suite.py")

@@ -1,5 +1,7 @@
-"""bench/bench_suite_xla.py: its settings and its CPU-time measurement (no model)."""
+"""bench/bench_suite_xla.py: its settings and its CPU-time measurement (no model);
+bench/bench_suite.py's slowest tests; the bench scripts' imports."""
 
+import ast
 import importlib.util
 import os
 import sys
@@ -57,3 +59,20 @@ def test_bench_suite_lists_the_slowest_tests_with_their_files_and_whole_ids():
     with pytest.raises(SystemExit):
         suite.parse_args(["--slowest", "0"])
     assert suite.parse_args(["--", "-m", "not slow"]).pytest_args == ["-m", "not slow"]
+
+
+def test_no_bench_script_edits_sys_path():
+    """The bench scripts import the installed package as a command does;
+    bench_suite.py put the repository on ``sys.path`` by hand, the last one
+    that did."""
+    folder = os.path.dirname(PATH)
+    scripts = sorted(name for name in os.listdir(folder) if name.endswith(".py"))
+    assert "bench_suite.py" in scripts and len(scripts) > 10
+    editing = []
+    for name in scripts:
+        with open(os.path.join(folder, name)) as f:
+            tree = ast.parse(f.read())
+        editing += [f"{name}:{node.lineno}" for node in ast.walk(tree)
+                    if isinstance(node, ast.Attribute) and node.attr == "path"
+                    and isinstance(node.value, ast.Name) and node.value.id == "sys"]
+    assert editing == []

@@ -130,7 +130,8 @@ def table_rows(number, run_dirs, data_path=None, geometric=True, geometric_max=N
 
     ``rows`` maps a row name to ``source``, ``as_released``, ``indices`` (the
     pairs of the dataset file), ``truth`` and ``pred`` (name -> array; the
-    Geometric row also ``priors`` and ``statuses``); ``context`` holds the
+    Geometric row also ``priors`` and ``statuses``), gathered in any order
+    (``table_from_rows`` puts them in the paper's); ``context`` holds the
     table's own fields (``table``, ``data``, ``data_description``,
     ``data_source``, ``data_metadata``, ``num_pairs``, ``image_width``,
     ``runs``). Table 1 evaluates on the runs' own dataset (their common test
@@ -141,8 +142,33 @@ def table_rows(number, run_dirs, data_path=None, geometric=True, geometric_max=N
                               f"(Table 2 is make_table2)")
     loaded = load_table_runs(run_dirs)
     reference = loaded[0]
+    data_path = _table_data(loaded, data_path)
+    with open_dataset(data_path) as data:
+        indices, description = _common_split(loaded, data_path, data)
+        rows = {row: dict(raw, indices=indices, pred=published(raw["pred"]))
+                for row, raw in average_rows(reference, data.labels, indices).items()}
+        rows.update(_model_rows(loaded, data, indices, batch_size, progress))
+        if geometric:
+            rows.update(_geometric_row(reference, data, indices, geometric_max, progress))
+        metadata = data.metadata
+        context = {
+            "table": number, "data": os.path.abspath(data_path),
+            "data_description": description,
+            "data_source": metadata.get("source", metadata.get("protocol")),
+            "data_metadata": {k: v for k, v in metadata.items() if k in (
+                "source", "protocol", "seed", "image_size", "crops", "right", "labels",
+                "split")},
+            "num_pairs": int(len(indices)), "image_width": int(data.image_shape[1]),
+            "runs": [r.run_dir for r in loaded],
+        }
+    return jsonable(context), rows
+
+
+def _table_data(loaded, data_path):
+    """The dataset file a table's runs are scored on: ``data_path``, or the
+    one file every run of ``loaded`` was trained on."""
     if data_path is None:
-        data_path = reference.config.data
+        data_path = loaded[0].config.data
         for run in loaded[1:]:
             if not _same_file(run.config.data, data_path):
                 raise EvaluationError(
@@ -150,52 +176,54 @@ def table_rows(number, run_dirs, data_path=None, geometric=True, geometric_max=N
                     f"pass --data to evaluate them on one file")
     if not os.path.exists(data_path):
         raise EvaluationError(f"dataset not found: {data_path}")
-    with open_dataset(data_path) as data:
-        indices, description = evaluation_indices(reference, data_path, data.num_pairs)
-        for run in loaded[1:]:
-            other, _ = evaluation_indices(run, data_path, data.num_pairs)
-            if not np.array_equal(np.sort(other), np.sort(indices)):
-                raise EvaluationError(
-                    f"{run.run_dir} has a different test split from {reference.run_dir}; "
-                    f"train the runs with the same --split and --seed")
-        width = data.image_shape[1]
-        labels = data.labels
-        metadata = data.metadata
-        n = len(indices)
-        rows = {}
+    return data_path
 
-        for row, raw in average_rows(reference, labels, indices).items():
-            rows[row] = dict(raw, indices=indices, pred=published(raw["pred"]))
-        for run in loaded:
-            if progress:
-                progress(f"forward pass: {run.config.variant} ({run.run_dir})")
-            pred = run_predictions(run, data, indices, batch_size)
-            forget_model(run)
-            rows[run.row] = {
-                "source": run.run_dir, "as_released": run.as_released, "indices": indices,
-                "truth": truth_targets(labels, indices, run.as_released),
-                "pred": published(pred)}
-        if geometric and data.as_released_only and progress:
+
+def _common_split(loaded, data_path, data):
+    """``(indices, description)``: the evaluation pairs of the first run of
+    ``loaded``, which every other run must share."""
+    reference = loaded[0]
+    indices, description = evaluation_indices(reference, data_path, data.num_pairs)
+    for run in loaded[1:]:
+        other, _ = evaluation_indices(run, data_path, data.num_pairs)
+        if not np.array_equal(np.sort(other), np.sort(indices)):
+            raise EvaluationError(
+                f"{run.run_dir} has a different test split from {reference.run_dir}; "
+                f"train the runs with the same --split and --seed")
+    return indices, description
+
+
+def _model_rows(loaded, data, indices, batch_size, progress):
+    """The raw row of each run of ``loaded``: its forward pass on ``indices``."""
+    rows = {}
+    for run in loaded:
+        if progress:
+            progress(f"forward pass: {run.config.variant} ({run.run_dir})")
+        pred = run_predictions(run, data, indices, batch_size)
+        forget_model(run)
+        rows[run.row] = {
+            "source": run.run_dir, "as_released": run.as_released, "indices": indices,
+            "truth": truth_targets(data.labels, indices, run.as_released),
+            "pred": published(pred)}
+    return rows
+
+
+def _geometric_row(reference, data, indices, geometric_max, progress):
+    """``{"Geometric": raw row}`` on the first ``geometric_max`` of
+    ``indices`` (all if None); ``{}`` for a file with the release's labels
+    only (the baseline predicts the project's quantities)."""
+    if data.as_released_only:
+        if progress:
             progress("no Geometric row: it predicts the project's quantities, and this file "
                      "has the release's labels only")
-        if geometric and not data.as_released_only:
-            subset = indices if geometric_max is None else indices[: int(geometric_max)]
-            if progress:
-                progress(f"geometric baseline on {len(subset)} pairs")
-            priors, pred, statuses = geometric_predictions(reference, data, subset)
-            rows["Geometric"] = {"source": "cpl_keras.baselines.geometric", "as_released": False,
-                                 "indices": subset, "truth": truth_targets(labels, subset, False),
-                                 "pred": published(pred), "priors": priors,
-                                 "statuses": statuses}
-    context = {
-        "table": number, "data": os.path.abspath(data_path), "data_description": description,
-        "data_source": metadata.get("source", metadata.get("protocol")),
-        "data_metadata": {k: v for k, v in metadata.items() if k in (
-            "source", "protocol", "seed", "image_size", "crops", "right", "labels", "split")},
-        "num_pairs": int(n), "image_width": int(width),
-        "runs": [r.run_dir for r in loaded],
-    }
-    return jsonable(context), rows
+        return {}
+    subset = indices if geometric_max is None else indices[: int(geometric_max)]
+    if progress:
+        progress(f"geometric baseline on {len(subset)} pairs")
+    priors, pred, statuses = geometric_predictions(reference, data, subset)
+    return {"Geometric": {"source": "cpl_keras.baselines.geometric", "as_released": False,
+                          "indices": subset, "truth": truth_targets(data.labels, subset, False),
+                          "pred": published(pred), "priors": priors, "statuses": statuses}}
 
 
 def table_from_rows(context, rows):
