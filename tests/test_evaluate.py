@@ -11,7 +11,7 @@ from cpl_keras import evaluation, metrics, report
 from cpl_keras.camera import PARAMETERS
 from cpl_keras.data.storage import StereoFile
 from cpl_keras.data.writer import StereoWriter
-from helpers import writable_copy
+from helpers import REPO, writable_copy
 
 SIZE = 32
 
@@ -103,11 +103,12 @@ def test_single_run_writes_next_to_the_run(tiny, tmp_path):
     """Without --out, --run writes beside the run directory, not into paper_results/."""
     run = tmp_path / "runs" / "mine"
     writable_copy(tiny["run"], run)
-    before = sorted(os.listdir(evaluation.PAPER_DIR))
+    paper_results = os.path.join(REPO, "paper_results")
+    before = sorted(os.listdir(paper_results))
     assert evaluate.main(["--run", str(run), "--data", tiny["data"]]) == 0
     assert (tmp_path / "runs" / "eval_mine.json").exists()
     assert (tmp_path / "runs" / "eval_mine_fov.png").exists()
-    assert sorted(os.listdir(evaluation.PAPER_DIR)) == before
+    assert sorted(os.listdir(paper_results)) == before
 
 
 def test_a_published_record_scores_its_test_split_as_its_run_did(tiny, tmp_path):

@@ -191,7 +191,8 @@ def parse_args(argv=None):
     ends the process with one line and exit status 2."""
     parser = cli.Parser(prog=PROG, description=DESCRIPTION)
     parser.add_argument("--out", type=cli.path, metavar="OUT",
-                        help="output folder (default paper_results/, or the preset's own)")
+                        help="output folder (default paper_results/ of the current "
+                             "directory, or the preset's own under it)")
     parser.add_argument("--geometric-max", type=cli.positive_int, metavar="N",
                         help="the Geometric baseline on the first N evaluation pairs only")
     add_arguments(parser)

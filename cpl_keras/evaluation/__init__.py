@@ -25,7 +25,7 @@ from cpl_keras.evaluation.predict import (
 )
 from cpl_keras.evaluation.seeds import SPREAD, SPREAD_METRICS, aggregate_seeds
 from cpl_keras.evaluation.table1 import (
-    PAPER_CONVENTION, PAPER_DIR, PAPER_TABLES, ROWS, average_rows, evaluate_run, geometric_predictions,
+    PAPER_CONVENTION, PAPER_TABLES, ROWS, average_rows, evaluate_run, geometric_predictions,
     make_table, read_paper_table, score, table_from_rows, table_rows,
 )
 from cpl_keras.evaluation.tables import Table1, Table2, table_from_json
@@ -52,7 +52,6 @@ __all__ = [
     "model_image_shape",
     "open_dataset",
     "PAPER_CONVENTION",
-    "PAPER_DIR",
     "PAPER_TABLES",
     "predict_images",
     "predict_run",

@@ -39,10 +39,6 @@ from cpl_keras.runs import RELEASED
 ROWS = ("Average", "Average (release bug)") + MODEL_ROWS + ("Geometric",)
 #: Which NMAE convention the paper used for each table (REPRODUCTION_NOTES.md).
 PAPER_CONVENTION = {1: "nmae_signed", 2: "nmae"}
-#: The repository's results folder (the reproduction's default output).
-PAPER_DIR = os.path.join(
-    os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__)))),
-    "paper_results")
 #: Where the paper's own tables are (``paper_table1.csv``, ``paper_table2.csv``):
 #: package data beside this module, so that an install that is not editable
 #: has them too.

@@ -9,7 +9,6 @@ import dataclasses
 import os
 import sys
 
-from cpl_keras.evaluation import PAPER_DIR
 from cpl_keras.models import variants as registry
 from cpl_keras.models.options import ModelOptions
 from cpl_keras.models.variants import MIN_IMAGE_SIZE, MTL_VARIANTS, TABLE_ORDER
@@ -353,15 +352,21 @@ def log(message):
     print(f"[reproduce] {message}", file=sys.stderr, flush=True)
 
 
+#: The reproduction's default output folder: ``paper_results/`` of the
+#: current directory (from the repository's root, the committed folder),
+#: never a folder of the installed package.
+RESULTS_DIR = "paper_results"
+
+
 def default_folders(preset):
-    """``(out, data_dir, runs_dir)`` of a preset (None: the paper's scale into
-    paper_results/)."""
+    """``(out, data_dir, runs_dir)`` of a preset, each relative to the current
+    directory (None: the paper's scale into paper_results/)."""
     if preset == "quick":
         return os.path.join("runs", "quick", "paper_results"), os.path.join("data", "quick"), \
             os.path.join("runs", "quick")
     if preset is None:
-        return PAPER_DIR, os.path.join("data", "reproduce"), os.path.join("runs", "reproduce")
-    return (os.path.join(PAPER_DIR, preset), os.path.join("data", f"reproduce-{preset}"),
+        return RESULTS_DIR, os.path.join("data", "reproduce"), os.path.join("runs", "reproduce")
+    return (os.path.join(RESULTS_DIR, preset), os.path.join("data", f"reproduce-{preset}"),
             os.path.join("runs", f"reproduce-{preset}"))
 
 
