@@ -38,9 +38,10 @@ def main(argv=None):
     parser.add_argument("--runs", nargs="+", required=True, help="run directories to score")
     args = parser.parse_args(argv)
 
-    from cpl_keras import evaluation, runs
+    from cpl_keras import runs
     from cpl_keras.data.storage import StereoFile
     from cpl_keras.datasets import targets_from_labels
+    from cpl_keras.models.inference import predict_images
 
     test = runs.load_run(args.split_of).split["test"]
     with StereoFile(args.data) as f:
@@ -53,7 +54,7 @@ def main(argv=None):
           f"{ratio_true.max():.2f}")
     for run_dir in args.runs:
         run = runs.load_run(run_dir)
-        out = evaluation.predict_images(runs.load_model(run), left, right)
+        out = predict_images(runs.load_model(run), left, right)
         fx, fy = out["fx"], out["fy"]
         ratio = fy / np.where(np.abs(fx) > 1e-6, fx, 1e-6)
         positive = (fx > 0) & (fy > 0)

@@ -48,9 +48,10 @@ def test_every_statistics_row_is_reported(tiny_run, capsys):
 def test_fy_from_aspect_reports_the_runs_errors(tiny_run, capsys):
     import numpy as np
 
-    from cpl_keras import evaluation, runs
+    from cpl_keras import runs
     from cpl_keras.data.storage import StereoFile
     from cpl_keras.datasets import targets_from_labels
+    from cpl_keras.models.inference import predict_images
 
     _script("fy_from_aspect").main(["--data", tiny_run["data"], "--split-of", tiny_run["run"],
                                     "--runs", tiny_run["run"]])
@@ -59,7 +60,7 @@ def test_fy_from_aspect_reports_the_runs_errors(tiny_run, capsys):
     test = run.split["test"]
     with StereoFile(tiny_run["data"]) as f:
         truth = targets_from_labels(f.labels)
-        out = evaluation.predict_images(runs.load_model(run), *f.read_pairs(test))
+        out = predict_images(runs.load_model(run), *f.read_pairs(test))
     fy = np.median(np.abs(out["fy"] - truth["fy"][test]) / truth["fy"][test])
     assert f"fy {fy:.3f}," in line
 

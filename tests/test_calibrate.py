@@ -16,6 +16,7 @@ from cpl_keras.calibrate import Calibration, CalibrationError, Calibrator, RigCa
 from cpl_keras.commands import calibrate as calibrate_command
 from cpl_keras.camera import PARAMETERS, fov_from_focal
 from cpl_keras.image_pairs import find_pairs
+from cpl_keras.models.inference import predict_images
 from cpl_keras.stereo_camera import Point, StereoCamera
 
 SIZE = 32
@@ -67,7 +68,7 @@ def test_calibrate_scales_back_to_input_pixels(setup, calibrator, tmp_path, caps
     left = cv2.cvtColor(cv2.imread(str(root / "left.png")), cv2.COLOR_BGR2RGB)
     right = cv2.cvtColor(cv2.imread(str(root / "right.png")), cv2.COLOR_BGR2RGB)
     resize = lambda im: cv2.resize(im, (SIZE, SIZE), interpolation=cv2.INTER_AREA)[None]
-    raw = evaluation.predict_images(model, resize(left), resize(right))
+    raw = predict_images(model, resize(left), resize(right))
     p = printed["parameters"]
     assert p["fx"] == pytest.approx(raw["fx"][0] * 64 / SIZE, rel=1e-4)
     # square pixels (the default): fy = fx on the input images; the network's

@@ -402,7 +402,7 @@ def test_a_killed_or_stopped_partner_ends_the_group_and_the_same_command_resumes
 
 
 def test_prediction_refuses_to_run_inside_a_group_of_several_processes(monkeypatch):
-    from cpl_keras.evaluation.predict import predict_images
+    from cpl_keras.models.inference import predict_images
 
     images = np.zeros((2, 32, 32, 3), np.uint8)
     monkeypatch.setitem(distributed._state, "group",

@@ -11,6 +11,7 @@ from cpl_keras import evaluation, metrics, report
 from cpl_keras.camera import PARAMETERS
 from cpl_keras.data.storage import StereoFile
 from cpl_keras.data.writer import StereoWriter
+from cpl_keras.models.inference import predict_images
 from helpers import REPO, writable_copy
 
 SIZE = 32
@@ -212,8 +213,8 @@ def test_forward_pass_sees_one_batch_shape_and_drops_the_filled_rows(tiny):
         return call(inputs)
 
     model.predict_on_batch = recording
-    seven = evaluation.predict_images(model, left, right, batch_size=4)
-    three = evaluation.predict_images(model, left[4:], right[4:], batch_size=4)
+    seven = predict_images(model, left, right, batch_size=4)
+    three = predict_images(model, left[4:], right[4:], batch_size=4)
     assert seen == [4, 4, 4]
     del model.predict_on_batch
     for i in range(7):  # each pair through the model on its own
@@ -226,3 +227,21 @@ def test_forward_pass_sees_one_batch_shape_and_drops_the_filled_rows(tiny):
             assert seven[name][i] == pytest.approx(value, rel=1e-5, abs=1e-5)
             if i >= 4:
                 assert three[name][i - 4] == seven[name][i]
+
+
+def test_predict_images_has_one_home():
+    """The forward pass on image arrays is imported from
+    ``cpl_keras.models.inference`` alone: no module of ``cpl_keras.evaluation``
+    hands it out as a second door."""
+    import importlib
+    import pkgutil
+
+    import cpl_keras.evaluation
+    from cpl_keras.models import inference
+
+    assert hasattr(inference, "predict_images")
+    assert not hasattr(cpl_keras.evaluation, "predict_images")
+    assert "predict_images" not in cpl_keras.evaluation.__all__
+    for module in pkgutil.iter_modules(cpl_keras.evaluation.__path__):
+        loaded = importlib.import_module(f"cpl_keras.evaluation.{module.name}")
+        assert not hasattr(loaded, "predict_images"), loaded.__name__

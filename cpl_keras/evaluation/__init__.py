@@ -20,7 +20,7 @@ kinds (Markdown, CSV, JSON, plots). Runs are read through
 
 from cpl_keras.evaluation.predict import (
     EvaluationError, evaluation_indices, forget_model, load_model, load_run, load_table_runs,
-    model_image_shape, open_dataset, predict_images, predict_run, published, run_predictions,
+    model_image_shape, open_dataset, predict_run, published, run_predictions,
     store_predictions, truth_targets,
 )
 from cpl_keras.evaluation.seeds import SPREAD, SPREAD_METRICS, aggregate_seeds
@@ -53,7 +53,6 @@ __all__ = [
     "open_dataset",
     "PAPER_CONVENTION",
     "PAPER_TABLES",
-    "predict_images",
     "predict_run",
     "published",
     "read_paper_table",

@@ -20,7 +20,8 @@ from cpl_keras import prediction_files, runs
 from cpl_keras.camera import PARAMETERS, TARGETS
 from cpl_keras.data.storage import DatasetError, StereoFile
 from cpl_keras.datasets import targets_from_labels
-from cpl_keras.models.inference import model_image_shape, predict_images  # noqa: F401
+from cpl_keras.models import inference
+from cpl_keras.models.inference import model_image_shape
 from cpl_keras.runs import load_model, load_run
 
 
@@ -52,7 +53,7 @@ def predict_run(model, stereo_file, indices, batch_size=32):
     parts = []
     for start in range(0, len(indices), 256):
         left, right = stereo_file.read_pairs(indices[start:start + 256])
-        parts.append(predict_images(model, left, right, batch_size))
+        parts.append(inference.predict_images(model, left, right, batch_size))
     return {name: np.concatenate([p[name] for p in parts]) if parts else np.zeros(0)
             for name in TARGETS}
 
@@ -100,7 +101,8 @@ def store_predictions(run_dir, data_paths, batch_size=32):
     ``data_paths`` (real sets, folders of them). The forward passes are the
     ones the tables make. Returns the paths written."""
     run = load_run(run_dir)
-    paths = [run.config.data] + [p for p in data_paths if not _same_file(p, run.config.data)]
+    paths = [run.config.data.path] + [p for p in data_paths
+                                      if not _same_file(p, run.config.data.path)]
     written = []
     try:
         for path in paths:
@@ -134,10 +136,10 @@ def evaluation_indices(run, data_path, num_pairs):
     the run's own dataset, else every pair of the file. A published record
     (``published.publish_run_dir``) names its dataset without a folder: a file of
     that name and the run's number of pairs is its own."""
-    own = run.config.data
+    own = run.config.data.path
     if _same_file(data_path, own) or (
             os.path.basename(own) == own and os.path.basename(os.fspath(data_path)) == own
-            and num_pairs == run.config.num_pairs):
+            and num_pairs == run.config.data.num_pairs):
         test = run.split["test"]
         if len(test) == 0 or test.max() >= num_pairs:
             raise EvaluationError(f"{run.run_dir}: test split does not fit {data_path}")
