@@ -101,8 +101,7 @@ def store_predictions(run_dir, data_paths, batch_size=32):
     ``data_paths`` (real sets, folders of them). The forward passes are the
     ones the tables make. Returns the paths written."""
     run = load_run(run_dir)
-    paths = [run.config.data.path] + [p for p in data_paths
-                                      if not _same_file(p, run.config.data.path)]
+    paths = [run.config.data] + [p for p in data_paths if not _same_file(p, run.config.data)]
     written = []
     try:
         for path in paths:
@@ -136,10 +135,10 @@ def evaluation_indices(run, data_path, num_pairs):
     the run's own dataset, else every pair of the file. A published record
     (``published.publish_run_dir``) names its dataset without a folder: a file of
     that name and the run's number of pairs is its own."""
-    own = run.config.data.path
+    own = run.config.data
     if _same_file(data_path, own) or (
             os.path.basename(own) == own and os.path.basename(os.fspath(data_path)) == own
-            and num_pairs == run.config.data.num_pairs):
+            and num_pairs == run.config.num_pairs):
         test = run.split["test"]
         if len(test) == 0 or test.max() >= num_pairs:
             raise EvaluationError(f"{run.run_dir}: test split does not fit {data_path}")
