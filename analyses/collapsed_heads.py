@@ -135,7 +135,7 @@ def first_layer_units(run_dir, data_path, batch_size=50):
     import keras
 
     from cpl_keras.camera import PARAMETERS
-    from cpl_keras.evaluation.predict import evaluation_indices, open_dataset
+    from cpl_keras.evaluation.pairs import evaluation_indices, open_dataset
     from cpl_keras.runs import load_run
     from cpl_keras.saving import load_model
 
@@ -162,7 +162,7 @@ def first_layer_units(run_dir, data_path, batch_size=50):
 
 
 def analyse(args):
-    from cpl_keras.evaluation.predict import paired_outputs
+    from cpl_keras.evaluation.forward_pass import paired_outputs
 
     result = {}
     for name, run_dir, reference_dir in args.run:

@@ -192,7 +192,7 @@ def write_verdicts(towers, out, data, command, resamples=2000, epochs=EQUAL_EPOC
     from cpl_keras import files, runs
     from cpl_keras.baselines.average import load_statistics
     from cpl_keras.evaluation import verdicts as rules
-    from cpl_keras.evaluation.predict import paired_outputs
+    from cpl_keras.evaluation.forward_pass import paired_outputs
 
     page = _sibling("verdicts")  # (analyses/verdicts.py: the same tables as every folder's)
 

@@ -51,7 +51,8 @@ def parse_args(argv=None):
 def compare(runs, data_path, resamples):
     """The page's content: per run its NMAEs and epochs; per other run and
     reference, the bootstrap intervals by column."""
-    from cpl_keras.evaluation.predict import EvaluationError, paired_outputs
+    from cpl_keras.evaluation.forward_pass import paired_outputs
+    from cpl_keras.evaluation.pairs import EvaluationError
     from cpl_keras.evaluation.verdicts import (A_LOWER, B_LOWER, COLUMN_PARAMETER, COLUMNS,
                                                seed_intervals)
 

@@ -105,7 +105,7 @@ def run_record(path, config):
 
 def compare(settings, resamples):
     """The page's content, setting by setting."""
-    from cpl_keras.evaluation.predict import paired_outputs
+    from cpl_keras.evaluation.forward_pass import paired_outputs
 
     result = {}
     for name, data, run_a, run_b in settings:

@@ -9,8 +9,8 @@ object arrays) of numpy arrays. Two uses share the format:
   arrays ``outputs``, ``pred``, ``indices`` and ``dataset``, so that a run is
   evaluated without its weights;
 * a **published table row** (``<out>/runs/<protocol>_<name>[_on_<real
-  set>]_predictions.npz``, ``write_files``; ``cpl_keras.predictions`` makes
-  their arrays and scores tables from them): the core arrays and the row's
+  set>]_predictions.npz``, ``write_files``; ``cpl_keras.table_files`` makes
+  them from a table's rows and scores tables from them): the core arrays and the row's
   truth and identity, so that a table is rebuilt from the files alone.
 
 A table row's file holds (n = pairs of the row, one line per pair; a run's
@@ -79,8 +79,23 @@ SHAPES = {"pred": ("n", 13), "truth": ("n", 13), "defined": ("n", 13), "indices"
 STRINGS = ("format", "name", "row", "variant", "source", "dataset", "generator_version",
            "dataset_path", "split", "subset", "table", "rig", "context", "key")
 NUMBERS = ("format_version", "seed", "table_number", "rig_index", "as_released")
+#: File name slug and variant of the baseline rows.
+BASELINES = {"Average": "average", "Average (release bug)": "average-release",
+             "Geometric": "geometric"}
 
 
+def file_name(prefix, slug, data_stem=None):
+    """``<prefix>_<slug>[_on_<data_stem>]_predictions.npz``."""
+    return f"{prefix}_{slug}" + (f"_on_{data_stem}" if data_stem else "") + SUFFIX
+
+
+def row_slug(row, source, suffix=""):
+    """A row's file-name slug: the name of its run directory ``source``, or
+    the baseline's slug with ``suffix`` (the seed's suffix, for tables over
+    several seeds)."""
+    if row in BASELINES:
+        return BASELINES[row] + suffix
+    return os.path.basename(os.path.normpath(source))
 
 
 class PredictionsError(RunError):

@@ -10,7 +10,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from cpl_keras import evaluation, prediction_files, predictions, report
+from cpl_keras import evaluation, prediction_files, report, table_files
 from cpl_keras.camera import TARGETS
 
 SIZE = 32
@@ -25,10 +25,10 @@ def published(tiny_run, tmp_path_factory):
     out = tmp_path_factory.mktemp("published")
     real = build_middlebury(out / "middlebury.h5", crops=3, image_size=SIZE, seed=0)
     context, rows = evaluation.table_rows(1, [tiny_run["run"]], geometric_max=3)
-    files = predictions.table1_files(context, rows, out_dir=out, prefix="cvgl",
+    files = table_files.table1_files(context, rows, out_dir=out, prefix="cvgl",
                                      stem="table1_cvgl", key="k1")
     run_list, rigs = evaluation.table2_rigs([tiny_run["run"]], [real], geometric_max=2)
-    files.update(predictions.table2_files(run_list, rigs, out_dir=out, prefix="cvgl",
+    files.update(table_files.table2_files(run_list, rigs, out_dir=out, prefix="cvgl",
                                           stem="table2", key="k2"))
     paths = prediction_files.write_files(out / "runs", files)
     return {"out": out, "paths": paths, "tiny": tiny_run, "raw1": (context, rows),
@@ -65,7 +65,7 @@ def test_files_are_plain_arrays(published):
 
 
 def test_tables_from_files_equal_the_tables_in_memory(published):
-    tables = predictions.tables_from_files(published["paths"])
+    tables = table_files.tables_from_files(published["paths"])
     assert list(tables) == ["table1_cvgl", "table2"]
     for stem in tables:
         assert json.dumps(tables[stem].to_json(), sort_keys=True) == \
@@ -90,8 +90,8 @@ def _second_seed(published, tmp_path):
 
 def test_a_table_over_seeds_is_mean_and_spread(published, tmp_path):
     seed1 = _second_seed(published, tmp_path)
-    one = predictions.tables_from_files(seed1)
-    tables = predictions.tables_from_files(published["paths"] + seed1)
+    one = table_files.tables_from_files(seed1)
+    tables = table_files.tables_from_files(published["paths"] + seed1)
     table = tables["table1_cvgl"]
     assert table.seeds == [0, 1]
     first, second = published["table1"], one["table1_cvgl"]
@@ -128,7 +128,7 @@ def test_bad_files_are_one_line_errors(published, tmp_path):
 
     def fails(path, match):
         with pytest.raises(prediction_files.PredictionsError) as info:
-            predictions.tables_from_files([path])
+            table_files.tables_from_files([path])
         message = str(info.value)
         assert "\n" not in message and match in message, message
 
@@ -152,7 +152,7 @@ def test_bad_files_are_one_line_errors(published, tmp_path):
     twice = tmp_path / "twice_predictions.npz"
     shutil.copy(good, twice)
     with pytest.raises(prediction_files.PredictionsError, match="are both row"):
-        predictions.tables_from_files([good, str(twice)])
+        table_files.tables_from_files([good, str(twice)])
 
 
 def _with_deep_homo(published, tmp_path):
@@ -175,9 +175,9 @@ def _with_deep_homo(published, tmp_path):
     rigs = [dict(rig, rows=dict(rig["rows"], **{"Deep-Homo": deep_homo(rig["rows"]["MTL-Baseline"])}))
             for rig in rigs]
     out = published["out"]
-    files = predictions.table1_files(context, rows, out_dir=out, prefix="cvgl",
+    files = table_files.table1_files(context, rows, out_dir=out, prefix="cvgl",
                                      stem="table1_cvgl", key="k1", suffix="-s0")
-    files.update(predictions.table2_files(run_list, rigs, out_dir=out, prefix="cvgl",
+    files.update(table_files.table2_files(run_list, rigs, out_dir=out, prefix="cvgl",
                                           stem="table2", key="k2", suffix="-s0"))
     paths = prediction_files.write_files(tmp_path / "seed0", files)
     return (report.portable(evaluation.table_from_rows(context, rows), out),
@@ -191,8 +191,8 @@ def test_a_row_of_one_seed_in_a_table_over_seeds(published, tmp_path):
     tables from the files equal the tables scored in memory."""
     table1_s0, table2_s0, seed0 = _with_deep_homo(published, tmp_path)
     seed1 = _second_seed(published, tmp_path)
-    tables = predictions.tables_from_files(seed0 + seed1)
-    one = predictions.tables_from_files(seed1)
+    tables = table_files.tables_from_files(seed0 + seed1)
+    one = table_files.tables_from_files(seed1)
     # exact: the files give what the rows scored in memory give
     for stem, in_memory in (("table1_cvgl", table1_s0), ("table2", table2_s0)):
         expected = evaluation.aggregate_seeds([in_memory, one[stem]], [0, 1])

@@ -1,8 +1,9 @@
 """Evaluation: every score of the project, Tables 1 and 2, in one place.
 
-* ``predict``: a run's outputs on a dataset file (stored predictions or a
-  forward pass), the pairs it is scored on and the truth it is scored
-  against.
+* ``pairs``: a table's runs, the pairs a run is scored on and the truth it
+  is scored against; ``EvaluationError``.
+* ``forward_pass``: a run's outputs on a dataset file, a forward pass or the
+  stored predictions that stand for it.
 * ``table1``: the rows every table shares (Average, the release's buggy
   Average, the networks, Geometric) and Table 1: ``make_table``,
   ``table_rows`` (what it scores), ``table_from_rows`` (the scoring),
@@ -18,10 +19,12 @@ kinds (Markdown, CSV, JSON, plots). Runs are read through
 ``cpl_keras.runs``; real data through ``cpl_keras.real``.
 """
 
-from cpl_keras.evaluation.predict import (
-    EvaluationError, evaluation_indices, forget_model, load_model, load_run, load_table_runs,
-    model_image_shape, open_dataset, predict_run, published, run_predictions,
-    store_predictions, truth_targets,
+from cpl_keras.evaluation.forward_pass import (
+    forget_model, load_model, model_image_shape, predict_run, published, run_predictions,
+    store_predictions,
+)
+from cpl_keras.evaluation.pairs import (
+    EvaluationError, evaluation_indices, load_run, load_table_runs, open_dataset, truth_targets,
 )
 from cpl_keras.evaluation.seeds import SPREAD, SPREAD_METRICS, aggregate_seeds
 from cpl_keras.evaluation.table1 import (

@@ -12,7 +12,7 @@ import dataclasses
 import numpy as np
 
 from cpl_keras.baselines.geometric import FAILURE_FLAGS
-from cpl_keras.evaluation.predict import EvaluationError
+from cpl_keras.evaluation.pairs import EvaluationError
 from cpl_keras.evaluation.table1 import ROWS
 from cpl_keras.evaluation.tables import Table2
 from cpl_keras.metrics import jsonable

@@ -26,9 +26,10 @@ from cpl_keras import metrics
 from cpl_keras.baselines import geometric as geo
 from cpl_keras.baselines.average import average_predictions
 from cpl_keras.camera import TARGETS
-from cpl_keras.evaluation.predict import (
-    EvaluationError, _same_file, evaluation_indices, forget_model, load_run, load_table_runs,
-    open_dataset, published, run_predictions, truth_targets,
+from cpl_keras.evaluation.forward_pass import forget_model, published, run_predictions
+from cpl_keras.evaluation.pairs import (
+    EvaluationError, _same_file, evaluation_indices, load_run, load_table_runs, open_dataset,
+    truth_targets,
 )
 from cpl_keras.evaluation.tables import Table1
 from cpl_keras.metrics import jsonable

@@ -40,9 +40,9 @@ import numpy as np
 from cpl_keras import metrics
 from cpl_keras.baselines import geometric as geo
 from cpl_keras.camera import TARGETS, fov_from_focal
-from cpl_keras.evaluation.predict import (
-    EvaluationError, evaluation_indices, forget_model, load_table_runs, open_dataset, published,
-    run_predictions, truth_targets,
+from cpl_keras.evaluation.forward_pass import forget_model, published, run_predictions
+from cpl_keras.evaluation.pairs import (
+    EvaluationError, evaluation_indices, load_table_runs, open_dataset, truth_targets,
 )
 from cpl_keras.evaluation.table1 import (
     PAPER_CONVENTION, ROWS, average_rows, geometric_predictions, read_paper_table,

@@ -27,7 +27,7 @@ import numpy as np
 
 from cpl_keras import metrics
 from cpl_keras.camera import PARAMETERS
-from cpl_keras.evaluation.predict import EvaluationError
+from cpl_keras.evaluation.pairs import EvaluationError
 from cpl_keras.evaluation.seeds import mean_and_spread, beyond_spread
 
 #: The paper table's columns, in its order, and the target each one is.

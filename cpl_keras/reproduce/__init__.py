@@ -28,7 +28,7 @@ are reused; killed training runs resume from their last epoch):
    MTL-CPL-A as released on one);
 3. predictions: every row of every table (each run, and the Average, the
    release's Average and the Geometric baselines) on its pairs, published as
-   ``<out>/runs/*_predictions.npz`` (``cpl_keras.predictions``): Table 1 on
+   ``<out>/runs/*_predictions.npz`` (``cpl_keras.table_files``): Table 1 on
    each protocol's test split, Table 2 as a forward pass of the cvgl-trained
    models on every real rig;
 4. tables, made from those files alone: Table 1 per protocol, Table 2 per rig

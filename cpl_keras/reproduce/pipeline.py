@@ -9,7 +9,7 @@ import os
 import platform
 import time
 
-from cpl_keras import cli, evaluation, prediction_files, predictions, published, report, runs
+from cpl_keras import cli, evaluation, prediction_files, published, report, runs, table_files
 from cpl_keras.cache import enable_compile_cache
 from cpl_keras.data.generate import cached_dataset
 from cpl_keras.data.import_cvgl import import_release
@@ -81,7 +81,7 @@ def make_datasets(config, data_dir, seed, real_roots=None, release_dir=None):
 def make_tables(prediction_files, out_dir, command):
     """Every table from the predictions files; each written as Markdown, CSV,
     JSON and plots into ``out_dir``. Returns ``{stem: table}``."""
-    tables = predictions.tables_from_files(prediction_files)
+    tables = table_files.tables_from_files(prediction_files)
     for stem, table in tables.items():
         report.write_outputs(out_dir, stem, table, command)
     return tables
@@ -310,7 +310,7 @@ def rebuild(out_dir, command="", discussion_file=None):
         with open(discussion_file) as f:
             stored["discussion"] = summary["discussion"] = f.read()
     files = [os.path.join(out_dir, p) for p in summary["predictions"]]
-    tables = predictions.tables_from_files(files)
+    tables = table_files.tables_from_files(files)
     if list(tables) != list(summary["tables"]):
         raise prediction_files.PredictionsError(
             f"the predictions make tables {list(tables)}, {SUMMARY} lists {summary['tables']}")

@@ -17,7 +17,7 @@ from __future__ import annotations
 import json
 import os
 
-from cpl_keras import evaluation, prediction_files, predictions, runs
+from cpl_keras import evaluation, prediction_files, runs, table_files
 from cpl_keras.data.storage import StereoFile
 from cpl_keras.files import read_json
 from cpl_keras.reproduce.presets import log
@@ -106,14 +106,14 @@ def _group_predictions(number, stem, prefix, run_dirs, data, config, out_dir, su
     key = json.dumps({"table": stem, "runs": [runs.relative(r, out_dir) for r in run_dirs],
                       "data": [runs.relative(p, out_dir) for p in data] if data else None,
                       "geometric_max": config.geometric_max,
-                      "format": predictions.FORMAT_VERSION}, sort_keys=True)
+                      "format": prediction_files.FORMAT_VERSION}, sort_keys=True)
     def rows(released_only):   # (no Geometric row on a file of the release's labels only)
         return ["Average", "Average (release bug)"] + list(run_dirs) + (
             [] if released_only else ["Geometric"])
 
     rigs = [(None, rows(config.data == "release"))] if number == 1 else [
         (os.path.splitext(os.path.basename(p))[0], rows(_released_only(p))) for p in data]
-    names = [predictions.file_name(prefix, predictions.row_slug(r, {"source": r}, suffix), s)
+    names = [prediction_files.file_name(prefix, prediction_files.row_slug(r, r, suffix), s)
              for s, rig_rows in rigs for r in rig_rows]
     expected = [os.path.join(folder, name) for name in names]
     if _reusable(expected, key, run_dirs, out_dir, recorded, stem):
@@ -124,12 +124,12 @@ def _group_predictions(number, stem, prefix, run_dirs, data, config, out_dir, su
     if number == 1:
         context, raw = evaluation.table_rows(1, run_dirs, geometric=True,
                                              geometric_max=config.geometric_max, progress=log)
-        files = predictions.table1_files(context, raw, out_dir=out_dir, prefix=prefix, stem=stem,
+        files = table_files.table1_files(context, raw, out_dir=out_dir, prefix=prefix, stem=stem,
                                          key=key, suffix=suffix)
     else:
         run_list, rigs = evaluation.table2_rigs(run_dirs, data, geometric=True,
                                                 geometric_max=config.geometric_max, progress=log)
-        files = predictions.table2_files(run_list, rigs, out_dir=out_dir, prefix=prefix,
+        files = table_files.table2_files(run_list, rigs, out_dir=out_dir, prefix=prefix,
                                          stem=stem, key=key, suffix=suffix)
     if sorted(files) != sorted(names):
         raise evaluation.EvaluationError(f"{stem}: predictions files {sorted(files)} are not "

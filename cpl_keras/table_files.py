@@ -1,4 +1,4 @@
-"""Published predictions: the results of Tables 1 and 2 that outlive the weights.
+"""Tables as predictions files: the results of Tables 1 and 2 that outlive the weights.
 
 Every row of a table (a trained run, or a baseline: Average, the release's
 buggy Average, Geometric) publishes what it predicted on the table's pairs
@@ -9,9 +9,10 @@ and curves (``<out>/runs/<protocol>_<name>[_on_<real set>]_predictions.npz``)
 and makes its tables from them; ``--from-predictions DIR`` rebuilds every
 table and REPORT.md from them.
 
-The files' format (their arrays) is ``cpl_keras.prediction_files``'s,
-which reads and writes them; this module makes a row's arrays
-(``table1_files``, ``table2_files``) and scores the tables from the files.
+The files' format (their arrays, their names) is
+``cpl_keras.prediction_files``'s, which reads and writes them; this module
+makes the files of a table's rows (``table1_files``, ``table2_files``) and
+scores the tables from the files.
 
 ``tables_from_files(paths)`` groups the files by table and seed, scores each
 group with the same code that scores a table in memory
@@ -31,24 +32,9 @@ from cpl_keras import evaluation, report, runs
 from cpl_keras.baselines.geometric import FAILURE_FLAGS
 from cpl_keras.camera import TARGETS
 from cpl_keras.data.storage import StereoFile
-from cpl_keras.prediction_files import FORMAT, FORMAT_VERSION, SUFFIX, PredictionsError, load
-
-#: File name slug and variant of the baseline rows.
-BASELINES = {"Average": "average", "Average (release bug)": "average-release",
-             "Geometric": "geometric"}
-
-
-def file_name(prefix, slug, data_stem=None):
-    """``<prefix>_<slug>[_on_<data_stem>]_predictions.npz``."""
-    return f"{prefix}_{slug}" + (f"_on_{data_stem}" if data_stem else "") + SUFFIX
-
-
-def row_slug(row, raw, suffix=""):
-    """A row's file-name slug: the run directory's name, or the baseline's
-    slug with ``suffix`` (the seed's suffix, for tables over several seeds)."""
-    if row in BASELINES:
-        return BASELINES[row] + suffix
-    return os.path.basename(os.path.normpath(raw["source"]))
+from cpl_keras.prediction_files import (
+    BASELINES, FORMAT, FORMAT_VERSION, SUFFIX, PredictionsError, file_name, load, row_slug,
+)
 
 
 def _dataset_facts(path):
@@ -109,7 +95,7 @@ def table1_files(context, rows, *, out_dir, prefix, stem, key, suffix=""):
     subset = "test" if context["data_description"].startswith("test split") else "all"
     files = {}
     for row, raw in rows.items():
-        name = file_name(prefix, row_slug(row, raw, suffix))
+        name = file_name(prefix, row_slug(row, raw["source"], suffix))
         files[name] = _arrays(
             row, raw, name=name[: -len(SUFFIX)], out_dir=out_dir, run_configs=configs,
             reference=context["runs"][0], data_path=context["data"], subset=subset, table=stem,
@@ -127,7 +113,7 @@ def table2_files(run_list, rigs, *, out_dir, prefix, stem, key, suffix=""):
         context["runs"] = list(run_list)
         data_stem = os.path.splitext(os.path.basename(rig["data"]))[0]
         for row, raw in rig["rows"].items():
-            name = file_name(prefix, row_slug(row, raw, suffix), data_stem)
+            name = file_name(prefix, row_slug(row, raw["source"], suffix), data_stem)
             files[name] = _arrays(
                 row, raw, name=name[: -len(SUFFIX)], out_dir=out_dir, run_configs=configs,
                 reference=run_list[0], data_path=rig["data"], subset="all", table=stem,

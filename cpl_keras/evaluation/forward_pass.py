@@ -1,46 +1,30 @@
-"""A run's outputs on a dataset file: its stored predictions, or a forward pass.
+"""A run's forward pass on a dataset file, or the stored outputs that stand
+for it.
 
-* ``predict_run`` runs a model's forward pass over pairs of a dataset file;
+* ``predict_run`` runs a model's forward pass over pairs of a dataset file
+  (``cpl_keras.models.inference.predict_images`` on image arrays);
   ``run_predictions`` prefers the run's stored predictions (a published run
-  has nothing else) and ``store_predictions`` writes them.
-* ``evaluation_indices`` picks the pairs a run is scored on (its test split
-  on its own dataset, every pair of any other file) and ``truth_targets``
-  the targets it is scored against (the release's for an as-released run).
+  has nothing else) and ``store_predictions`` writes them
+  (``cpl_keras.prediction_files``' format).
+* ``paired_outputs``: a run's outputs and truth as the paired bootstrap
+  reads them; ``published``: predictions at the stored files' precision.
 
-Runs are read through ``cpl_keras.runs``.
+Which pairs and which truth: ``cpl_keras.evaluation.pairs``.
 """
 
 from __future__ import annotations
-
-import os
 
 import numpy as np
 
 from cpl_keras import prediction_files, runs
 from cpl_keras.camera import PARAMETERS, TARGETS
-from cpl_keras.data.storage import DatasetError, StereoFile
 from cpl_keras.datasets import targets_from_labels
+from cpl_keras.evaluation.pairs import (
+    EvaluationError, _same_file, evaluation_indices, open_dataset,
+)
 from cpl_keras.models import inference
 from cpl_keras.models.inference import model_image_shape
 from cpl_keras.runs import load_model, load_run
-
-
-class EvaluationError(runs.RunError):
-    """A run directory, dataset or argument cannot be evaluated (one line)."""
-
-
-def load_table_runs(run_dirs):
-    """The runs of one table (``runs.Run``), one per row: EvaluationError when
-    none is given or two are runs of the same row."""
-    if not run_dirs:
-        raise EvaluationError("no runs given (--runs RUN_DIR ...)")
-    loaded, seen = [], {}
-    for run in map(load_run, run_dirs):
-        if run.row in seen:
-            raise EvaluationError(f"two runs for {run.row}: {seen[run.row]} and {run.run_dir}")
-        seen[run.row] = run.run_dir
-        loaded.append(run)
-    return loaded
 
 
 def predict_run(model, stereo_file, indices, batch_size=32):
@@ -115,49 +99,9 @@ def store_predictions(run_dir, data_paths, batch_size=32):
     return written
 
 
-def _same_file(a, b):
-    try:
-        return os.path.samefile(a, b)
-    except OSError:
-        return os.path.abspath(a) == os.path.abspath(b)
-
-
-def open_dataset(path):
-    """Open and validate a dataset file (EvaluationError on failure)."""
-    try:
-        return StereoFile(path)
-    except DatasetError as error:
-        raise EvaluationError(str(error)) from None
-
-
-def evaluation_indices(run, data_path, num_pairs):
-    """``(indices, description)``: the run's test split when ``data_path`` is
-    the run's own dataset, else every pair of the file. A published record
-    (``published.publish_run_dir``) names its dataset without a folder: a file of
-    that name and the run's number of pairs is its own."""
-    own = run.config.data
-    if _same_file(data_path, own) or (
-            os.path.basename(own) == own and os.path.basename(os.fspath(data_path)) == own
-            and num_pairs == run.config.num_pairs):
-        test = run.split["test"]
-        if len(test) == 0 or test.max() >= num_pairs:
-            raise EvaluationError(f"{run.run_dir}: test split does not fit {data_path}")
-        return test, f"test split of the run ({len(test)} of {num_pairs} pairs)"
-    return np.arange(num_pairs), f"all {num_pairs} pairs of the file"
-
-
-def truth_targets(labels, indices, released):
-    try:
-        targets = targets_from_labels(labels, as_released=released)
-    except DatasetError as error:
-        raise EvaluationError(str(error)) from None
-    return {name: np.asarray(targets[name], np.float64)[indices] for name in TARGETS}
-
-
 def published(predictions):
     """``predictions`` at the precision of the published predictions files
     (float32, as a network outputs them), as float64 arrays: a table scored in
     memory and one rebuilt from the files agree to the last digit."""
     return {name: np.asarray(predictions[name], np.float32).astype(np.float64)
             for name in TARGETS}
-
