@@ -19,7 +19,7 @@ from cpl_keras import reproduce
 from cpl_keras.commands import reproduce as reproduce_command
 from cpl_keras.camera import TARGETS
 # (REPO: the repository root; no result may name it)
-from helpers import REPO, quick_reproduction_args, set_writable, writable_copy
+from helpers import QUICK_PAIRS, QUICK_SIZE, REPO, quick_reproduction_args, set_writable, writable_copy
 
 
 def run(*args, cwd=None):
@@ -98,7 +98,8 @@ def test_quick_reproduction_end_to_end(quick):
         assert list(f["outputs"]) == list(TARGETS) and f["pred"].dtype == np.float32
         assert f["pred"].shape == (cvgl["num_pairs"], 13) == f["truth"].shape
         assert str(f["row"]) == "MTL-CPL-A" and str(f["split"]) == "paper"
-        assert str(f["subset"]) == "test" and str(f["dataset"]).startswith("cvgl_150_32px")
+        assert str(f["subset"]) == "test" and str(f["dataset"]).startswith(
+            f"cvgl_{QUICK_PAIRS}_32px")
         assert all(f[k].dtype != object for k in f.files)
     with np.load(out / "runs" / "cvgl_geometric_on_chessboard_predictions.npz",
                  allow_pickle=False) as f:
@@ -145,7 +146,7 @@ def test_published_runs_are_restored_not_trained_again(quick, tmp_path):
     # its test split and the three real rigs
     assert len(list((out / "runs" / "cvgl_cpl-a" / "predictions").glob("*.npz"))) == 1 + 3
     data = writable_copy(quick["data"], tmp_path / "data")  # (where real sets are made)
-    args = ["--quick", "--out", str(out), "--data-dir", data, "--runs-dir", str(tmp_path / "runs")]
+    args = ["--quick", *QUICK_SIZE, "--out", str(out), "--data-dir", data, "--runs-dir", str(tmp_path / "runs")]
     before = _contents(out)
     result = run(*args)
     assert result.returncode == 0, result.stderr[-3000:]
@@ -199,7 +200,7 @@ def test_a_published_prediction_changed_by_hand_is_named_and_the_record_kept(
     deleted.unlink()
     before = _contents(out)
     capsys.readouterr()
-    assert reproduce_command.main(["--quick", "--out", str(out), "--data-dir", data,
+    assert reproduce_command.main(["--quick", *QUICK_SIZE, "--out", str(out), "--data-dir", data,
                                    "--runs-dir", str(tmp_path / "runs")]) == 0
     err = capsys.readouterr().err
     named = [line for line in err.splitlines() if "changed since reproduce.json" in line]
@@ -227,7 +228,7 @@ def test_partial_tables_of_the_seeds_whose_runs_have_all_finished(quick, tmp_pat
     out = tmp_path / "out"
     writable_copy(quick["out"], out)
     shutil.rmtree(out / "runs" / "cvgl_cpl-u")
-    args = ["--quick", "--partial", "--out", str(out), "--data-dir",
+    args = ["--quick", *QUICK_SIZE, "--partial", "--out", str(out), "--data-dir",
             writable_copy(quick["data"], tmp_path / "data"), "--runs-dir", str(tmp_path / "runs")]
     result = run(*args)
     assert result.returncode == 0, result.stderr[-3000:]
