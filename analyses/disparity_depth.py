@@ -30,11 +30,11 @@ import numpy as np
 VARIANTS = ("baseline", "cpl-u", "cpl-a")
 
 
-def disparity_and_depth(raw):
-    """``(d, depth, median_depth)`` of one row's raw arrays (``prediction_files.load``)."""
+def disparity_and_depth(truth, pred):
+    """``(d, depth, median_depth)`` of one row's ``truth`` and ``pred``
+    (name -> array; a predictions file's row, ``prediction_files.load``)."""
     from cpl_keras import camera
 
-    truth, pred = raw["truth"], raw["pred"]
     depth = camera.depth_from_disparity(truth["fx"], truth["baseline"], truth["disparity"])
     implied = camera.depth_from_disparity(truth["fx"], truth["baseline"], pred["disparity"])
     d_error = np.mean(np.abs(pred["disparity"] - truth["disparity"]))
@@ -54,10 +54,10 @@ def folder_rows(folder):
         if "_on_" in os.path.basename(path):
             continue
         item = prediction_files.load(path)
-        if item["table_number"] != 1 or item["variant"] not in VARIANTS or item["as_released"]:
+        if item.table_number != 1 or item.variant not in VARIANTS or item.raw.as_released:
             continue
-        rows.setdefault(item["table"], {}).setdefault(item["variant"], []).append(
-            (item["seed"], disparity_and_depth(item["raw"])))
+        rows.setdefault(item.table, {}).setdefault(item.variant, []).append(
+            (item.seed, disparity_and_depth(item.raw.truth, item.raw.pred)))
     if not rows:
         from cpl_keras.evaluation import EvaluationError
 

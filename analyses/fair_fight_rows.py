@@ -29,7 +29,7 @@ def truths(seed, folder=TRUTHS):
 
     item = prediction_files.load(os.path.join(folder, "runs",
                                               f"cvgl_baseline-s{seed}_predictions.npz"))
-    return item["dataset"], np.asarray(item["raw"]["indices"]), item["raw"]["truth"]
+    return item.dataset, np.asarray(item.raw.indices), item.raw.truth
 
 
 def record_predictions(record):

@@ -94,18 +94,18 @@ def test_spread(published, rerun):
     from cpl_keras import prediction_files
 
     item = prediction_files.load(os.path.join(RESULTS, published))
-    raw = item["raw"]
+    raw = item.raw
     names = [PARAMETER[c] for c in COLUMNS]
     stored = os.path.join(RESULTS, rerun, "predictions")
     (path,) = [os.path.join(stored, f) for f in sorted(os.listdir(stored))]
     with np.load(path, allow_pickle=False) as data:
         stored_names = [str(n) for n in data["outputs"]]
-    outputs = prediction_files.read_run_outputs(path, raw["indices"], stored_names)
+    outputs = prediction_files.read_run_outputs(path, raw.indices, stored_names)
     out = {}
     for column, name in zip(COLUMNS, names):
-        truth = np.asarray(raw["truth"][name], np.float64)
+        truth = np.asarray(raw.truth[name], np.float64)
         out[column] = abs(_nmae(truth, outputs[name])
-                          - _nmae(truth, np.asarray(raw["pred"][name], np.float64)))
+                          - _nmae(truth, np.asarray(raw.pred[name], np.float64)))
     return out
 
 

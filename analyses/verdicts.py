@@ -46,11 +46,14 @@ def load_rows(folder, split, variant):
 
     pattern = os.path.join(folder, "runs", f"{split}_{variant}-s*{prediction_files.SUFFIX}")
     items = [prediction_files.load(path) for path in sorted(glob.glob(pattern))]
-    items = [item for item in items if item["table"] == f"table1_{split}"]
+    items = [item for item in items if item.table == f"table1_{split}"]
     if not items:
         raise EvaluationError(f"no predictions of {variant} on {split} in {folder}/runs")
-    files = [os.path.relpath(item["path"], folder) for item in items]
-    return {item["seed"]: item["raw"] for item in items}, items[0]["row"], files
+    files = [os.path.relpath(item.path, folder) for item in items]
+    # (the paired bootstrap reads a row's arrays by name)
+    rows = {item.seed: {"indices": item.raw.indices, "truth": item.raw.truth,
+                        "pred": item.raw.pred, "defined": item.raw.defined} for item in items}
+    return rows, items[0].row, files
 
 
 def has_rows(folder, split, variant):

@@ -13,49 +13,25 @@ object arrays) of numpy arrays. Two uses share the format:
   them from a table's rows and scores tables from them): the core arrays and the row's
   truth and identity, so that a table is rebuilt from the files alone.
 
-A table row's file holds (n = pairs of the row, one line per pair; a run's
-stored outputs hold ``outputs``, ``pred``, ``indices`` and ``dataset`` of
-these):
-
-=====================  ==========================================================
-``outputs``            (13,) str: the output names, in the release's order
-                       (fx fy u0 v0 baseline disparity tx ty tz pitch X Y Z)
-``pred``               (n, 13) float32: the predictions
-``truth``              (n, 13) float64: the ground-truth targets the row is
-                       scored against (the release's for an as-released row)
-``defined``            (n, 13) bool: where the truth exists (real sets without
-                       ground-truth disparity leave disparity, X, Y, Z out)
-``indices``            (n,) int64: the pairs' indices in the dataset file
-``name``, ``row``,     str: the file's name stem (``cvgl_cpl-a``), the table
-``variant``            row (``MTL-CPL-A``), the variant (``cpl-a``, or
-                       ``average``, ``average-release``, ``geometric``)
-``source``             str: the run directory, relative to the tables' folder
-                       (a baseline: what it is computed from)
-``as_released``        bool
-``dataset``,           str: the dataset file's name, its generator version
-``generator_version``  (empty for real sets), ``dataset_path``: relative to
-``dataset_path``       the tables' folder
-``split``, ``subset``  str: the run's split (``paper``, ``held-out-config``)
-                       and the pairs used (``test``: its test split; ``all``:
-                       every pair of a real set)
-``seed``               int: the run's seed (a baseline: its reference run's)
-``table``,             str / int: the table's file stem (``table1_cvgl``,
-``table_number``,      ``table2``), its number, the real set's rig name and
-``rig``, ``rig_index`` position among the table's real sets (``""``, -1 for
-                       Table 1)
-``context``            str (JSON): the table's fields (dataset description,
-                       image width, the runs, ...), as the table records them
-``key``                str (JSON): what the file was computed from (runs,
-                       data, Geometric settings), to tell when it is stale
-Geometric only         ``failure_flags`` (k,) str and ``failures`` (n, k) bool
-                       (its stage failures), ``prior_names`` / ``prior_values``
-                       (its fallbacks), ``degenerate`` (columns undefined on a
-                       rectified rig)
-=====================  ==========================================================
+A table row's file holds the fields of ``RowFile`` (a record of one; the
+arrays in the order ``row_arrays`` writes them), and its row's own arrays
+(n = pairs of the row, one line per pair; a run's stored outputs hold
+``outputs``, ``pred``, ``indices`` and ``dataset`` of these):
+``outputs`` (13,) str, the output names in the release's order (fx fy u0
+v0 baseline disparity tx ty tz pitch X Y Z); ``pred`` (n, 13) float32;
+``truth`` (n, 13) float64, the targets the row is scored against (the
+release's for an as-released row); ``defined`` (n, 13) bool, where the
+truth exists (real sets without ground-truth disparity leave disparity, X,
+Y, Z out); ``indices`` (n,) int64, the pairs in the dataset file;
+``as_released`` bool; and for the Geometric row ``failure_flags`` (k,) str
+and ``failures`` (n, k) bool (its stage failures), ``prior_names`` /
+``prior_values`` (its fallbacks), ``degenerate`` (columns undefined on a
+rectified rig). Besides, ``format`` and ``format_version``.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import hashlib
 import json
 import os
@@ -64,10 +40,12 @@ import zipfile
 
 import numpy as np
 
+from cpl_keras.baselines.geometric import FAILURE_FLAGS
 from cpl_keras.camera import TARGETS
 from cpl_keras.cli import one_line
 from cpl_keras.files import atomic_path
 from cpl_keras.runs import RunError
+from cpl_keras.table_rows import Row, RowError
 
 #: File name suffix of a predictions file.
 SUFFIX = "_predictions.npz"
@@ -79,25 +57,6 @@ SHAPES = {"pred": ("n", 13), "truth": ("n", 13), "defined": ("n", 13), "indices"
 STRINGS = ("format", "name", "row", "variant", "source", "dataset", "generator_version",
            "dataset_path", "split", "subset", "table", "rig", "context", "key")
 NUMBERS = ("format_version", "seed", "table_number", "rig_index", "as_released")
-#: File name slug and variant of the baseline rows.
-BASELINES = {"Average": "average", "Average (release bug)": "average-release",
-             "Geometric": "geometric"}
-
-
-def file_name(prefix, slug, data_stem=None):
-    """``<prefix>_<slug>[_on_<data_stem>]_predictions.npz``."""
-    return f"{prefix}_{slug}" + (f"_on_{data_stem}" if data_stem else "") + SUFFIX
-
-
-def row_slug(row, source, suffix=""):
-    """A row's file-name slug: the name of its run directory ``source``, or
-    the baseline's slug with ``suffix`` (the seed's suffix, for tables over
-    several seeds)."""
-    if row in BASELINES:
-        return BASELINES[row] + suffix
-    return os.path.basename(os.path.normpath(source))
-
-
 class PredictionsError(RunError):
     """A predictions file is missing, unreadable or inconsistent (one line)."""
 
@@ -295,13 +254,80 @@ def read_key(path):
         return None
 
 
-def load(path):
-    """A predictions file as a dict: its identity (``name``, ``row``,
-    ``seed``, ``table``, ``table_number``, ``rig``, ``rig_index``, ...), its
-    ``context`` (dict) and ``raw``, the row as the table code scores it.
-    PredictionsError (one line, naming the file) if it is missing, unreadable
-    or inconsistent."""
-    path = os.fspath(path)
+@dataclasses.dataclass(frozen=True, kw_only=True, eq=False)
+class RowFile:
+    """One table row's predictions file as a record: the arrays of the module
+    doc (``row_arrays`` writes them, ``load`` reads them back), the row's
+    own arrays as a ``table_rows.Row`` (``raw``; its ``source`` is the
+    file's)."""
+
+    # the file's name stem (cvgl_cpl-a), the table row (MTL-CPL-A), the variant
+    # (cpl-a, or average, average-release, geometric)
+    name: str
+    row: str
+    variant: str
+    # the run directory relative to the tables' folder (a baseline: what it is
+    # computed from)
+    source: str
+    # the dataset file's name, its generator version (empty for real sets), its
+    # path relative to the tables' folder
+    dataset: str
+    generator_version: str
+    dataset_path: str
+    # the run's split (paper, held-out-config), the pairs used (test: its test
+    # split; all: every pair of a real set), its seed (a baseline: its reference run's)
+    split: str
+    subset: str
+    seed: int
+    # the table's file stem (table1_cvgl, table2), its number, the real set's rig
+    # and its position among the table's real sets ("", -1 for Table 1)
+    table: str
+    table_number: int
+    rig: str = ""
+    rig_index: int = -1
+    # the table's fields as it records them (JSON in the file), and what the file
+    # was computed from (runs, data, Geometric settings: JSON), to tell when it is stale
+    context: dict
+    key: str
+    raw: Row
+    # where it was read from (None for a file not yet written)
+    path: str | None = None
+
+
+def row_arrays(item):
+    """The arrays of the ``RowFile`` ``item``'s file, in the file's order."""
+    raw, n = item.raw, item.raw.num_pairs
+    defined = raw.defined or {k: np.ones(n, bool) for k in TARGETS}
+    columns = lambda values, kind: np.stack(  # noqa: E731
+        [np.asarray(values[k], kind) for k in TARGETS], axis=1).reshape(n, len(TARGETS))
+    arrays = {
+        "format": np.array(FORMAT), "format_version": np.array(FORMAT_VERSION, np.int64),
+        "outputs": np.array(TARGETS), "pred": columns(raw.pred, np.float32),
+        "truth": columns(raw.truth, np.float64), "defined": columns(defined, bool),
+        "indices": np.asarray(raw.indices, np.int64),
+        "name": np.array(item.name), "row": np.array(item.row),
+        "variant": np.array(item.variant), "source": np.array(item.source),
+        "as_released": np.array(bool(raw.as_released)),
+        "dataset": np.array(item.dataset), "generator_version": np.array(item.generator_version),
+        "dataset_path": np.array(item.dataset_path), "split": np.array(item.split),
+        "subset": np.array(item.subset), "seed": np.array(int(item.seed), np.int64),
+        "table": np.array(item.table), "table_number": np.array(int(item.table_number), np.int64),
+        "rig": np.array(item.rig), "rig_index": np.array(int(item.rig_index), np.int64),
+        "context": np.array(json.dumps(item.context, sort_keys=True)), "key": np.array(item.key),
+    }
+    if item.row == "Geometric":
+        arrays["failure_flags"] = np.array(FAILURE_FLAGS)
+        arrays["failures"] = np.array([[bool(s[f]) for f in FAILURE_FLAGS]
+                                       for s in raw.statuses], bool).reshape(n, len(FAILURE_FLAGS))
+        arrays["prior_names"] = np.array(list(raw.priors), dtype=str)
+        arrays["prior_values"] = np.array(list(raw.priors.values()), np.float64)
+        arrays["degenerate"] = np.array(list(raw.degenerate or []), dtype=str)
+    return arrays
+
+
+def _read(path):
+    """The arrays of the predictions file ``path``, its identity checked
+    (``{name: scalar}``). PredictionsError when it is no such file."""
     if not os.path.isfile(path):
         raise PredictionsError(f"predictions file not found: {path}")
     try:
@@ -335,11 +361,23 @@ def load(path):
         item["context"] = json.loads(item["context"])
     except ValueError as error:
         raise PredictionsError(f"{path}: 'context' is not JSON ({error})") from None
+    return arrays, item
+
+
+def load(path):
+    """A predictions file as a ``RowFile``: its identity (``name``, ``row``,
+    ``seed``, ``table``, ``table_number``, ``rig``, ``rig_index``, ...), its
+    ``context`` (dict) and ``raw``, the row as the table code scores it.
+    PredictionsError (one line, naming the file) if it is missing, unreadable
+    or inconsistent."""
+    path = os.fspath(path)
+    arrays, item = _read(path)
+    n = len(arrays["indices"])
+    column = lambda key, kind: {k: arrays[key][:, i].astype(kind)  # noqa: E731
+                                for i, k in enumerate(TARGETS)}
     raw = {"source": item["source"], "as_released": bool(item["as_released"]),
-           "indices": arrays["indices"].astype(np.int64),
-           "truth": {k: arrays["truth"][:, i].astype(np.float64) for i, k in enumerate(TARGETS)},
-           "pred": {k: arrays["pred"][:, i].astype(np.float64) for i, k in enumerate(TARGETS)},
-           "defined": {k: arrays["defined"][:, i].copy() for i, k in enumerate(TARGETS)}}
+           "indices": arrays["indices"].astype(np.int64), "truth": column("truth", np.float64),
+           "pred": column("pred", np.float64), "defined": column("defined", bool)}
     if item["row"] == "Geometric":
         for key in ("failure_flags", "failures", "prior_names", "prior_values", "degenerate"):
             if key not in arrays:
@@ -351,6 +389,9 @@ def load(path):
         raw["priors"] = {str(k): float(v) for k, v in zip(arrays["prior_names"],
                                                           arrays["prior_values"])}
         raw["degenerate"] = [str(k) for k in arrays["degenerate"]]
-    item["raw"] = raw
-    item["path"] = path
-    return item
+    fields = {k: v for k, v in item.items()
+              if k not in ("format", "format_version", "as_released")}
+    try:
+        return RowFile(**fields, raw=Row(**raw), path=path)
+    except RowError as error:
+        raise PredictionsError(f"{path}: {error}") from None

@@ -140,7 +140,7 @@ def test_disparity_depth_is_eq_4a_with_fx_and_b_at_their_truth(capsys):
            "pred": {"fx": 50 * ones, "baseline": 3 * ones,  # (not used: at their truth)
                     "disparity": np.array([20.0, 20.0, 10.0, 5.0])}}
     # depths 10 m; implied 5, 5, 10, 20 m: errors 5, 5, 0, 10 m
-    d, depth, median = script.disparity_and_depth(raw)
+    d, depth, median = script.disparity_and_depth(raw["truth"], raw["pred"])
     assert (d, depth, median) == (pytest.approx(6.25 / 10), pytest.approx(5.0 / 10), 0.5)
 
     # the committed compact-2000 folder: each network row, seeds 0-2, once

@@ -166,14 +166,14 @@ def _with_deep_homo(published, tmp_path):
     (run / "config.json").write_text(json.dumps(dict(config, variant="deep-homo")))
 
     def deep_homo(raw):
-        pred = evaluation.published({k: raw["pred"][k] * 0.9 for k in TARGETS})
-        return dict(raw, source=str(run), pred=pred)
+        pred = evaluation.published({k: raw.pred[k] * 0.9 for k in TARGETS})
+        return dataclasses.replace(raw, source=str(run), pred=pred)
 
     context = dict(context, runs=context["runs"] + [str(run)])
     rows = dict(rows, **{"Deep-Homo": deep_homo(rows["MTL-Baseline"])})
     run_list = list(run_list) + [str(run)]
-    rigs = [dict(rig, rows=dict(rig["rows"], **{"Deep-Homo": deep_homo(rig["rows"]["MTL-Baseline"])}))
-            for rig in rigs]
+    rigs = [dataclasses.replace(rig, rows=dict(rig.rows, **{
+        "Deep-Homo": deep_homo(rig.rows["MTL-Baseline"])})) for rig in rigs]
     out = published["out"]
     files = table_files.table1_files(context, rows, out_dir=out, prefix="cvgl",
                                      stem="table1_cvgl", key="k1", suffix="-s0")
@@ -244,3 +244,68 @@ def test_a_row_of_one_seed_in_a_table_over_seeds(published, tmp_path):
     # the pooled table on shared pairs (the Geometric row ran on fewer): 2 NMAE tables
     assert t2.shared is not None and t2.shared.rows["Deep-Homo"]["seeds"] == [0]
     assert text.count("| Deep-Homo (1 seed) |") == 2 * 4 + 2
+
+
+def test_a_table_row_is_a_record_and_a_malformed_one_is_refused():
+    """A table's rows are frozen records with named fields, made where the
+    table gathers them (Table 1's ``table_rows``) and refused when their
+    arrays do not fit together."""
+    from cpl_keras.table_rows import Rig, Row, RowError
+
+    assert [f.name for f in dataclasses.fields(Row)] == [
+        "source", "as_released", "indices", "truth", "pred", "defined", "priors", "statuses",
+        "degenerate"]
+    assert sorted(f.name for f in dataclasses.fields(Rig)) == sorted(Rig.CONTEXT + ("rows",))
+    n = 3
+    arrays = {k: np.zeros(n) for k in TARGETS}
+    row = Row(source="run", as_released=False, indices=np.arange(n), truth=arrays, pred=arrays)
+    with pytest.raises(dataclasses.FrozenInstanceError):
+        row.source = "other"
+    with pytest.raises(RowError, match="pred lacks fx"):
+        Row(source="run", as_released=False, indices=np.arange(n), truth=arrays,
+            pred={k: v for k, v in arrays.items() if k != "fx"})
+    with pytest.raises(RowError, match=r"truth\['fx'\] has shape \(2,\), not \(3,\)"):
+        Row(source="run", as_released=False, indices=np.arange(n), pred=arrays,
+            truth=dict(arrays, fx=np.zeros(2)))
+    with pytest.raises(RowError, match="2 statuses for 3 pairs"):
+        Row(source="run", as_released=False, indices=np.arange(n), truth=arrays, pred=arrays,
+            priors={}, statuses=[{}, {}])
+    with pytest.raises(RowError, match="row Average is not a Row"):
+        Rig(rig="r", data="r.h5", data_description="", data_source=None, rectified=True,
+            width=8, num_pairs=n, rows={"Average": {"source": "run"}})
+
+
+def test_the_tables_rows_are_records_from_where_they_are_made(published):
+    """``table_rows`` and ``table2_rigs`` give records, and a file read back
+    gives the same record types (``RowFile``, its ``raw`` a ``Row``)."""
+    from cpl_keras.table_rows import Rig, Row
+
+    (_, rows), (_, rigs) = published["raw1"], published["raw2"]
+    assert rows and all(isinstance(row, Row) for row in rows.values())
+    assert rigs and all(isinstance(rig, Rig) for rig in rigs)
+    assert all(isinstance(row, Row) for rig in rigs for row in rig.rows.values())
+    item = prediction_files.load(published["paths"][0])
+    assert isinstance(item, prediction_files.RowFile) and isinstance(item.raw, Row)
+
+
+COMMITTED = sorted(Path(__file__).resolve().parents[1].glob("paper_results/**/runs/*_predictions.npz"))
+
+
+def test_committed_predictions_files_read_into_records_and_write_back_the_same_arrays():
+    """Every committed predictions file reads into a ``RowFile`` whose arrays
+    (``row_arrays``) are the file's: the same names in the same order, the
+    same dtypes, shapes and values (a string's width aside: a published
+    file's paths were rewritten in place, within the width they had)."""
+    assert len(COMMITTED) > 50
+    geometric = 0
+    for path in COMMITTED:
+        arrays = prediction_files.row_arrays(prediction_files.load(path))
+        with np.load(path, allow_pickle=False) as f:
+            assert list(arrays) == list(f.files), path
+            for name in f.files:
+                old, new = f[name], np.asarray(arrays[name])
+                same_type = old.dtype.kind == new.dtype.kind == "U" or old.dtype == new.dtype
+                assert same_type and old.shape == new.shape, (path, name)
+                assert np.array_equal(old, new, equal_nan=old.dtype.kind == "f"), (path, name)
+        geometric += "_geometric" in path.name
+    assert geometric > 5

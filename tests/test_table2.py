@@ -79,9 +79,10 @@ def test_undefined_disparity_is_left_out(setup, tmp_path):
 
 
 def _rig(name, n, rectified, geometric_pairs, seed):
-    """Raw rows of one rig (``table2_from_rigs``' input) with known errors."""
+    """The ``Rig`` of one rig (``table2_from_rigs``' input) with known errors."""
     from cpl_keras.baselines.geometric import FAILURE_FLAGS
     from cpl_keras.camera import TARGETS
+    from cpl_keras.table_rows import Rig, Row
 
     rng = np.random.default_rng(seed)
     truth = {k: rng.uniform(50.0, 150.0, n) for k in TARGETS}
@@ -89,24 +90,22 @@ def _rig(name, n, rectified, geometric_pairs, seed):
         truth["pitch"] = np.zeros(n)
     indices = np.arange(n)
 
-    def row(pred_scale, subset=None):
+    def row(pred_scale, subset=None, **geometric):
         take = indices if subset is None else indices[:subset]
-        return {"source": "x", "as_released": False, "indices": take,
-                "truth": {k: v[take] for k, v in truth.items()},
-                "pred": {k: v[take] * pred_scale for k, v in truth.items()},
-                "defined": {k: np.ones(len(take), bool) for k in TARGETS}}
+        defined = {k: np.ones(len(take), bool) for k in TARGETS}
+        if rectified and geometric:
+            defined.update(fx=np.zeros(len(take), bool), fy=np.zeros(len(take), bool))
+        return Row(source="x", as_released=False, indices=take,
+                   truth={k: v[take] for k, v in truth.items()},
+                   pred={k: v[take] * pred_scale for k, v in truth.items()},
+                   defined=defined, **geometric)
 
-    rows = {"Average": row(1.5), "MTL-CPL-A": row(1.1)}
-    geo = row(1.3, geometric_pairs)
-    geo.update(priors={}, statuses=[{f: False for f in FAILURE_FLAGS}] * geometric_pairs,
-               degenerate=["fx", "fy"] if rectified else [])
-    if rectified:
-        geo["defined"] = dict(geo["defined"], fx=np.zeros(geometric_pairs, bool),
-                              fy=np.zeros(geometric_pairs, bool))
-    rows["Geometric"] = geo
-    return {"rig": name, "data": f"/{name}.h5", "data_description": f"all {n}",
-            "rectified": rectified, "width": 112, "data_source": name, "num_pairs": n,
-            "rows": rows}
+    rows = {"Average": row(1.5), "MTL-CPL-A": row(1.1), "Geometric": row(
+        1.3, geometric_pairs, priors={},
+        statuses=[{f: False for f in FAILURE_FLAGS}] * geometric_pairs,
+        degenerate=["fx", "fy"] if rectified else [])}
+    return Rig(rig=name, data=f"/{name}.h5", data_description=f"all {n}",
+               rectified=rectified, width=112, data_source=name, num_pairs=n, rows=rows)
 
 
 def test_pooled_table_scores_each_row_on_its_pairs_and_shared_on_the_same_pairs():
@@ -120,7 +119,7 @@ def test_pooled_table_scores_each_row_on_its_pairs_and_shared_on_the_same_pairs(
 
     rigs = [_rig("chessboard", 10, False, 4, 0), _rig("middlebury", 20, True, 20, 1)]
     table = table2_from_rigs(["run"], rigs)
-    fx_pairs = rigs[0]["rows"]["Average"]["truth"]["fx"][:4]
+    fx_pairs = rigs[0].rows["Average"].truth["fx"][:4]
     for row, scale in (("Average", 1.5), ("MTL-CPL-A", 1.1), ("Geometric", 1.3)):
         own, shared = table.rows[row]["targets"], table.shared.rows[row]["targets"]
         assert shared["fx"]["num_defined"] == 4
@@ -158,6 +157,7 @@ def _synthetic_rig(name, n, errors, rectified, subset=None, seed=0):
     """A rig whose rows predict ``truth * (1 + error)`` (an error per pair):
     each row's NMAE on pairs P is then mean(|y| e) / mean(|y|) over P."""
     from cpl_keras.camera import TARGETS
+    from cpl_keras.table_rows import Rig, Row
 
     rng = np.random.default_rng(seed)
     truth = {k: rng.uniform(1.0, 2.0, n) for k in TARGETS}
@@ -165,13 +165,12 @@ def _synthetic_rig(name, n, errors, rectified, subset=None, seed=0):
     for row, error in errors.items():
         idx = np.arange(n) if subset is None or row != "Average" else np.arange(subset)
         e = np.broadcast_to(np.asarray(error, float), (n,))[idx]
-        rows[row] = {"source": row, "as_released": False, "indices": idx,
-                     "truth": {k: v[idx] for k, v in truth.items()},
-                     "pred": {k: v[idx] * (1 + e) for k, v in truth.items()},
-                     "defined": {k: np.ones(len(idx), bool) for k in TARGETS}}
-    return {"rig": name, "data": f"{name}.h5", "data_description": "synthetic",
-            "rectified": rectified, "width": 64, "data_source": "test", "num_pairs": n,
-            "rows": rows}, truth
+        rows[row] = Row(source=row, as_released=False, indices=idx,
+                        truth={k: v[idx] for k, v in truth.items()},
+                        pred={k: v[idx] * (1 + e) for k, v in truth.items()},
+                        defined={k: np.ones(len(idx), bool) for k in TARGETS})
+    return Rig(rig=name, data=f"{name}.h5", data_description="synthetic", rectified=rectified,
+               width=64, data_source="test", num_pairs=n, rows=rows), truth
 
 
 def test_table2_values_per_rig_and_pooled_against_hand_computed_nmae():

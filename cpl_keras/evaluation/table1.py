@@ -18,6 +18,7 @@ recorded in the JSON.
 
 from __future__ import annotations
 
+import dataclasses
 import os
 
 import numpy as np
@@ -35,6 +36,7 @@ from cpl_keras.evaluation.tables import Table1
 from cpl_keras.metrics import jsonable
 from cpl_keras.models.variants import MODEL_ROWS, VARIANT_ROWS
 from cpl_keras.runs import RELEASED
+from cpl_keras.table_rows import Row
 
 #: Row order of the paper's tables (plus our two extra rows).
 ROWS = ("Average", "Average (release bug)") + MODEL_ROWS + ("Geometric",)
@@ -95,7 +97,7 @@ def read_paper_table(number, directory=PAPER_TABLES):
 
 def average_rows(reference, labels, indices):
     """The two Average rows from the statistics of the run ``reference``:
-    {row: {source, as_released, truth, pred}}. The release's buggy Average
+    {row: ``Row``} on pairs ``indices``. The release's buggy Average
     averaged the release's labels, so it is scored against the release's
     truth (its frame, degrees, StereoBM disparity)."""
     rows = {}
@@ -103,9 +105,9 @@ def average_rows(reference, labels, indices):
                                 ("Average (release bug)", "release", True)):
         pred = {k: np.asarray(v, np.float64)
                 for k, v in average_predictions(reference.stats, len(indices), kind=kind).items()}
-        rows[row] = {"source": f"{reference.run_dir}/train_stats.json ({kind})",
-                     "as_released": released, "truth": truth_targets(labels, indices, released),
-                     "pred": pred}
+        rows[row] = Row(source=f"{reference.run_dir}/train_stats.json ({kind})",
+                        as_released=released, indices=indices, pred=pred,
+                        truth=truth_targets(labels, indices, released))
     return rows
 
 
@@ -125,9 +127,8 @@ def table_rows(number, run_dirs, data_path=None, geometric=True, geometric_max=N
     per real rig and pooled, is ``table2_rigs``): ``(context, rows)``,
     everything ``make_table`` scores.
 
-    ``rows`` maps a row name to ``source``, ``as_released``, ``indices`` (the
-    pairs of the dataset file), ``truth`` and ``pred`` (name -> array; the
-    Geometric row also ``priors`` and ``statuses``), gathered in any order
+    ``rows`` maps a row name to its ``cpl_keras.table_rows.Row`` (the
+    Geometric row's with ``priors`` and ``statuses``), gathered in any order
     (``table_from_rows`` puts them in the paper's); ``context`` holds the
     table's own fields (``table``, ``data``, ``data_description``,
     ``data_source``, ``data_metadata``, ``num_pairs``, ``image_width``,
@@ -142,8 +143,8 @@ def table_rows(number, run_dirs, data_path=None, geometric=True, geometric_max=N
     data_path = _table_data(loaded, data_path)
     with open_dataset(data_path) as data:
         indices, description = _common_split(loaded, data_path, data)
-        rows = {row: dict(raw, indices=indices, pred=published(raw["pred"]))
-                for row, raw in average_rows(reference, data.labels, indices).items()}
+        rows = {name: dataclasses.replace(row, pred=published(row.pred))
+                for name, row in average_rows(reference, data.labels, indices).items()}
         rows.update(_model_rows(loaded, data, indices, batch_size, progress))
         if geometric:
             rows.update(_geometric_row(reference, data, indices, geometric_max, progress))
@@ -191,22 +192,21 @@ def _common_split(loaded, data_path, data):
 
 
 def _model_rows(loaded, data, indices, batch_size, progress):
-    """The raw row of each run of ``loaded``: its forward pass on ``indices``."""
+    """The ``Row`` of each run of ``loaded``: its forward pass on ``indices``."""
     rows = {}
     for run in loaded:
         if progress:
             progress(f"forward pass: {run.config.variant} ({run.run_dir})")
         pred = run_predictions(run, data, indices, batch_size)
         forget_model(run)
-        rows[run.row] = {
-            "source": run.run_dir, "as_released": run.as_released, "indices": indices,
-            "truth": truth_targets(data.labels, indices, run.as_released),
-            "pred": published(pred)}
+        rows[run.row] = Row(source=run.run_dir, as_released=run.as_released, indices=indices,
+                            truth=truth_targets(data.labels, indices, run.as_released),
+                            pred=published(pred))
     return rows
 
 
 def _geometric_row(reference, data, indices, geometric_max, progress):
-    """``{"Geometric": raw row}`` on the first ``geometric_max`` of
+    """``{"Geometric": its Row}`` on the first ``geometric_max`` of
     ``indices`` (all if None); ``{}`` for a file with the release's labels
     only (the baseline predicts the project's quantities)."""
     if data.as_released_only:
@@ -218,22 +218,22 @@ def _geometric_row(reference, data, indices, geometric_max, progress):
     if progress:
         progress(f"geometric baseline on {len(subset)} pairs")
     priors, pred, statuses = geometric_predictions(reference, data, subset)
-    return {"Geometric": {"source": "cpl_keras.baselines.geometric", "as_released": False,
-                          "indices": subset, "truth": truth_targets(data.labels, subset, False),
-                          "pred": published(pred), "priors": priors, "statuses": statuses}}
+    return {"Geometric": Row(source="cpl_keras.baselines.geometric", as_released=False,
+                             indices=subset, truth=truth_targets(data.labels, subset, False),
+                             pred=published(pred), priors=priors, statuses=statuses)}
 
 
 def table_from_rows(context, rows):
-    """Score the raw ``rows`` of ``table_rows`` (or of published predictions
-    files) into the table: a ``Table1`` with every figure."""
+    """Score the ``rows`` of ``table_rows`` (name -> ``Row``; or of published
+    predictions files) into the table: a ``Table1`` with every figure."""
     width = context["image_width"]
     scored = {}
-    for row, raw in rows.items():
-        entry = {"source": raw["source"], "as_released": bool(raw["as_released"]),
-                 "num_pairs": int(len(raw["indices"]))}
-        if row == "Geometric":
-            entry.update(priors=raw["priors"], failures=geo.failure_report(raw["statuses"]))
-        scored[row] = dict(entry, **score(raw["truth"], raw["pred"], width))
+    for name, row in rows.items():
+        entry = {"source": row.source, "as_released": bool(row.as_released),
+                 "num_pairs": int(row.num_pairs)}
+        if name == "Geometric":
+            entry.update(priors=row.priors, failures=geo.failure_report(row.statuses))
+        scored[name] = dict(entry, **score(row.truth, row.pred, width))
     number = context["table"]
     table = dict(context)
     table["rows"] = {row: scored[row] for base in ROWS for row in (base, base + RELEASED)

@@ -32,6 +32,7 @@ each column pools, rig by rig, only the pairs on which every row has it.
 
 from __future__ import annotations
 
+import dataclasses
 import glob
 import os
 
@@ -50,6 +51,7 @@ from cpl_keras.evaluation.table1 import (
 from cpl_keras.evaluation.tables import Table2
 from cpl_keras.metrics import jsonable
 from cpl_keras.runs import RELEASED
+from cpl_keras.table_rows import Rig, Row
 
 
 #: Targets that need the ground-truth disparity.
@@ -125,7 +127,7 @@ def _check_never_trained_on(loaded, rig, data_path):
 
 
 def _rig_rows(loaded, data_path, geometric, geometric_max, progress):
-    """Truth, predictions and definedness of every row on one rig."""
+    """The ``Rig`` of one real set: truth, predictions and definedness of every row."""
     reference = loaded[0]
     with open_dataset(data_path) as data:
         _check_never_trained_on(loaded, rig_name(data.metadata, data_path), data_path)
@@ -134,18 +136,16 @@ def _rig_rows(loaded, data_path, geometric, geometric_max, progress):
         width, n = data.image_shape[1], len(indices)
         rectified = is_rectified(metadata, labels)
         defined = _defined(labels, indices, n)
-        rows = {row: dict(raw, indices=indices, defined=defined)
-                for row, raw in average_rows(reference, labels, indices).items()}
+        rows = {name: dataclasses.replace(row, defined=defined)
+                for name, row in average_rows(reference, labels, indices).items()}
         for run in loaded:
             if progress:
                 progress(f"forward pass on {rig_name(metadata, data_path)}: "
                          f"{run.config.variant} ({run.run_dir})")
-            rows[run.row] = {
-                "source": run.run_dir, "as_released": run.as_released,
-                "indices": indices, "truth": truth_targets(
-                    labels, indices, run.as_released),
-                "pred": published(run_predictions(run, data, indices)),
-                "defined": defined}
+            rows[run.row] = Row(
+                source=run.run_dir, as_released=run.as_released, indices=indices,
+                truth=truth_targets(labels, indices, run.as_released),
+                pred=published(run_predictions(run, data, indices)), defined=defined)
         if geometric and data.as_released_only and progress:
             progress(f"no Geometric row on {rig_name(metadata, data_path)}: it predicts the "
                      "project's quantities, and this file has the release's labels only")
@@ -158,28 +158,27 @@ def _rig_rows(loaded, data_path, geometric, geometric_max, progress):
             if rectified:
                 geo_defined = dict(geo_defined, **{k: np.zeros(len(subset), bool)
                                                    for k in DEGENERATE_ON_RECTIFIED})
-            rows["Geometric"] = {
-                "source": "cpl_keras.baselines.geometric", "as_released": False,
-                "indices": subset, "truth": truth_targets(labels, subset, False),
-                "pred": published(pred), "defined": geo_defined, "priors": priors,
-                "statuses": statuses,
-                "degenerate": list(DEGENERATE_ON_RECTIFIED) if rectified else []}
-    return {"rig": rig_name(metadata, data_path), "data": os.path.abspath(data_path),
-            "data_description": description, "rectified": rectified, "width": int(width),
-            "data_source": metadata.get("source", metadata.get("protocol")),
-            "num_pairs": int(n), "rows": rows}
+            rows["Geometric"] = Row(
+                source="cpl_keras.baselines.geometric", as_released=False, indices=subset,
+                truth=truth_targets(labels, subset, False), pred=published(pred),
+                defined=geo_defined, priors=priors, statuses=statuses,
+                degenerate=list(DEGENERATE_ON_RECTIFIED) if rectified else [])
+    return Rig(rig=rig_name(metadata, data_path), data=os.path.abspath(data_path),
+               data_description=description, rectified=rectified, width=int(width),
+               data_source=metadata.get("source", metadata.get("protocol")),
+               num_pairs=int(n), rows=rows)
 
 
 def _table(raw_rows, *, number_of_pairs, width, data, description, source, runs, paper):
     rows = {}
-    for row, r in raw_rows.items():
-        entry = {"source": r["source"], "as_released": r["as_released"],
-                 "num_pairs": int(len(r["indices"])),
-                 **score_masked(r["truth"], r["pred"], r["defined"], width)}
-        if row == "Geometric":
-            entry.update(priors=r["priors"], failures=geo.failure_report(r["statuses"]),
-                         degenerate=r["degenerate"])
-        rows[row] = entry
+    for name, r in raw_rows.items():
+        entry = {"source": r.source, "as_released": r.as_released,
+                 "num_pairs": int(r.num_pairs),
+                 **score_masked(r.truth, r.pred, r.defined, width)}
+        if name == "Geometric":
+            entry.update(priors=r.priors, failures=geo.failure_report(r.statuses),
+                         degenerate=r.degenerate)
+        rows[name] = entry
     return jsonable({
         "table": 2, "data": data, "data_description": description, "data_source": source,
         "num_pairs": int(number_of_pairs), "image_width": int(width), "runs": runs,
@@ -189,18 +188,16 @@ def _table(raw_rows, *, number_of_pairs, width, data, description, source, runs,
 
 
 def _fov_points(r, width):
-    ok = np.asarray(r["defined"]["fx"], bool)
-    true = np.degrees(fov_from_focal(np.asarray(r["truth"]["fx"])[ok], width))
-    pred = np.degrees(fov_from_focal(np.asarray(r["pred"]["fx"])[ok], width))
+    ok = np.asarray(r.defined["fx"], bool)
+    true = np.degrees(fov_from_focal(np.asarray(r.truth["fx"])[ok], width))
+    pred = np.degrees(fov_from_focal(np.asarray(r.pred["fx"])[ok], width))
     return {"true_deg": true.tolist(), "pred_deg": pred.tolist()}
 
 
 def table2_rigs(run_dirs, data_paths, geometric=True, geometric_max=None, progress=None):
-    """The raw rows of Table 2 on every real set: ``(runs, rigs)``, the run
-    directories and one dict per rig (``rig``, ``data``,
-    ``data_description``, ``rectified``, ``width``, ``data_source``,
-    ``num_pairs`` and ``rows``: row name -> ``source``, ``as_released``,
-    ``indices``, ``truth``, ``pred``, ``defined``; Geometric also ``priors``,
+    """The rows of Table 2 on every real set: ``(runs, rigs)``, the run
+    directories and one ``cpl_keras.table_rows.Rig`` per real set (its rows:
+    name -> ``Row``, each with ``defined``; Geometric's with ``priors``,
     ``statuses``, ``degenerate``), everything ``table2_from_rigs`` scores."""
     if run_dirs and not data_paths:
         raise EvaluationError("table 2 needs --data REAL.h5 (or a folder of real sets)")
@@ -215,16 +212,15 @@ def table2_rigs(run_dirs, data_paths, geometric=True, geometric_max=None, progre
 
 
 def table2_from_rigs(run_list, rigs):
-    """Table 2 per rig and pooled from the raw rows of ``table2_rigs`` (or of
-    published predictions files): a pooled ``Table2``, with ``rigs`` (a
+    """Table 2 per rig and pooled from the ``Rig`` records of ``table2_rigs``
+    (or of published predictions files): a pooled ``Table2``, with ``rigs`` (a
     ``Table2`` per rig) and ``fov_points`` (true and predicted horizontal
     FOV per rig and row)."""
-    rigs = [dict(rig) for rig in rigs]
-    names = [r["rig"] for r in rigs]
-    for rig in rigs:                                    # two files of one rig: tell apart
-        if names.count(rig["rig"]) > 1:
-            rig["rig"] = f"{rig['rig']} ({os.path.basename(rig['data'])})"
-    widths = {r["width"] for r in rigs}
+    names = [r.rig for r in rigs]
+    rigs = [dataclasses.replace(rig, rig=f"{rig.rig} ({os.path.basename(rig.data)})")
+            if names.count(rig.rig) > 1 else rig      # two files of one rig: tell apart
+            for rig in rigs]
+    widths = {r.width for r in rigs}
     if len(widths) > 1:
         raise EvaluationError(f"real sets differ in image width ({sorted(widths)}); build them "
                               f"with one --image-size")
@@ -232,25 +228,25 @@ def table2_from_rigs(run_list, rigs):
     run_list = list(run_list)
     tables = {}
     for rig in rigs:
-        tables[rig["rig"]] = Table2(**_table(
-            rig["rows"], number_of_pairs=rig["num_pairs"], width=width, data=rig["data"],
-            description=rig["data_description"], source=rig["data_source"], runs=run_list,
-            paper={}), rectified=bool(rig["rectified"]))
-    total = sum(r["num_pairs"] for r in rigs)
+        tables[rig.rig] = Table2(**_table(
+            rig.rows, number_of_pairs=rig.num_pairs, width=width, data=rig.data,
+            description=rig.data_description, source=rig.data_source, runs=run_list,
+            paper={}), rectified=bool(rig.rectified))
+    total = sum(r.num_pairs for r in rigs)
     single = len(rigs) == 1
     context = dict(number_of_pairs=total, width=width,
-                   data=rigs[0]["data"] if single else ", ".join(r["data"] for r in rigs),
-                   description=rigs[0]["data_description"] if single else (
+                   data=rigs[0].data if single else ", ".join(r.data for r in rigs),
+                   description=rigs[0].data_description if single else (
                        f"{total} pairs pooled over {len(rigs)} rigs: " + ", ".join(
-                           f"{r['rig']} {r['num_pairs']}" for r in rigs)),
-                   source=rigs[0]["data_source"] if single else "pooled real rigs", runs=run_list)
+                           f"{r.rig} {r.num_pairs}" for r in rigs)),
+                   source=rigs[0].data_source if single else "pooled real rigs", runs=run_list)
     own = _pooled_rows(rigs, [dict.fromkeys(TARGETS) for _ in rigs])   # every row's own pairs
     common = _pooled_rows(rigs, [_shared_pairs(rig) for rig in rigs])
     shared = None
-    if any(not np.array_equal(own[row]["defined"][k], common[row]["defined"][k])
+    if any(not np.array_equal(own[row].defined[k], common[row].defined[k])
            for row in own for k in TARGETS):
         shared = Table2(**_table(common, **context, paper={}))
-    fov_points = {rig["rig"]: {row: _fov_points(r, width) for row, r in rig["rows"].items()}
+    fov_points = {rig.rig: {row: _fov_points(r, width) for row, r in rig.rows.items()}
                   for rig in rigs}
     return Table2(**_table(own, **context, paper=read_paper_table(2)), rigs=tables,
                   shared=shared, fov_points=jsonable(fov_points))
@@ -261,19 +257,18 @@ def _pooled_rows(rigs, pairs):
     rigs, each target defined only on the pairs ``pairs`` gives per rig
     (None: all the row's own; or ``_shared_pairs``; ``_on_pairs``)."""
     pooled_rows = {}
-    for row in rigs[0]["rows"]:
-        parts = [_on_pairs(rig["rows"][row], chosen, rig["rectified"])
-                 for rig, chosen in zip(rigs, pairs) if row in rig["rows"]]
-        pooled_rows[row] = dict(parts[0], indices=np.concatenate([p["indices"] for p in parts]),
-                                truth={k: np.concatenate([p["truth"][k] for p in parts]) for k in TARGETS},
-                                pred={k: np.concatenate([np.asarray(p["pred"][k]) for p in parts])
-                                      for k in TARGETS},
-                                defined={k: np.concatenate([p["defined"][k] for p in parts])
-                                         for k in TARGETS})
-        if row == "Geometric":
-            pooled_rows[row]["statuses"] = [s for p in parts for s in p["statuses"]]
-            pooled_rows[row]["degenerate"] = [
-                k for k in DEGENERATE_ON_RECTIFIED if not pooled_rows[row]["defined"][k].any()]
+    for row in rigs[0].rows:
+        parts = [_on_pairs(rig.rows[row], chosen, rig.rectified)
+                 for rig, chosen in zip(rigs, pairs) if row in rig.rows]
+        defined = {k: np.concatenate([p.defined[k] for p in parts]) for k in TARGETS}
+        geometric = {} if row != "Geometric" else dict(
+            statuses=[s for p in parts for s in p.statuses],
+            degenerate=[k for k in DEGENERATE_ON_RECTIFIED if not defined[k].any()])
+        pooled_rows[row] = dataclasses.replace(
+            parts[0], indices=np.concatenate([p.indices for p in parts]),
+            truth={k: np.concatenate([p.truth[k] for p in parts]) for k in TARGETS},
+            pred={k: np.concatenate([np.asarray(p.pred[k]) for p in parts]) for k in TARGETS},
+            defined=defined, **geometric)
     return pooled_rows
 
 
@@ -282,8 +277,8 @@ def _shared_pairs(rig):
     target defined: the pairs a pooled column compares all rows on."""
     common = {}
     for name in TARGETS:
-        sets = [set(np.asarray(r["indices"])[np.asarray(r["defined"][name], bool)].tolist())
-                for r in rig["rows"].values()]
+        sets = [set(np.asarray(r.indices)[np.asarray(r.defined[name], bool)].tolist())
+                for r in rig.rows.values()]
         common[name] = set.intersection(*sets) if sets else set()
     return common
 
@@ -293,16 +288,16 @@ def _on_pairs(raw, chosen, rectified):
     ``chosen`` pairs (a set of pair indices, or None for all the row's), and
     pitch not at all on a rectified rig (its true relative pitch is 0 by
     construction: nothing to measure)."""
-    indices = np.asarray(raw["indices"])
+    indices = np.asarray(raw.indices)
     defined = {}
     for name in TARGETS:
-        mask = np.asarray(raw["defined"][name], bool)
+        mask = np.asarray(raw.defined[name], bool)
         if chosen[name] is not None:
             mask = mask & np.isin(indices, list(chosen[name]))
         if rectified and name in UNDEFINED_ON_RECTIFIED:
             mask = np.zeros_like(mask)
         defined[name] = mask
-    return dict(raw, defined=defined)
+    return dataclasses.replace(raw, defined=defined)
 
 
 #: Targets that a rectified rig does not define (its rotation is 0 by construction).

@@ -13,9 +13,10 @@ same seeds) is decided only where both rules give it:
   when entirely above, else "undecided". The rule gives a side only when
   every seed gives it.
 
-A row's data is ``{seed: raw}``, ``raw`` a row as ``prediction_files.load`` reads
-it (``indices``, ``truth``, ``pred``, ``defined``: the last three map a
-target name to a per-pair array). ``same_quantities`` says which columns are
+A row's data is ``{seed: raw}``, ``raw`` a dict of a row's arrays
+(``indices``, ``truth``, ``pred``, ``defined``: the last three map a
+target name to a per-pair array), from a predictions file's row
+(``prediction_files.load``) or ``forward_pass.paired_outputs``. ``same_quantities`` says which columns are
 the same quantity in the test labels. numpy only.
 """
 

@@ -113,7 +113,7 @@ def _group_predictions(number, stem, prefix, run_dirs, data, config, out_dir, su
 
     rigs = [(None, rows(config.data == "release"))] if number == 1 else [
         (os.path.splitext(os.path.basename(p))[0], rows(_released_only(p))) for p in data]
-    names = [prediction_files.file_name(prefix, prediction_files.row_slug(r, r, suffix), s)
+    names = [table_files.file_name(prefix, table_files.row_slug(r, r, suffix), s)
              for s, rig_rows in rigs for r in rig_rows]
     expected = [os.path.join(folder, name) for name in names]
     if _reusable(expected, key, run_dirs, out_dir, recorded, stem):
