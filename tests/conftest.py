@@ -3,8 +3,9 @@ one compile cache for the whole session; and the expensive things several
 test files need, made once per session.
 
 The suite runs on two pytest-xdist workers by itself (pyproject.toml's
-``addopts``: ``-n 2 --dist loadfile``, each test file on one worker;
-``-n 0`` runs it in one process) and ends with its 20 slowest tests
+``addopts``: ``-n 2 --dist loadfile``, each test file on one worker, the
+slowest files handed out first (``FIRST``); ``-n 0`` runs it in one
+process) and ends with its 20 slowest tests
 (``--durations=20``: where the suite's time goes, in every CI log). What the workers share lives in the
 session's folder (``shared_folder``), each thing made by the first worker
 that needs it, behind a file lock, and read by the other:
@@ -88,6 +89,33 @@ def pytest_configure(config):
     folder = tempfile.mkdtemp(prefix="cpl_keras_session_")
     config._cpl_keras_session = folder
     os.environ.update(session_env(folder))
+
+
+#: The test files that take longest (the --durations of CI's logs), slowest
+#: first. pytest-xdist hands out whole files (``--dist loadfile``) in the
+#: order of ``pytest_collection_modifyitems``: these first, then the others
+#: by their number of tests, most first, as xdist itself would order them
+#: (pyproject.toml's ``--no-loadscope-reorder`` keeps this order). A heavy
+#: file with few tests (two process groups, an InceptionV3 run) handed out
+#: last would run alone while the other worker had nothing left to do.
+FIRST = ("test_reproduce.py", "test_distributed.py", "test_backbone_weights.py",
+         "test_planning.py", "test_training_faults.py", "test_release_import.py",
+         "test_docs_commands.py", "test_interrupt.py", "test_checkpointing.py",
+         "test_leave_one_rig_out.py", "test_collapsed_heads.py")
+
+
+def pytest_collection_modifyitems(config, items):
+    """Whole files in ``FIRST``'s order, then by number of tests (most
+    first); within a file, the tests keep their order."""
+    counts = {}
+    for item in items:
+        counts[item.path.name] = counts.get(item.path.name, 0) + 1
+
+    def rank(item):
+        name = item.path.name
+        return (FIRST.index(name), 0) if name in FIRST else (len(FIRST), -counts[name])
+
+    items.sort(key=rank)  # (stable: files stay whole, in collection order on a tie)
 
 
 def pytest_unconfigure(config):
