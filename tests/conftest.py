@@ -54,7 +54,8 @@ import pytest
 from filelock import FileLock
 
 from helpers import (
-    REPO, RESUME_ARGS, quick_reproduction_args, set_writable, train_py, write_stereo_fixture,
+    QUICK_XLA_FLAGS, REPO, RESUME_ARGS, quick_reproduction_args, set_writable, train_py,
+    write_stereo_fixture,
 )
 
 os.environ.setdefault("KERAS_BACKEND", "jax")
@@ -244,14 +245,6 @@ def _data_parallel(root, data):
                     "--epochs", "2", "--batch-size", "5", "--data-parallel", "--run-dir",
                     os.path.join(root, "run"), "--quiet",
                     env={"XLA_FLAGS": "--xla_force_host_platform_device_count=2"})
-
-
-#: XLA's optimisation level for the quick reproduction: its nine one-epoch
-#: runs are compilation, not training steps, and at level 0 the command took
-#: 0.69 of its CPU time (145 s -> 100 s of user CPU, beside a training run;
-#: paper_results/notes/pipeline-and-suite.md). The suite as a whole keeps
-#: XLA's defaults (no saving there: the same page).
-QUICK_XLA_FLAGS = "--xla_backend_optimization_level=0 --xla_llvm_disable_expensive_passes=true"
 
 
 def _quick(root, data):

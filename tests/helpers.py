@@ -294,6 +294,14 @@ def quick_reproduction_args(root):
             "--data-dir", os.path.join(root, "data"), "--runs-dir", os.path.join(root, "runs")]
 
 
+#: XLA's optimisation level for the commands whose runs are compilation, not
+#: training steps (the quick reproduction's nine one-epoch runs, the process
+#: groups' two-epoch runs): at level 0 the quick reproduction took 0.69 of its
+#: CPU time (145 s -> 100 s of user CPU, beside a training run;
+#: paper_results/notes/pipeline-and-suite.md). The suite as a whole keeps
+#: XLA's defaults (no saving there: the same page).
+QUICK_XLA_FLAGS = "--xla_backend_optimization_level=0 --xla_llvm_disable_expensive_passes=true"
+
 #: train.py's arguments for the run that the kill-and-resume tests compare with.
 RESUME_ARGS = ["--variant", "baseline", "--backbone", "small", "--epochs", "4",
                "--batch-size", "5", "--patience", "10", "--quiet"]

@@ -19,7 +19,7 @@ import pytest
 
 from cpl_keras import distributed, heartbeats
 from cpl_keras.training.sequence import StereoSequence
-from helpers import REPO, read_log, train_py, wait_for
+from helpers import QUICK_XLA_FLAGS, REPO, read_log, train_py, wait_for
 
 #: Every subprocess of these tests ends within this many seconds or fails.
 TIMEOUT_S = 240
@@ -27,6 +27,10 @@ TIMEOUT_S = 240
 #: fixture (32 training pairs, 4 validation pairs: every batch splits evenly
 #: over two devices, so one device sees the same batches as two).
 ARGS = ["--variant", "cpl-u", "--backbone", "small", "--batch-size", "4", "--quiet"]
+#: Every train.py of these tests compiles at XLA's level 0 (its runs are
+#: start-up and compilation, not training steps): on one device, on two and
+#: in two processes alike.
+XLA_FLAGS = QUICK_XLA_FLAGS
 
 
 @pytest.fixture(scope="module")
@@ -89,8 +93,8 @@ def _start_group(tmp, cache, data_paths, run_dir, epochs, extra=()):
     with _coordinator_port() as port:
         for process_id, data in enumerate(data_paths):
             argv, environ = train_py(*ARGS, *extra, "--data", data, "--epochs", str(epochs),
-                                     "--data-parallel", "--run-dir", run_dir,
-                                     cache=cache, env=_group_env(port, process_id))
+                                     "--data-parallel", "--run-dir", run_dir, cache=cache,
+                                     env=_group_env(port, process_id, {"XLA_FLAGS": XLA_FLAGS}))
             out = open(os.path.join(tmp, f"p{process_id}.{len(os.listdir(tmp))}.txt"), "w+")
             processes.append(subprocess.Popen(argv, env=environ, stdout=out,
                                               stderr=subprocess.STDOUT, text=True))
@@ -300,9 +304,9 @@ def compared_runs(fixture52, tmp_path_factory):
     root = tmp_path_factory.mktemp("compared")
     cache = None  # (the session's)
     runs = {name: str(root / name) for name in ("one", "two_devices", "two_processes")}
-    for name, extra, env in (("one", [], None),
-                             ("two_devices", ["--data-parallel"],
-                              {"XLA_FLAGS": "--xla_force_host_platform_device_count=2"})):
+    for name, extra, env in (("one", [], {"XLA_FLAGS": XLA_FLAGS}),
+                             ("two_devices", ["--data-parallel"], {"XLA_FLAGS": XLA_FLAGS +
+                              " --xla_force_host_platform_device_count=2"})):
         argv, environ = train_py(*ARGS, "--data", fixture52, "--epochs", "2", *extra,
                                  "--run-dir", runs[name], cache=cache, env=env)
         result = subprocess.run(argv, env=environ, capture_output=True, text=True,
