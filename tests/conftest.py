@@ -241,10 +241,13 @@ def _uninterrupted(root, data):
 
 
 def _data_parallel(root, data):
+    # (XLA's level 0, as the quick reproduction's: two epochs of 5 steps are
+    # start-up and compilation; its programs are no other command's)
     return train_py("--variant", "cpl-u", "--data", data, "--backbone", "small",
                     "--epochs", "2", "--batch-size", "5", "--data-parallel", "--run-dir",
                     os.path.join(root, "run"), "--quiet",
-                    env={"XLA_FLAGS": "--xla_force_host_platform_device_count=2"})
+                    env={"XLA_FLAGS": QUICK_XLA_FLAGS +
+                         " --xla_force_host_platform_device_count=2"})
 
 
 def _quick(root, data):
