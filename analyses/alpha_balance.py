@@ -36,9 +36,9 @@ def balance(run_dir, batches=8, batch_size=16):
     model = runs.load_model(run)
     if model.adaptive_weights() is None:
         raise SystemExit(f"{run_dir}: not an MTL-CPL-A run (no adaptive weights)")
-    with StereoFile(run.config.data) as f:
+    with StereoFile(run.config.data.path) as f:
         targets = targets_from_labels(f.labels)
-    sequence = StereoSequence(run.config.data, run.split["train"], targets=targets,
+    sequence = StereoSequence(run.config.data.path, run.split["train"], targets=targets,
                               batch_size=batch_size, shuffle=True, seed=0)
     sums = np.zeros(len(camera.TARGETS))
     count = min(batches, len(sequence))

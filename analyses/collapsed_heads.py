@@ -175,7 +175,7 @@ def analyse(args):
         result[name] = {"run": os.path.relpath(os.path.abspath(run_dir), REPO),
                         "reference": reference_dir and os.path.relpath(
                             os.path.abspath(reference_dir), REPO),
-                        "seed": config.seed, "test_pairs": len(raw["indices"]),
+                        "seed": config.training.seed, "test_pairs": len(raw["indices"]),
                         "epochs_run": config.epochs_run, "best_epoch": config.best_epoch,
                         "columns": collapse(raw, reference)}
         if args.units:

@@ -100,10 +100,10 @@ def main(argv=None):
     from cpl_keras.training.sequence import StereoSequence
 
     run = runs.load_run(args.run)
-    data = run.config.data
+    data = run.config.data.path
     with StereoFile(data) as f:
         targets = targets_from_labels(f.labels, as_released=run.as_released)
-    batch = int(run.config.batch_size or 16)
+    batch = int(run.config.training.batch_size or 16)
     ceiling = 2.0 * float(np.max(targets["disparity"][run.split["train"]]))
     val = StereoSequence(data, run.split["val"], targets=targets, batch_size=batch)
     val_batches = [val[i] for i in range(len(val))]
@@ -142,7 +142,7 @@ def main(argv=None):
     # Batches of shuffled orders, as training draws them (the split's index
     # order is sorted, so unshuffled batches hold adjacent frames of a drive).
     shuffled = StereoSequence(data, run.split["train"], targets=targets, batch_size=batch,
-                              shuffle=True, seed=int(run.config.seed))
+                              shuffle=True, seed=int(run.config.training.seed))
 
     def first_batches(epoch, count):
         shuffled.set_epoch(epoch)

@@ -2,7 +2,7 @@
 another, each published the moment it ends.
 
 Every run trains under one recipe (``--recipe``, default ``sound``,
-``cpl_keras.models.options.RECIPES``) for a fixed number of epochs with no
+``cpl_keras.training_options.RECIPES``) for a fixed number of epochs with no
 early stopping (patience = epochs), keeping the best validation epoch by the
 default monitor; the arms differ only in the variant and Eq. 9's weights:
 

@@ -57,7 +57,7 @@ def compare(runs, data_path, resamples):
                                                seed_intervals)
 
     loaded = {name: paired_outputs(path, data_path) for name, path in runs}
-    seeds = {config.seed for _, config in loaded.values()}
+    seeds = {config.training.seed for _, config in loaded.values()}
     if len(seeds) != 1:
         raise EvaluationError(f"the runs have different seeds: {sorted(seeds)}")
     seed = seeds.pop()

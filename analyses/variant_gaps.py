@@ -111,10 +111,10 @@ def compare(settings, resamples):
     for name, data, run_a, run_b in settings:
         (raw_a, config_a), (raw_b, config_b) = (paired_outputs(run_a, data),
                                                 paired_outputs(run_b, data))
-        result[name] = {"data": os.path.basename(data), "seed": config_a.seed,
+        result[name] = {"data": os.path.basename(data), "seed": config_a.training.seed,
                         "test_pairs": len(raw_a["indices"]),
                         "a": run_record(run_a, config_a), "b": run_record(run_b, config_b),
-                        "columns": gap(raw_a, raw_b, config_a.seed, resamples),
+                        "columns": gap(raw_a, raw_b, config_a.training.seed, resamples),
                         "by_depth": by_depth(raw_a, raw_b)}
     return result
 

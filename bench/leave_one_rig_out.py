@@ -90,7 +90,9 @@ def publish(run_dir, target, name):
 
     published.publish_files(run_dir, target, name)
     config = runs.read_run_config(run_dir)
-    portable = dataclasses.replace(config, data=os.path.basename(config.data), run_dir=name)
+    portable = dataclasses.replace(
+        config, data=dataclasses.replace(config.data, path=os.path.basename(config.data.path)),
+        run_dir=name)
     write_json(os.path.join(target, f"{name}_config.json"), portable.to_dict())
 
 
@@ -127,7 +129,7 @@ def own_test_rows(name, run_dir):
     run = evaluation.load_run(run_dir)
     test = load_split(os.path.join(run_dir, "split.npz"))["test"]
     try:
-        with evaluation.open_dataset(run.config.data) as data:
+        with evaluation.open_dataset(run.config.data.path) as data:
             labels, meta = data.labels, data.metadata
             pred = evaluation.run_predictions(run, data, test)
     finally:

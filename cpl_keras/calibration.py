@@ -86,17 +86,17 @@ def crop_windows(width, height, count=TTA_CROPS, seed=0):
 def is_demonstration(run):
     """Whether ``run`` is train.py's demonstration run (trained without --data
     on the cached demonstration dataset)."""
-    data = os.path.basename(str(run.config.data or ""))
+    data = os.path.basename(str(run.config.data.path or ""))
     return data.startswith("demo-") or "--data" not in str(run.config.command or "--data")
 
 
 def training_protocol(run):
     """The data generator's protocol of the run's training set (config.json,
     else the dataset's metadata when the file is still there), or None."""
-    if run.config.protocol:
-        return run.config.protocol
+    if run.config.data.protocol:
+        return run.config.data.protocol
     try:
-        with StereoFile(run.config.data) as data:
+        with StereoFile(run.config.data.path) as data:
             return data.metadata.get("protocol")
     except Exception:  # moved or unreadable: unknown
         return None
@@ -309,7 +309,7 @@ class Calibrator:
 
 def _training(run, ranges, size_w, size_h):
     """The JSON's ``training``: what the run was trained on."""
-    return {"protocol": training_protocol(run), "split": run.config.split,
+    return {"protocol": training_protocol(run), "split": run.config.training.split,
             "as_released": run.as_released, "label_ranges": ranges,
             "label_ranges_units": f"the model's input ({size_w}x{size_h} px), targets as trained"}
 

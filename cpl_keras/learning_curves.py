@@ -36,7 +36,7 @@ from cpl_keras.data.storage import StereoFile
 from cpl_keras.datasets import load_split, targets_from_labels
 from cpl_keras.errors import Error
 from cpl_keras.metrics import nmae
-from cpl_keras.report.curves import plot_nmae_curves, val_mae
+from cpl_keras.report.curves import plot_nmae_curves, run_label as label_of_run, val_mae
 from cpl_keras.training import train
 
 #: The parameters the write-up quotes.
@@ -76,7 +76,7 @@ def curves(run_dir, data=None):
     except (OSError, ValueError, KeyError) as error:
         raise CurveError(f"cannot read run {run_dir}: {error}") from None
     rows = read_log(run_dir)
-    data = data or config.data
+    data = data or config.data.path
     with StereoFile(data) as f:
         targets = targets_from_labels(f.labels, as_released=config.as_released)
     val = split["val"]
@@ -88,7 +88,8 @@ def curves(run_dir, data=None):
         average[name] = nmae(truth, np.full_like(truth, stats["mean"][name]))
     out = {name: [val_mae(row, name) / scale[name] if scale[name] > 0 else math.nan
                   for row in rows] for name in PARAMETERS}
-    num_train = int(len(split["train"]) if config.num_train is None else config.num_train)
+    num_train = int(len(split["train"]) if config.data.num_train is None
+                    else config.data.num_train)
     best_epoch = config.best_epoch
     if not best_epoch and rows:
         # a run still going (or killed): the epoch early stopping keeps so far
@@ -105,7 +106,7 @@ def curves(run_dir, data=None):
 
 
 def run_label(curve):
-    return runs.run_label(curve["config"])
+    return label_of_run(curve["config"])
 
 
 def plot_title(curve):
@@ -124,7 +125,7 @@ def summary_rows(curve, load=None):
         stopped = f"not finished ({config.status}): {len(rows)} epochs so far"
     row = {
         "run": os.path.basename(curve["run_dir"]), "label": run_label(curve),
-        "num_train": config.num_train, "num_val": config.num_val,
+        "num_train": config.data.num_train, "num_val": config.data.num_val,
         "epochs_run": len(rows), "best_epoch": curve["kept_epoch"],
         "stopped": stopped,
         "wall_time_s": rows[-1].get("wall_time_s", config.wall_time_s) if rows

@@ -54,7 +54,7 @@ def publish_run_dir(run_dir, target):
         elif os.path.isfile(source) and name != CONFIG:
             shutil.copy2(source, os.path.join(staging, name))
     write_config(staging, dataclasses.replace(
-        config, data=os.path.basename(config.data),
+        config, data=dataclasses.replace(config.data, path=os.path.basename(config.data.path)),
         run_dir=os.path.basename(os.path.normpath(run_dir))))
     shutil.copystat(os.path.join(run_dir, CONFIG), os.path.join(staging, CONFIG))
     if os.path.isdir(target):
@@ -82,8 +82,8 @@ def restore_run_dir(folder, run_dir, data_path):
     config = read_run_config(folder)
     if config is None:
         raise RunError(f"{folder} holds no published run (no {CONFIG})")
-    if os.path.basename(os.fspath(data_path)) != config.data:
-        raise RunError(f"{folder} was trained on {config.data}, not on "
+    if os.path.basename(os.fspath(data_path)) != config.data.path:
+        raise RunError(f"{folder} was trained on {config.data.path}, not on "
                        f"{os.path.basename(os.fspath(data_path))}")
     if os.path.exists(run_dir) and os.listdir(run_dir):
         raise RunError(f"cannot restore into {run_dir}: it is not empty")
@@ -91,7 +91,8 @@ def restore_run_dir(folder, run_dir, data_path):
     shutil.rmtree(staging, ignore_errors=True)
     shutil.copytree(folder, staging, copy_function=shutil.copy2)
     write_config(staging, dataclasses.replace(
-        config, data=os.path.abspath(os.fspath(data_path)), run_dir=os.path.abspath(run_dir),
+        config, data=dataclasses.replace(config.data, path=os.path.abspath(os.fspath(data_path))),
+        run_dir=os.path.abspath(run_dir),
         other=dict(config.other, restored_from=folder)))
     shutil.copystat(os.path.join(folder, CONFIG), os.path.join(staging, CONFIG))
     if os.path.isdir(run_dir):

@@ -52,7 +52,7 @@ def summarise(run):
     that says it all."""
     record = read_json(os.path.join(run.run_dir, RECORD)) or {}
     rigs = record.get("rigs") or {}
-    trained = [rig for rig in (run.config.training_rigs or [])]
+    trained = [rig for rig in (run.config.data.training_rigs or [])]
     if rigs:
         worse = [rig for rig, r in rigs.items()
                  if r["relative_fx_error"] >= r["average_relative_fx_error"]]

@@ -19,17 +19,11 @@ best.weights.h5, backup/): what the reproduction commits and restores on
 another machine. It evaluates from ``predictions/`` alone
 (``cpl_keras.published``).
 
-Training writes it through this module; every reader of config.json
-(training's resume and curves, evaluation, calibration, the predictions
-files, the reproduction, the learning curves) takes it through ``load_run``
-(a typed ``Run`` whose ``config`` is a typed ``RunConfig``) or
-``read_run_config``, the model through ``load_model``; every problem is a
-one-line ``RunError``. Its files are written atomically
-(``cpl_keras.files``).
-
-config.json holds each fact once: ``as_released`` lives in ``build`` (the
-model's build arguments). Run directories of the older layout, which also
-had it at the top level, still load and resume (``normalise_config``).
+Training writes it through this module; every reader takes config.json
+through ``load_run`` (a ``Run``, its ``config`` a ``RunConfig``) or
+``read_run_config`` (older layouts too: ``normalise_config``), the model
+through ``load_model``; every problem is a one-line ``RunError``. Its files
+are written atomically (``cpl_keras.files``).
 """
 
 from __future__ import annotations
@@ -45,7 +39,9 @@ from cpl_keras.baselines.average import load_statistics
 from cpl_keras.cli import one_line
 from cpl_keras.datasets import load_split
 from cpl_keras.errors import Error
-from cpl_keras.models.variants import ALPHA_RATE, VARIANT_ROWS
+from cpl_keras.models.options import ModelOptions
+from cpl_keras.models.variants import VARIANT_ROWS
+from cpl_keras.training_options import TrainingOptions
 
 CONFIG = "config.json"
 MODEL = "model.keras"
@@ -85,22 +81,26 @@ def relative(path, start):
 # config.json
 # ---------------------------------------------------------------------------
 def normalise_config(config):
-    """``config`` with each fact once: the top-level ``as_released`` of the
-    older layout moved into ``build``, a build of before the disparity
-    ceiling given its None, and a run of before ``bn_statistics`` and
-    ``monitor`` given what it ran with (a new dict; the argument is kept)."""
+    """``config`` with each fact once and where it is now: the top-level
+    ``as_released`` of the older layout moved into ``build``, the
+    optimiser's ``weight_decay`` and ``clip_norm`` out of it (once model
+    options), a build of before the disparity ceiling given its None, and a
+    run of before ``bn_statistics`` and ``monitor`` given what it ran with
+    (a new dict; the argument is kept)."""
     config = dict(config)
     build = dict(config.get("build") or {})
     if "as_released" in config:
         build.setdefault("as_released", bool(config.pop("as_released")))
+    for key in ("weight_decay", "clip_norm"):
+        if key in build:
+            config.setdefault(key, build.pop(key))
     # (runs from before the disparity head's ceiling: the head's old bound)
     build.setdefault("disparity_ceiling", None)
     config["build"] = build
-    # (runs from before the fixed BatchNorm statistics and the NMAE monitor:
-    # the per-epoch draw and the validation loss)
+    # (runs from before the fixed BatchNorm statistics, the NMAE monitor and the
+    # weights' moving average: the per-epoch draw, the validation loss, the weights)
     config.setdefault("bn_statistics", "epoch")
     config.setdefault("monitor", "loss")
-    # (runs from before the weights' moving average: the weights as trained)
     config.setdefault("weight_ema", 0.0)
     return config
 
@@ -114,71 +114,36 @@ def write_config(run_dir, config):
 
 @dataclasses.dataclass(frozen=True, kw_only=True)
 class RunConfig:
-    """config.json, typed: one field per key, in the file's order.
+    """config.json, typed: three records (``model``, a ``ModelOptions``
+    resolved for its variant; ``training``, a ``TrainingOptions``, defaults
+    filled in; ``data``, ``DataFacts``), where it ran and how it ended.
+    ``training.plan_run`` makes it, training fills in the outcome
+    (``dataclasses.replace``) and writes it (``write_config``); every reader
+    takes it through ``read_run_config`` / ``load_run``. On disk it stays
+    flat (``to_dict``, ``from_dict``): the variant, ``build``, the data's and
+    the training record's keys side by side; keys of an older layout it
+    lacks are None here (or the record's default), keys not named here stay
+    in ``other``."""
 
-    ``training.plan_run`` makes it (the settings; the outcome fields None),
-    training fills in the outcome as the run goes (``dataclasses.replace``)
-    and writes it (``write_config``: ``to_dict()``); everything that reads a
-    run takes it through ``read_run_config`` / ``load_run`` (``from_dict``),
-    so a key is named in one place. A run directory of an older layout
-    lacks some keys (None here); keys not named here (``restored_from``,
-    ``adopted_from``, ...) stay in ``other``."""
-
-    # What is trained: the variant and models.build_model's keyword arguments.
-    variant: str
-    build: dict
-    # On what: the dataset file, its pairs, protocol and real training rigs
-    # (a mixed or real training set: Table 2 never scores the run on them).
-    data: str
-    num_pairs: int | None = None
-    protocol: str | None = None
-    training_rigs: list = dataclasses.field(default_factory=list)
-    # The split: its kind, the test and validation shares, the pairs in each.
-    split: str | None = None
-    test_fraction: float | None = None
-    val_fraction: float | None = None
-    num_train: int | None = None
-    num_val: int | None = None
-    num_test: int | None = None
-    # The seed of the split, the initial weights and the batches' order.
-    seed: int | None = None
-    # Optimisation: batch size, learning rate (None: the variant's), epochs, patience.
-    batch_size: int | None = None
-    learning_rate: float | None = None
-    epochs: int | None = None
-    patience: int | None = None
-    # Validation: BatchNorm's statistics (batches, "fixed" or "epoch") and
-    # what early stopping follows ("nmae" or "loss").
-    bn_recompute_batches: int | None = None
-    bn_statistics: str | None = None
-    monitor: str | None = None
-    # The momentum of the trained weights' moving average that validation,
-    # the kept epoch and the saved model use (0: the weights as trained).
-    weight_ema: float = 0.0
-    # The per-output MAE's scaling ("none" or "std").
-    target_scaling: str = "none"
-    # Seconds of training the run may take (None: no budget).
-    time_budget_s: float | None = None
-    # The training batches' augmentation (None or "photometric").
-    augment: str | None = None
-    # Data parallelism: on, devices, processes, and the batch over them.
-    data_parallel: bool | None = None
+    model: ModelOptions
+    training: TrainingOptions
+    data: DataFacts
+    # Data parallelism: devices, processes, and the batch over them.
     num_devices: int | None = None
     num_processes: int | None = None
     device_batch_size: int | None = None
-    # The command line, the run directory and the Keras backend.
+    # The command line, the run directory, the Keras backend.
     command: str | None = None
     run_dir: str | None = None
     keras_backend: str | None = None
-    # The machines it trained on, in order (``backend.machine``: CPU, cores,
-    # accelerators, versions); a run resumed elsewhere adds one.
+    # The machines it trained on, in order (``backend.machine``); a resume elsewhere adds one.
     machines: list | None = None
     # The model built: its optimizer's learning rate and its parameter count.
     learning_rate_used: float | None = None
     num_parameters: int | None = None
-    # How it ended (None while it runs): epochs, the kept one, its validation
-    # loss, the training time, status ("running", "finished", "failed"), why
-    # it stopped, the kept epoch's monitored score, MTL-CPL-A's final alphas.
+    # How it ended (None while it runs): epochs, the kept one and its validation loss,
+    # time, status ("running", "finished", "failed"), why it stopped, the kept epoch's
+    # monitored score, MTL-CPL-A's final alphas.
     epochs_run: int | None = None
     best_epoch: int | None = None
     best_val_loss: float | None = None
@@ -187,48 +152,103 @@ class RunConfig:
     stopped: str | None = None
     best_score: float | None = None
     adaptive_weights: dict | None = None
-    # Every other key of config.json, as written.
     other: dict = dataclasses.field(default_factory=dict)
 
     #: Fields written once set, and fields written once the run has ended.
     LATE = ("machines", "learning_rate_used", "num_parameters")
     FINAL = ("best_score", "adaptive_weights")
+    RECORDS = ("model", "training", "data")
+
+    @property
+    def variant(self):
+        """The variant trained (the model record's)."""
+        return self.model.variant
+
+    @property
+    def build(self):
+        """config.json's ``build``: the model record (``to_config``, the
+        variant left above it) with the images' size and the seed beside it,
+        ``models.build_from_config``'s argument."""
+        build = {key: value for key, value in self.model.to_config().items()
+                 if key != "variant"}
+        return dict(build, image_size=self.data.image_size, seed=self.training.seed)
 
     def to_dict(self):
-        """config.json's dict: the fields in order (``LATE`` ones once set,
+        """config.json's dict: the variant, ``build``, the data's facts, the
+        training record, the other fields in order (``LATE`` ones once set,
         ``FINAL`` ones once the run has ended), then ``other``."""
         ended = self.status in ("finished", "failed")
-        out = {field.name: getattr(self, field.name) for field in dataclasses.fields(self)
-               if field.name != "other"
-               and not (field.name in self.LATE and getattr(self, field.name) is None)
-               and not (field.name in self.FINAL and not ended)}
+        out = {"variant": self.variant, "build": self.build, **self.data.to_config(),
+               **self.training.to_config()}
+        out.update({field.name: getattr(self, field.name)
+                    for field in dataclasses.fields(self)
+                    if field.name not in self.RECORDS + ("other",)
+                    and not (field.name in self.LATE and getattr(self, field.name) is None)
+                    and not (field.name in self.FINAL and not ended)})
         return dict(out, **self.other)
 
     @classmethod
     def from_dict(cls, config, where="config.json"):
         """The record of a config.json dict (normalised first); RunError,
-        naming ``where``, when a key every run has is missing or the variant
-        is unknown."""
+        naming ``where``, when a key every run has is missing or a setting is bad."""
         config = normalise_config(config)
         for key in ("variant", "build", "data"):
             if key not in config:
                 raise RunError(f"{where} has no '{key}'")
         if config["variant"] not in VARIANT_ROWS:
             raise RunError(f"{where}: unknown variant {config['variant']!r}")
-        named = {f.name for f in dataclasses.fields(cls)} - {"other"}
-        return cls(**{k: v for k, v in config.items() if k in named},
-                   other={k: v for k, v in config.items() if k not in named})
+        build = dict(config["build"])
+        try:
+            model = ModelOptions.from_config(build).for_variant(config["variant"])
+            training = TrainingOptions.from_config(
+                {key: value for key, value in config.items() if value is not None})
+        except Error as error:  # (OptionsError, TrainingError)
+            raise RunError(f"{where}: {error}") from None
+        data = DataFacts.from_config(config, build.get("image_size"))
+        named = {f.name for f in dataclasses.fields(cls)} - {"other"} - set(cls.RECORDS)
+        known = (named | {"variant", "build"} | set(DataFacts.KEYS)
+                 | set(TrainingOptions.recorded_fields()))
+        return cls(model=model, training=training, data=data,
+                   **{k: v for k, v in config.items() if k in named},
+                   other={k: v for k, v in config.items() if k not in known})
 
     @property
     def as_released(self):
         """Whether the run was trained as released."""
-        return bool(self.build.get("as_released", False))
+        return self.model.as_released
 
     @property
     def row(self):
         """The table row of the run: its variant's row, marked when trained
         as released."""
         return VARIANT_ROWS[self.variant] + (RELEASED if self.as_released else "")
+
+
+@dataclasses.dataclass(frozen=True, kw_only=True)
+class DataFacts:
+    """What a run trains on: the dataset file (config.json's ``data``), its
+    pairs, protocol, real training rigs (Table 2 never scores the run on
+    them), images' size ([height, width]) and the split's parts' pairs."""
+
+    path: str
+    num_pairs: int | None = None
+    protocol: str | None = None
+    training_rigs: list = dataclasses.field(default_factory=list)
+    image_size: list | None = None
+    num_train: int | None = None
+    num_val: int | None = None
+    num_test: int | None = None
+
+    #: config.json's keys (the image size is written in ``build``).
+    KEYS = ("data", "num_pairs", "protocol", "training_rigs", "num_train", "num_val", "num_test")
+
+    def to_config(self):
+        return {key: getattr(self, "path" if key == "data" else key) for key in self.KEYS}
+
+    @classmethod
+    def from_config(cls, config, image_size=None):
+        given = {key: config[key] for key in cls.KEYS if config.get(key) is not None}
+        return cls(path=given.pop("data"), image_size=image_size, **given)
 
 
 def read_run_config(run_dir):
@@ -267,23 +287,6 @@ class Run:
     @property
     def row(self):
         return self.config.row
-
-
-def run_label(config):
-    """The run in words (``config``: a ``RunConfig``): variant, backbone,
-    dataset file, split, and the training options that differ from the
-    defaults (learning rate, target scaling, alpha rate)."""
-    released = RELEASED if config.as_released else ""
-    options = ""
-    if config.learning_rate is not None:
-        options += f", lr {config.learning_rate:g}"
-    if config.target_scaling != "none":
-        options += f", targets scaled by {config.target_scaling}"
-    rate = config.build.get("alpha_rate")
-    if rate is not None and rate != ALPHA_RATE:
-        options += f", alpha rate {rate:g}"
-    return (f"{config.variant}{released}, {config.build['backbone']}, "
-            f"{os.path.basename(config.data)}, split {config.split}{options}")
 
 
 # ---------------------------------------------------------------------------

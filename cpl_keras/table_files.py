@@ -70,8 +70,8 @@ def _row_file(row, raw, *, where, configs, reference, **facts):
         row=row, variant=BASELINES.get(row) or config.variant,
         source=report.portable_paths({"source": raw.source}, where)["source"],
         dataset=dataset, generator_version=version, dataset_path=runs.relative(data_path, where),
-        split="" if identity.split is None else str(identity.split),
-        seed=int(identity.seed or 0), context=report.portable_paths(facts.pop("context"), where),
+        split="" if identity.training.split is None else str(identity.training.split),
+        seed=int(identity.training.seed or 0), context=report.portable_paths(facts.pop("context"), where),
         raw=raw, **facts)
 
 

@@ -68,13 +68,14 @@ def test_fixed_batchnorm_statistics_do_not_depend_on_the_epoch(stereo40, tmp_pat
                     batch_size=5, bn_recompute_batches=2)
     config = plan.config
 
-    def with_config(**changes):
-        return dataclasses.replace(plan, config=dataclasses.replace(config, **changes))
+    def with_config(**changes):  # (the training record's fields)
+        return dataclasses.replace(plan, config=dataclasses.replace(
+            config, training=dataclasses.replace(config.training, **changes)))
 
     pairs = batchnorm_pairs(plan)
     assert len(pairs) == 10 and set(pairs) <= set(plan.split["train"])
     np.testing.assert_array_equal(pairs, batchnorm_pairs(plan))
-    other_seed = batchnorm_pairs(with_config(seed=config.seed + 1))
+    other_seed = batchnorm_pairs(with_config(seed=config.training.seed + 1))
     assert not np.array_equal(pairs, other_seed)
     capped = batchnorm_pairs(with_config(bn_recompute_batches=1000))
     assert len(capped) == len(plan.split["train"]) // 5 * 5

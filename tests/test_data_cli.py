@@ -186,7 +186,7 @@ def test_the_demonstration_validates_a_short_average_of_the_weights(
     monkeypatch.setattr(command, "demo_dataset", lambda: "demo.h5")
     with pytest.raises(Stop):
         command.main(["--variant", "cpl-a", "--run-dir", str(tmp_path / "run"), *flags])
-    assert seen["weight_ema"] == momentum
+    assert seen["training"].weight_ema == momentum
     assert seen["data"] == ("X.h5" if "--data" in flags else "demo.h5")
 
 

@@ -80,10 +80,10 @@ def test_training_records_the_rigs_and_table2_refuses_them(sources, tmp_path, ti
     out = mix.mix_datasets(tmp_path / "mix.h5", sources)
     plan = plan_run(out, variant="baseline", run_dir=str(tmp_path / "run"), backbone="small",
                     batch_size=4)
-    assert plan.config.training_rigs == ["bench"]
+    assert plan.config.data.training_rigs == ["bench"]
     rendered = write_stereo_fixture(tmp_path / "rendered30.h5", n=30, image_size=16)
     assert plan_run(rendered, variant="baseline", run_dir=str(tmp_path / "r2"),
-                    backbone="small", batch_size=4).config.training_rigs == []
+                    backbone="small", batch_size=4).config.data.training_rigs == []
     # a run trained on the bench rig (the shared run, its record rewritten)
     run_dir = tmp_path / "trained_on_bench"
     writable_copy(tiny_run["run"], run_dir)

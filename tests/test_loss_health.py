@@ -337,7 +337,7 @@ def test_training_records_target_scaling_and_refuses_it_for_the_projection_loss(
 
     plan = plan_run(tiny_cvgl, variant="baseline", run_dir=str(tmp_path / "b"),
                     backbone="small", target_scaling="std")
-    assert plan.config.target_scaling == "std"
+    assert plan.config.training.target_scaling == "std"
     with pytest.raises(TrainingError, match="target scaling"):
         plan_run(tiny_cvgl, variant="cpl-u", run_dir=str(tmp_path / "c"), backbone="small",
                  target_scaling="std")

@@ -1,5 +1,5 @@
 """The options records: ``models/options.py`` (ModelOptions) and
-``training/options.py`` (TrainingOptions), and the switches they carry."""
+``training_options.py`` (TrainingOptions), and the switches they carry."""
 
 import dataclasses
 
@@ -7,10 +7,10 @@ import numpy as np
 import pytest
 
 from cpl_keras.camera import FLOORS, TARGETS
-from cpl_keras.models.options import (
-    ALWAYS_WRITTEN, RECIPES, ModelOptions, OptionsError, check_momentum, recipe,
+from cpl_keras.models.options import ALWAYS_WRITTEN, ModelOptions, OptionsError, check_momentum
+from cpl_keras.training_options import (
+    RECIPES, TrainingError, TrainingOptions, recipe, split_fields,
 )
-from cpl_keras.training.options import TrainingError, TrainingOptions, split_fields
 
 SIZE = 32
 
@@ -30,9 +30,7 @@ def labels(n=50, seed=0):
     (dict(disparity_ceiling=0.001), "disparity ceiling must be 'auto', None or a number"),
     (dict(disparity_start=float("nan")), "disparity start must be"),
     (dict(range_scales={"fx": 1.0}), "range scales must be"),
-    (dict(weight_decay=-1e-4), "weight decay must be a number >= 0"),
-    (dict(clip_norm=0.0), "clip norm must be a positive number"),
-    (dict(clip_norm=True), "clip norm must be a positive number"),
+    (dict(variant="cpl-b"), "unknown variant 'cpl-b'"),
 ])
 def test_a_bad_option_is_one_line_naming_it(fields, message):
     with pytest.raises(OptionsError, match=message) as error:
@@ -63,21 +61,29 @@ def test_the_build_config_of_the_defaults_is_the_one_of_every_earlier_run():
     appears only when set."""
     cpl_a = ModelOptions().for_variant("cpl-a").for_training_set(labels(), 2.0)
     assert cpl_a.to_config() == {
-        "backbone": "inception_v3", "as_released": False, "floors": dict(FLOORS),
+        "variant": "cpl-a", "backbone": "inception_v3", "as_released": False, "floors": dict(FLOORS),
         "bounded_pitch_head": True, "positive_focal_head": True, "disentangle": "exact",
         "disparity_ceiling": pytest.approx(2 * labels()["disparity"].max(), abs=1e-3),
         "alpha_rate": 10.0}
     baseline = ModelOptions().for_variant("baseline").for_training_set(labels(), 2.0)
-    assert set(baseline.to_config()) == set(ALWAYS_WRITTEN)
+    assert set(baseline.to_config()) == set(ALWAYS_WRITTEN) | {"variant"}
     assert baseline.to_config()["disparity_ceiling"] is None  # (its head is linear)
+    # (the switches its network has no use for, recorded as off: as built)
+    assert (baseline.positive_focal_head, baseline.disentangle) == (False, None)
+    deep_homo = ModelOptions().for_variant("deep-homo")
+    assert (deep_homo.bounded_pitch_head, deep_homo.positive_focal_head,
+            deep_homo.disentangle) == (False, False, None)
+    assert deep_homo.for_variant("deep-homo") == deep_homo  # (resolved once and for all)
+    with pytest.raises(OptionsError, match="these options are deep-homo's, not cpl-a's"):
+        deep_homo.for_variant("cpl-a")
     released = ModelOptions(as_released=True).for_variant("cpl-a")
     assert released.bounded_pitch_head is False and released.positive_focal_head is False
     # the record reads back its own config (with the image size and seed beside it)
     again = ModelOptions.from_config(dict(cpl_a.to_config(), image_size=[32, 32], seed=0))
     assert again.for_variant("cpl-a").to_config() == cpl_a.to_config()
-    new = ModelOptions(head_norm=True, clip_norm=1.0).for_variant("baseline")
-    assert {"head_norm": True, "clip_norm": 1.0}.items() <= new.to_config().items()
-    assert "weight_decay" not in new.to_config() and "disparity_head" not in new.to_config()
+    new = ModelOptions(head_norm=True).for_variant("baseline")
+    assert {"head_norm": True}.items() <= new.to_config().items()
+    assert "disparity_head" not in new.to_config()
 
 
 def test_auto_fields_are_read_off_the_training_labels():
@@ -93,14 +99,17 @@ def test_auto_fields_are_read_off_the_training_labels():
     assert ModelOptions().for_variant("baseline").disparity_start is None
 
 
-def test_recipes_are_sets_of_fields():
+def test_recipes_are_sets_of_fields_of_the_two_records():
     assert recipe("paper") == {}
-    sound = ModelOptions(**recipe("sound"))
-    assert (sound.head_activation, sound.head_norm, sound.disparity_head, sound.clip_norm) == (
-        "leaky_relu_0.01", True, "softplus", 1.0)
+    model, training = split_fields(recipe("sound"))
+    sound = ModelOptions(**model)
+    assert (sound.head_activation, sound.head_norm, sound.disparity_head) == (
+        "leaky_relu_0.01", True, "softplus")
+    assert training == {"clip_norm": 1.0}  # (the optimiser's: the training record's)
     assert set(RECIPES) == {"paper", "sound"}
-    with pytest.raises(OptionsError, match="unknown recipe 'fast'"):
+    with pytest.raises(TrainingError, match="unknown recipe 'fast'"):
         recipe("fast")
+    assert not {"weight_decay", "clip_norm"} & {f.name for f in dataclasses.fields(ModelOptions)}
 
 
 def test_training_options_are_checked_once_and_fields_go_to_their_record():
@@ -109,7 +118,10 @@ def test_training_options_are_checked_once_and_fields_go_to_their_record():
                             (dict(patience=-1), "patience must be a non-negative"),
                             (dict(weight_ema=1.0), "moving-average momentum must be in"),
                             (dict(monitor="acc"), "unknown monitor 'acc'"),
-                            (dict(split="random"), "unknown split 'random'")):
+                            (dict(split="random"), "unknown split 'random'"),
+                            (dict(weight_decay=-1e-4), "weight decay must be a number >= 0"),
+                            (dict(clip_norm=0.0), "clip norm must be a positive number"),
+                            (dict(clip_norm=True), "clip norm must be a positive number")):
         with pytest.raises(TrainingError, match=message):
             TrainingOptions(**fields)
     model, training = split_fields(dict(epochs=3, head_norm=True, seed=2, backbone="small"))
@@ -129,12 +141,18 @@ def test_train_command_line_routes_recipe_and_options_to_the_record():
     args = parser.parse_args(["--variant", "baseline", "--recipe", "sound",
                               "--head-activation", "relu", "--linear-pitch-head",
                               "--disparity-ceiling", "none"])
-    fields = train.model_fields(args, "small")
-    assert fields["head_activation"] == "relu"  # (given: overrides the recipe's)
-    assert fields["head_norm"] is True and fields["clip_norm"] == 1.0
-    assert fields["bounded_pitch_head"] is False and fields["disparity_ceiling"] is None
-    plain = train.model_fields(parser.parse_args(["--variant", "cpl-a"]), "inception_v3")
-    assert ModelOptions(**plain) == ModelOptions()
+    model, training = train.records(args, False, 0, 200, "small")
+    assert model.head_activation == "relu"  # (given: overrides the recipe's)
+    assert model.head_norm is True and training.clip_norm == 1.0
+    assert model.bounded_pitch_head is False and model.disparity_ceiling is None
+    plain = train.records(parser.parse_args(["--variant", "cpl-a"]), False, 0, 200,
+                          "inception_v3")
+    assert plain == (ModelOptions(), TrainingOptions())
+    given = parser.parse_args(["--variant", "cpl-a", "--lr", "0.01", "--time-budget", "60",
+                               "--augment", "photometric", "--weight-decay", "0.001"])
+    _, training = train.records(given, False, 0, 200, "small")
+    assert (training.learning_rate, training.time_budget_s, training.augment,
+            training.weight_decay) == (0.01, 60.0, "photometric", 0.001)
 
 
 # ---------------------------------------------------------------------------
@@ -189,8 +207,8 @@ def test_weight_decay_and_clip_norm_reach_the_optimiser():
 
     from cpl_keras import build_model, compile_model
 
-    model = compile_model(build_model("cpl-a", backbone="small", image_size=SIZE, seed=0,
-                                      weight_decay=1e-4, clip_norm=1.0))
+    model = compile_model(build_model("cpl-a", backbone="small", image_size=SIZE, seed=0),
+                          TrainingOptions(weight_decay=1e-4, clip_norm=1.0))
     assert isinstance(model.optimizer, keras.optimizers.AdamW)
     assert model.optimizer.weight_decay == pytest.approx(1e-4)
     assert model.optimizer.global_clipnorm == 1.0

@@ -206,12 +206,12 @@ def test_every_published_run_restores_and_publishes_again(tmp_path):
     for number, record in enumerate(PUBLISHED_RUNS):
         config = runs.read_run_config(record)
         assert published.is_published(record) and config.status == "finished", record
-        data = tmp_path / "data" / config.data
+        data = tmp_path / "data" / config.data.path
         run_dir = tmp_path / "runs" / str(number)
         published.restore_run_dir(str(record), str(run_dir), str(data))
         run = runs.load_run(run_dir)
         assert run.config == dataclasses.replace(
-            config, data=str(data), run_dir=str(run_dir),
+            config, data=dataclasses.replace(config.data, path=str(data)), run_dir=str(run_dir),
             other=dict(config.other, restored_from=str(record))), record
         again = tmp_path / "records" / str(number)
         published.publish_run_dir(str(run_dir), str(again))

@@ -35,10 +35,11 @@ FLAG_CASES = {
                       "1e-4", "--head-activation", "relu"], "cpl-a",
                      lambda c: c["build"]["head_norm"] is True
                      and c["build"]["disparity_head"] == "softplus"
-                     and c["build"]["disparity_start"] > 0 and c["build"]["clip_norm"] == 1.0
+                     and c["build"]["disparity_start"] > 0 and c["clip_norm"] == 1.0
+                     and not {"clip_norm", "weight_decay"} & set(c["build"])  # (training's)
                      and "head_activation" not in c["build"]  # (given: the recipe's overridden)
                      and c["build"]["adaptive_weights"] == "range"
-                     and c["build"]["alpha_rate"] == 0.0 and c["build"]["weight_decay"] == 1e-4
+                     and c["build"]["alpha_rate"] == 0.0 and c["weight_decay"] == 1e-4
                      and set(c["build"]["range_scales"]) == set(TARGETS)),
     "baseline steps": (["--target-scaling", "std", "--steps-per-execution", "2",
                         "--bn-recompute-batches", "0", "--split", "held-out-config",
@@ -91,6 +92,8 @@ def test_every_training_flag_reaches_the_run(case, tiny_run, tmp_path):
         assert model.alpha_rate == config["build"]["alpha_rate"]
     assert model.build_settings.get("head_activation") == config["build"].get("head_activation")
     if case == "cpl-a recipe":  # (the softplus head and range weights, in safe mode)
+        # (the training record's optimiser knobs, from the recipe and the command line)
+        assert (model.optimizer.global_clipnorm, model.optimizer.weight_decay) == (1.0, 1e-4)
         assert model.get_layer("head_norm") is not None
         assert type(model.get_layer("disparity").activation).__name__ == "SoftplusDisparity"
         assert model.adaptive_weights()["u0"] == pytest.approx(
@@ -167,9 +170,9 @@ def test_target_scaling_and_steps_per_execution_reach_the_compiled_model(tiny_ru
     compiled = []
     compile_model = models.compile_model
 
-    def recording(model, **kwargs):
+    def recording(model, *args, **kwargs):
         compiled.append(model)
-        return compile_model(model, **kwargs)
+        return compile_model(model, *args, **kwargs)
 
     monkeypatch.setattr(models, "compile_model", recording)
     run_dir = tmp_path / "run"
@@ -212,8 +215,9 @@ def test_a_run_made_before_the_new_defaults_resumes_with_its_own(stereo40, tmp_p
         json.dump(config, f)
     plan = plan_run(stereo40, variant="baseline", run_dir=run_dir, epochs=1, batch_size=5,
                     backbone="small")
-    assert (plan.config.bn_statistics, plan.config.monitor,
-            plan.config.bn_recompute_batches) == ("epoch", "loss", 16)
+    training = plan.config.training
+    assert (training.bn_statistics, training.monitor,
+            training.bn_recompute_batches) == ("epoch", "loss", 16)
     with pytest.raises(TrainingError, match="holds a different run .monitor"):
         plan_run(stereo40, variant="baseline", run_dir=run_dir, epochs=1, batch_size=5,
                  backbone="small", monitor="nmae")

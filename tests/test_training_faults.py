@@ -276,7 +276,7 @@ def test_a_different_run_begun_meanwhile_is_refused_not_called_finished(
         assert "learning_rate: 0.0005 there, 0.002 now" in err, err
         assert time.time() - start < 50, status  # refused, not after a wait for the lock
         kept = runs.read_run_config(str(run_dir))
-        assert (kept.learning_rate, kept.status) == (5e-4, status)
+        assert (kept.training.learning_rate, kept.status) == (5e-4, status)
         assert sorted(os.listdir(run_dir)) == ["backup", "config.json"]
 
 

@@ -99,12 +99,12 @@ def test_the_default_momentum_and_runs_made_before_it(runs_compared, stereo40, t
 
     plan = planning.plan_run(stereo40, variant="cpl-a", backbone="small",
                              run_dir=str(tmp_path / "new"))
-    assert plan.config.weight_ema == planning.WEIGHT_EMA == 0.99
+    assert plan.config.training.weight_ema == planning.WEIGHT_EMA == 0.99
     assert planning.plan_run(stereo40, variant="cpl-a", backbone="small", as_released=True,
-                             run_dir=str(tmp_path / "new")).config.weight_ema == 0.0
+                             run_dir=str(tmp_path / "new")).config.training.weight_ema == 0.0
     assert not os.path.exists(tmp_path / "new")
     trained = runs_compared["trained"]
     assert planning.plan_run(stereo40, run_dir=trained, epochs=3, **{
-        k: v for k, v in TINY.items() if k != "verbose"}).config.weight_ema == 0.0
+        k: v for k, v in TINY.items() if k != "verbose"}).config.training.weight_ema == 0.0
     with pytest.raises(TrainingError, match="weight_ema: 0.0 there, 0.5 now"):
         train(stereo40, run_dir=trained, epochs=3, weight_ema=0.5, **TINY)

@@ -16,7 +16,7 @@ import os
 import sys
 
 from cpl_keras import cli, distributed
-from cpl_keras.training.augment import AUGMENTATIONS
+from cpl_keras.training_options import AUGMENTATIONS
 from cpl_keras.cache import cache_dir, enable_compile_cache
 from cpl_keras.data.estimate import estimate_cost
 from cpl_keras.data.generate import cached_dataset
@@ -24,11 +24,10 @@ from cpl_keras.data.storage import DatasetError
 from cpl_keras.datasets import SPLITS
 from cpl_keras.errors import Error
 from cpl_keras.models import BACKBONES, VARIANTS
-from cpl_keras.models.options import (
-    ADAPTIVE_WEIGHTS, DISPARITY_HEADS, RECIPES, ModelOptions, recipe,
-)
+from cpl_keras.models.options import ADAPTIVE_WEIGHTS, DISPARITY_HEADS, ModelOptions
 from cpl_keras.models.variants import DISENTANGLE, HEAD_ACTIVATIONS, POINT_ERRORS
 from cpl_keras.training import summary_line, train
+from cpl_keras.training_options import RECIPES, TrainingOptions, recipe, split_fields
 
 #: The demonstration run (no --data): dataset and training settings chosen to
 #: finish in a minute or so on a laptop CPU (README.md). Its 256 training
@@ -100,7 +99,7 @@ def _add_run_arguments(parser):
                         help="maximum epochs (default 200; the demonstration 8)")
     parser.add_argument("--batch-size", type=cli.positive_int, default=16, metavar="N",
                         help="pairs per training step (default 16, the paper's)")
-    parser.add_argument("--lr", type=cli.positive_float, metavar="LR",
+    parser.add_argument("--lr", type=cli.positive_float, metavar="LR", dest="learning_rate",
                         help="learning rate (default 1e-3; deep-homo 1.5e-3)")
     parser.add_argument("--image-size", type=cli.positive_int, metavar="PX",
                         help="the dataset's image side, checked (default: its own)")
@@ -134,7 +133,8 @@ def _add_head_arguments(parser):
     record's default): --recipe, --disentangle, --point-errors,
     --exp-disparity-head, --head-activation, --head-norm, --disparity-head,
     --linear-pitch-head, --linear-focal-head, --alpha-rate, --adaptive-weights,
-    --disparity-ceiling, --weight-decay, --clip-norm."""
+    --disparity-ceiling; and the optimiser's (``TrainingOptions``):
+    --weight-decay, --clip-norm."""
     parser.add_argument("--recipe", choices=tuple(RECIPES), metavar="NAME",
                         help="paper (default) or sound: a named set of the model's options")
     parser.add_argument("--disentangle", choices=DISENTANGLE, help=HIDDEN)
@@ -170,9 +170,10 @@ def _add_extra_arguments(parser):
     --time-budget, --augment."""
     parser.add_argument("--target-scaling", choices=("none", "std"), default="none", help=HIDDEN)
     parser.add_argument("--time-budget", type=cli.positive_float, metavar="SECONDS",
+                        dest="time_budget_s",
                         help="seconds of training: no epoch starts that would overrun them")
-    parser.add_argument("--augment", choices=("none",) + AUGMENTATIONS, default="none",
-                        metavar="NAME", help=f"none (default) or {', '.join(AUGMENTATIONS)}: "
+    parser.add_argument("--augment", choices=("none",) + AUGMENTATIONS, metavar="NAME",
+                        help=f"none (default) or {', '.join(AUGMENTATIONS)}: "
                         "augmented training pixels, exact labels")
 
 
@@ -300,36 +301,31 @@ def _weight_ema(args, demo):
     return args.weight_ema
 
 
-def model_fields(args, backbone):
-    """The ``ModelOptions`` fields the command line gives: the recipe's,
-    then every option given (an argparse destination named as a field)."""
-    fields = dict(recipe(args.recipe or "paper"), backbone=backbone,
-                  as_released=args.as_released)
-    names = {field.name for field in dataclasses.fields(ModelOptions)}
-    fields.update({name: value for name, value in vars(args).items()
-                   if name in names - {"backbone", "as_released", "disparity_ceiling"}
-                   and value is not None})
-    if args.disparity_ceiling is not None:  # ("none": None, the bound of before)
-        fields["disparity_ceiling"] = None if args.disparity_ceiling == "none" \
-            else args.disparity_ceiling
-    return fields
+def records(args, demo, seed, epochs, backbone):
+    """The run's two records, ``(ModelOptions, TrainingOptions)``, as the
+    command line gives them: the recipe's fields, then every option given
+    (an argparse destination named as a field of either record; "none"
+    where an option offers it is the field's None), the demonstration's
+    defaults where it runs. Checked before a dataset is made."""
+    fields = recipe(args.recipe or "paper")
+    names = {field.name for field in dataclasses.fields(ModelOptions)} | {
+        field.name for field in dataclasses.fields(TrainingOptions)}
+    fields.update({name: None if value == "none" else value
+                   for name, value in vars(args).items()
+                   if name in names - {"variant", "target_scaling"} and value is not None})
+    fields.update(backbone=backbone, seed=seed, epochs=epochs,
+                  weight_ema=_weight_ema(args, demo), target_scaling=args.target_scaling)
+    model, training = split_fields(fields)
+    return ModelOptions(**model), TrainingOptions(**training)
 
 
 def _train(args, demo, seed, epochs, backbone, run_dir, command, prog):
     try:
-        model = ModelOptions(**model_fields(args, backbone))  # (checked before a dataset is made)
+        model, training = records(args, demo, seed, epochs, backbone)
         data = demo_dataset() if demo else args.data
         summary = train(
-            data, variant=args.variant, run_dir=run_dir, model=model, epochs=epochs,
-            batch_size=args.batch_size, learning_rate=args.lr, image_size=args.image_size,
-            split=args.split, seed=seed, data_parallel=args.data_parallel,
-            patience=args.patience, workers=args.workers,
-            steps_per_execution=args.steps_per_execution,
-            bn_recompute_batches=args.bn_recompute_batches, bn_statistics=args.bn_statistics,
-            monitor=args.monitor, target_scaling=args.target_scaling,
-            weight_ema=_weight_ema(args, demo), time_budget_s=args.time_budget,
-            verbose=0 if args.quiet else 1,
-            augment=None if args.augment == "none" else args.augment,
+            data, variant=args.variant, run_dir=run_dir, model=model, training=training,
+            steps_per_execution=args.steps_per_execution, verbose=0 if args.quiet else 1,
             command=command, return_model=False, term_gradients=args.term_gradients,
             head_units=args.head_units,
         )

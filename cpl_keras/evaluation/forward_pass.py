@@ -85,7 +85,8 @@ def store_predictions(run_dir, data_paths, batch_size=32):
     ``data_paths`` (real sets, folders of them). The forward passes are the
     ones the tables make. Returns the paths written."""
     run = load_run(run_dir)
-    paths = [run.config.data] + [p for p in data_paths if not _same_file(p, run.config.data)]
+    paths = [run.config.data.path] + [p for p in data_paths
+                                      if not _same_file(p, run.config.data.path)]
     written = []
     try:
         for path in paths:

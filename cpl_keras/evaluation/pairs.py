@@ -59,10 +59,10 @@ def evaluation_indices(run, data_path, num_pairs):
     the run's own dataset, else every pair of the file. A published record
     (``published.publish_run_dir``) names its dataset without a folder: a file of
     that name and the run's number of pairs is its own."""
-    own = run.config.data
+    own = run.config.data.path
     if _same_file(data_path, own) or (
             os.path.basename(own) == own and os.path.basename(os.fspath(data_path)) == own
-            and num_pairs == run.config.num_pairs):
+            and num_pairs == run.config.data.num_pairs):
         test = run.split["test"]
         if len(test) == 0 or test.max() >= num_pairs:
             raise EvaluationError(f"{run.run_dir}: test split does not fit {data_path}")

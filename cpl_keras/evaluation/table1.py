@@ -166,11 +166,11 @@ def _table_data(loaded, data_path):
     """The dataset file a table's runs are scored on: ``data_path``, or the
     one file every run of ``loaded`` was trained on."""
     if data_path is None:
-        data_path = loaded[0].config.data
+        data_path = loaded[0].config.data.path
         for run in loaded[1:]:
-            if not _same_file(run.config.data, data_path):
+            if not _same_file(run.config.data.path, data_path):
                 raise EvaluationError(
-                    f"runs use different datasets ({data_path} and {run.config.data}); "
+                    f"runs use different datasets ({data_path} and {run.config.data.path}); "
                     f"pass --data to evaluate them on one file")
     if not os.path.exists(data_path):
         raise EvaluationError(f"dataset not found: {data_path}")

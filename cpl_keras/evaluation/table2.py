@@ -120,7 +120,7 @@ def _check_never_trained_on(loaded, rig, data_path):
     """Leave one rig out: EvaluationError when a run's training pairs
     include pairs of ``rig`` (a real or mixed training set records its rigs)."""
     for run in loaded:
-        if rig in run.config.training_rigs:
+        if rig in run.config.data.training_rigs:
             raise EvaluationError(
                 f"{run.run_dir} was trained on pairs of the rig '{rig}' ({data_path}); "
                 f"Table 2 scores a model only on rigs it never saw in training")

@@ -24,9 +24,28 @@ from keras import ops
 from cpl_keras import camera
 from cpl_keras.models import losses
 from cpl_keras.layers import PACKAGE
+from cpl_keras.models.options import ModelOptions
 from cpl_keras.models.variants import LOSS_MODES, LOSSES
 #: The log-variance floor before ``initialise_adaptive_weights``: none.
 NO_FLOOR = -1e4
+
+
+def saved_options(settings):
+    """The ``ModelOptions`` of a model's ``build_settings``: the record it
+    was built with, read with what a model saved before a setting existed
+    was built with where that is not the record's default (the one place
+    that says so): one divisor floor ``epsilon`` before per-quantity floors,
+    Eq. 9's weights moving at rate 1 before the alpha rate; the keys beside
+    the record (``image_size``, ``loss``, ...) left out."""
+    settings = dict(settings)
+    if "floors" not in settings:
+        epsilon = float(settings.get("epsilon", camera.EPSILON))
+        settings["floors"] = {key: epsilon for key in camera.FLOORS}
+    if LOSSES[settings["loss"]].adaptive:
+        settings.setdefault("alpha_rate", 1.0)
+    for name in ("disparity_ceiling", "disparity_start", "range_scales"):
+        settings.setdefault(name, None)  # (a built model's "auto" is resolved: None is left out)
+    return ModelOptions.from_config(settings)
 
 
 @keras.saving.register_keras_serializable(package=PACKAGE)
@@ -35,9 +54,11 @@ class CalibrationModel(keras.Model):
 
     Args:
         *args, **kwargs: as for a functional ``keras.Model`` (inputs, outputs).
-        build_settings: dict of the build arguments (variant, backbone,
-            image_size, as_released, floors, ...) and ``loss`` (a LOSS_MODE),
-            kept in the model's config under that name.
+        build_settings: the model's ``ModelOptions`` resolved for its
+            variant (``to_config()``) with ``image_size`` and ``loss`` (a
+            LOSS_MODE) beside it, kept in the model's config under that
+            name; read as ``options`` (``saved_options``: a model saved by
+            an earlier version reads with what it was built with).
         calibration: the same dict under its former name, as models saved
             before the rename hold it in their config (read, never written).
     """
@@ -49,6 +70,7 @@ class CalibrationModel(keras.Model):
         self.build_settings = dict(build_settings or calibration or {"loss": "mae"})
         if self.build_settings["loss"] not in LOSS_MODES:
             raise ValueError(f"unknown loss mode {self.build_settings['loss']!r}")
+        self.options = saved_options(self.build_settings)
         if self.training_loss.adaptive:
             # s_i of Eq. 9 (alpha_i = exp(-s_i)), one per disentangled term,
             # stored divided by the alpha rate (``log_variance_values``), and
@@ -91,13 +113,13 @@ class CalibrationModel(keras.Model):
         existed); see ``variants.ALPHA_RATE``. 0: the weights do not move
         at all after ``initialise_adaptive_weights`` (``s_i = w_i``, not
         trained): Eq. 9 as a fixed normalisation of the terms' ranges."""
-        return float(self.build_settings.get("alpha_rate", 1.0))
+        return float(self.options.alpha_rate or 0.0)
 
     @property
     def range_scales(self):
         """mean|y_i| per target where Eq. 9's weights are fixed at
         1 / mean|y_i| (``adaptive_weights="range"``), else None."""
-        scales = self.build_settings.get("range_scales")
+        scales = self.options.range_scales
         return None if scales is None else dict(scales)
 
     def _scale(self):
@@ -117,20 +139,14 @@ class CalibrationModel(keras.Model):
 
     @property
     def floors(self):
-        """The camera graph's divisor floors (``camera.FLOORS`` keys).
-
-        Models saved before per-quantity floors stored one ``epsilon``.
-        """
-        if "floors" in self.build_settings:
-            return dict(self.build_settings["floors"])
-        epsilon = float(self.build_settings.get("epsilon", camera.EPSILON))
-        return {key: epsilon for key in camera.FLOORS}
+        """The camera graph's divisor floors (``camera.FLOORS`` keys)."""
+        return dict(self.options.floors)
 
     def projection_terms(self, y, y_pred):
         """The 13 disentangled terms of Eq. 7 for targets ``y`` (dict), with
         the point errors the model was built with (``losses.POINT_ERRORS``)."""
         return losses.projection_terms(y, self._as_dict(y_pred), self.floors,
-                                       self.build_settings.get("point_errors", "metres"))
+                                       self.options.point_errors)
 
     def initialise_adaptive_weights(self, y):
         """Start Eq. 9's weights balanced at the Average baseline's level.

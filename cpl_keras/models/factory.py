@@ -46,6 +46,7 @@ in ``cpl_keras.datasets``.)
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import math
 import numbers
 import random
@@ -60,7 +61,8 @@ from cpl_keras.layers import (
 )
 from cpl_keras.models import backbones, deep_homo, pretrained, variants
 from cpl_keras.models.calibration_model import CalibrationModel
-from cpl_keras.models.options import ALWAYS_WRITTEN, ModelOptions, OptionsError, check_momentum
+from cpl_keras.models.options import ModelOptions, OptionsError
+from cpl_keras.training_options import TrainingOptions
 from cpl_keras.models.variants import (  # noqa: F401
     DISENTANGLE, HEAD_ACTIVATIONS, POINT_ERRORS, VARIANTS,
 )
@@ -115,6 +117,8 @@ def _build_model(variant, options, image_size, seed, name, read_backbone_weights
     # and the softplus head's own start)
     options = options.replace(**{name: None for name in ("disparity_ceiling", "disparity_start")
                                  if getattr(options, name) == "auto"})
+    if options.disparity_ceiling is None and options.positive_disparity_head(variant):
+        options = options.replace(disparity_ceiling=float(MAX_OUTPUT))  # (the bound, said)
     spec = variants.get(variant)
     minimum = spec.min_image_size or backbones.MIN_IMAGE_SIZE[options.backbone]
     height, width = _image_shape(image_size, minimum, options.backbone)
@@ -157,22 +161,9 @@ def _build(spec, options, height, width, name, weights=None):
     loss = spec.training_loss(options.as_released)
     outputs = BUILDERS[spec.builder](spec, scaled_left, scaled_right, options, weights=weights,
                                      detach=loss.projection and options.disentangle == "exact")
-    positive_disparity = options.positive_disparity_head(spec.name)
-    ceiling = MAX_OUTPUT if options.disparity_ceiling is None else options.disparity_ceiling
-    settings = {
-        "variant": spec.name, "backbone": options.backbone, "image_size": [height, width],
-        "as_released": options.as_released, "floors": options.floors, "loss": loss.name,
-        "bounded_pitch_head": options.bounded_pitch_head and spec.builder != "deep_homo",
-        "positive_disparity_head": positive_disparity,
-        "disparity_ceiling": ceiling if positive_disparity else None,
-        "positive_focal_head": (options.positive_focal_head and loss.projection
-                                and spec.camera_graph),
-        "disentangle": options.disentangle if loss.projection else None,
-    }
-    # (the fields added since: only where not their defaults, as in
-    # config.json, so that the models built before them read the same)
-    settings.update({key: value for key, value in options.to_config().items()
-                     if key not in settings and key not in ALWAYS_WRITTEN})
+    # (the record, resolved for its variant and these images, as the model
+    # keeps it: every switch as this network uses it, ``ModelOptions.for_variant``)
+    settings = dict(options.to_config(), image_size=[height, width], loss=loss.name)
     return CalibrationModel(
         inputs={"left_image": left, "right_image": right}, outputs=outputs,
         name=name or spec.name.replace("-", "_"), build_settings=settings,
@@ -271,9 +262,11 @@ def camera_projection_outputs(features, spec, options, detach=False):
     return [params[name] for name in camera.PARAMETERS] + [points[q] for q in ("X", "Y", "Z")]
 
 
-def compile_model(model, *, learning_rate=None, jit_compile="auto", steps_per_execution=1,
-                  target_scale=None, weight_ema=0.0):
-    """Compile with the paper's optimiser and loss.
+def compile_model(model, training=None, *, jit_compile="auto", steps_per_execution=1,
+                  target_scale=None, **fields):
+    """Compile with the paper's optimiser and loss, as ``training`` (a
+    ``TrainingOptions``; None: the paper's) and ``fields`` of it by name
+    (``learning_rate=...``, ``weight_ema=...``) say.
 
     Adam, lr 1e-3 (Deep-Homo 1.5e-3). Loss: the model's own (see
     ``CalibrationModel``): summed per-output MAE, the camera projection loss
@@ -292,11 +285,10 @@ def compile_model(model, *, learning_rate=None, jit_compile="auto", steps_per_ex
     """
     if not isinstance(model, CalibrationModel):
         raise ValueError("compile_model expects a model made by cpl_keras.build_model")
-    if learning_rate is None:
-        learning_rate = variants.get(model.build_settings.get("variant")).learning_rate
-    if not (isinstance(learning_rate, numbers.Real) and learning_rate > 0):
-        raise ValueError(f"learning rate must be a positive number, got {learning_rate!r}")
-    check_momentum(weight_ema)
+    unknown = sorted(set(fields) - set(TrainingOptions.recorded_fields()))
+    if unknown:
+        raise TypeError(f"compile_model() got an unexpected keyword argument {unknown[0]!r}")
+    training = dataclasses.replace(training or TrainingOptions(), **fields)
     names = list(model.output_names)
     loss_weights = None
     if model.training_loss.per_output:
@@ -315,26 +307,27 @@ def compile_model(model, *, learning_rate=None, jit_compile="auto", steps_per_ex
         loss_weights = {name: 1.0 / float(target_scale[name]) for name in names}
         metrics = {name: ["mae"] for name in names}  # the unscaled MAE in the logs
     model.compile(
-        optimizer=_optimizer(model, learning_rate, weight_ema),
+        optimizer=_optimizer(model, training),
         loss=loss, loss_weights=loss_weights, metrics=metrics, jit_compile=jit_compile,
         steps_per_execution=steps_per_execution,
     )
     return model
 
 
-def _optimizer(model, learning_rate, weight_ema):
-    """Adam at ``learning_rate`` (the paper's); AdamW with the model's
-    ``weight_decay`` (not on Eq. 9's weights) and a global gradient-norm clip
-    with its ``clip_norm`` (``ModelOptions``); the moving average of the
-    weights with ``weight_ema`` > 0."""
-    settings = model.build_settings
+def _optimizer(model, training):
+    """Adam at ``training``'s learning rate (None: the variant's, the
+    paper's); AdamW with its ``weight_decay`` (not on Eq. 9's weights), a
+    global gradient-norm clip with its ``clip_norm``, and the moving average
+    of the weights with its ``weight_ema`` > 0."""
+    learning_rate = training.learning_rate
+    if learning_rate is None:
+        learning_rate = variants.get(model.build_settings.get("variant")).learning_rate
+    weight_ema = training.weight_ema or 0.0
     common = dict(learning_rate=learning_rate, use_ema=weight_ema > 0,
-                  ema_momentum=float(weight_ema) or 0.99,
-                  global_clipnorm=settings.get("clip_norm"))
-    decay = float(settings.get("weight_decay", 0.0))
-    if not decay:
+                  ema_momentum=float(weight_ema) or 0.99, global_clipnorm=training.clip_norm)
+    if not training.weight_decay:
         return keras.optimizers.Adam(**common)
-    optimizer = keras.optimizers.AdamW(weight_decay=decay, **common)
+    optimizer = keras.optimizers.AdamW(weight_decay=float(training.weight_decay), **common)
     optimizer.exclude_from_weight_decay(var_names=["log_variances"])
     return optimizer
 

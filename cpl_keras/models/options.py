@@ -1,16 +1,21 @@
 """``ModelOptions``: every knob of a network and its objective, in one record.
 
 As a keras-hub backbone carries every argument in one ``get_config()``, a
-model here is its variant plus one frozen ``ModelOptions``: the towers, the
-heads, the loss and its weights, the optimiser's regularisation. The record
-is checked once, when it is made; ``for_variant`` adds the rules that depend
-on the variant and fills in the defaults (the paper's, or the release's with
-``as_released``); ``for_training_set`` fills in what is read off the
+model here is one frozen ``ModelOptions``: the towers, the heads, the loss
+and its weights (the optimiser's knobs are training's,
+``training_options.TrainingOptions``, as keras-hub keeps them in
+``compile()``). The record is checked once, when it is made;
+``for_variant`` adds the rules that depend on the variant, records the
+variant and fills in the defaults (the paper's, or the release's with
+``as_released``) and what the variant's network does with each switch (a
+switch its network has no use for is recorded as off: Deep-Homo's pitch
+head is not bounded); ``for_training_set`` fills in what is read off the
 training labels (the disparity head's ceiling and start, the range weights).
 ``to_config()`` is config.json's ``build`` (with the image size and seed
-beside it) and ``from_config`` reads it back: a field whose value is its
-default is left out of the config, so the runs made before it existed resume
-and load as they were.
+beside it, the variant above it) and a built model's ``build_settings``
+(with its image size and loss beside it); ``from_config`` reads either
+back: a field whose value is its default is left out of the config, so the
+runs made before it existed resume and load as they were.
 
 A new switch is one field here (with its check in ``_check``) and one
 argparse line in ``cpl_keras/commands/train.py`` (docs/layout.md).
@@ -45,14 +50,6 @@ DISPARITY_HEADS = ("default", "softplus")
 #: 1 / mean|y_i| of the training split (Eq. 9 read as the range normalisation
 #: it is given for; the paper's NMAE denominators).
 ADAPTIVE_WEIGHTS = ("learned", "range")
-#: The named recipes (``--recipe``): each is a set of field values. "paper"
-#: changes nothing; "sound" is the training recipe of the fair comparison
-#: (paper_results/fair-fight/protocol.md), the same for every variant.
-RECIPES = {
-    "paper": {},
-    "sound": {"head_activation": "leaky_relu_0.01", "head_norm": True,
-              "disparity_head": "softplus", "clip_norm": 1.0},
-}
 #: The fields always written to config.json's ``build`` (those of the first
 #: runs); every other field is written only where it is not its default.
 ALWAYS_WRITTEN = ("backbone", "as_released", "floors", "bounded_pitch_head",
@@ -70,6 +67,8 @@ class OptionsError(Error):
 class ModelOptions:
     """The knobs of one network (every default is the paper's).
 
+    variant: the network's variant (``variants.VARIANTS``), set by
+        ``for_variant`` (None: not yet resolved for one).
     backbone: the towers (``variants.BACKBONES``; ``"inception_v3"`` is the
         paper's). as_released: the released code's choices where it differs
         from the paper's text (``factory``'s module docstring).
@@ -93,9 +92,6 @@ class ModelOptions:
         as None without training labels; None: its floor plus log 2).
     adaptive_weights: ``ADAPTIVE_WEIGHTS``; range_scales: mean|y_i| per
         target for "range" ("auto", the default: from the training split).
-    weight_decay: decoupled weight decay of the optimiser (AdamW; 0 is off,
-        the paper's Adam). clip_norm: the global gradient-norm clip (None:
-        off, the paper's).
     backbone_weights: the towers' initial weights: None, random
         initialisation (this project's default, by necessity: the paper's
         are ImageNet's); "imagenet", Keras's InceptionV3 ImageNet file
@@ -105,6 +101,7 @@ class ModelOptions:
         the file checks it).
     """
 
+    variant: str | None = None
     backbone: str = "inception_v3"
     as_released: bool = False
     floors: dict | None = None
@@ -121,8 +118,6 @@ class ModelOptions:
     disparity_start: float | str | None = "auto"
     adaptive_weights: str = "learned"
     range_scales: dict | str | None = "auto"
-    weight_decay: float = 0.0
-    clip_norm: float | None = None
     backbone_weights: str | None = None
     backbone_weights_sha256: str | None = None
 
@@ -158,7 +153,11 @@ class ModelOptions:
     # -- resolving ---------------------------------------------------------
     def for_variant(self, variant):
         """This record for ``variant``: its rules checked (OptionsError, one
-        line) and the defaults that depend on it filled in."""
+        line), the variant recorded, the defaults that depend on it filled
+        in, and each switch as the variant's network uses it (``_as_built``).
+        A record resolved for ``variant`` comes back unchanged."""
+        if self.variant not in (None, variant):
+            raise OptionsError(f"these options are {self.variant}'s, not {variant}'s")
         spec = variants.get(variant)
         loss = spec.training_loss(self.as_released)
         deep_homo = spec.builder == "deep_homo"
@@ -192,16 +191,15 @@ class ModelOptions:
             alpha_rate = 0.0 if self.adaptive_weights == "range" else float(
                 ALPHA_RATE if self.alpha_rate is None else self.alpha_rate)
         positive = self.positive_disparity_head(variant)
+        bounded, focal = (
+            (not self.as_released) if given is None else bool(given)
+            for given in (self.bounded_pitch_head, self.positive_focal_head))
         return dataclasses.replace(
-            self, floors=dict(floors),
-            bounded_pitch_head=(not self.as_released) if self.bounded_pitch_head is None
-            else bool(self.bounded_pitch_head),
-            positive_focal_head=(not self.as_released) if self.positive_focal_head is None
-            else bool(self.positive_focal_head),
-            alpha_rate=alpha_rate,
+            self, variant=variant, floors=dict(floors), alpha_rate=alpha_rate,
             disparity_ceiling=self.disparity_ceiling if positive else None,
             disparity_start=self.disparity_start if self.disparity_head == "softplus" else None,
             range_scales=self.range_scales if self.adaptive_weights == "range" else None,
+            **_as_built(spec, loss, bounded, focal, self.disentangle),
         )
 
     def positive_disparity_head(self, variant):
@@ -232,11 +230,15 @@ class ModelOptions:
         return dataclasses.replace(self, **fields)
 
 
-def recipe(name):
-    """The field values of the named recipe (``RECIPES``; OptionsError)."""
-    if name not in RECIPES:
-        raise OptionsError(f"unknown recipe {name!r}; choose one of {', '.join(RECIPES)}")
-    return dict(RECIPES[name])
+def _as_built(spec, loss, bounded, focal, disentangle):
+    """The switches the variant's network has a use for, as given; the
+    others off, as its network is built (``factory._build``): Deep-Homo
+    regresses its pitch unbounded; only the camera projection loss's
+    variants (with the camera graph) have the focal floor and disentangle
+    their terms."""
+    return dict(bounded_pitch_head=bounded and spec.builder != "deep_homo",
+                positive_focal_head=focal and loss.projection and spec.camera_graph,
+                disentangle=disentangle if loss.projection else None)
 
 
 def check_momentum(value, error=ValueError):
@@ -250,8 +252,11 @@ def check_momentum(value, error=ValueError):
 
 def _check(options):
     """Every rule of one record that needs no variant (OptionsError, one line)."""
+    if options.variant is not None:
+        _choice("variant", options.variant, variants.VARIANTS)
     _choice("backbone", options.backbone, BACKBONES)
-    _choice("disentangle", options.disentangle, DISENTANGLE)
+    if options.disentangle is not None:  # (None: a variant without the projection loss)
+        _choice("disentangle", options.disentangle, DISENTANGLE)
     _choice("point errors", options.point_errors, POINT_ERRORS)
     _choice("head activation", options.head_activation, HEAD_ACTIVATIONS)
     _choice("disparity head", options.disparity_head, DISPARITY_HEADS)
@@ -288,11 +293,6 @@ def _check(options):
         raise OptionsError("range scales must be 'auto', None or a positive number for each "
                            f"of {', '.join(camera.TARGETS)}")
     _check_backbone_weights(options)
-    if not _number(options.weight_decay, 0):
-        raise OptionsError(f"weight decay must be a number >= 0, got {options.weight_decay!r}")
-    if options.clip_norm is not None and not (_number(options.clip_norm, 0)
-                                              and options.clip_norm > 0):
-        raise OptionsError(f"clip norm must be a positive number, got {options.clip_norm!r}")
 
 
 def _check_backbone_weights(options):

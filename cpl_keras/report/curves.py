@@ -10,6 +10,7 @@ row of log.csv.
 from __future__ import annotations
 
 import math
+import os
 import textwrap
 
 import numpy as np
@@ -17,6 +18,8 @@ import numpy as np
 from cpl_keras import files
 from cpl_keras.camera import PARAMETERS
 from cpl_keras.files import save_figure
+from cpl_keras.models.variants import ALPHA_RATE
+from cpl_keras.runs import RELEASED
 
 
 def val_mae(row, name):
@@ -143,3 +146,21 @@ def plot_mae_curves(path, series, parameters, title):
     with files.glyphs_quiet():  # (a file name's characters no font has)
         fig.tight_layout()
     save_figure(fig, path, dpi=80)
+
+
+def run_label(config):
+    """The run in words (``config``: a ``RunConfig``): variant, backbone,
+    dataset file, split, and the training options that differ from the
+    defaults (learning rate, target scaling, alpha rate)."""
+    released = RELEASED if config.as_released else ""
+    options = ""
+    training = config.training
+    if training.learning_rate is not None:
+        options += f", lr {training.learning_rate:g}"
+    if training.target_scaling != "none":
+        options += f", targets scaled by {training.target_scaling}"
+    rate = config.model.alpha_rate
+    if rate is not None and rate != ALPHA_RATE:
+        options += f", alpha rate {rate:g}"
+    return (f"{config.variant}{released}, {config.model.backbone}, "
+            f"{os.path.basename(config.data.path)}, split {training.split}{options}")

@@ -102,9 +102,12 @@ def collect_run_files(trained, out_dir):
                 summaries.append({"protocol": protocol, "name": name,
                                   "run_dir": runs.relative(run_dir, out_dir),
                                   "as_released": run_config.as_released,
+                                  "variant": run_config.variant,
+                                  **{k: getattr(run_config.training, k)
+                                     for k in ("split", "seed", "epochs")},
                                   **{k: getattr(run_config, k) for k in (
-                                      "variant", "split", "seed", "epochs", "epochs_run",
-                                      "best_epoch", "best_val_loss", "wall_time_s", "stopped")}})
+                                      "epochs_run", "best_epoch", "best_val_loss",
+                                      "wall_time_s", "stopped")}})
     return summaries
 
 

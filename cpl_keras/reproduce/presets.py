@@ -12,7 +12,7 @@ import sys
 from cpl_keras.models import variants as registry
 from cpl_keras.models.options import ModelOptions
 from cpl_keras.models.variants import MIN_IMAGE_SIZE, MTL_VARIANTS, TABLE_ORDER
-from cpl_keras.training.options import TrainingOptions
+from cpl_keras.training_options import TrainingOptions
 
 PROG = "python -m cpl_keras.reproduce"
 

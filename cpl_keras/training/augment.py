@@ -25,8 +25,6 @@ from __future__ import annotations
 
 import numpy as np
 
-#: The augmentations ``StereoSequence`` and ``train.py --augment`` offer.
-AUGMENTATIONS = ("photometric",)
 #: Each effect's probability and range (see the module doc).
 GAMMA = (0.6, 1.6)
 GAIN = (0.7, 1.3)

@@ -20,7 +20,7 @@ import numpy as np
 
 from cpl_keras import cli, files, runs
 from cpl_keras.models.batchnorm import recompute_batchnorm_statistics
-from cpl_keras.report.curves import plot_curves
+from cpl_keras.report.curves import plot_curves, run_label
 from cpl_keras.training.planning import TrainingError
 from cpl_keras.training.processes import SingleProcess
 from cpl_keras.training.state import read_state, write_state
@@ -319,7 +319,7 @@ def curves_title(config, state):
     backbone, dataset file, split), then its epochs so far, or how it ended
     (``state``: a ``TrainingState``)."""
     done = len(state.rows)
-    stopped, cap = state.stopped, config.epochs
+    stopped, cap = state.stopped, config.training.epochs
     if stopped:
         how = f"{'failed' if stopped.startswith('non-finite') else 'finished'}: {stopped}"
         status = f"{done} epoch{'s' * (done != 1)}, {how}"
@@ -327,4 +327,4 @@ def curves_title(config, state):
         status = f"{done} of {cap} epochs, finished"
     else:
         status = f"{done} of at most {cap} epochs so far"
-    return f"{runs.run_label(config)}\n{status}"
+    return f"{run_label(config)}\n{status}"

@@ -22,17 +22,10 @@ from cpl_keras.data.storage import DatasetError, StereoFile
 from cpl_keras.datasets import make_split, targets_from_labels
 from cpl_keras.models import pretrained, variants
 from cpl_keras.models.options import ModelOptions, OptionsError
-from cpl_keras.training.options import (  # noqa: F401
+from cpl_keras.training_options import (  # noqa: F401
     BN_STATISTICS, MONITORS, TARGET_SCALINGS, TrainingError, TrainingOptions, split_fields,
 )
 
-#: config.json keys that must match for a run directory to be resumed.
-RESUME_KEYS = (
-    "variant", "build", "data", "split", "seed", "batch_size", "learning_rate", "epochs",
-    "data_parallel", "patience", "test_fraction", "val_fraction",
-    "bn_recompute_batches", "bn_statistics", "monitor", "target_scaling", "augment",
-    "weight_ema",
-)
 #: (``BN_STATISTICS``: where BatchNorm's statistics come from before every
 #: validation, with ``bn_recompute_batches`` > 0; 0 keeps Keras's moving
 #: averages, as released: "fixed", the same training pairs every epoch (the
@@ -80,11 +73,10 @@ class RunPlan:
 
 
 def _validation_settings(as_released, training):
-    """What validation runs and early stopping follows (``training``, a
-    ``TrainingOptions``), the defaults filled in (as released: the
-    release's). Returns them as config.json's fields, and the names of those
-    left at their defaults (a run directory resumes with its own:
-    ``_check_run_dir``)."""
+    """``training`` (a ``TrainingOptions``) with what validation runs and
+    early stopping follows filled in where None (as released: the
+    release's), and the names of those left at their defaults (a run
+    directory resumes with its own: ``_check_run_dir``)."""
     given = dict(bn_statistics=training.bn_statistics, monitor=training.monitor,
                  weight_ema=training.weight_ema,
                  bn_recompute_batches=training.bn_recompute_batches)
@@ -97,15 +89,14 @@ def _validation_settings(as_released, training):
     batches = training.bn_recompute_batches
     if batches is None:
         batches = 0 if as_released else BN_RECOMPUTE_BATCHES[bn_statistics]
-    settings = dict(bn_recompute_batches=int(batches), bn_statistics=bn_statistics,
-                    monitor=monitor, weight_ema=float(weight_ema))
-    return settings, defaulted
+    return dataclasses.replace(
+        training, bn_recompute_batches=int(batches), bn_statistics=bn_statistics,
+        monitor=monitor, weight_ema=float(weight_ema)), defaulted
 
 
 def _check_variant(variant, model, training):
     """The rules between the variant and the two records (TrainingError, one
-    line); returns the variant's spec and the model options for it
-    (``ModelOptions.for_variant``)."""
+    line); returns the model options for it (``ModelOptions.for_variant``)."""
     try:
         spec = variants.get(variant)
         options = model.for_variant(variant)
@@ -119,13 +110,12 @@ def _check_variant(variant, model, training):
             "target scaling applies to the per-output MAE loss (MTL-Baseline, or CPL as "
             f"released), not to {variant}"
         )
-    return spec, options
+    return options
 
 
 def _read_dataset(data, *, image_size, split, seed, test_fraction, val_fraction, as_released,
                   batch_size):
-    """``plan_run``'s dataset: its facts (``fields``: config.json's data,
-    num_pairs, protocol, training_rigs and split sizes), ``image_size``,
+    """``plan_run``'s dataset: its ``facts`` (a ``runs.DataFacts``),
     ``targets`` and ``split``, checked against the arguments (DatasetError
     or TrainingError, one line)."""
     data = os.path.abspath(os.fspath(data))
@@ -160,9 +150,11 @@ def _read_dataset(data, *, image_size, split, seed, test_fraction, val_fraction,
             f"batch size {batch_size} is larger than the training split ({len(indices['train'])} "
             f"pairs of {data}); use --batch-size {len(indices['train'])} or less"
         )
-    fields = dict(data=data, num_pairs=num_pairs, protocol=protocol, training_rigs=rigs,
-                  **{f"num_{part}": len(indices[part]) for part in ("train", "val", "test")})
-    return {"fields": fields, "image_size": [height, width], "targets": targets, "split": indices}
+    facts = runs.DataFacts(path=data, num_pairs=num_pairs, protocol=protocol,
+                           training_rigs=rigs, image_size=[height, width],
+                           **{f"num_{part}": len(indices[part])
+                              for part in ("train", "val", "test")})
+    return {"facts": facts, "targets": targets, "split": indices}
 
 
 def plan_run(data, *, variant, run_dir, model=None, training=None, command=None, processes=1,
@@ -195,8 +187,8 @@ def plan_run(data, *, variant, run_dir, model=None, training=None, command=None,
     except OptionsError as error:
         raise TrainingError(str(error)) from None
     training = dataclasses.replace(training or TrainingOptions(), **training_fields)
-    spec, options = _check_variant(variant, model, training)
-    validation, defaulted = _validation_settings(model.as_released, training)
+    options = _check_variant(variant, model, training)
+    training, defaulted = _validation_settings(model.as_released, training)
     dataset = _read_dataset(data, image_size=training.image_size, split=training.split,
                             seed=training.seed, test_fraction=training.test_fraction,
                             val_fraction=training.val_fraction, as_released=model.as_released,
@@ -205,24 +197,32 @@ def plan_run(data, *, variant, run_dir, model=None, training=None, command=None,
     train_labels = {name: values[dataset["split"]["train"]]
                     for name, values in dataset["targets"].items()}
     options = options.for_training_set(train_labels, DISPARITY_CEILING_FACTOR)
-    build = dict(options.to_config(), image_size=dataset["image_size"], seed=training.seed)
     config = runs.RunConfig(
-        variant=variant, build=build, **dataset["fields"], split=training.split,
-        test_fraction=training.test_fraction, val_fraction=training.val_fraction,
-        seed=int(training.seed), batch_size=int(training.batch_size),
-        learning_rate=None if training.learning_rate is None else float(training.learning_rate),
-        epochs=int(training.epochs), patience=int(training.patience), **validation,
-        target_scaling=training.target_scaling,
-        time_budget_s=None if training.time_budget_s is None else float(training.time_budget_s),
-        augment=training.augment, data_parallel=bool(training.data_parallel),
+        model=options, training=_recorded(training), data=dataset["facts"],
         num_devices=devices, num_processes=processes,
         device_batch_size=-(-training.batch_size // devices) * devices, command=command,
         run_dir=os.path.abspath(os.fspath(run_dir)), keras_backend=keras_backend())
     automatic = tuple(name for name in AUTOMATIC if getattr(model, name) == "auto")
-    config = _check_run_dir(config, keep_build=automatic + WEIGHTS_CHECKSUM, keep=defaulted)
+    config = _check_run_dir(config, keep_model=automatic + WEIGHTS_CHECKSUM, keep=defaulted)
     config = _with_weights_checksum(config)
     return RunPlan(config=config, targets=dataset["targets"], split=dataset["split"],
                    workers=int(training.workers))
+
+
+def _recorded(training):
+    """``training`` as a run records it: the arguments of one command
+    (``TrainingOptions``' fields not recorded) at their defaults, the
+    numbers as config.json holds them."""
+    unrecorded = {field.name: field.default for field in dataclasses.fields(training)
+                  if not field.metadata.get("recorded", True)}
+    numbers = {name: float(getattr(training, name)) for name in ("learning_rate",
+                                                                "time_budget_s", "clip_norm")
+               if getattr(training, name) is not None}
+    numbers.update({name: int(getattr(training, name))
+                    for name in ("seed", "batch_size", "epochs", "patience")})
+    return dataclasses.replace(training, **unrecorded, **numbers,
+                               weight_decay=float(training.weight_decay),
+                               data_parallel=bool(training.data_parallel))
 
 
 #: The model options read off the training split when "auto": a run
@@ -236,19 +236,20 @@ WEIGHTS_CHECKSUM = ("backbone_weights_sha256",)
 
 
 def _with_weights_checksum(config):
-    """``config`` with the sha256 of its towers' weights file in ``build``
-    (with ``backbone_weights``): a new run's read off the file ("imagenet":
-    Keras's, downloaded into its cache when not there), a resumed run's its
-    own. TrainingError (one line naming the file) when it cannot be read."""
-    build = config.build
-    if build.get("backbone_weights") is None or build.get("backbone_weights_sha256"):
+    """``config`` with the sha256 of its towers' weights file in its model
+    record (with ``backbone_weights``): a new run's read off the file
+    ("imagenet": Keras's, downloaded into its cache when not there), a
+    resumed run's its own. TrainingError (one line naming the file) when it
+    cannot be read."""
+    model = config.model
+    if model.backbone_weights is None or model.backbone_weights_sha256:
         return config
     try:
-        path = pretrained.weights_file(build["backbone_weights"])
+        path = pretrained.weights_file(model.backbone_weights)
         digest = pretrained.checksum(path)
     except (OSError, pretrained.WeightsError) as error:
         raise TrainingError(str(error)) from None
-    return dataclasses.replace(config, build=dict(build, backbone_weights_sha256=digest))
+    return dataclasses.replace(config, model=model.replace(backbone_weights_sha256=digest))
 
 
 def _devices(data_parallel, processes):
@@ -268,15 +269,16 @@ def _device_count():
     return len(keras.distribution.list_devices())
 
 
-def _check_run_dir(config, keep_build=(), keep=()):
+def _check_run_dir(config, keep_model=(), keep=()):
     """``config`` (a ``RunConfig``) for its run directory, which must be new,
     empty, or hold the same run (to resume). A run is resumed with its own
-    value of each build field of ``keep_build`` (those read off the training
-    labels, given as "auto", and the towers' weights file's checksum where
-    the file is the same; a run of before the disparity ceiling: None),
-    and with its own value of each config key of ``keep`` (settings left at
-    their defaults, whose defaults have changed since: the BatchNorm
-    statistics, the monitor and the weights' moving average)."""
+    value of each model option of ``keep_model`` (those read off the
+    training labels, given as "auto", and the towers' weights file's
+    checksum where the file is the same; a run of before the disparity
+    ceiling: None), and with its own value of each training option of
+    ``keep`` (settings left at their defaults, whose defaults have changed
+    since: the BatchNorm statistics, the monitor and the weights' moving
+    average)."""
     run_dir = config.run_dir
     if not os.path.exists(run_dir):
         return config
@@ -297,32 +299,39 @@ def _check_run_dir(config, keep_build=(), keep=()):
         return config
     if old.status == "failed":
         return config  # (replaced by the next run: ``_replace_failed_run``)
-    if keep_build:
-        build = dict(config.build)
-        same_weights = old.build.get("backbone_weights") == build.get("backbone_weights")
-        for name in keep_build:
-            if name in old.build and (same_weights or name not in WEIGHTS_CHECKSUM):
-                build[name] = old.build[name]
-            elif name == "disparity_ceiling":
-                build[name] = None
-        config = dataclasses.replace(config, build=build)
-    config = dataclasses.replace(config, **{key: getattr(old, key) for key in keep
-                                            if getattr(old, key) is not None})
+    same_weights = old.model.backbone_weights == config.model.backbone_weights
+    kept = {name: getattr(old.model, name) for name in keep_model
+            if same_weights or name not in WEIGHTS_CHECKSUM}
+    config = dataclasses.replace(config, model=config.model.replace(**kept))
+    config = dataclasses.replace(config, training=dataclasses.replace(
+        config.training, **{key: getattr(old.training, key) for key in keep
+                            if getattr(old.training, key) is not None}))
     _check_same_run(old, config)
     return config
+
+
+def resume_differences(old, config):
+    """``(setting, value there, value now)`` of each setting of ``config``
+    that differs from ``old``'s, the run in its run directory: a run
+    directory resumes only with the same variant, model record (config.json's
+    ``build``), dataset file and training record (but for what may change,
+    ``TrainingOptions.differences``)."""
+    found = [(key, getattr(old, key), getattr(config, key))
+             for key in ("variant", "build") if getattr(old, key) != getattr(config, key)]
+    if old.data.path != config.data.path:
+        found.append(("data", old.data.path, config.data.path))
+    return found + old.training.differences(config.training)
 
 
 def _check_same_run(old, config, begun=""):
     """TrainingError (one line, naming the first setting that differs, its
     value there first) unless ``old``, the run in ``config``'s run
     directory, is the run ``config`` plans."""
-    for key in RESUME_KEYS:
-        if getattr(old, key) != getattr(config, key):
-            raise TrainingError(
-                f"run directory {config.run_dir} holds a different run{begun} ({key}: "
-                f"{getattr(old, key)!r} there, {getattr(config, key)!r} now); use another "
-                f"--run-dir"
-            )
+    for key, there, now in resume_differences(old, config)[:1]:
+        raise TrainingError(
+            f"run directory {config.run_dir} holds a different run{begun} ({key}: "
+            f"{there!r} there, {now!r} now); use another --run-dir"
+        )
 
 
 def check_run_dir_again(config):

@@ -14,7 +14,7 @@ import os
 import zipfile
 
 from cpl_keras import backend, files, runs
-from cpl_keras.training.options import TrainingError
+from cpl_keras.training_options import TrainingError
 
 
 @dataclasses.dataclass(frozen=True)
@@ -134,7 +134,7 @@ def summary_line(result):
         return (f"no epoch completed ({config.stopped}); nothing saved as model.keras; "
                 f"run directory: {config.run_dir}")
     score = ""
-    if config.monitor == "nmae" and config.best_score is not None:
+    if config.training.monitor == "nmae" and config.best_score is not None:
         score = f"val_nmae {config.best_score:.4g}, "
     under = backend_note(config)
     line = (f"best epoch {config.best_epoch} of {config.epochs_run}, "

@@ -14,7 +14,8 @@ import numpy as np
 from cpl_keras.camera import TARGETS
 from cpl_keras.data.storage import StereoFile
 from cpl_keras.datasets import targets_from_labels
-from cpl_keras.training.augment import AUGMENTATIONS, photometric
+from cpl_keras.training.augment import photometric
+from cpl_keras.training_options import AUGMENTATIONS
 
 #: A sequence keeps its images in memory ("auto") when they take at most this
 #: many bytes (2 GiB: 27,000 pairs at 112x112).

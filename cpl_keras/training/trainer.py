@@ -47,9 +47,9 @@ from cpl_keras.datasets import load_split, save_split, targets_from_labels
 from cpl_keras.training.gradients import TermGradients
 from cpl_keras.training.head_units import HeadUnits
 from cpl_keras.training.planning import (
-    RESUME_KEYS, TrainingError, check_run_dir_again, plan_run,
+    TrainingError, check_run_dir_again, plan_run,
 )
-from cpl_keras.training.options import check_steps_per_execution
+from cpl_keras.training_options import check_steps_per_execution
 from cpl_keras.training.processes import join_processes
 from cpl_keras.training.result import backend_note, finish_run, finished_run
 from cpl_keras.training.state import read_state
@@ -103,7 +103,7 @@ def train(data, *, steps_per_execution=1, verbose=1, return_model=True, term_gra
     if processes.writes:
         _replace_failed_run(plan.config.run_dir)
     scope = contextlib.nullcontext()
-    if plan.config.data_parallel:
+    if plan.config.training.data_parallel:
         devices = keras.distribution.list_devices()
         # (across processes each one reads its own part of every batch:
         # StereoSequence's ``process``; Keras shards only tf.data itself)
@@ -121,7 +121,7 @@ def group_fingerprint(plan, finished):
     and where the run stands (a run directory that one process sees and
     another does not shows here)."""
     config = plan.config
-    batch = config.device_batch_size
+    batch, data = config.device_batch_size, config.data
     digest = hashlib.sha256()
     for name in sorted(plan.targets):
         digest.update(np.asarray(plan.targets[name], np.float32).tobytes())
@@ -129,11 +129,11 @@ def group_fingerprint(plan, finished):
         digest.update(np.asarray(plan.split[part], np.int64).tobytes())
     state = read_state(config.run_dir)
     return {
-        "training steps per epoch": -(-config.num_train // batch),
-        "validation steps": -(-config.num_val // batch),
+        "training steps per epoch": -(-data.num_train // batch),
+        "validation steps": -(-data.num_val // batch),
         "devices": config.num_devices,
-        **{key: getattr(config, key) for key in RESUME_KEYS if key != "data"},
-        "dataset pairs": config.num_pairs,
+        "variant": config.variant, "build": config.build, **config.training.to_config(),
+        "dataset pairs": data.num_pairs,
         "labels and split (sha256)": digest.hexdigest()[:16],
         "run status": "finished" if finished is not None else getattr(
             runs.read_run_config(config.run_dir), "status", None) or "new",
@@ -168,10 +168,9 @@ def _run(plan, processes, steps_per_execution, verbose, probes=()):
     try:
         model = models.build_from_config(config.variant, config.build,
                                          read_backbone_weights=not resumed)
-        models.compile_model(model, learning_rate=config.learning_rate,
-                             steps_per_execution=steps_per_execution,
-                             target_scale=_target_scale(plan) if config.target_scaling == "std" else None,
-                             weight_ema=config.weight_ema)
+        models.compile_model(model, config.training, steps_per_execution=steps_per_execution,
+                             target_scale=_target_scale(plan)
+                             if config.training.target_scaling == "std" else None)
     except ValueError as error:
         raise TrainingError(f"cannot build {config.variant}: {error}") from None
     config = dataclasses.replace(
@@ -194,29 +193,30 @@ def _run_locked(plan, model, config, processes, verbose, probes=()):
     if finished is not None:
         return finished
     config = written or config  # (the config.json written; the other processes keep theirs)
+    training, data = config.training, config.data.path
     common = dict(targets=plan.targets, batch_size=config.device_batch_size,
                   multiple_of=config.num_devices, workers=plan.workers, part=processes.part)
-    train_seq = StereoSequence(config.data, plan.split["train"], shuffle=True,
-                               seed=config.seed, augment=config.augment, **common)
-    val_seq = StereoSequence(config.data, plan.split["val"], shuffle=False, **common)
+    train_seq = StereoSequence(data, plan.split["train"], shuffle=True,
+                               seed=training.seed, augment=training.augment, **common)
+    val_seq = StereoSequence(data, plan.split["val"], shuffle=False, **common)
 
     bn_seq = None
-    if config.bn_statistics == "fixed" and config.bn_recompute_batches:
-        bn_seq = StereoSequence(config.data, batchnorm_pairs(plan), shuffle=False, **common)
+    if training.bn_statistics == "fixed" and training.bn_recompute_batches:
+        bn_seq = StereoSequence(data, batchnorm_pairs(plan), shuffle=False, **common)
 
     from cpl_keras.training.checkpointing import RunState
     from cpl_keras.training.progress import EpochLines
 
-    run_state = RunState(run_dir, config.patience, train_seq, config.bn_recompute_batches,
-                         time_budget_s=config.time_budget_s, bn_sequence=bn_seq,
-                         nmae_scale=nmae_scale(plan) if config.monitor == "nmae" else None,
-                         weight_ema=config.weight_ema > 0, processes=processes,
+    run_state = RunState(run_dir, training.patience, train_seq, training.bn_recompute_batches,
+                         time_budget_s=training.time_budget_s, bn_sequence=bn_seq,
+                         nmae_scale=nmae_scale(plan) if training.monitor == "nmae" else None,
+                         weight_ema=training.weight_ema > 0, processes=processes,
                          probe=_probe(model, probes, StereoSequence(
-                             config.data, plan.split["train"][:PROBE_PAIRS], shuffle=False,
+                             data, plan.split["train"][:PROBE_PAIRS], shuffle=False,
                              **dict(common, workers=1, multiple_of=1)))
-                         if probes and not config.data_parallel else None)
+                         if probes and not training.data_parallel else None)
     state = run_state.state
-    done = state.stopped is not None or state.epoch >= config.epochs
+    done = state.stopped is not None or state.epoch >= training.epochs
     try:
         if not done:
             initial_epoch = run_state.restore(model)
@@ -228,9 +228,9 @@ def _run_locked(plan, model, config, processes, verbose, probes=()):
             # own shuffle of the batch order uses Python's unseeded global RNG.
             callbacks = [run_state]
             if verbose and processes.writes:  # (Keras's bar: all 14-30 metrics a line)
-                callbacks.append(EpochLines(config.epochs, run_state,
+                callbacks.append(EpochLines(training.epochs, run_state,
                                             live=None if verbose == 1 else False))
-            model.fit(train_seq, validation_data=val_seq, epochs=config.epochs,
+            model.fit(train_seq, validation_data=val_seq, epochs=training.epochs,
                       initial_epoch=initial_epoch, callbacks=callbacks, shuffle=False,
                       verbose=0)
     finally:  # (also on Ctrl-C: no reading threads left behind)
@@ -310,9 +310,9 @@ def _write_run_files(plan, config, run_dir):
             save_split(tmp, plan.split)
     # The release's Average bug depends on the order of the training set: its
     # frames were shuffled, so sample i is the i-th of a shuffled order.
-    train_order = np.random.default_rng(config.seed).permutation(plan.split["train"])
+    train_order = np.random.default_rng(config.training.seed).permutation(plan.split["train"])
     # ... and it averaged the release's labels (its frame, degrees, StereoBM).
-    with StereoFile(config.data) as data_file:
+    with StereoFile(config.data.path) as data_file:
         release_targets = targets_from_labels(data_file.labels, as_released=True)
     stats = training_statistics(plan.targets, train_order, release_targets=release_targets)
     save_statistics(os.path.join(run_dir, runs.STATS), stats)
@@ -366,8 +366,8 @@ def batchnorm_pairs(plan):
     config = plan.config
     train = np.asarray(plan.split["train"])
     batch = config.device_batch_size
-    count = min(config.bn_recompute_batches, max(len(train) // batch, 1)) * batch
-    return np.random.default_rng([config.seed, 1024]).permutation(train)[:count]
+    count = min(config.training.bn_recompute_batches, max(len(train) // batch, 1)) * batch
+    return np.random.default_rng([config.training.seed, 1024]).permutation(train)[:count]
 
 
 def nmae_scale(plan):
