@@ -62,7 +62,7 @@ def test_every_training_flag_reaches_the_run(case, tiny_run, tmp_path):
     flags, variant, check = FLAG_CASES[case]
     run_dir = tmp_path / "run"
     assert load_script("train.py").main(["--variant", variant, "--backbone", "small", "--data",
-                                 tiny_run["data"], "--epochs", "1", "--batch-size", "4",
+                                 tiny_run["data"], "--epochs", "1", "--batch-size", "5",
                                  "--quiet", "--run-dir", str(run_dir)] + flags) == 0
     config = json.loads((run_dir / "config.json").read_text())
     assert config["status"] == "finished" and config["epochs_run"] == 1

@@ -121,7 +121,7 @@ import cpl_keras, keras
 from cpl_keras.commands.train import main
 assert cpl_keras.__file__.startswith(sys.argv[1]), cpl_keras.__file__
 args = ["--variant", "cpl-a", "--backbone", "small", "--data", sys.argv[2], "--epochs", "1",
-        "--batch-size", "8", "--quiet", "--run-dir", sys.argv[3]]
+        "--batch-size", "5", "--quiet", "--run-dir", sys.argv[3]]
 first = main(args + ["--amsgrad"])
 model = cpl_keras.load_model(sys.argv[3])
 config = json.load(open(sys.argv[3] + "/config.json"))
