@@ -74,6 +74,9 @@ def test_the_build_config_of_the_defaults_is_the_one_of_every_earlier_run():
     assert (deep_homo.bounded_pitch_head, deep_homo.positive_focal_head,
             deep_homo.disentangle) == (False, False, None)
     assert deep_homo.for_variant("deep-homo") == deep_homo  # (resolved once and for all)
+    assert deep_homo.spec.name == "deep-homo"  # (the record keeps its variant)
+    with pytest.raises(OptionsError, match="not resolved for a variant"):
+        ModelOptions().spec
     with pytest.raises(OptionsError, match="these options are deep-homo's, not cpl-a's"):
         deep_homo.for_variant("cpl-a")
     released = ModelOptions(as_released=True).for_variant("cpl-a")

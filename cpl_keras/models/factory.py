@@ -59,7 +59,7 @@ from cpl_keras.layers import (
     MAX_OUTPUT, LambdaOps, PositiveDisparity, SoftplusDisparity, bounded_pitch, multiply,
     placeholder_arithmetic_quiet, positive_focal, regression_head, stop_gradient,
 )
-from cpl_keras.models import backbones, deep_homo, pretrained, variants
+from cpl_keras.models import backbones, deep_homo, pretrained
 from cpl_keras.models.calibration_model import CalibrationModel
 from cpl_keras.models.options import ModelOptions, OptionsError
 from cpl_keras.training_options import TrainingOptions
@@ -119,7 +119,7 @@ def _build_model(variant, options, image_size, seed, name, read_backbone_weights
                                  if getattr(options, name) == "auto"})
     if options.disparity_ceiling is None and options.positive_disparity_head(variant):
         options = options.replace(disparity_ceiling=float(MAX_OUTPUT))  # (the bound, said)
-    spec = variants.get(variant)
+    spec = options.spec
     minimum = spec.min_image_size or backbones.MIN_IMAGE_SIZE[options.backbone]
     height, width = _image_shape(image_size, minimum, options.backbone)
     weights = _backbone_weights_file(options) if read_backbone_weights else None
@@ -321,7 +321,7 @@ def _optimizer(model, training):
     of the weights with its ``weight_ema`` > 0."""
     learning_rate = training.learning_rate
     if learning_rate is None:
-        learning_rate = variants.get(model.build_settings.get("variant")).learning_rate
+        learning_rate = model.options.spec.learning_rate
     weight_ema = training.weight_ema or 0.0
     common = dict(learning_rate=learning_rate, use_ema=weight_ema > 0,
                   ema_momentum=float(weight_ema) or 0.99, global_clipnorm=training.clip_norm)

@@ -202,6 +202,14 @@ class ModelOptions:
             **_as_built(spec, loss, bounded, focal, self.disentangle),
         )
 
+    @property
+    def spec(self):
+        """The variant's spec (``variants.get``) of a record resolved for one
+        (OptionsError before ``for_variant``)."""
+        if self.variant is None:
+            raise OptionsError("these options are not resolved for a variant (for_variant)")
+        return variants.get(self.variant)
+
     def positive_disparity_head(self, variant):
         """Whether ``variant``'s disparity head is a positive one with a
         ceiling (the CPL variants' exp head as the paper writes them,

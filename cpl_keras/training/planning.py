@@ -20,7 +20,7 @@ from cpl_keras.backend import keras_backend
 from cpl_keras.data.mix import training_rigs
 from cpl_keras.data.storage import DatasetError, StereoFile
 from cpl_keras.datasets import make_split, targets_from_labels
-from cpl_keras.models import pretrained, variants
+from cpl_keras.models import pretrained
 from cpl_keras.models.options import ModelOptions, OptionsError
 from cpl_keras.training_options import (  # noqa: F401
     BN_STATISTICS, MONITORS, TARGET_SCALINGS, TrainingError, TrainingOptions, split_fields,
@@ -98,13 +98,12 @@ def _check_variant(variant, model, training):
     """The rules between the variant and the two records (TrainingError, one
     line); returns the model options for it (``ModelOptions.for_variant``)."""
     try:
-        spec = variants.get(variant)
         options = model.for_variant(variant)
     except ValueError as error:  # (an unknown variant, OptionsError)
         raise TrainingError(str(error)) from None
     if options.backbone_weights is not None:  # (a file by its absolute path, as the data)
         options = options.replace(backbone_weights=pretrained.named(options.backbone_weights))
-    if training.target_scaling != "none" and not spec.training_loss(
+    if training.target_scaling != "none" and not options.spec.training_loss(
             model.as_released).per_output:
         raise TrainingError(
             "target scaling applies to the per-output MAE loss (MTL-Baseline, or CPL as "
