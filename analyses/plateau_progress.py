@@ -1,0 +1,189 @@
+"""The plateau amendment's six runs as they stand
+(paper_results/fair-fight/protocol-plateau.md): which have started, how far
+each has trained, how long since its validation monitor last improved and
+how fast it is still falling.
+
+    python analyses/plateau_progress.py          # writes inception-plateau/progress.{md,json}
+    python analyses/plateau_progress.py --print  # the page on stdout, nothing written
+
+A run's state comes from three places: its ledger of starts, committed
+beside its record (``run_starts.py``); its run directory in ``--home``
+(``~/cpl-runs``, outside the work tree: ``backup/state.json`` and
+``log.csv``) while it trains; its published record once it has ended. The
+page is a snapshot, dated, of what this machine holds: it decides nothing
+(the verdicts page does, from the published runs). A run's status is one of
+"not started", "training" (a live process claims it), "interrupted" (its
+run directory waits for the same command), "lost" (a ledger with starts and
+no run directory here) and "published". The slope is the least-squares
+slope of the monitor over the last ``WINDOW`` logged epochs, times
+``WINDOW``, over their mean: the change in 10 epochs as a share of the
+monitor (negative: still falling).
+"""
+
+from __future__ import annotations
+
+import datetime
+import os
+import sys
+
+sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+
+import fair_fight  # noqa: E402
+import run_starts  # noqa: E402
+
+REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+OUT = os.path.join(REPO, "paper_results", "fair-fight")
+#: The epochs of the slope's window.
+WINDOW = 10
+#: The monitor every run keeps its best epoch by (the default, val_nmae).
+MONITOR = "val_nmae"
+
+
+def slope(values):
+    """The least-squares slope of ``values`` (one per epoch) times their
+    count, over their mean; None below two values or at a zero mean."""
+    n = len(values)
+    if n < 2:
+        return None
+    mean_x, mean_y = (n - 1) / 2, sum(values) / n
+    num = sum((i - mean_x) * (v - mean_y) for i, v in enumerate(values))
+    den = sum((i - mean_x) ** 2 for i in range(n))
+    return None if mean_y == 0 else num / den * n / mean_y
+
+
+def _claimed(run_dir):
+    """Whether a live process claims ``run_dir`` (``fair_fight.claim``'s file)."""
+    try:
+        with open(run_dir.rstrip(os.sep) + ".claim") as f:
+            os.kill(int(f.read().strip() or 0), 0)
+        return True
+    except (OSError, ValueError):
+        return False
+
+
+def run_progress(arm, seed, home, out):
+    """One run's entry: its status, epochs, best monitor (1-based epoch),
+    epochs since it, the slope, the monitor at the amendment's equal epochs
+    and its ledger's counts."""
+    from cpl_keras import files
+    from cpl_keras.runs import read_log
+    from cpl_keras.training.state import read_state
+
+    name = f"cvgl_{arm}-s{seed}"
+    record = os.path.join(out, "inception-plateau", "runs", name)
+    run_dir = os.path.join(home, fair_fight.PLATEAU["runs_dir"], "inception", f"{arm}-s{seed}")
+    ledger = run_starts.read(record)
+    entry = {"arm": arm, "seed": seed, **run_starts.summary(ledger["starts"])}
+    entry["machines"] = len(entry["machines"])
+    if os.path.isdir(record):
+        config = files.read_json(os.path.join(record, "config.json"))
+        log, status = os.path.join(record, "log.csv"), "published"
+        epochs, best_epoch = config.get("epochs_run"), config.get("best_epoch")
+        stopped, wait = config.get("stopped"), None
+    elif os.path.isdir(run_dir):
+        state = read_state(run_dir)
+        log = os.path.join(run_dir, "log.csv")
+        status = "training" if _claimed(run_dir) else "interrupted"
+        epochs, stopped, wait = state.epoch, state.stopped, state.wait
+        best_epoch = None if state.best_epoch is None else state.best_epoch + 1
+    else:
+        return dict(entry, status="lost" if ledger["starts"] else "not started")
+    rows = {int(row["epoch"]): float(row[MONITOR]) for row in read_log(log)} \
+        if os.path.isfile(log) else {}
+    last = [rows[e] for e in sorted(rows)[-WINDOW:]]
+    return dict(entry, status=status, epochs=epochs, stopped=stopped, wait=wait,
+                best_epoch=best_epoch, best=rows.get(best_epoch),
+                slope=slope(last) if len(last) == WINDOW else None,
+                at=({str(e): rows[e] for e in fair_fight.PLATEAU["equal_epochs"] if e in rows}))
+
+
+def progress(home, out):
+    """Every run of the amendment, in its command's order, with the date."""
+    now = datetime.datetime.now(datetime.timezone.utc)
+    return {"as_of": now.strftime("%Y-%m-%d %H:%M"),
+            "patience": fair_fight.PLATEAU["patience"], "epoch_cap": fair_fight.PLATEAU["epochs"],
+            "window": WINDOW, "monitor": MONITOR,
+            "runs": [run_progress(arm, seed, home, out) for seed in fair_fight.PROTOCOL_SEEDS
+                     for arm in fair_fight.PLATEAU["arms"]]}
+
+
+def _number(value, digits=3, percent=False):
+    if value is None:
+        return "-"
+    return f"{100 * value:+.0f} %" if percent else f"{value:.{digits}f}"
+
+
+def markdown(found, command):
+    """The page: the runs' table, then the monitor at equal epochs."""
+    from cpl_keras import files
+
+    published = sum(r["status"] == "published" for r in found["runs"])
+    started = sum(r["status"] != "not started" for r in found["runs"])
+    lines = [files.generated_line(command), "",
+             "# The plateau amendment's runs as they stand", "",
+             f"As of {found['as_of']} UTC: {started} of {len(found['runs'])} runs started, "
+             f"{published} published. From the ledgers of starts, the run directories in "
+             "`~/cpl-runs/` and the published records, as this machine held them; it "
+             "decides nothing (the verdicts page does, once the runs are published). "
+             f"A run ends when its validation monitor (`{found['monitor']}`) has not "
+             f"improved for {found['patience']} epochs, or at {found['epoch_cap']} epochs. "
+             f"Slope: the least-squares change of the monitor over the last {found['window']} "
+             "epochs, as a share of its mean (negative: still falling).", "",
+             "| run | seed | status | epochs | best monitor (epoch) | epochs since best "
+             "| slope per 10 epochs | starts (resumed) |", "|---|---|---|---|---|---|---|---|"]
+    for r in found["runs"]:
+        name = fair_fight.NAMES[r["arm"]]
+        if "epochs" not in r:
+            lines.append(f"| {name} | {r['seed']} | {r['status']} | - | - | - | - | "
+                         f"{r['starts']} ({r['resumed']}) |")
+            continue
+        status = r["status"] + (f" ({r['stopped']})" if r.get("stopped") else "")
+        since = "-" if r["wait"] is None else f"{r['wait']} of {found['patience']}"
+        lines.append(f"| {name} | {r['seed']} | {status} | {r['epochs']} | "
+                     f"{_number(r['best'])} ({r['best_epoch']}) | {since} | "
+                     f"{_number(r['slope'], percent=True)} | {r['starts']} ({r['resumed']}) |")
+    reached = sorted({int(e) for r in found["runs"] for e in r.get("at", {})})
+    if reached:
+        lines += ["", f"The monitor (`{found['monitor']}`) at equal epochs:", "",
+                  "| run | seed | " + " | ".join(map(str, reached)) + " |",
+                  "|---|---|" + "---|" * len(reached)]
+        lines += [f"| {fair_fight.NAMES[r['arm']]} | {r['seed']} | "
+                  + " | ".join(_number(r["at"].get(str(e))) for e in reached) + " |"
+                  for r in found["runs"] if r.get("at")]
+    return "\n".join(lines) + "\n"
+
+
+def regenerate(page_path):
+    """The committed page, again from its JSON twin (the run directories it
+    was read from are on the machine that trains them)."""
+    from cpl_keras import files
+
+    command, found = files.page_source(page_path)
+    return markdown(found, command)
+
+
+def main(argv=None):
+    from cpl_keras import cli, files
+
+    parser = cli.Parser(prog="analyses/plateau_progress.py",
+                        description=__doc__.split("\n\n")[0])
+    parser.add_argument("--home", default=fair_fight.PLATEAU["home"],
+                        help="where the runs train (default ~/cpl-runs)")
+    parser.add_argument("--out", default=OUT, help="the fair fight's folder of records")
+    parser.add_argument("--print", action="store_true", help="print the page, write nothing")
+    args = parser.parse_args(argv)
+    found = progress(os.path.expanduser(args.home), args.out)
+    page = markdown(found, cli.command_line("analyses/plateau_progress.py", argv))
+    if args.print:
+        print(page, end="")
+        return 0
+    folder = os.path.join(args.out, "inception-plateau")
+    files.write_page(os.path.join(folder, "progress.md"), page, found)
+    print(os.path.join(folder, "progress.md"))
+    return 0
+
+
+if __name__ == "__main__":
+    from cpl_keras import cli
+
+    cli.run(main, "analyses/plateau_progress.py")

@@ -1,0 +1,88 @@
+"""``analyses/plateau_progress.py``: the plateau amendment's runs as they
+stand, from their ledgers, run directories and published records."""
+
+import json
+import os
+
+import pytest
+from helpers import load_script
+
+from cpl_keras.training.state import TrainingState, write_state
+from cpl_keras.training_options import TrainingError
+
+CPU = {"cpu": "AMD EPYC", "cpu_count": 2}
+
+
+def _log(path, values):
+    """A log.csv of the monitor alone, epochs numbered from 1."""
+    os.makedirs(os.path.dirname(path), exist_ok=True)
+    with open(path, "w") as f:
+        f.write("epoch,val_nmae\n" + "".join(f"{i + 1},{v}\n" for i, v in enumerate(values)))
+
+
+@pytest.fixture
+def plateau(tmp_path):
+    """A home and an out folder: MTL-Baseline seed 0 training (25 epochs,
+    best at 20), MTL-CPL-A seed 0 published (63 epochs, stopped by
+    patience), MTL-Baseline seed 1 lost (a start, no run directory)."""
+    script, starts = load_script("analyses/plateau_progress.py"), load_script(
+        "analyses/run_starts.py")
+    home, out = tmp_path / "home", tmp_path / "out"
+    runs = out / "inception-plateau" / "runs"
+    run_dir = home / "fair-fight-plateau" / "inception" / "baseline-s0"
+    starts.record_start(str(runs / "cvgl_baseline-s0"), str(run_dir), machine=CPU, gpu_names=[])
+    os.makedirs(run_dir / "backup")
+    write_state(str(run_dir), TrainingState(epoch=25, best=0.05, best_epoch=19, wait=5))
+    _log(run_dir / "log.csv", [1 / e for e in range(1, 21)] + [0.06] * 5)
+    starts.record_start(str(runs / "cvgl_baseline-s0"), str(run_dir), machine=CPU, gpu_names=[])
+    record = runs / "cvgl_cpl-a-s0"
+    _log(record / "log.csv", [2.0 - 0.01 * e for e in range(63)])
+    (record / "config.json").write_text(json.dumps(
+        {"epochs_run": 63, "best_epoch": 43, "stopped": "no improvement for 20 epochs"}))
+    starts.record_start(str(runs / "cvgl_baseline-s1"), str(tmp_path / "gone"), machine=CPU,
+                        gpu_names=[])
+    return script, home, out, run_dir
+
+
+def test_each_run_reads_as_it_stands(plateau):
+    script, home, out, run_dir = plateau
+    found = {(r["arm"], r["seed"]): r for r in script.progress(str(home), str(out))["runs"]}
+    assert len(found) == 6
+    training = found[("baseline", 0)]
+    assert training["status"] == "interrupted"  # (no live process claims it)
+    assert (training["epochs"], training["best_epoch"], training["wait"]) == (25, 20, 5)
+    assert training["best"] == pytest.approx(0.05)  # (the log's epoch 20, numbered from 1)
+    assert (training["starts"], training["resumed"]) == (2, 1)
+    assert training["at"] == {"10": pytest.approx(0.1), "20": pytest.approx(0.05)}
+    published = found[("cpl-a", 0)]
+    assert (published["status"], published["epochs"], published["best_epoch"]) == (
+        "published", 63, 43)
+    assert published["best"] == pytest.approx(2.0 - 0.01 * 42)
+    # A straight fall of 0.01 an epoch: 0.1 in 10 epochs over the window's mean.
+    mean = sum(2.0 - 0.01 * e for e in range(53, 63)) / 10
+    assert published["slope"] == pytest.approx(-0.1 / mean)
+    assert found[("baseline", 1)]["status"] == "lost"
+    assert found[("cpl-a", 2)]["status"] == "not started"
+    (run_dir.parent / "baseline-s0.claim").write_text(str(os.getpid()))
+    assert script.run_progress("baseline", 0, str(home), str(out))["status"] == "training"
+
+
+def test_the_page_is_written_and_regenerates_from_its_json(plateau, capsys):
+    script, home, out, _ = plateau
+    assert script.main(["--home", str(home), "--out", str(out)]) == 0
+    page = out / "inception-plateau" / "progress.md"
+    text = page.read_text()
+    assert "3 of 6 runs started, 1 published" in text
+    assert "| MTL-Baseline | 0 | interrupted | 25 | 0.050 (20) | 5 of 20 | +4 % | 2 (1) |" in text
+    assert "| MTL-CPL-A | 0 | published (no improvement for 20 epochs) | 63 |" in text
+    assert script.regenerate(str(page)) == text
+    assert script.main(["--home", str(home), "--out", str(out), "--print"]) == 0
+    assert "| MTL-CPL-A | 2 | not started |" in capsys.readouterr().out
+
+
+def test_a_corrupt_state_is_one_line_naming_the_file(plateau):
+    script, home, out, run_dir = plateau
+    (run_dir / "backup" / "state.json").write_text("{not json")
+    with pytest.raises(TrainingError) as error:
+        script.progress(str(home), str(out))
+    assert "state.json" in str(error.value) and "\n" not in str(error.value)
