@@ -199,8 +199,10 @@ def check_jax_environment():
 def machine():
     """The machine this process trains on, as a run's config.json records it
     (``machines``): the CPU model, its logical cores, the accelerators the
-    backend sees (JAX only; none listed when JAX is not imported) and the
-    versions of Keras and of the backend's package."""
+    backend sees (JAX only; none listed when JAX is not imported), the
+    versions of Keras and of the backend's package and, when set,
+    ``XLA_FLAGS`` (``xla_flags``: flags such as an optimisation level
+    change how XLA compiles, and so the digits a training gives)."""
     import importlib.metadata  # (here: it would double ``import cpl_keras``'s time)
 
     cpu = None
@@ -218,6 +220,8 @@ def machine():
             out[package] = importlib.metadata.version(package)
         except importlib.metadata.PackageNotFoundError:
             out[package] = None
+    if os.environ.get("XLA_FLAGS", "").strip():
+        out["xla_flags"] = os.environ["XLA_FLAGS"].strip()
     jax = sys.modules.get("jax")
     if jax is not None and name == "jax":
         out["devices"] = sorted({f"{d.platform}:{d.device_kind}" for d in jax.devices()})

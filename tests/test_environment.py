@@ -156,3 +156,13 @@ def test_tensorflows_start_up_lines_are_off_unless_asked_for(backend_name, given
                            "print(os.environ.get('TF_CPP_MIN_LOG_LEVEL'))"],
                           cwd=REPO, env=env, capture_output=True, text=True, timeout=60)
     assert done.stdout == f"{level}\n", done.stderr
+
+
+def test_a_run_records_the_xla_flags_it_was_compiled_under(monkeypatch):
+    """A run trained under XLA_FLAGS (an optimisation level: other digits)
+    says so in its machine entry; one without them has no such key, so the
+    runs recorded before stay equal to a resume without flags."""
+    monkeypatch.delenv("XLA_FLAGS", raising=False)
+    assert "xla_flags" not in backend.machine()
+    monkeypatch.setenv("XLA_FLAGS", " --xla_backend_optimization_level=0 ")
+    assert backend.machine()["xla_flags"] == "--xla_backend_optimization_level=0"
