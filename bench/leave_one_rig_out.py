@@ -104,8 +104,9 @@ def square_pixel_fy_error(run_dir, path):
 
     from cpl_keras import evaluation
     from cpl_keras.camera import square_pixel_fy
+    from cpl_keras.runs import load_run
 
-    run = evaluation.load_run(run_dir)
+    run = load_run(run_dir)
     try:
         with evaluation.open_dataset(path) as data:
             size_h, size_w = data.image_shape[:2]
@@ -125,8 +126,9 @@ def own_test_rows(name, run_dir):
 
     from cpl_keras import evaluation
     from cpl_keras.datasets import load_split
+    from cpl_keras.runs import load_run
 
-    run = evaluation.load_run(run_dir)
+    run = load_run(run_dir)
     test = load_split(os.path.join(run_dir, "split.npz"))["test"]
     try:
         with evaluation.open_dataset(run.config.data.path) as data:

@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from helpers import REPO, writable_copy
-from cpl_keras import calibration, calibration_records, evaluation, exports
+from cpl_keras import calibration, calibration_records, exports, runs
 from cpl_keras.calibrate import Calibration, CalibrationError, Calibrator, RigCalibration
 from cpl_keras.commands import calibrate as calibrate_command
 from cpl_keras.camera import PARAMETERS, fov_from_focal
@@ -63,8 +63,8 @@ def test_calibrate_scales_back_to_input_pixels(setup, calibrator, tmp_path, caps
     assert set(printed["parameters"]) == set(PARAMETERS)
     assert (printed["image_width"], printed["image_height"]) == (64, 40)
     # the same forward pass by hand, on the resized pair
-    run = evaluation.load_run(setup["run"])
-    model = evaluation.load_model(run)
+    run = runs.load_run(setup["run"])
+    model = runs.load_model(run)
     left = cv2.cvtColor(cv2.imread(str(root / "left.png")), cv2.COLOR_BGR2RGB)
     right = cv2.cvtColor(cv2.imread(str(root / "right.png")), cv2.COLOR_BGR2RGB)
     resize = lambda im: cv2.resize(im, (SIZE, SIZE), interpolation=cv2.INTER_AREA)[None]

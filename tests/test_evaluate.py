@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 import evaluate
-from cpl_keras import evaluation, metrics, report
+from cpl_keras import evaluation, metrics, report, runs
 from cpl_keras.camera import PARAMETERS
 from cpl_keras.data.storage import StereoFile
 from cpl_keras.data.writer import StereoWriter
@@ -203,7 +203,7 @@ def test_forward_pass_sees_one_batch_shape_and_drops_the_filled_rows(tiny):
     pairs at batch 4: every call 4 pairs, so one compilation), and its
     outputs are the model's on each pair alone: the filled-up rows change
     nothing and are dropped."""
-    model = evaluation.load_model(evaluation.load_run(tiny["run"]))
+    model = runs.load_model(runs.load_run(tiny["run"]))
     with StereoFile(tiny["data"]) as f:
         left, right = f.read_pairs(np.arange(7))
     seen, call = [], model.predict_on_batch
@@ -245,3 +245,17 @@ def test_predict_images_has_one_home():
     for module in pkgutil.iter_modules(cpl_keras.evaluation.__path__):
         loaded = importlib.import_module(f"cpl_keras.evaluation.{module.name}")
         assert not hasattr(loaded, "predict_images"), loaded.__name__
+
+
+def test_runs_are_loaded_from_their_own_home():
+    """A run and its model are read through ``cpl_keras.runs`` and a model's
+    input size through ``cpl_keras.models.inference``; the evaluation
+    package uses them but does not hand them out."""
+    import cpl_keras.evaluation
+    from cpl_keras.models import inference
+
+    for name, home in (("load_run", runs), ("load_model", runs),
+                       ("model_image_shape", inference)):
+        assert hasattr(home, name)
+        assert not hasattr(cpl_keras.evaluation, name), name
+        assert name not in cpl_keras.evaluation.__all__

@@ -54,10 +54,11 @@ def test_each_rig_is_scored_by_a_model_that_never_saw_it(tiny_run, real32, tmp_p
     # fy from square pixels, by hand from the stored predictions of fx and the
     # crops' sides (fy / fx of a square-pixel crop is its width / height)
     from cpl_keras import evaluation
+    from cpl_keras.runs import load_model, load_run
     with StereoFile(real32 / "oakd.h5") as f:
         labels = f.labels
-        run = evaluation.load_run(str(runs / "without-oakd"))
-        fx = evaluation.predict_run(evaluation.load_model(run), f, np.arange(12))
+        run = load_run(str(runs / "without-oakd"))
+        fx = evaluation.predict_run(load_model(run), f, np.arange(12))
     expected = np.median(np.abs(fx["fx"] * labels["crop_width"] / labels["crop_height"]
                                 / labels["fy"] - 1.0))
     assert f"| {expected:.3f} |" in rows[0]
@@ -72,7 +73,7 @@ def test_each_rig_is_scored_by_a_model_that_never_saw_it(tiny_run, real32, tmp_p
     assert sum(counts.values()) == len(test) and "rendered" in counts
     assert set(counts) <= {"rendered", "chessboard", "middlebury"}
     with StereoFile(runs / "mix_without_oakd.h5") as f:
-        pred = evaluation.predict_run(evaluation.load_model(run), f, test)
+        pred = evaluation.predict_run(load_model(run), f, test)
         rendered = f.labels["source_index"][test] == 0
         fx_true = f.labels["fx"][test]
     fx_error = np.median(np.abs(pred["fx"][rendered] / fx_true[rendered] - 1.0))

@@ -164,10 +164,10 @@ def test_published_runs_are_restored_not_trained_again(quick, tmp_path):
         for row in first["rows"]:
             assert again["rows"][row]["targets"] == first["rows"][row]["targets"], (stem, row)
     # a restored run has no weights: asking for its model says so in one line
-    from cpl_keras import evaluation, runs
+    from cpl_keras import runs
     run_dir = tmp_path / "runs" / "cvgl" / "cpl-a"
     with pytest.raises(runs.RunError, match="no weights"):
-        evaluation.load_model(evaluation.load_run(run_dir))
+        runs.load_model(runs.load_run(run_dir))
 
 
 @pytest.mark.slow

@@ -20,11 +20,10 @@ kinds (Markdown, CSV, JSON, plots). Runs are read through
 """
 
 from cpl_keras.evaluation.forward_pass import (
-    forget_model, load_model, model_image_shape, predict_run, published, run_predictions,
-    store_predictions,
+    forget_model, predict_run, published, run_predictions, store_predictions,
 )
 from cpl_keras.evaluation.pairs import (
-    EvaluationError, evaluation_indices, load_run, load_table_runs, open_dataset, truth_targets,
+    EvaluationError, evaluation_indices, load_table_runs, open_dataset, truth_targets,
 )
 from cpl_keras.evaluation.seeds import SPREAD, SPREAD_METRICS, aggregate_seeds
 from cpl_keras.evaluation.table1 import (
@@ -47,12 +46,9 @@ __all__ = [
     "forget_model",
     "geometric_predictions",
     "is_rectified",
-    "load_model",
-    "load_run",
     "load_table_runs",
     "make_table",
     "make_table2",
-    "model_image_shape",
     "open_dataset",
     "PAPER_CONVENTION",
     "PAPER_TABLES",

@@ -29,11 +29,12 @@ from cpl_keras.baselines.average import average_predictions
 from cpl_keras.camera import TARGETS
 from cpl_keras.evaluation.forward_pass import forget_model, published, run_predictions
 from cpl_keras.evaluation.pairs import (
-    EvaluationError, _same_file, evaluation_indices, load_run, load_table_runs, open_dataset,
+    EvaluationError, _same_file, evaluation_indices, load_table_runs, open_dataset,
     truth_targets,
 )
 from cpl_keras.evaluation.tables import Table1
 from cpl_keras.metrics import jsonable
+from cpl_keras.runs import load_run
 from cpl_keras.models.variants import MODEL_ROWS, VARIANT_ROWS
 from cpl_keras.runs import RELEASED
 from cpl_keras.table_rows import Row
