@@ -85,9 +85,20 @@ def train_command(towers, arm, seed, data, epochs, recipe, run_dir, patience=Non
              "--head-units", "--quiet"] + extra)
 
 
+def claimed(run_dir):
+    """Whether a live process claims ``run_dir`` (``<run_dir>.claim`` holds
+    its pid); False for no claim or a stale one (its process has ended)."""
+    try:
+        with open(run_dir.rstrip(os.sep) + ".claim") as f:
+            os.kill(int(f.read().strip() or 0), 0)
+        return True
+    except (OSError, ValueError):
+        return False
+
+
 def claim(run_dir):
     """Whether this process may train ``run_dir``: True unless another live
-    process has claimed it (``<run_dir>.claim`` holds its pid), so that two
+    process has claimed it (``claimed``), so that two
     of these commands started side by side share the runs instead of both
     training, then both publishing, the same one."""
     path = run_dir.rstrip(os.sep) + ".claim"
@@ -96,13 +107,13 @@ def claim(run_dir):
         try:
             handle = os.open(path, os.O_CREAT | os.O_EXCL | os.O_WRONLY)
         except FileExistsError:
-            try:
-                with open(path) as f:
-                    os.kill(int(f.read().strip() or 0), 0)  # (alive: its claim stands)
+            if claimed(run_dir):  # (alive: its claim stands)
                 return False
-            except (OSError, ValueError):  # (its process has ended: the claim is stale)
+            try:  # (its process has ended: the claim is stale)
                 os.remove(path)
-                continue
+            except FileNotFoundError:
+                pass
+            continue
         os.write(handle, str(os.getpid()).encode())
         os.close(handle)
         return True

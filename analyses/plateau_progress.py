@@ -51,16 +51,6 @@ def slope(values):
     return None if mean_y == 0 else num / den * n / mean_y
 
 
-def _claimed(run_dir):
-    """Whether a live process claims ``run_dir`` (``fair_fight.claim``'s file)."""
-    try:
-        with open(run_dir.rstrip(os.sep) + ".claim") as f:
-            os.kill(int(f.read().strip() or 0), 0)
-        return True
-    except (OSError, ValueError):
-        return False
-
-
 def run_progress(arm, seed, home, out):
     """One run's entry: its status, epochs, best monitor (1-based epoch),
     epochs since it, the slope, the monitor at the amendment's equal epochs
@@ -83,7 +73,7 @@ def run_progress(arm, seed, home, out):
     elif os.path.isdir(run_dir):
         state = read_state(run_dir)
         log = os.path.join(run_dir, "log.csv")
-        status = "training" if _claimed(run_dir) else "interrupted"
+        status = "training" if fair_fight.claimed(run_dir) else "interrupted"
         epochs, stopped, wait = state.epoch, state.stopped, state.wait
         best_epoch = None if state.best_epoch is None else state.best_epoch + 1
     else:
