@@ -51,10 +51,31 @@ def slope(values):
     return None if mean_y == 0 else num / den * n / mean_y
 
 
+#: A log's columns that are the machine's (its clock and load), not the training's.
+MACHINE_COLUMNS = ("wall_time_s", "load_average")
+
+
+def repeats(rows, earlier):
+    """``{"epochs", "of"}``: how many epochs from the first the log ``rows``
+    repeats of the ``earlier`` log to the last digit (every column both
+    have but the machine's), of the epochs both have; None without one."""
+    if not rows or not earlier:
+        return None
+    both = min(len(rows), len(earlier))
+    same = 0
+    for row, old in zip(rows[:both], earlier[:both]):
+        keys = (set(row) & set(old)) - set(MACHINE_COLUMNS)
+        if any(row[k] != old[k] for k in keys):
+            break
+        same += 1
+    return {"epochs": same, "of": both}
+
+
 def run_progress(arm, seed, home, out):
     """One run's entry: its status, epochs, best monitor (1-based epoch),
-    epochs since it, the slope, the monitor at the amendment's equal epochs
-    and its ledger's counts."""
+    epochs since it, the slope, the monitor at the amendment's equal epochs,
+    how much of the 50-epoch run of its arm and seed it repeats and its
+    ledger's counts."""
     from cpl_keras import files
     from cpl_keras.runs import read_log
     from cpl_keras.training.state import read_state
@@ -78,9 +99,11 @@ def run_progress(arm, seed, home, out):
         best_epoch = None if state.best_epoch is None else state.best_epoch + 1
     else:
         return dict(entry, status="lost" if ledger["starts"] else "not started")
-    rows = {int(row["epoch"]): float(row[MONITOR]) for row in read_log(log)} \
-        if os.path.isfile(log) else {}
+    logged = read_log(log) if os.path.isfile(log) else []
+    rows = {int(row["epoch"]): float(row[MONITOR]) for row in logged}
     last = [rows[e] for e in sorted(rows)[-WINDOW:]]
+    fifty = os.path.join(out, "inception", "runs", name, "log.csv")
+    entry["repeats_fifty"] = repeats(logged, read_log(fifty) if os.path.isfile(fifty) else [])
     return dict(entry, status=status, epochs=epochs, stopped=stopped, wait=wait,
                 best_epoch=best_epoch, best=rows.get(best_epoch),
                 slope=slope(last) if len(last) == WINDOW else None,
@@ -103,6 +126,10 @@ def _number(value, digits=3, percent=False):
     return f"{100 * value:+.0f} %" if percent else f"{value:.{digits}f}"
 
 
+def _repeats(found):
+    return "-" if found is None else f"{found['epochs']} of {found['of']}"
+
+
 def markdown(found, command):
     """The page: the runs' table, then the monitor at equal epochs."""
     from cpl_keras import files
@@ -119,19 +146,25 @@ def markdown(found, command):
              f"improved for {found['patience']} epochs, or at {found['epoch_cap']} epochs. "
              f"Slope: the least-squares change of the monitor over the last {found['window']} "
              "epochs, as a share of its mean (negative: still falling).", "",
+             "The 50-epoch run: how many of its epochs, from the first, the run repeats "
+             "to the last digit (every logged value but the wall time and the load); "
+             "training is deterministic, so a run to a plateau that repeats all 50 is the "
+             "50-epoch run trained on.", "",
              "| run | seed | status | epochs | best monitor (epoch) | epochs since best "
-             "| slope per 10 epochs | starts (resumed) |", "|---|---|---|---|---|---|---|---|"]
+             "| slope per 10 epochs | the 50-epoch run | starts (resumed) |",
+             "|---|---|---|---|---|---|---|---|---|"]
     for r in found["runs"]:
         name = fair_fight.NAMES[r["arm"]]
         if "epochs" not in r:
-            lines.append(f"| {name} | {r['seed']} | {r['status']} | - | - | - | - | "
+            lines.append(f"| {name} | {r['seed']} | {r['status']} | - | - | - | - | - | "
                          f"{r['starts']} ({r['resumed']}) |")
             continue
         status = r["status"] + (f" ({r['stopped']})" if r.get("stopped") else "")
         since = "-" if r["wait"] is None else f"{r['wait']} of {found['patience']}"
         lines.append(f"| {name} | {r['seed']} | {status} | {r['epochs']} | "
                      f"{_number(r['best'])} ({r['best_epoch']}) | {since} | "
-                     f"{_number(r['slope'], percent=True)} | {r['starts']} ({r['resumed']}) |")
+                     f"{_number(r['slope'], percent=True)} | {_repeats(r['repeats_fifty'])} | "
+                     f"{r['starts']} ({r['resumed']}) |")
     reached = sorted({int(e) for r in found["runs"] for e in r.get("at", {})})
     if reached:
         lines += ["", f"The monitor (`{found['monitor']}`) at equal epochs:", "",

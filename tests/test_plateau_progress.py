@@ -35,6 +35,9 @@ def plateau(tmp_path):
     write_state(str(run_dir), TrainingState(epoch=25, best=0.05, best_epoch=19, wait=5))
     _log(run_dir / "log.csv", [1 / e for e in range(1, 21)] + [0.06] * 5)
     starts.record_start(str(runs / "cvgl_baseline-s0"), str(run_dir), machine=CPU, gpu_names=[])
+    # its 50-epoch run: the same first 20 epochs, then another value
+    _log(out / "inception" / "runs" / "cvgl_baseline-s0" / "log.csv",
+         [1 / e for e in range(1, 21)] + [0.07] * 30)
     record = runs / "cvgl_cpl-a-s0"
     _log(record / "log.csv", [2.0 - 0.01 * e for e in range(63)])
     (record / "config.json").write_text(json.dumps(
@@ -54,6 +57,7 @@ def test_each_run_reads_as_it_stands(plateau):
     assert training["best"] == pytest.approx(0.05)  # (the log's epoch 20, numbered from 1)
     assert (training["starts"], training["resumed"]) == (2, 1)
     assert training["at"] == {"10": pytest.approx(0.1), "20": pytest.approx(0.05)}
+    assert training["repeats_fifty"] == {"epochs": 20, "of": 25}
     published = found[("cpl-a", 0)]
     assert (published["status"], published["epochs"], published["best_epoch"]) == (
         "published", 63, 43)
@@ -61,6 +65,7 @@ def test_each_run_reads_as_it_stands(plateau):
     # A straight fall of 0.01 an epoch: 0.1 in 10 epochs over the window's mean.
     mean = sum(2.0 - 0.01 * e for e in range(53, 63)) / 10
     assert published["slope"] == pytest.approx(-0.1 / mean)
+    assert published["repeats_fifty"] is None  # (no 50-epoch record of its own here)
     assert found[("baseline", 1)]["status"] == "lost"
     assert found[("cpl-a", 2)]["status"] == "not started"
     (run_dir.parent / "baseline-s0.claim").write_text(str(os.getpid()))
@@ -73,7 +78,7 @@ def test_the_page_is_written_and_regenerates_from_its_json(plateau, capsys):
     page = out / "inception-plateau" / "progress.md"
     text = page.read_text()
     assert "3 of 6 runs started, 1 published" in text
-    assert "| MTL-Baseline | 0 | interrupted | 25 | 0.050 (20) | 5 of 20 | +4 % | 2 (1) |" in text
+    assert "| MTL-Baseline | 0 | interrupted | 25 | 0.050 (20) | 5 of 20 | +4 % | 20 of 25 | 2 (1) |" in text
     assert "| MTL-CPL-A | 0 | published (no improvement for 20 epochs) | 63 |" in text
     assert script.regenerate(str(page)) == text
     assert script.main(["--home", str(home), "--out", str(out), "--print"]) == 0
@@ -86,3 +91,13 @@ def test_a_corrupt_state_is_one_line_naming_the_file(plateau):
     with pytest.raises(TrainingError) as error:
         script.progress(str(home), str(out))
     assert "state.json" in str(error.value) and "\n" not in str(error.value)
+
+
+def test_repeating_the_fifty_epoch_run_ignores_only_the_machines_columns():
+    script = load_script("analyses/plateau_progress.py")
+    old = [{"epoch": e, "loss": 1.0 / e, "wall_time_s": 10.0 * e} for e in range(1, 4)]
+    new = [dict(row, wall_time_s=row["wall_time_s"] + 5, load_average=1.5) for row in old]
+    assert script.repeats(new + [{"epoch": 4, "loss": 0.2}], old) == {"epochs": 3, "of": 3}
+    new[1]["loss"] += 1e-12  # (a last digit)
+    assert script.repeats(new, old) == {"epochs": 1, "of": 3}
+    assert script.repeats(new, []) is None
