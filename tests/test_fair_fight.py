@@ -14,6 +14,10 @@ def _script():
     return load_script("analyses/fair_fight.py")
 
 
+def _page():
+    return load_script("analyses/fair_fight_verdicts.py")
+
+
 def test_every_arm_trains_under_one_recipe_for_the_same_epochs(capsys, tmp_path):
     data = tmp_path / "d.h5"
     data.write_bytes(b"")
@@ -35,7 +39,7 @@ def test_every_arm_trains_under_one_recipe_for_the_same_epochs(capsys, tmp_path)
 
 
 def test_the_protocol_verdict_of_a_pair():
-    script = _script()
+    script = _page()
     base = v.ColumnVerdict(column="fx", parameter="fx", mean_a=0, spread_a=0, mean_b=0,
                            spread_b=0, spread_rule=v.UNDECIDED, bootstrap_rule=v.UNDECIDED,
                            verdict=v.UNDECIDED, per_seed=())
@@ -84,7 +88,7 @@ def _log(path, monitor, dead_pitch=None, epochs=50):
 
 
 def test_validation_at_equal_epochs_and_collapsed_heads_of_a_pair(tmp_path):
-    script = _script()
+    script = _page()
     # A: 1/e on every column but the disparity (2/e); B: 1.5/e everywhere; seed 1's B
     # ran 40 epochs only, so the epoch 50 is left out of the means
     a = {s: _log(tmp_path / f"a{s}.csv", lambda e, p: (2.0 if p == "disparity" else 1.0) / e)
@@ -120,7 +124,7 @@ def test_each_arm_beside_the_average_row(tmp_path):
 
     from cpl_keras.camera import PARAMETERS
 
-    script = _script()
+    script = _page()
     # two seeds of 4 test pairs; u0 is constant (the Average row is exact there)
     truth = {s: {p: np.array([1.0, 2.0, 3.0, 4.0]) + s for p in PARAMETERS} for s in (0, 1)}
     for s in (0, 1):
