@@ -21,7 +21,7 @@ import os
 import sys
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
-from fair_fight import ARMS, NAMES, PAIRS, PROTOCOL_SEEDS, sibling  # noqa: E402
+from fair_fight import ARMS, NAMES, PAIRS, PLATEAU, PROTOCOL_SEEDS, sibling  # noqa: E402
 
 
 def protocol_verdict(verdicts):
@@ -84,6 +84,32 @@ def head_shares(log_path, kept_epoch):
             "last": {h: last.get(f"dead_{h}") for h in PARAMETERS}}
 
 
+#: The folder suffix of the plateau amendment's runs (``inception-plateau``).
+PLATEAU_SUFFIX = "-plateau"
+
+
+def amendment(out, towers, records):
+    """What the plateau amendment's page adds (None for the protocol's own
+    folders): the amendment's page, the 50-epoch verdict of each pair (the
+    same runs' first 50 epochs, ``<towers without -plateau>/verdicts.json``)
+    and each run's starts from its record's ledger (``starts.json``)."""
+    from cpl_keras import files
+
+    if not towers.endswith(PLATEAU_SUFFIX):
+        return None
+    fifty = towers[:-len(PLATEAU_SUFFIX)]
+    found = files.read_json(os.path.join(out, fifty, "verdicts.json"), default={"pairs": {}})
+    starts = {}
+    for key, record in sorted(records.items()):
+        ledger = files.read_json(os.path.join(record, "starts.json"), default={"starts": []})
+        starts[f"{key[0]}-s{key[1]}"] = {"starts": len(ledger["starts"]),
+                                         "resumed": ledger.get("resumed", 0),
+                                         "machines": len(ledger.get("machines", []))}
+    return {"page": "protocol-plateau.md", "fifty_epochs_page": f"../{fifty}/verdicts.md",
+            "fifty_epochs": {title: pair.get("verdict") for title, pair in found["pairs"].items()},
+            "starts": starts}
+
+
 def write_verdicts(towers, out, data, command, resamples=2000, epochs=EQUAL_EPOCHS):
     """``<out>/<towers>/verdicts.md`` and ``.json`` (``towers``: the folder,
     ``inception-plateau`` for the amendment's runs): each pair of arms over
@@ -97,7 +123,7 @@ def write_verdicts(towers, out, data, command, resamples=2000, epochs=EQUAL_EPOC
     page = sibling("verdicts")  # (analyses/verdicts.py: the same tables as every folder's)
 
     folder = os.path.join(out, towers)
-    rows, configs, logs, statistics = {}, {}, {}, {}
+    rows, configs, logs, statistics, records = {}, {}, {}, {}, {}
     for record in sorted(glob.glob(os.path.join(folder, "runs", "cvgl_*-s*"))):
         if not os.path.isdir(record):
             continue
@@ -107,13 +133,21 @@ def write_verdicts(towers, out, data, command, resamples=2000, epochs=EQUAL_EPOC
         statistics[(arm, int(seed))] = load_statistics(os.path.join(record, runs.STATS))
         configs[(arm, int(seed))] = config
         logs.setdefault(arm, {})[int(seed)] = os.path.join(record, "log.csv")
+        records[(arm, int(seed))] = record
+    plateau = amendment(out, towers, records)
     result = {"command": command, "rules": page.RULES, "protocol_seeds": PROTOCOL_SEEDS,
               "runs": [{"arm": arm, "seed": seed, "epochs_run": config.epochs_run,
                         "best_epoch": config.best_epoch, "wall_time_s": config.wall_time_s,
                         "dead_heads": head_shares(logs[arm][seed], config.best_epoch)}
                        for (arm, seed), config in sorted(configs.items())],
               "pairs": {}}
+    if plateau:  # (its arms alone; how each run ended, and its starts)
+        result["amendment"] = plateau
+        for run in result["runs"]:
+            run["stopped"] = configs[(run["arm"], run["seed"])].stopped
     for a, b in PAIRS:
+        if plateau and not {a, b} <= set(PLATEAU["arms"]):
+            continue
         seeds = sorted(set(rows.get(a, {})) & set(rows.get(b, {})))
         title = f"{NAMES[a]} vs {NAMES[b]}"
         if len(seeds) < 2:
@@ -228,17 +262,24 @@ def verdicts_markdown(towers, result):
 
     page = sibling("verdicts")  # (analyses/verdicts.py: the same tables as every folder's)
 
-    md = [files.generated_line(result["command"]),
-          f"# Fair fight, {towers} towers: verdicts", "",
-          "The protocol's rules ([../protocol.md](../protocol.md)): a column is decided "
-          "where the seed-spread rule and the paired bootstrap (every seed) agree; the "
-          "pair's verdict is A lower (A decided lower somewhere, B nowhere), B lower, mixed "
-          "or not decided.", "",
-          "| run | seed | epochs (kept) | training time (s) |", "|---|---|---|---|"]
-    for run in result["runs"]:
-        md.append(f"| {NAMES[run['arm']]} | {run['seed']} | {run['epochs_run']} "
-                  f"({run['best_epoch']}) | {run['wall_time_s']:,.0f} |")
-    md.append("")
+    plateau = result.get("amendment")
+    if plateau:
+        md = [files.generated_line(result["command"]),
+              "# Fair fight, InceptionV3 to a plateau: verdicts", "",
+              f"The protocol's rules ([../protocol.md](../protocol.md)) at the plateau "
+              f"([../{plateau['page']}](../{plateau['page']})): each run trained until its "
+              "validation monitor had not improved for 20 epochs (at most 200), the kept "
+              "epoch its best. A column is decided where the seed-spread rule and the paired "
+              "bootstrap (every seed) agree; the pair's verdict is A lower (A decided lower "
+              "somewhere, B nowhere), B lower, mixed or not decided.", ""]
+    else:
+        md = [files.generated_line(result["command"]),
+              f"# Fair fight, {towers} towers: verdicts", "",
+              "The protocol's rules ([../protocol.md](../protocol.md)): a column is decided "
+              "where the seed-spread rule and the paired bootstrap (every seed) agree; the "
+              "pair's verdict is A lower (A decided lower somewhere, B nowhere), B lower, "
+              "mixed or not decided.", ""]
+    md += runs_markdown(result["runs"], plateau)
     for title, pair in result["pairs"].items():
         if "detail" not in pair:
             md += [f"### {title}", "", f"Not yet: seeds published for both: {pair['seeds']}.",
@@ -255,12 +296,35 @@ def verdicts_markdown(towers, result):
                 md += [f"**So far: {pair['verdict']}** (A = {pair['a']}, seeds {seeds} of "
                        f"the protocol's {', '.join(map(str, protocol))}: not the "
                        "protocol's verdict until every seed is published).", ""]
+            if plateau and plateau["fifty_epochs"].get(title):
+                md += [f"At 50 epochs (the same runs' first 50, "
+                       f"[{plateau['fifty_epochs_page']}]({plateau['fifty_epochs_page']})): "
+                       f"{plateau['fifty_epochs'][title]}.", ""]
         if "equal_epochs" in pair:
             md += equal_epochs_markdown(pair["equal_epochs"])
     if "beside_average" in result:
         md += average_markdown(result["beside_average"])
     md += heads_markdown(result["runs"])
     return "\n".join(md)
+
+
+def runs_markdown(runs, plateau=None):
+    """Markdown lines: the runs, their epochs and training time; at the
+    plateau also why each ended and its starts (resumed)."""
+    if not plateau:
+        lines = ["| run | seed | epochs (kept) | training time (s) |", "|---|---|---|---|"]
+        lines += [f"| {NAMES[r['arm']]} | {r['seed']} | {r['epochs_run']} ({r['best_epoch']}) "
+                  f"| {r['wall_time_s']:,.0f} |" for r in runs]
+        return lines + [""]
+    lines = ["| run | seed | epochs (kept) | ended | starts (resumed) | training time (s) |",
+             "|---|---|---|---|---|---|"]
+    for r in runs:
+        starts = plateau["starts"].get(f"{r['arm']}-s{r['seed']}", {})
+        lines.append(f"| {NAMES[r['arm']]} | {r['seed']} | {r['epochs_run']} "
+                     f"({r['best_epoch']}) | {r.get('stopped') or 'at the epoch cap'} | "
+                     f"{starts.get('starts', 0)} ({starts.get('resumed', 0)}) | "
+                     f"{r['wall_time_s']:,.0f} |")
+    return lines + [""]
 
 
 def equal_epochs_markdown(found):

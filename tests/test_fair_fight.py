@@ -226,3 +226,44 @@ def test_the_plateau_ledger_counts_resumes_machines_and_a_run_lost_twice(tmp_pat
     starts.copy_into(record)
     with open(os.path.join(record, "starts.json")) as f:
         assert json.load(f)["resumed"] == 1
+
+
+def test_the_plateau_page_names_its_amendment_ends_starts_and_the_fifty_epoch_verdict(tmp_path):
+    """The amendment's verdicts page: its title and rules name
+    protocol-plateau.md, each run says how it ended and how often it was
+    started, each pair has its 50-epoch verdict beside it, and the range
+    arm (not in the amendment) has no section; the protocol's own pages are
+    untouched (None)."""
+    import shutil
+
+    page = _page()
+    assert page.amendment(str(tmp_path), "inception", {}) is None
+    committed = os.path.join(REPO, "paper_results", "fair-fight", "inception", "verdicts.json")
+    os.makedirs(tmp_path / "inception")
+    shutil.copy(committed, tmp_path / "inception" / "verdicts.json")
+    record = tmp_path / "inception-plateau" / "runs" / "cvgl_baseline-s0"
+    os.makedirs(record)
+    machine = {"cpu": "AMD EPYC", "cpu_count": 2, "gpus": []}
+    (record / "starts.json").write_text(json.dumps(
+        {"starts": [{"start": i} for i in (1, 2, 3)], "resumed": 2, "machines": [machine]}))
+    found = page.amendment(str(tmp_path), "inception-plateau",
+                           {("baseline", 0): str(record), ("cpl-a", 0): str(tmp_path / "none")})
+    title = "MTL-CPL-A vs MTL-Baseline"
+    assert found["fifty_epochs"][title] == "B lower"
+    assert found["starts"] == {"baseline-s0": {"starts": 3, "resumed": 2, "machines": 1},
+                               "cpl-a-s0": {"starts": 0, "resumed": 0, "machines": 0}}
+    with open(committed) as f:
+        result = json.load(f)
+    result["pairs"] = {title: result["pairs"][title]}
+    result["amendment"] = found
+    result["runs"] = [run for run in result["runs"] if run["arm"] != "cpl-a-range"]
+    for run in result["runs"]:
+        run["stopped"] = "early stopping: no improvement of val_nmae for 20 epochs"
+    text = page.verdicts_markdown("inception-plateau", result)
+    assert "# Fair fight, InceptionV3 to a plateau: verdicts" in text
+    assert "[../protocol-plateau.md](../protocol-plateau.md)" in text
+    assert "| MTL-Baseline | 0 | 50 (48) | early stopping: no improvement of val_nmae for 20 " \
+           "epochs | 3 (2) | 8,346 |" in text
+    assert "At 50 epochs (the same runs' first 50, [../inception/verdicts.md]" \
+           "(../inception/verdicts.md)): B lower." in text
+    assert text.count("\n### ") == 1 and "(range weights) (A)" not in text
