@@ -90,12 +90,12 @@ def run_progress(arm, seed, home, out):
         config = files.read_json(os.path.join(record, "config.json"))
         log, status = os.path.join(record, "log.csv"), "published"
         epochs, best_epoch = config.get("epochs_run"), config.get("best_epoch")
-        stopped, wait = config.get("stopped"), None
+        stopped, wait, best = config.get("stopped"), None, config.get("best_score")
     elif os.path.isdir(run_dir):
         state = read_state(run_dir)
         log = os.path.join(run_dir, "log.csv")
         status = "training" if fair_fight.claimed(run_dir) else "interrupted"
-        epochs, stopped, wait = state.epoch, state.stopped, state.wait
+        epochs, stopped, wait, best = state.epoch, state.stopped, state.wait, state.best
         best_epoch = None if state.best_epoch is None else state.best_epoch + 1
     else:
         return dict(entry, status="lost" if ledger["starts"] else "not started")
@@ -105,7 +105,7 @@ def run_progress(arm, seed, home, out):
     fifty = os.path.join(out, "inception", "runs", name, "log.csv")
     entry["repeats_fifty"] = repeats(logged, read_log(fifty) if os.path.isfile(fifty) else [])
     return dict(entry, status=status, epochs=epochs, stopped=stopped, wait=wait,
-                best_epoch=best_epoch, best=rows.get(best_epoch),
+                best_epoch=best_epoch, best=best,
                 slope=slope(last) if len(last) == WINDOW else None,
                 at=({str(e): rows[e] for e in fair_fight.PLATEAU["equal_epochs"] if e in rows}))
 

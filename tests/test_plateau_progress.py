@@ -41,7 +41,8 @@ def plateau(tmp_path):
     record = runs / "cvgl_cpl-a-s0"
     _log(record / "log.csv", [2.0 - 0.01 * e for e in range(63)])
     (record / "config.json").write_text(json.dumps(
-        {"epochs_run": 63, "best_epoch": 43, "stopped": "no improvement for 20 epochs"}))
+        {"epochs_run": 63, "best_epoch": 43, "best_score": 2.0 - 0.01 * 42,
+         "stopped": "no improvement for 20 epochs"}))
     starts.record_start(str(runs / "cvgl_baseline-s1"), str(tmp_path / "gone"), machine=CPU,
                         gpu_names=[])
     return script, home, out, run_dir
