@@ -54,16 +54,13 @@ import pytest
 from filelock import FileLock
 
 from helpers import (
-    QUICK_XLA_FLAGS, REPO, RESUME_ARGS, quick_reproduction_args, set_writable, train_py,
-    write_stereo_fixture,
+    QUICK_XLA_FLAGS, REPO, RESUME_ARGS, VARIANT_RUN, quick_reproduction_args, set_writable,
+    train_py, write_stereo_fixture,
 )
 
 os.environ.setdefault("KERAS_BACKEND", "jax")
 
 TINY_SIZE = 32
-#: The shared variant runs' settings: 40 pairs -> 25 train, 3 val, 12 test;
-#: batches of 5 keep one shape (one compilation); 2 epochs.
-VARIANT_RUN = dict(backbone="small", epochs=2, batch_size=5, seed=1, verbose=0)
 
 #: The session folder's variable (set by the controlling process).
 SESSION = "CPL_KERAS_TEST_SESSION"

@@ -317,6 +317,12 @@ def train_py(*args, cache=None, env=None):
     return [sys.executable, os.path.join(REPO, "train.py"), *args], environment
 
 
+#: The shared variant runs' settings (conftest's ``variant_run``): 40 pairs
+#: -> 25 train, 3 val, 12 test; batches of 5 keep one shape (one
+#: compilation); 2 epochs.
+VARIANT_RUN = dict(backbone="small", epochs=2, batch_size=5, seed=1, verbose=0)
+
+
 def interrupt_after_epoch(monkeypatch, epoch):
     """Make training raise KeyboardInterrupt right after epoch ``epoch``'s
     commit (1-based), as a kill at that moment would leave the run;

@@ -5,8 +5,7 @@ import os
 
 import numpy as np
 import pytest
-from conftest import VARIANT_RUN
-from helpers import interrupt_after_epoch, load_script
+from helpers import VARIANT_RUN, interrupt_after_epoch, load_script
 
 from cpl_keras import files
 from cpl_keras.training_options import TrainingError

@@ -28,7 +28,7 @@ TINY = dict(backbone="small", epochs=2, batch_size=5, verbose=0)
 # ---------------------------------------------------------------------------
 @pytest.mark.parametrize("variant", ["baseline", "cpl-u", "cpl-a", "deep-homo"])
 def test_every_variant_writes_the_run_directory(variant, stereo40, variant_run, tmp_path):
-    """The shared run of each variant (conftest's VARIANT_RUN: these
+    """The shared run of each variant (helpers' VARIANT_RUN: these
     settings, seed 1) on ``stereo40``."""
     import keras
 
