@@ -64,8 +64,9 @@ def check_repeats(run_dir, log_path):
 
     import plateau_progress  # (analyses/plateau_progress.py: ``repeats``)
 
-    epoch = read_state(run_dir).epoch
-    if epoch < 1 or read_state(run_dir).checkpoint is None:
+    state = read_state(run_dir)
+    epoch = state.epoch
+    if epoch < 1 or state.checkpoint is None:
         raise _error(f"{run_dir}: no checkpoint to replay from (train it first, and stop it "
                      "after the epoch before the one to replay)")
     rows = read_log(os.path.join(run_dir, "log.csv"))[:epoch]
@@ -85,6 +86,7 @@ def load_for_replay(run_dir, data):
     from cpl_keras import models, runs
     from cpl_keras.data.storage import StereoFile
     from cpl_keras.datasets import load_split, targets_from_labels
+    from cpl_keras.training.checkpointing import load_checkpoint
     from cpl_keras.training.sequence import StereoSequence
     from cpl_keras.training.state import read_state
 
@@ -96,8 +98,7 @@ def load_for_replay(run_dir, data):
     state = read_state(run_dir)
     model = models.build_from_config(config.variant, config.build, read_backbone_weights=False)
     models.compile_model(model, training)
-    model.optimizer.build(model.trainable_variables)
-    model.load_weights(os.path.join(run_dir, runs.BACKUP, state.checkpoint + ".weights.h5"))
+    load_checkpoint(model, run_dir, state.checkpoint)
     with StereoFile(data) as f:
         targets = targets_from_labels(f.labels, as_released=config.model.as_released)
     split = load_split(os.path.join(run_dir, runs.SPLIT))
@@ -120,10 +121,11 @@ def replay_epoch(model, sequence):
         if not isinstance(outputs, dict):
             outputs = dict(zip(model.output_names, outputs))
         logs = model.train_on_batch(x, y, return_dict=True)
-        batches.append({"batch": number, "pairs": len(sequence.batch_indices(number)),
+        indices = [int(i) for i in sequence.batch_indices(number)]
+        batches.append({"batch": number, "pairs": len(indices),
                         **{k: float(v) for k, v in logs.items()}})
-        pairs["index"] += [int(i) for i in sequence.batch_indices(number)]
-        pairs["batch"] += [number] * len(sequence.batch_indices(number))
+        pairs["index"] += indices
+        pairs["batch"] += [number] * len(indices)
         for name, value in outputs.items():
             pairs["pred"].setdefault(name, []).extend(np.asarray(value).reshape(-1).tolist())
             pairs["truth"].setdefault(name, []).extend(np.asarray(y[name]).reshape(-1).tolist())
@@ -165,6 +167,13 @@ def summarise(replayed, epoch, log_rows, floors, smallest):
                            "at_floor": int(np.sum(at_floor[batch_of == b["batch"]]))}
                         for b in by_loss],
         "at_floor": int(at_floor.sum()), "at_floor_batches": floored,
+        "at_floor_true": [float(truth["disparity"][at_floor].min()),
+                          float(truth["disparity"][at_floor].max())] if at_floor.any() else None,
+        "at_floor_batches_loss_share": float(sum(b["loss"] * b["pairs"] for b in batches
+                                                 if b["batch"] in floored)
+                                             / np.sum(weights * losses)),
+        "other_batches_max_loss": max((b["loss"] for b in batches if b["batch"] not in floored),
+                                      default=None),
         "smallest_disparity_elsewhere": float(pred["disparity"][elsewhere].min())
         if elsewhere.any() else None,
         "pairs": len(error), "median_X_error": float(np.median(error)),
@@ -213,9 +222,15 @@ def markdown(found, command):
     lines += [f"| {b['batch']} | {b['pairs']} | {_cell(b['loss'])} | {_cell(b['X'])} | "
               f"{b['at_floor']} |" for b in found["top_batches"]]
     batches = ", ".join(map(str, found["at_floor_batches"])) or "none"
+    truths = found["at_floor_true"]
     lines += ["", f"{found['at_floor']} pairs had their disparity predicted at the graph's "
               f"floor ({found['floors'].get('disparity', 0):g} px, within "
-              f"{FLOOR_MARGIN:.0%}), in batches {batches}; in every other batch the smallest "
+              f"{FLOOR_MARGIN:.0%}), in batches {batches}"
+              + (f", against true disparities of {_cell(truths[0])}-{_cell(truths[1])} px"
+                 if truths else "")
+              + f"; those batches carry {found['at_floor_batches_loss_share']:.3f} of the "
+              f"epoch's loss, and no other batch's loss exceeds "
+              f"{_cell(found['other_batches_max_loss'])}. In every other batch the smallest "
               f"predicted disparity was {_cell(found['smallest_disparity_elsewhere'])} px."]
     lines += ["", f"Of the epoch's {found['pairs']} pairs, {found['large']} have an error of X "
               f"above ten times the median ({_cell(found['median_X_error'])} m); they carry "

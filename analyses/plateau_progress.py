@@ -103,8 +103,9 @@ def run_progress(arm, seed, home, out):
     rows = {int(row["epoch"]): float(row[MONITOR]) for row in logged}
     last = [rows[e] for e in sorted(rows)[-WINDOW:]]
     fifty = os.path.join(out, "inception", "runs", name, "log.csv")
-    entry["repeats_fifty"] = repeats(logged, read_log(fifty) if os.path.isfile(fifty) else [])
-    return dict(entry, status=status, epochs=epochs, stopped=stopped, wait=wait,
+    return dict(entry, repeats_fifty=repeats(logged, read_log(fifty) if os.path.isfile(fifty)
+                                             else []),
+                status=status, epochs=epochs, stopped=stopped, wait=wait,
                 best_epoch=best_epoch, best=best,
                 slope=slope(last) if len(last) == WINDOW else None,
                 at=({str(e): rows[e] for e in fair_fight.PLATEAU["equal_epochs"] if e in rows}))

@@ -34,9 +34,8 @@ from cpl_keras.evaluation.pairs import (
 )
 from cpl_keras.evaluation.tables import Table1
 from cpl_keras.metrics import jsonable
-from cpl_keras.runs import load_run
 from cpl_keras.models.variants import MODEL_ROWS, VARIANT_ROWS
-from cpl_keras.runs import RELEASED
+from cpl_keras.runs import RELEASED, load_run
 from cpl_keras.table_rows import Row
 
 #: Row order of the paper's tables (plus our two extra rows).

@@ -85,19 +85,7 @@ class RunState(keras.callbacks.Callback):
         ckpt = self.state.checkpoint
         if ckpt is None:
             return 0
-        # The weights file holds the optimizer's variables too; build the
-        # optimizer first so they are loaded rather than skipped.
-        if not model.optimizer.built:
-            model.optimizer.build(model.trainable_variables)
-        path = os.path.join(self.backup, ckpt + ".weights.h5")
-        try:
-            model.load_weights(path)
-        except (OSError, ValueError) as error:  # (missing, truncated, another model's)
-            first = (str(error).strip().splitlines() or [type(error).__name__])[0]
-            raise TrainingError(
-                f"cannot resume from the checkpoint {path} ({first}); delete "
-                f"{self.backup} to start the run again from epoch 1, or use another "
-                f"--run-dir") from None
+        load_checkpoint(model, self.run_dir, ckpt)
         # log.csv again from the state (atomically): a run begun by older code
         # has a 0-based log, renumbered from 1 here, before training goes on
         if self.processes.writes:
@@ -255,6 +243,26 @@ class RunState(keras.callbacks.Callback):
                 if os.path.exists(path):
                     os.remove(path)
         publish_run_files(self.run_dir, state)
+
+
+def load_checkpoint(model, run_dir, name):
+    """Load the checkpoint ``name`` of ``run_dir``'s backup/ into ``model``:
+    its weights and its optimizer's state (TrainingError, one line, when the
+    file is missing, truncated or another model's)."""
+    backup = os.path.join(run_dir, runs.BACKUP)
+    # The weights file holds the optimizer's variables too; build the
+    # optimizer first so they are loaded rather than skipped.
+    if not model.optimizer.built:
+        model.optimizer.build(model.trainable_variables)
+    path = os.path.join(backup, name + ".weights.h5")
+    try:
+        model.load_weights(path)
+    except (OSError, ValueError) as error:  # (missing, truncated, another model's)
+        first = (str(error).strip().splitlines() or [type(error).__name__])[0]
+        raise TrainingError(
+            f"cannot resume from the checkpoint {path} ({first}); delete "
+            f"{backup} to start the run again from epoch 1, or use another "
+            f"--run-dir") from None
 
 
 def save_weights(model, path):
