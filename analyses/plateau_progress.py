@@ -161,9 +161,13 @@ def markdown(found, command):
                          f"{r['starts']} ({r['resumed']}) |")
             continue
         status = r["status"] + (f" ({r['stopped']})" if r.get("stopped") else "")
-        since = "-" if r["wait"] is None else f"{r['wait']} of {found['patience']}"
+        # A run that has not finished its first epoch has no best and no wait yet.
+        scored = r["best_epoch"] is not None
+        since = (f"{r['wait']} of {found['patience']}" if scored and r["wait"] is not None
+                 else "-")
+        best = f"{_number(r['best'])} ({r['best_epoch']})" if scored else "-"
         lines.append(f"| {name} | {r['seed']} | {status} | {r['epochs']} | "
-                     f"{_number(r['best'])} ({r['best_epoch']}) | {since} | "
+                     f"{best} | {since} | "
                      f"{_number(r['slope'], percent=True)} | {_repeats(r['repeats_fifty'])} | "
                      f"{r['starts']} ({r['resumed']}) |")
     reached = sorted({int(e) for r in found["runs"] for e in r.get("at", {})})

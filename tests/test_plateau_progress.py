@@ -102,3 +102,18 @@ def test_repeating_the_fifty_epoch_run_ignores_only_the_machines_columns():
     new[1]["loss"] += 1e-12  # (a last digit)
     assert script.repeats(new, old) == {"epochs": 1, "of": 3}
     assert script.repeats(new, []) is None
+
+
+def test_a_run_before_its_first_epoch_has_no_best_and_no_wait(plateau):
+    script, home, out, run_dir = plateau
+    fresh = run_dir.parent / "cpl-a-s1"
+    starts = load_script("analyses/run_starts.py")
+    starts.record_start(str(out / "inception-plateau" / "runs" / "cvgl_cpl-a-s1"), str(fresh),
+                        machine=CPU, gpu_names=[])
+    os.makedirs(fresh / "backup")
+    write_state(str(fresh), TrainingState(epoch=0))
+    (run_dir.parent / "cpl-a-s1.claim").write_text(str(os.getpid()))
+    assert script.main(["--home", str(home), "--out", str(out)]) == 0
+    text = (out / "inception-plateau" / "progress.md").read_text()
+    assert "| MTL-CPL-A | 1 | training | 0 | - | - | - | - | 1 (0) |" in text
+    assert "None" not in text
