@@ -1,7 +1,8 @@
 """The plateau amendment's six runs as they stand
 (paper_results/fair-fight/protocol-plateau.md): which have started, how far
 each has trained, how long since its validation monitor last improved and
-how fast it is still falling.
+how fast it is still falling; a published run's test columns beside its
+50-epoch record's.
 
     python analyses/plateau_progress.py          # writes inception-plateau/progress.{md,json}
     python analyses/plateau_progress.py --print  # the page on stdout, nothing written
@@ -103,12 +104,35 @@ def run_progress(arm, seed, home, out):
     rows = {int(row["epoch"]): float(row[MONITOR]) for row in logged}
     last = [rows[e] for e in sorted(rows)[-WINDOW:]]
     fifty = os.path.join(out, "inception", "runs", name, "log.csv")
+    if status == "published":
+        entry["test"] = test_nmae(out, arm, seed)
     return dict(entry, repeats_fifty=repeats(logged, read_log(fifty) if os.path.isfile(fifty)
                                              else []),
                 status=status, epochs=epochs, stopped=stopped, wait=wait,
                 best_epoch=best_epoch, best=best,
                 slope=slope(last) if len(last) == WINDOW else None,
                 at=({str(e): rows[e] for e in fair_fight.PLATEAU["equal_epochs"] if e in rows}))
+
+
+def test_nmae(out, arm, seed):
+    """A published run's NMAE per column on its seed's test pairs, at its
+    kept epoch, beside the 50-epoch record of the same arm and seed on the
+    same pairs (``{"plateau": {...}, "fifty": {...}}``; "fifty" is None
+    without that record). The truths come from ``fair_fight_rows``."""
+    import fair_fight_rows
+
+    from cpl_keras import files, metrics
+    from cpl_keras.camera import PARAMETERS
+
+    def columns(towers):
+        (raw,) = fair_fight_rows.rows(os.path.join(out, towers, "runs"), arm, [seed]).values()
+        return {p: metrics.nmae(raw["truth"][p], raw["pred"][p]) for p in PARAMETERS}
+
+    fifty = os.path.join(out, "inception", "runs", f"cvgl_{arm}-s{seed}")
+    if not os.path.isdir(fifty):
+        return {"plateau": columns("inception-plateau"), "fifty": None}
+    return {"plateau": columns("inception-plateau"), "fifty": columns("inception"),
+            "fifty_best_epoch": files.read_json(os.path.join(fifty, "config.json"))["best_epoch"]}
 
 
 def progress(home, out):
@@ -178,6 +202,23 @@ def markdown(found, command):
         lines += [f"| {fair_fight.NAMES[r['arm']]} | {r['seed']} | "
                   + " | ".join(_number(r["at"].get(str(e))) for e in reached) + " |"
                   for r in found["runs"] if r.get("at")]
+    tested = [r for r in found["runs"] if r.get("test")]
+    if tested:
+        columns = list(tested[0]["test"]["plateau"])
+        lines += ["", "The published runs on their seed's test pairs (NMAE per column), the "
+                  "kept model of the run to a plateau above the 50-epoch record of the same "
+                  "arm and seed; one run says nothing of the arms' comparison, which is "
+                  "the verdicts page's:", "",
+                  "| run | seed | trained | " + " | ".join(columns) + " |",
+                  "|---|---|---|" + "---|" * len(columns)]
+        for r in tested:
+            for label, key in ((f"to a plateau (best epoch {r['best_epoch']})", "plateau"),
+                               (f"50 epochs (best epoch {r['test'].get('fifty_best_epoch')})",
+                                "fifty")):
+                if r["test"][key] is not None:
+                    lines.append(f"| {fair_fight.NAMES[r['arm']]} | {r['seed']} | {label} | "
+                                 + " | ".join(_number(r["test"][key][c]) for c in columns)
+                                 + " |")
     return "\n".join(lines) + "\n"
 
 

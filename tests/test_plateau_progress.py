@@ -1,16 +1,21 @@
 """``analyses/plateau_progress.py``: the plateau amendment's runs as they
 stand, from their ledgers, run directories and published records."""
 
+import glob
 import json
 import os
+import shutil
 
+import numpy as np
 import pytest
-from helpers import load_script
+from helpers import REPO, load_script
 
+from cpl_keras import camera
 from cpl_keras.training.state import TrainingState, write_state
 from cpl_keras.training_options import TrainingError
 
 CPU = {"cpu": "AMD EPYC", "cpu_count": 2}
+FIGHT = os.path.join(REPO, "paper_results", "fair-fight")
 
 
 def _log(path, values):
@@ -18,6 +23,31 @@ def _log(path, values):
     os.makedirs(os.path.dirname(path), exist_ok=True)
     with open(path, "w") as f:
         f.write("epoch,val_nmae\n" + "".join(f"{i + 1},{v}\n" for i, v in enumerate(values)))
+
+
+def _halved_errors(out, arm, seed):
+    """The committed 50-epoch record's test predictions of ``arm`` and
+    ``seed`` copied into ``out``'s 50-epoch runs, and into its plateau record
+    with every error halved."""
+    rows = load_script("analyses/fair_fight_rows.py")
+    name = f"cvgl_{arm}-s{seed}"
+    source = os.path.join(FIGHT, "inception", "runs", name)
+    (stored,) = glob.glob(os.path.join(source, "predictions", "*.npz"))
+    with np.load(stored, allow_pickle=False) as found:
+        arrays = {k: found[k] for k in found.files}
+    fifty = out / "inception" / "runs" / name
+    os.makedirs(fifty / "predictions", exist_ok=True)
+    np.savez(fifty / "predictions" / os.path.basename(stored), **arrays)
+    shutil.copy(os.path.join(source, "config.json"), fifty / "config.json")
+    _, _, truth = rows.truths(seed)
+    outputs = [str(x) for x in arrays["outputs"]]
+    pred = arrays["pred"].astype(np.float64)
+    for p in camera.PARAMETERS:
+        i = outputs.index(p)
+        pred[:, i] = truth[p] + (pred[:, i] - truth[p]) / 2
+    os.makedirs(out / "inception-plateau" / "runs" / name / "predictions", exist_ok=True)
+    np.savez(out / "inception-plateau" / "runs" / name / "predictions"
+             / os.path.basename(stored), **dict(arrays, pred=pred))
 
 
 @pytest.fixture
@@ -40,6 +70,7 @@ def plateau(tmp_path):
          [1 / e for e in range(1, 21)] + [0.07] * 30)
     record = runs / "cvgl_cpl-a-s0"
     _log(record / "log.csv", [2.0 - 0.01 * e for e in range(63)])
+    _halved_errors(out, "cpl-a", 0)
     (record / "config.json").write_text(json.dumps(
         {"epochs_run": 63, "best_epoch": 43, "best_score": 2.0 - 0.01 * 42,
          "stopped": "no improvement for 20 epochs"}))
@@ -66,7 +97,19 @@ def test_each_run_reads_as_it_stands(plateau):
     # A straight fall of 0.01 an epoch: 0.1 in 10 epochs over the window's mean.
     mean = sum(2.0 - 0.01 * e for e in range(53, 63)) / 10
     assert published["slope"] == pytest.approx(-0.1 / mean)
-    assert published["repeats_fifty"] is None  # (no 50-epoch record of its own here)
+    assert published["repeats_fifty"] is None  # (no 50-epoch log of its own here)
+    # Its test columns: the committed 50-epoch record's, as its verdicts
+    # page scored them, and the plateau record's, every error halved.
+    with open(os.path.join(FIGHT, "inception", "verdicts.json")) as f:
+        pair = json.load(f)["pairs"]["MTL-CPL-A vs MTL-Baseline"]
+    scored = {c["parameter"]: c["per_seed"][0] for c in pair["detail"]}
+    assert scored and all(s["seed"] == 0 for s in scored.values())
+    test = published["test"]
+    assert test["fifty_best_epoch"] > 0
+    for p, interval in scored.items():
+        assert test["fifty"][p] == pytest.approx(interval["nmae_a"], rel=1e-6), p
+        assert test["plateau"][p] == pytest.approx(interval["nmae_a"] / 2, rel=1e-5), p
+    assert "test" not in training
     assert found[("baseline", 1)]["status"] == "lost"
     assert found[("cpl-a", 2)]["status"] == "not started"
     (run_dir.parent / "baseline-s0.claim").write_text(str(os.getpid()))
@@ -81,6 +124,8 @@ def test_the_page_is_written_and_regenerates_from_its_json(plateau, capsys):
     assert "3 of 6 runs started, 1 published" in text
     assert "| MTL-Baseline | 0 | interrupted | 25 | 0.050 (20) | 5 of 20 | +4 % | 20 of 25 | 2 (1) |" in text
     assert "| MTL-CPL-A | 0 | published (no improvement for 20 epochs) | 63 |" in text
+    assert "| MTL-CPL-A | 0 | to a plateau (best epoch 43) |" in text
+    assert "| MTL-CPL-A | 0 | 50 epochs (best epoch " in text
     assert script.regenerate(str(page)) == text
     assert script.main(["--home", str(home), "--out", str(out), "--print"]) == 0
     assert "| MTL-CPL-A | 2 | not started |" in capsys.readouterr().out
