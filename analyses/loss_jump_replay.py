@@ -57,8 +57,9 @@ def _error(message):
 
 
 def check_repeats(run_dir, log_path):
-    """The epochs the run has completed, after checking that its log
-    repeats the published log over all of them (TrainingError, one line)."""
+    """The run's training state (``state.epoch``: the epochs it has
+    completed), after checking that its log repeats the published log over
+    all of them (TrainingError, one line)."""
     from cpl_keras.runs import read_log
     from cpl_keras.training.state import read_state
 
@@ -76,26 +77,24 @@ def check_repeats(run_dir, log_path):
         raise _error(f"{run_dir} repeats {log_path} over {same} of its {epoch} epochs: not the "
                      "published run (another machine kind or code?), so its next epoch is no "
                      "replay")
-    return epoch
+    return state
 
 
-def load_for_replay(run_dir, data):
+def load_for_replay(run_dir, data, state):
     """``(model, sequence, config)``: the run's model compiled as train.py
-    compiles it, its last checkpoint loaded (weights and optimizer), and its
-    training batches in the order of the next epoch."""
+    compiles it, its last checkpoint (``state``'s) loaded (weights and
+    optimizer), and its training batches in the order of the next epoch."""
     from cpl_keras import models, runs
     from cpl_keras.data.storage import StereoFile
     from cpl_keras.datasets import load_split, targets_from_labels
     from cpl_keras.training.checkpointing import load_checkpoint
     from cpl_keras.training.sequence import StereoSequence
-    from cpl_keras.training.state import read_state
 
     config = runs.read_run_config(run_dir)
     training = config.training
     if training.target_scaling == "std" or training.data_parallel:
         raise _error(f"{run_dir}: the replay serves runs without target scaling or data "
                      "parallelism")
-    state = read_state(run_dir)
     model = models.build_from_config(config.variant, config.build, read_backbone_weights=False)
     models.compile_model(model, training)
     load_checkpoint(model, run_dir, state.checkpoint)
@@ -272,8 +271,8 @@ def main(argv=None):
     args = parser.parse_args(argv)
     for name in ("run_dir", "data", "log"):  # ('~/cpl-runs/...': the page names no machine's)
         setattr(args, name, os.path.expanduser(getattr(args, name)))
-    completed = check_repeats(args.run_dir, args.log)
-    model, sequence, config = load_for_replay(args.run_dir, args.data)
+    state = check_repeats(args.run_dir, args.log)
+    model, sequence, config = load_for_replay(args.run_dir, args.data, state)
     try:
         replayed = replay_epoch(model, sequence)
     finally:
@@ -281,7 +280,7 @@ def main(argv=None):
     train = sequence.indices
     smallest = {name: float(np.min(sequence.targets[name][train]))
                 for name in ("disparity", "fy") if name in sequence.targets}
-    found = summarise(replayed, completed + 1, read_log(args.log),
+    found = summarise(replayed, state.epoch + 1, read_log(args.log),
                       config.model.floors or {}, smallest)
     command = cli.command_line("analyses/loss_jump_replay.py", argv)
     files.write_page(args.out + ".md", markdown(found, command), found)

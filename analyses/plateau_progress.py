@@ -128,11 +128,12 @@ def test_nmae(out, arm, seed):
         (raw,) = fair_fight_rows.rows(os.path.join(out, towers, "runs"), arm, [seed]).values()
         return {p: metrics.nmae(raw["truth"][p], raw["pred"][p]) for p in PARAMETERS}
 
+    found = {"plateau": columns("inception-plateau"), "fifty": None}
     fifty = os.path.join(out, "inception", "runs", f"cvgl_{arm}-s{seed}")
-    if not os.path.isdir(fifty):
-        return {"plateau": columns("inception-plateau"), "fifty": None}
-    return {"plateau": columns("inception-plateau"), "fifty": columns("inception"),
-            "fifty_best_epoch": files.read_json(os.path.join(fifty, "config.json"))["best_epoch"]}
+    if os.path.isdir(fifty):
+        found.update(fifty=columns("inception"), fifty_best_epoch=files.read_json(
+            os.path.join(fifty, "config.json"))["best_epoch"])
+    return found
 
 
 def progress(home, out):
