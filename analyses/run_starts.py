@@ -6,8 +6,8 @@ The ledger is a JSON file in the work tree, beside the run's published
 record (``<record>_starts.json``), written at each start before training,
 so that a commit carries it even when the run directory stays on a machine
 (outside the work tree). Each start adds one entry: the epochs the run had
-completed before it (``backup/state.json``), the machine (``backend.machine``
-and the GPUs ``nvidia-smi`` lists) and whether the run directory had been
+completed before it (``backup/state.json``), the machine (``backend.machine`` without the
+devices JAX sees, and the GPUs ``nvidia-smi`` lists) and whether the run directory had been
 lost (a ledger with starts, no run directory here). A run lost twice is not
 started a third time: ``LostTwice``. When the run is published the ledger
 is copied into its record as ``starts.json``.
@@ -55,12 +55,26 @@ def read(record):
     return found
 
 
+def this_machine():
+    """This machine as the ledger records it: ``backend.machine`` without
+    ``devices``, which it lists only when this process has imported JAX (a
+    start after a run published in the same process would otherwise name
+    the same machine differently from a start in a fresh one); the GPUs are
+    recorded apart (``gpus``)."""
+    from cpl_keras import backend
+
+    return {k: v for k, v in backend.machine().items() if k != "devices"}
+
+
 def summary(starts):
     """The ledger's counts: resumes (starts after the first that went on
-    from a completed epoch), losses, and the machines, each once in order."""
+    from a completed epoch), losses, and the machines, each once in order
+    (a ``devices`` list some older starts carry is not part of a machine's
+    identity: see ``this_machine``)."""
     machines = []
     for start in starts:
-        machine = dict(start["machine"], gpus=start.get("gpus", []))
+        machine = dict({k: v for k, v in start["machine"].items() if k != "devices"},
+                       gpus=start.get("gpus", []))
         if machine not in machines:
             machines.append(machine)
     return {"starts": len(starts),
@@ -73,7 +87,7 @@ def record_start(record, run_dir, machine=None, gpu_names=None):
     """Add this start of the run in ``run_dir`` to ``record``'s ledger (and
     return the ledger). ``LostTwice`` when the run directory is missing here
     after a start that had already followed a loss."""
-    from cpl_keras import backend, files
+    from cpl_keras import files
     from cpl_keras.training.state import read_state
 
     ledger = read(record)
@@ -87,7 +101,7 @@ def record_start(record, run_dir, machine=None, gpu_names=None):
     starts.append({"start": len(starts) + 1, "from_epoch": from_epoch, "lost_before": lost,
                    "utc": datetime.datetime.now(datetime.timezone.utc).isoformat(
                        timespec="seconds"),
-                   "machine": machine if machine is not None else backend.machine(),
+                   "machine": machine if machine is not None else this_machine(),
                    "gpus": gpu_names if gpu_names is not None else gpus()})
     ledger.update(summary(starts), starts=starts)
     os.makedirs(os.path.dirname(os.path.abspath(record)), exist_ok=True)

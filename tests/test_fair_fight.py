@@ -228,6 +228,39 @@ def test_the_plateau_ledger_counts_resumes_machines_and_a_run_lost_twice(tmp_pat
         assert json.load(f)["resumed"] == 1
 
 
+def test_the_plateau_ledger_names_one_machine_one_way_whether_or_not_jax_is_imported(
+        tmp_path, monkeypatch):
+    """The devices JAX sees are listed by ``backend.machine`` only once the
+    process has imported JAX: the ledger leaves them out, so a start in a
+    process that published a run before (JAX imported) and one in a fresh
+    process count one machine, and so do starts recorded with them before."""
+    import sys
+    import types
+
+    from cpl_keras import backend
+
+    if backend.keras_backend() != "jax":
+        pytest.skip("the devices are listed on the JAX backend")
+    starts = load_script("analyses/run_starts.py")
+    jax = types.SimpleNamespace(devices=lambda: [types.SimpleNamespace(
+        platform="cpu", device_kind="cpu")])  # (JAX imported, without its import time)
+    monkeypatch.setitem(sys.modules, "jax", jax)
+    assert backend.machine()["devices"] == ["cpu:cpu"]
+    assert "devices" not in starts.this_machine()
+    record, run_dir = str(tmp_path / "runs" / "cvgl_cpl-a-s0"), str(tmp_path / "r")
+    starts.record_start(record, run_dir, gpu_names=[])
+    monkeypatch.delitem(sys.modules, "jax")  # (a fresh process: no JAX yet)
+    os.makedirs(os.path.join(run_dir, "backup"))
+    from cpl_keras.training.state import TrainingState, write_state
+
+    write_state(run_dir, TrainingState(epoch=84))
+    ledger = starts.record_start(record, run_dir, gpu_names=[])
+    assert len(ledger["machines"]) == 1 and "devices" not in ledger["machines"][0]
+    older = dict(ledger["starts"][0]["machine"], devices=["cpu:cpu"])
+    assert len(starts.summary([dict(ledger["starts"][0], machine=older),
+                               ledger["starts"][1]])["machines"]) == 1
+
+
 def test_the_plateau_page_names_its_amendment_ends_starts_and_the_fifty_epoch_verdict(tmp_path):
     """The amendment's verdicts page: its title and rules name
     protocol-plateau.md, each run says how it ended and how often it was
