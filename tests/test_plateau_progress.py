@@ -162,3 +162,26 @@ def test_a_run_before_its_first_epoch_has_no_best_and_no_wait(plateau):
     text = (out / "inception-plateau" / "progress.md").read_text()
     assert "| MTL-CPL-A | 1 | training | 0 | - | - | - | - | 1 (0) |" in text
     assert "None" not in text
+
+
+def test_the_pages_say_how_many_plateau_runs_are_published():
+    """The index (its prose and its table) and the fair-fight README say how
+    many of the six plateau runs are published, in words; the count is the
+    published records in ``inception-plateau/runs`` (a page left behind by
+    a publication fails here). Once all six are, the pages give the verdict,
+    and no smaller count may stay on them."""
+    import re
+
+    runs = os.path.join(FIGHT, "inception-plateau", "runs")
+    published = sum(os.path.isdir(os.path.join(runs, name)) for name in os.listdir(runs))
+    words = ["none", "one", "two", "three", "four", "five", "six"]
+    said = re.compile(r"\b(none|one|two|three|four|five|six) of (?:its )?six "
+                      r"(?:runs )?(?:is |are )?published", re.IGNORECASE)
+    for page, least in ((os.path.join(REPO, "paper_results", "README.md"), 2),
+                        (os.path.join(FIGHT, "README.md"), 1)):
+        with open(page, encoding="utf-8") as f:
+            text = " ".join(f.read().split())
+        counts = [m.lower() for m in said.findall(text)]
+        assert set(counts) <= {words[published]}, (page, counts)
+        assert published == 6 or len(counts) >= least, (page, counts)
+        assert not re.search(r"none published|6 runs, none", text), page
