@@ -6,10 +6,11 @@ The ledger is a JSON file in the work tree, beside the run's published
 record (``<record>_starts.json``), written at each start before training,
 so that a commit carries it even when the run directory stays on a machine
 (outside the work tree). Each start adds one entry: the epochs the run had
-completed before it (``backup/state.json``), the machine (``backend.machine`` without the
-devices JAX sees, and the GPUs ``nvidia-smi`` lists) and whether the run directory had been
-lost (a ledger with starts, no run directory here). A run lost twice is not
-started a third time: ``LostTwice``. When the run is published the ledger
+completed before it (``backup/state.json``), the machine
+(``backend.machine`` without the devices JAX sees, and the GPUs
+``nvidia-smi`` lists) and whether the run directory had been lost (a ledger
+with starts, no run directory here). A run lost twice is not started a
+third time: ``LostTwice``. When the run is published the ledger
 is copied into its record as ``starts.json``.
 """
 
