@@ -56,6 +56,11 @@ def read(record):
     return found
 
 
+def _identity(machine):
+    """A recorded machine without ``devices`` (see ``this_machine``)."""
+    return {k: v for k, v in machine.items() if k != "devices"}
+
+
 def this_machine():
     """This machine as the ledger records it: ``backend.machine`` without
     ``devices``, which it lists only when this process has imported JAX (a
@@ -64,7 +69,7 @@ def this_machine():
     recorded apart (``gpus``)."""
     from cpl_keras import backend
 
-    return {k: v for k, v in backend.machine().items() if k != "devices"}
+    return _identity(backend.machine())
 
 
 def summary(starts):
@@ -74,8 +79,7 @@ def summary(starts):
     identity: see ``this_machine``)."""
     machines = []
     for start in starts:
-        machine = dict({k: v for k, v in start["machine"].items() if k != "devices"},
-                       gpus=start.get("gpus", []))
+        machine = dict(_identity(start["machine"]), gpus=start.get("gpus", []))
         if machine not in machines:
             machines.append(machine)
     return {"starts": len(starts),
